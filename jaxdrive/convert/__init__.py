@@ -1,0 +1,1 @@
+"""diffusers-format safetensors -> jaxdrive parameters (never pickle)."""

@@ -1,0 +1,1 @@
+"""Metrics, quality-versus-horizon curves and plots."""

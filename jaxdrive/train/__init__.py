@@ -1,0 +1,1 @@
+"""Train state, optimizer, the jitted train steps of each recipe, the loop and checkpoints."""
