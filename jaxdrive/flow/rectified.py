@@ -1,0 +1,94 @@
+"""Rectified flow in the noise-level convention of jaxdrive.
+
+``x_sigma = (1 - sigma) * x + sigma * noise``: sigma = 1 is pure noise, sigma = 0 is data; the
+network predicts the velocity ``v = noise - x`` (MiLA eq. 4-6 with MiLA's progress t = 1 - sigma;
+MagicDrive-V2 and Open-Sora v1.2 use sigma = t/1000 directly).
+
+Noise levels are per sample ``[B]`` or per frame ``[B, F]``. Arrays follow the channels-last
+layout ``[B, ..., F, h, w, C]`` (e.g. latents ``[B, V, F, h, w, C]`` or ``[B, F, h, w, C]``): a
+per-frame sigma lines up with axis 0 and the frame axis -4.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from jaxdrive.validate import check_range, check_same_shape
+
+FRAME_AXIS = -4  # [B, ..., F, h, w, C]
+
+
+def expand_per_frame(values, x, name: str = "sigma"):
+    """Reshape ``[B]`` or ``[B, F]`` values so they broadcast against ``x [B, ..., F, h, w, C]``.
+
+    Shared by every function that takes per-sample or per-frame quantities (noise levels, frame
+    masks, frame weights). Raises ``ValueError`` naming ``name`` when the shapes do not line up.
+    """
+    values = jnp.asarray(values)
+    xs = tuple(x.shape)
+    if values.ndim == 1:
+        if not xs or values.shape[0] != xs[0]:
+            raise ValueError(f"{name}: expected shape [B] or [B, F] with B = {xs[0] if xs else '?'} "
+                             f"(the batch of an array of shape {list(xs)}), got {list(values.shape)}")
+        return values.reshape(values.shape + (1,) * (len(xs) - 1))
+    if values.ndim == 2:
+        if len(xs) < 5 or values.shape != (xs[0], xs[FRAME_AXIS]):
+            want = f"[{xs[0]}, {xs[FRAME_AXIS]}]" if len(xs) >= 5 else "[B] (per-frame needs [B, ..., F, h, w, C])"
+            raise ValueError(f"{name}: expected shape [B] or [B, F] = {want} for an array of shape "
+                             f"{list(xs)}, got {list(values.shape)}")
+        middle = (1,) * (len(xs) - 5)
+        return values.reshape((xs[0],) + middle + (xs[FRAME_AXIS], 1, 1, 1))
+    raise ValueError(f"{name}: expected shape [B] or [B, F], got {list(values.shape)}")
+
+
+def _levels(sigma, x):
+    check_range("sigma", sigma, 0.0, 1.0)
+    return expand_per_frame(sigma, x).astype(jnp.promote_types(x.dtype, jnp.float32))
+
+
+def add_noise(x, noise, sigma):
+    """Point on the straight path from data to noise: ``(1 - sigma) * x + sigma * noise``.
+
+    MiLA eq. 4-5 (there with progress t = 1 - sigma). ``sigma`` is ``[B]`` or ``[B, F]`` in
+    [0, 1]; values are checked when concrete, and the contract holds for traced values.
+    """
+    check_same_shape("noise", noise, "x", x)
+    s = _levels(sigma, x)
+    return ((1.0 - s) * x + s * noise).astype(x.dtype)
+
+
+def velocity_target(x, noise):
+    """The rectified-flow velocity ``noise - x`` that the network learns (MiLA eq. 15, y)."""
+    check_same_shape("noise", noise, "x", x)
+    return noise - x
+
+
+def data_from_velocity(x_t, v, sigma):
+    """Data estimate ``x = x_t - sigma * v``."""
+    check_same_shape("v", v, "x_t", x_t)
+    return (x_t - _levels(sigma, x_t) * v).astype(x_t.dtype)
+
+
+def noise_from_velocity(x_t, v, sigma):
+    """Noise estimate ``noise = x_t + (1 - sigma) * v``."""
+    check_same_shape("v", v, "x_t", x_t)
+    return (x_t + (1.0 - _levels(sigma, x_t)) * v).astype(x_t.dtype)
+
+
+def velocity_from_data(x_t, x, sigma):
+    """Velocity from a data estimate, ``(x_t - x) / sigma``; undefined (inf/nan) at sigma = 0."""
+    check_same_shape("x", x, "x_t", x_t)
+    return ((x_t - x) / _levels(sigma, x_t)).astype(x_t.dtype)
+
+
+def velocity_from_noise(x_t, noise, sigma):
+    """Velocity from a noise estimate, ``(noise - x_t) / (1 - sigma)``; undefined at sigma = 1."""
+    check_same_shape("noise", noise, "x_t", x_t)
+    return ((noise - x_t) / (1.0 - _levels(sigma, x_t))).astype(x_t.dtype)
+
+
+def euler_step(x_t, v, sigma, sigma_next):
+    """One Euler step of the flow ODE from level ``sigma`` to ``sigma_next``: ``x + (s' - s) v``."""
+    check_same_shape("v", v, "x_t", x_t)
+    ds = _levels(sigma_next, x_t) - _levels(sigma, x_t)
+    return (x_t + ds * v).astype(x_t.dtype)
