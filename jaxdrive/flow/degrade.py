@@ -1,0 +1,49 @@
+"""STAGE's DCT degradation of condition frames (STAGE sec. 4C, data augmentation).
+
+STAGE low-passes the condition frame with a discrete cosine transform during training so the
+model learns to cope with the blur and artifacts of its own earlier outputs. jaxdrive keeps the
+lowest ``keep_ratio`` of the DCT-II coefficients along each of the height and width axes and
+zeroes the rest (orthonormal DCT, so ``keep_ratio = 1`` is the identity).
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jax.scipy.fft import dctn, idctn
+
+from jaxdrive.flow.rectified import expand_per_frame
+from jaxdrive.validate import check_range, check_shape
+
+
+def dct_lowpass(x, keep_ratio):
+    """Low-pass ``x [B, ..., h, w, C]`` over (h, w) keeping ``ceil(keep_ratio * n)`` DCT bins per axis.
+
+    ``keep_ratio`` in (0, 1]: a scalar, or ``[B]`` for a ratio per sample (drawn by the caller).
+    At least the DC bin is always kept.
+    """
+    x = jnp.asarray(x)
+    if x.ndim < 4:
+        raise ValueError(f"x: expected shape [B, ..., h, w, C] (4 or more axes), got {list(x.shape)}")
+    check_range("keep_ratio", keep_ratio, 0.0, 1.0, lo_open=True)
+    keep = jnp.asarray(keep_ratio, jnp.float32)
+    if keep.ndim == 1:
+        check_shape("keep_ratio", keep, (x.shape[0],))
+        keep = keep.reshape((-1,) + (1,) * (x.ndim - 1))
+    elif keep.ndim != 0:
+        raise ValueError(f"keep_ratio: expected a scalar or shape [{x.shape[0]}], got {list(keep.shape)}")
+    h, w = x.shape[-3], x.shape[-2]
+    rows = jnp.arange(h).reshape(h, 1, 1) < jnp.maximum(jnp.ceil(keep * h), 1)
+    cols = jnp.arange(w).reshape(1, w, 1) < jnp.maximum(jnp.ceil(keep * w), 1)
+    coeffs = dctn(x.astype(jnp.float32), type=2, axes=(-3, -2), norm="ortho")
+    return idctn(coeffs * (rows & cols), type=2, axes=(-3, -2), norm="ortho").astype(x.dtype)
+
+
+def degrade_frames(x, frame_mask, keep_ratio):
+    """Apply :func:`dct_lowpass` to the frames where ``frame_mask [B, F]`` is True; others pass
+    through bit for bit. ``x [B, ..., F, h, w, C]``."""
+    x = jnp.asarray(x)
+    if x.ndim < 5:
+        raise ValueError(f"x: expected shape [B, ..., F, h, w, C] (5 or more axes), got {list(x.shape)}")
+    check_shape("frame_mask", frame_mask, (x.shape[0], x.shape[-4]))
+    mask = expand_per_frame(jnp.asarray(frame_mask, bool), x, "frame_mask")
+    return jnp.where(mask, dct_lowpass(x, keep_ratio), x)
