@@ -1,0 +1,33 @@
+"""Pure flow math over noise levels: rectified flow, timestep sampling and shifts, MiLA's TPD and
+JDC schedules, the losses of MiLA, LongDWM and STAGE, and the jitted sampler.
+
+Convention: ``x_sigma = (1 - sigma) x + sigma noise`` (sigma = 1 noise, 0 data), velocity
+``v = noise - x``; sigma is ``[B]`` or per frame ``[B, F]``; arrays are ``[B, ..., F, h, w, C]``.
+"""
+
+from jaxdrive.flow.degrade import dct_lowpass, degrade_frames
+from jaxdrive.flow.distill import (coarse_from_segments, coarse_indices, dense_to_coarse,
+                                   distill_loss, split_segments)
+from jaxdrive.flow.jdc import jdc_alpha2, jdc_anchor_sigma, jdc_noise_var, jdc_renoise
+from jaxdrive.flow.losses import (flow_loss, high_pass, high_pass_mask, per_frame_flow_loss,
+                                  structure_loss)
+from jaxdrive.flow.rectified import (add_noise, data_from_velocity, euler_step, expand_per_frame,
+                                     noise_from_velocity, velocity_from_data, velocity_from_noise,
+                                     velocity_target)
+from jaxdrive.flow.sampler import sample
+from jaxdrive.flow.schedule import frame_schedule, frame_sigmas
+from jaxdrive.flow.timesteps import resolution_shift, sample_sigmas, sampling_sigmas, shift_sigmas
+from jaxdrive.flow.tpd import tpd_frame_sigmas, tpd_level, tpd_sigmas
+
+__all__ = [
+    "add_noise", "velocity_target", "data_from_velocity", "noise_from_velocity",
+    "velocity_from_data", "velocity_from_noise", "euler_step", "expand_per_frame",
+    "sample_sigmas", "shift_sigmas", "resolution_shift", "sampling_sigmas",
+    "tpd_level", "tpd_sigmas", "tpd_frame_sigmas",
+    "jdc_alpha2", "jdc_noise_var", "jdc_renoise", "jdc_anchor_sigma",
+    "frame_sigmas", "frame_schedule",
+    "flow_loss", "per_frame_flow_loss", "high_pass", "high_pass_mask", "structure_loss",
+    "coarse_indices", "dense_to_coarse", "split_segments", "coarse_from_segments", "distill_loss",
+    "dct_lowpass", "degrade_frames",
+    "sample",
+]
