@@ -1,0 +1,42 @@
+"""Shared output and timing helpers of the benchmarks."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import jax
+
+
+def emit(bench: str, figure: str, value, unit: str, **context) -> dict:
+    """Print one figure as a JSON line (``{"bench", "figure", "value", "unit", ...}``)."""
+    row = {"bench": bench, "figure": figure, "value": value, "unit": unit, **context}
+    print(json.dumps(row, sort_keys=True), flush=True)
+    return row
+
+
+def table(rows: list[dict], columns: list[str]) -> str:
+    """A plain-text table of ``rows`` restricted to ``columns``."""
+    cells = [[str(r.get(c, "")) for c in columns] for r in rows]
+    widths = [max(len(c), *(len(row[i]) for row in cells)) for i, c in enumerate(columns)]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(columns, widths)),
+             "  ".join("-" * w for w in widths)]
+    lines += ["  ".join(v.ljust(w) for v, w in zip(row, widths)) for row in cells]
+    return "\n".join(lines)
+
+
+def best_time(fn, *, repeats: int = 5) -> float:
+    """Best wall time in seconds of ``fn()`` over ``repeats`` runs, blocking on its outputs."""
+    jax.block_until_ready(fn())  # warm-up
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
+def temp_bytes(compiled) -> int | None:
+    """Temporary (scratch) memory of a compiled program, or None where the backend has no analysis."""
+    analysis = compiled.memory_analysis()
+    return None if analysis is None else int(analysis.temp_size_in_bytes)
