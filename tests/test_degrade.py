@@ -54,3 +54,12 @@ def test_bad_inputs():
         flow.dct_lowpass(x, jnp.ones(3) * 0.5)
     with pytest.raises(ValueError, match=r"frame_mask: expected shape \[2, 3\], got \[2, 2\]"):
         flow.degrade_frames(x, jnp.zeros((2, 2), bool), 0.5)
+
+
+def test_dct_matrix_is_the_orthonormal_dct_ii():
+    from jax.scipy.fft import dct
+
+    from jaxdrive.flow.degrade import dct_matrix
+    v = jax.random.normal(jax.random.PRNGKey(3), (11,))
+    np.testing.assert_allclose(dct_matrix(11) @ v, dct(v, type=2, norm="ortho"), atol=1e-5)
+    np.testing.assert_allclose(dct_matrix(11) @ dct_matrix(11).T, np.eye(11), atol=1e-6)

@@ -95,17 +95,25 @@ def _guidance_variants(cond, null_cond, guidance_scale):
     return variants, combine
 
 
+def _interleave(leaves):
+    """Stack per-variant arrays ``[B, ...]`` to ``[B * n, ...]`` with each sample's variants
+    adjacent (sample-major), so a batch-sharded axis stays sharded the same way: every device
+    evaluates all guidance variants of its own samples and nothing crosses devices."""
+    stacked = jnp.stack(leaves, axis=1)
+    return stacked.reshape((stacked.shape[0] * stacked.shape[1],) + stacked.shape[2:])
+
+
 def _batched_velocity(velocity_fn, variants, combine):
     """One call of ``velocity_fn`` over all guidance variants stacked along the batch."""
     n = len(variants)
     if n == 1:
         return lambda x, s: velocity_fn(x, s, variants[0])
-    stacked = jax.tree_util.tree_map(lambda *leaves: jnp.concatenate(leaves, axis=0), *variants)
+    stacked = jax.tree_util.tree_map(lambda *leaves: _interleave(leaves), *variants)
 
     def velocity(x, sigma):
-        reps = (n,) + (1,) * (x.ndim - 1)
-        v = velocity_fn(jnp.tile(x, reps), jnp.tile(sigma, (n,) + (1,) * (sigma.ndim - 1)), stacked)
-        return combine(jnp.split(v, n, axis=0))
+        v = velocity_fn(_interleave([x] * n), _interleave([sigma] * n), stacked)
+        v = v.reshape((x.shape[0], n) + v.shape[1:])
+        return combine([v[:, i] for i in range(n)])
     return velocity
 
 
@@ -123,7 +131,9 @@ def sample(velocity_fn: Callable, x, sigmas, *, cond=None, null_cond=None, guida
       sigmas: ``[N + 1]`` shared levels, ``[N + 1, B]``, or a per-frame schedule ``[N + 1, B, F]``
         (e.g. :func:`jaxdrive.flow.frame_schedule` with TPD and JDC anchors). Non-increasing in
         [0, 1] along the steps (checked when concrete).
-      cond, null_cond, guidance_scale: see the module docstring.
+      cond, null_cond, guidance_scale: see the module docstring. With guidance, ``velocity_fn``
+        sees a batch of ``n * B`` (``n`` variants), ordered sample-major: rows ``b * n .. b * n +
+        n - 1`` are sample b's variants, which keeps a batch-sharded axis local to its devices.
       cond_mask: ``[B, F]`` bool; those frames get level 0 and come out bit-identical to ``x``.
       method: ``"euler"`` (one evaluation per step) or ``"heun"`` (two, second order; a step that
         ends at level 0 falls back to Euler, where the velocity of a sharp distribution blows up).
