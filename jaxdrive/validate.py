@@ -59,6 +59,15 @@ def check_shape(name: str, x, expected: Sequence[int | None]) -> None:
         raise ValueError(f"{name}: expected shape {want}, got {list(shape)}")
 
 
+def check_trailing_shape(name: str, x, trailing: Sequence[int | None], label: str) -> None:
+    """Raise unless ``x`` has shape ``[..., *trailing]`` (``None`` = any size); ``label`` is the
+    expected shape as the docstring writes it, e.g. ``"[..., P, 3]"``."""
+    shape = tuple(np.shape(x))
+    tail = shape[len(shape) - len(trailing):]
+    if len(shape) < len(trailing) or any(t is not None and t != s for t, s in zip(trailing, tail)):
+        raise ValueError(f"{name}: expected shape {label}, got {list(shape)}")
+
+
 def check_positive_int(name: str, n, *, minimum: int = 1) -> int:
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < minimum:
         raise ValueError(f"{name}: expected an integer >= {minimum}, got {n!r}")

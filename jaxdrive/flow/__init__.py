@@ -18,6 +18,7 @@ from jaxdrive.flow.sampler import sample
 from jaxdrive.flow.schedule import frame_schedule, frame_sigmas
 from jaxdrive.flow.timesteps import resolution_shift, sample_sigmas, sampling_sigmas, shift_sigmas
 from jaxdrive.flow.tpd import tpd_frame_sigmas, tpd_level, tpd_sigmas
+from jaxdrive.flow.weights import foreground_weight_map
 
 __all__ = [
     "add_noise", "velocity_target", "data_from_velocity", "noise_from_velocity",
@@ -28,6 +29,6 @@ __all__ = [
     "frame_sigmas", "frame_schedule",
     "flow_loss", "per_frame_flow_loss", "high_pass", "high_pass_mask", "structure_loss",
     "coarse_indices", "dense_to_coarse", "split_segments", "coarse_from_segments", "distill_loss",
-    "dct_lowpass", "degrade_frames",
+    "foreground_weight_map", "dct_lowpass", "degrade_frames",
     "sample",
 ]
