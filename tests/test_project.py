@@ -1,0 +1,46 @@
+"""The project's own promises: the CLI, the README's commands and examples, the benchmarks."""
+
+import json
+import pathlib
+import re
+import subprocess
+import sys
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+README = (ROOT / "README.md").read_text()
+
+
+def test_cli_help_lists_the_commands_that_exist():
+    out = subprocess.run([sys.executable, "-m", "jaxdrive.cli", "--help"], capture_output=True,
+                         text=True, check=True).stdout
+    assert "usage: jaxdrive" in out and "bench" in out
+
+
+def test_ci_runs_the_readme_test_command():
+    ci = (ROOT / ".ci" / "run").read_text()
+    readme_cmd = re.search(r"```bash\n(?:.*\n)*?(pip install -e .*)\n```", README).group(1)
+    assert readme_cmd in ci.splitlines()
+
+
+@pytest.mark.parametrize("index", [0, 1])
+def test_readme_python_examples_run(index):
+    blocks = re.findall(r"```python\n(.*?)```", README, flags=re.S)
+    assert len(blocks) >= 2
+    exec(compile(blocks[index], f"README.md python block {index}", "exec"), {})
+
+
+def test_sampler_benchmark_prints_json_figures(capsys):
+    from jaxdrive.cli import main
+    main(["bench", "sampler", "--steps", "2", "--shape", "1", "2", "1", "2", "2", "2", "--hidden", "4"])
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
+    figures = {r["figure"] for r in rows}
+    assert {"compile_time", "scan_time_per_step", "python_loop_time_per_step", "temp_memory"} <= figures
+    assert all(r["bench"] == "sampler" and r["steps"] == 2 for r in rows)
+
+
+def test_unknown_benchmark_is_named():
+    from jaxdrive.cli import main
+    with pytest.raises(SystemExit, match=r"name: expected one of \['sampler'\], got 'nope'"):
+        main(["bench", "nope"])
