@@ -2,6 +2,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from jaxdrive import flow
 
@@ -63,3 +65,13 @@ def test_dct_matrix_is_the_orthonormal_dct_ii():
     v = jax.random.normal(jax.random.PRNGKey(3), (11,))
     np.testing.assert_allclose(dct_matrix(11) @ v, dct(v, type=2, norm="ortho"), atol=1e-5)
     np.testing.assert_allclose(dct_matrix(11) @ dct_matrix(11).T, np.eye(11), atol=1e-6)
+
+
+
+@given(st.floats(0.01, 1.0), st.integers(0, 1000))
+def test_lowpass_is_a_projection(keep, seed):
+    x = jax.random.normal(jax.random.PRNGKey(seed), (1, 2, 6, 10, 3))
+    once = flow.dct_lowpass(x, keep)
+    np.testing.assert_allclose(flow.dct_lowpass(once, keep), once, atol=2e-5)
+    # what it removes is orthogonal to what it keeps
+    assert abs(float(jnp.sum(once * (x - once)))) < 1e-3

@@ -2,6 +2,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from jaxdrive import flow
 
@@ -67,3 +69,17 @@ def test_bad_inputs():
         flow.coarse_from_segments(flow.split_segments(_clip(), 4), 2, boundary="left")
     with pytest.raises(ValueError, match="teacher: expected the shape of student"):
         flow.distill_loss(jnp.ones((1, 2, 1, 1, 1)), jnp.ones((1, 3, 1, 1, 1)))
+
+
+
+@given(st.integers(2, 6), st.integers(1, 5), st.sampled_from(["mean", "start", "end"]))
+def test_segments_round_trip_for_any_geometry(segment_len, num_segments, boundary):
+    frames = num_segments * (segment_len - 1) + 1
+    x = jax.random.normal(jax.random.PRNGKey(frames), (2, frames, 1, 2, 1))
+    seg = flow.split_segments(x, segment_len)
+    assert seg.shape == (2 * num_segments, segment_len, 1, 2, 1)
+    np.testing.assert_array_equal(flow.coarse_from_segments(seg, 2, boundary=boundary),
+                                  flow.dense_to_coarse(x, segment_len))
+    # every dense frame appears in a segment at its own place
+    np.testing.assert_array_equal(seg[1, :], x[0, segment_len - 1: 2 * segment_len - 1] if num_segments > 1
+                                  else x[1, :segment_len])

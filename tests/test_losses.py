@@ -97,3 +97,21 @@ def test_bad_inputs():
         flow.structure_loss(x, x, cutoff=1.5)
     with pytest.raises(ValueError, match=r"x: expected shape \[B, ..., F, h, w, C\]"):
         flow.flow_loss(x[0], x[0], n[0])
+
+
+def test_structure_loss_worked_number():
+    # an error that is the finest checkerboard of amplitude 0.3 passes any cutoff < 1: loss 0.09
+    h = w = 8
+    checker = ((jnp.arange(h)[:, None] + jnp.arange(w)[None, :]) % 2 * 2.0 - 1.0)[None, None, :, :, None]
+    x = jnp.zeros((1, 1, h, w, 1))
+    assert float(flow.structure_loss(x + 0.3 * checker, x, cutoff=0.9)) == pytest.approx(0.09, rel=1e-5)
+
+
+@given(st.lists(st.booleans(), min_size=8, max_size=8), st.integers(0, 1000))
+def test_flow_loss_is_the_mean_over_non_condition_frames(mask_bits, seed):
+    x, n, v = _data(seed)
+    cond = jnp.array(mask_bits).reshape(2, 4)
+    err = np.asarray((v - (n - x)) ** 2)
+    keep = ~np.asarray(cond)
+    want = err[keep].mean() if keep.any() else 0.0
+    assert float(flow.flow_loss(v, x, n, cond_mask=cond)) == pytest.approx(want, rel=1e-5, abs=1e-7)
