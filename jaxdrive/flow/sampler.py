@@ -152,22 +152,25 @@ def sample(velocity_fn: Callable, x, sigmas, *, cond=None, null_cond=None, guida
     def expand(s):
         return expand_per_frame(s, x)
 
+    def pin(y):
+        # Re-impose the condition frames, also before Heun's second evaluation, so whatever the
+        # model returns on them can never reach the other frames.
+        y = y.astype(x.dtype)
+        return y if keep is None else jnp.where(keep, x_cond, y)
+
     def step(state, pair):
         s, s_next = pair
         v = velocity(state, s)
         ds = expand(s_next) - expand(s)
-        euler = state + ds * v
+        euler = pin(state + ds * v)
         if method == "heun":
             def heun():
-                v_next = velocity(euler.astype(state.dtype), s_next)
+                v_next = velocity(euler, s_next)
                 corrected = state + ds * 0.5 * (v + v_next)
-                return jnp.where(expand(s_next) > 0.0, corrected, euler)
+                return pin(jnp.where(expand(s_next) > 0.0, corrected, euler))
             new = jax.lax.cond(jnp.all(s_next == 0.0), lambda: euler, heun)
         else:
             new = euler
-        new = new.astype(state.dtype)
-        if keep is not None:
-            new = jnp.where(keep, x_cond, new)
         return new, (new if return_trajectory else None)
 
     final, traj = jax.lax.scan(step, x, (levels[:-1], levels[1:]))
