@@ -1,0 +1,421 @@
+"""The grain input pipeline: random-access clip sources to bucketed, sharded training batches.
+
+    ds = make_pipeline(open_source(path, "train"), buckets={(256, 448, 17): 4, (128, 224, 33): 16},
+                       stride=2, views=("CAM_FRONT", "CAM_FRONT_LEFT"), seed=0)
+    it = iter(ds); batch = next(it); state = it.get_state()   # it.set_state(state) resumes exactly
+
+Every batch holds one bucket (H, W, F) (Open-Sora / MagicDrive-V2 mixed resolution and length):
+``video [B, V, F, H, W, 3]`` float32 in [-1, 1]; ``intrinsics [B, V, 3, 3]`` in pixels of (H, W);
+``cam_to_ego [B, V, 4, 4]``; ``ego_to_world [B, F, 4, 4]`` (float32); ``boxes [B, F, N, 7]``,
+``box_classes``/``box_ids``/``box_valid [B, F, N]`` (N padded to the batch maximum or
+``max_boxes``, padding invalid); ``bev_map [B, F, Hm, Wm, 8]`` uint8; ``waypoints [B, F, 2]`` in
+the ego frame of the first sampled frame; ``fps [B]`` = source fps / stride; ``caption`` (list of
+str, as other text fields of the clips); ``drop`` {condition: [B] bool} for classifier-free
+guidance; ``index [B]`` the source indices. ``instance_ids`` is not carried.
+
+Choices:
+- Planning is in index space and global: each epoch, a seeded permutation of all clips, a seeded
+  bucket per clip (among the buckets the clip is long enough for, probabilities renormalised),
+  shard s taking the clips with ``index % shard_count == s``. A bucket yields, on every shard, the
+  same number of batches (the minimum over shards), and the order of buckets is one seeded
+  sequence shared by all shards, so all processes feed the same shapes at every step (required to
+  assemble global arrays). ``batch_size`` is per process. Leftover clips are dropped and counted
+  in the log.
+- Per-sample draws (start frame, crop offset, drop masks) are seeded by (seed, epoch, index): the
+  same for any shard count. Iterator state is grain's (the next batch index), exact on resume.
+- Resize: scale to cover (H, W) keeping the aspect ratio, then crop (centre or random); an
+  antialiased triangle filter in the pixel-centre convention (pixel c covers [c, c + 1), centre
+  c + 0.5), so ``fx' = fx * sx``, ``cx' = cx * sx - crop_x`` exactly match the resampled image.
+- Clip frame counts come from ``source.frame_counts`` (the TFDS source stores them) or the
+  ``frame_counts`` argument; otherwise every clip is read once at construction (logged).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+from collections.abc import Mapping, Sequence
+
+import grain
+import numpy as np
+
+from jaxdrive.data import schema
+from jaxdrive.validate import check_positive_int
+
+log = logging.getLogger(__name__)
+
+CONDITIONS = ("text", "boxes", "map", "trajectory", "camera")
+DEFAULT_DROP_PROBS = {name: 0.15 for name in CONDITIONS}
+_INFINITE = 2 ** 62
+_TAG_PERM, _TAG_BUCKET, _TAG_ORDER, _TAG_SAMPLE = 1, 2, 3, 4
+
+
+def frames_for(k: int, *, compression: int = 4) -> int:
+    """Clip length ``1 + compression * k`` (the 3D VAE maps it to ``1 + k`` latent frames)."""
+    return 1 + compression * check_positive_int("k", k, minimum=0)
+
+
+@dataclasses.dataclass(frozen=True)
+class Bucket:
+    height: int
+    width: int
+    frames: int
+    batch_size: int
+    prob: float
+
+    @property
+    def key(self) -> tuple[int, int, int]:
+        return (self.height, self.width, self.frames)
+
+    def needed(self, stride: int) -> int:
+        """Source frames one clip of this bucket spans at ``stride``."""
+        return 1 + (self.frames - 1) * stride
+
+
+def parse_buckets(buckets, *, compression: int = 4) -> tuple[Bucket, ...]:
+    """``{(H, W, F): batch_size}`` or ``{(H, W, F): (batch_size, prob)}`` -> buckets (probabilities
+    default to uniform and are normalised)."""
+    if not isinstance(buckets, Mapping) or not buckets:
+        raise ValueError(f"buckets: expected a non-empty {{(H, W, F): batch_size}} mapping, got {buckets!r}")
+    out = []
+    for key, value in buckets.items():
+        if not (isinstance(key, tuple) and len(key) == 3):
+            raise ValueError(f"buckets: expected keys (H, W, F), got {key!r}")
+        h, w, f = (check_positive_int(f"buckets key {key} {n}", v) for n, v in zip("HWF", key))
+        if (f - 1) % compression:
+            raise ValueError(f"buckets: bucket {key}: expected F = 1 + {compression}k frames, got {f}")
+        bs, p = value if isinstance(value, tuple) else (value, 1.0)
+        bs = check_positive_int(f"buckets[{key}] batch size", bs)
+        if not (isinstance(p, (int, float)) and p >= 0):
+            raise ValueError(f"buckets[{key}]: expected a probability >= 0, got {p!r}")
+        out.append(Bucket(h, w, f, bs, float(p)))
+    total = sum(b.prob for b in out)
+    if total <= 0:
+        raise ValueError(f"buckets: expected a positive probability somewhere, got {buckets!r}")
+    return tuple(dataclasses.replace(b, prob=b.prob / total) for b in out)
+
+
+# ----------------------------------------------------------------------------- per-clip transforms
+
+def _resize_weights(n_in: int, n_resized: int, offset: int, n_out: int) -> np.ndarray:
+    """[n_out, n_in] antialiased triangle-filter weights for output pixels offset..offset+n_out-1
+    of an n_in -> n_resized resize (pixel centres at c + 0.5 on both grids)."""
+    scale = n_resized / n_in
+    support = max(1.0, 1.0 / scale)
+    x = (np.arange(offset, offset + n_out) + 0.5) / scale - 0.5  # input pixel-index coordinate
+    d = np.abs(np.arange(n_in)[None, :] - x[:, None]) / support
+    w = np.maximum(0.0, 1.0 - d)
+    return (w / w.sum(axis=1, keepdims=True)).astype(np.float32)
+
+
+def resize_plan(in_hw: tuple[int, int], out_hw: tuple[int, int], *, crop: str = "center",
+                rng: np.random.Generator | None = None) -> dict:
+    """Cover-resize then crop: the scale factors (sy, sx), resized size and crop offset (oy, ox)."""
+    (h, w), (H, W) = in_hw, out_hw
+    s = max(H / h, W / w)
+    hr, wr = max(H, round(h * s)), max(W, round(w * s))
+    if crop == "center":
+        oy, ox = (hr - H) // 2, (wr - W) // 2
+    elif crop == "random":
+        rng = rng if rng is not None else np.random.default_rng(0)
+        oy, ox = int(rng.integers(0, hr - H + 1)), int(rng.integers(0, wr - W + 1))
+    else:
+        raise ValueError(f"crop: expected 'center' or 'random', got {crop!r}")
+    return {"sy": hr / h, "sx": wr / w, "resized": (hr, wr), "offset": (oy, ox), "out": (H, W)}
+
+
+def adjust_intrinsics(K: np.ndarray, plan: dict) -> np.ndarray:
+    """Intrinsics [..., 3, 3] for the resized and cropped image of :func:`resize_plan`."""
+    K = np.array(K, np.float32, copy=True)
+    (oy, ox), sy, sx = plan["offset"], plan["sy"], plan["sx"]
+    K[..., 0, :] *= sx
+    K[..., 1, :] *= sy
+    K[..., 0, 2] -= ox
+    K[..., 1, 2] -= oy
+    return K
+
+
+def resize_crop_video(video: np.ndarray, plan: dict) -> np.ndarray:
+    """uint8 [..., h, w, 3] -> float32 [..., H, W, 3] in [-1, 1] (resized, cropped, normalised)."""
+    *lead, h, w, c = video.shape
+    (hr, wr), (oy, ox), (H, W) = plan["resized"], plan["offset"], plan["out"]
+    ry = _resize_weights(h, hr, oy, H) * np.float32(2.0 / 255.0)
+    rx = _resize_weights(w, wr, ox, W)
+    # Width first as one large matmul ([n*h*c, w] @ [w, W]), then rows ([H, h] @ [n, h, c*W]).
+    x = video.reshape(-1, h, w, c).transpose(0, 1, 3, 2).astype(np.float32)
+    y = (x.reshape(-1, w) @ rx.T).reshape(-1, h, c * W)
+    z = np.matmul(ry, y).reshape(-1, H, c, W).transpose(0, 1, 3, 2) - np.float32(1.0)
+    return np.clip(z, -1.0, 1.0).reshape(*lead, H, W, c)
+
+
+def _view_indices(views, num_views: int, where: str) -> np.ndarray:
+    if views is None:
+        return np.arange(num_views)
+    idx = [schema.CAMERAS.index(v) if isinstance(v, str) and v in schema.CAMERAS else v for v in views]
+    if any(isinstance(i, str) for i in idx) or any(not 0 <= int(i) < num_views for i in idx):
+        raise ValueError(f"views: expected indices in [0, {num_views}) or names in {list(schema.CAMERAS)} "
+                         f"for {where} with {num_views} views, got {list(views)}")
+    return np.asarray(idx, np.int64)
+
+
+def sample_clip(clip: Mapping, *, size: tuple[int, int], frames: int, stride: int = 1, start: int = 0,
+                views=None, crop: str = "center", rng: np.random.Generator | None = None,
+                where: str = "clip") -> dict:
+    """One training sample from a clip: ``frames`` frames from ``start`` every ``stride``, a view
+    subset, resized and cropped to ``size`` with intrinsics to match, waypoints re-expressed in
+    the ego frame of the first sampled frame."""
+    T = int(np.shape(clip["ego_to_world"])[0])
+    need = 1 + (frames - 1) * stride
+    if start < 0 or start + need > T:
+        raise ValueError(f"{where}: {frames} frames at stride {stride} from frame {start} need "
+                         f"{need} source frames, but the clip has {T}: the clip length or frame stride "
+                         f"is too long for this scene")
+    t = start + stride * np.arange(frames)
+    v = _view_indices(views, int(np.shape(clip["video"])[0]), where)
+    video = np.asarray(clip["video"])[v[:, None], t[None, :]]
+    plan = resize_plan(video.shape[-3:-1], size, crop=crop, rng=rng)
+    e2w = np.asarray(clip["ego_to_world"], np.float64)[t]
+    rel = np.linalg.inv(e2w[0]) @ e2w
+    rel[0] = np.eye(4)  # exactly (0, 0) at the first frame, as the schema states
+    out = {
+        "video": resize_crop_video(video, plan),
+        "intrinsics": adjust_intrinsics(np.asarray(clip["intrinsics"])[v], plan),
+        "cam_to_ego": np.asarray(clip["cam_to_ego"], np.float32)[v],
+        "ego_to_world": e2w.astype(np.float32),
+        "waypoints": rel[:, :2, 3].astype(np.float32),
+        "fps": np.float32(float(clip["fps"]) / stride),
+    }
+    for name in ("boxes", "box_classes", "box_ids", "box_valid", "bev_map"):
+        out[name] = np.asarray(clip[name])[t]
+    for name, value in clip.items():
+        if isinstance(value, str):
+            out[name] = value
+    return out
+
+
+def _pad_boxes(s: dict, n: int, where: str) -> None:
+    """Pad (invalid slots) or cut the box axis to ``n``, keeping valid boxes first; log cuts."""
+    valid = s["box_valid"]
+    have = valid.shape[1]
+    if have > n:
+        order = np.argsort(~valid, axis=1, kind="stable")[:, :n]
+        lost = int(valid.sum() - np.take_along_axis(valid, order, 1).sum())
+        if lost:
+            log.warning("%s: dropped %d valid boxes beyond max_boxes=%d", where, lost, n)
+        for k in ("boxes", "box_classes", "box_ids", "box_valid"):
+            idx = order[..., None] if s[k].ndim == 3 else order
+            s[k] = np.take_along_axis(s[k], idx, 1)
+    elif have < n:
+        for k in ("boxes", "box_classes", "box_ids", "box_valid"):
+            pad = [(0, 0)] * s[k].ndim
+            pad[1] = (0, n - have)
+            s[k] = np.pad(s[k], pad, constant_values=-1 if k in ("box_classes", "box_ids") else 0)
+
+
+def collate(samples: Sequence[dict], *, max_boxes: int | None = None) -> dict:
+    """Stack samples of one bucket into a batch (box slots padded to a common N)."""
+    n = max_boxes or max(s["box_valid"].shape[1] for s in samples)
+    for i, s in enumerate(samples):
+        _pad_boxes(s, n, f"sample {i} (index {s.get('index')})")
+    batch = {}
+    for k, v in samples[0].items():
+        if isinstance(v, str):
+            batch[k] = [s[k] for s in samples]
+        elif isinstance(v, dict):
+            batch[k] = {n: np.array([s[k][n] for s in samples]) for n in v}
+        else:
+            shapes = {np.shape(s[k]) for s in samples}
+            if len(shapes) > 1:
+                raise ValueError(f"batch field {k!r}: expected one shape within a bucket, got {sorted(shapes)} "
+                                 f"(indices {[s.get('index') for s in samples]})")
+            batch[k] = np.stack([s[k] for s in samples])
+    return batch
+
+
+# ----------------------------------------------------------------------------- planning
+
+
+def _rng(*keys: int) -> np.random.Generator:
+    return np.random.default_rng([int(k) for k in keys])
+
+
+class _BatchPlan:
+    """Random access to batch specs ``(epoch, bucket, source indices)``: the whole schedule."""
+
+    def __init__(self, frame_counts, buckets, *, stride, seed, shard_index, shard_count, num_epochs):
+        self.counts = np.asarray(frame_counts, np.int64)
+        self.buckets, self.stride, self.seed = buckets, stride, seed
+        self.shard_index, self.shard_count, self.num_epochs = shard_index, shard_count, num_epochs
+        need = np.array([b.needed(stride) for b in buckets])
+        self.eligible = self.counts[:, None] >= need[None, :]  # [N, buckets]
+        self._lock = threading.Lock()
+        self._lengths: list[int] = []
+        self._cache: dict[int, list] = {}
+        self._check()
+
+    def _check(self) -> None:
+        n, longest = len(self.counts), int(self.counts.max(initial=0))
+        short = int((~self.eligible.any(1)).sum())
+        if short:
+            log.warning("skipping %d of %d clips: shorter than the %d source frames the shortest bucket "
+                        "needs at stride %d", short, n, min(b.needed(self.stride) for b in self.buckets),
+                        self.stride)
+        epoch0 = self._epoch(0)
+        got = {}
+        for b, _ in epoch0:
+            got[b] = got.get(b, 0) + 1
+        for i, b in enumerate(self.buckets):
+            if b.prob == 0 or got.get(i):
+                continue
+            if not self.eligible[:, i].any():
+                why = (f"each clip needs 1 + (F - 1) * stride = {b.needed(self.stride)} source frames at "
+                       f"stride {self.stride}, but the longest of the {n} clips has {longest}: the frame "
+                       f"stride or clip length is longer than every scene")
+            else:
+                why = (f"fewer clips were assigned to it ({self._assigned_min(i)} on some shard in epoch 0) "
+                       f"than its batch size {b.batch_size}: use a smaller batch size, a higher probability "
+                       f"or more clips")
+            raise ValueError(f"buckets: bucket (H, W, F) = {b.key}: zero samples after bucketing: {why}")
+
+    def _assign(self, epoch: int):
+        """Global order and bucket of every clip for ``epoch`` (-1: fits no bucket)."""
+        n = len(self.counts)
+        order = _rng(self.seed, epoch, _TAG_PERM).permutation(n)
+        u = _rng(self.seed, epoch, _TAG_BUCKET).random(n)
+        p = self.eligible * np.array([b.prob for b in self.buckets])[None, :]
+        tot = p.sum(1, keepdims=True)
+        cdf = np.cumsum(p / np.where(tot > 0, tot, 1), axis=1)
+        bucket = np.minimum((u[:, None] >= cdf).sum(1), len(self.buckets) - 1)
+        bucket[tot[:, 0] == 0] = -1
+        return order, bucket[order]
+
+    def _assigned_min(self, b: int) -> int:
+        order, bucket = self._assign(0)
+        return min(int(((bucket == b) & (order % self.shard_count == s)).sum()) for s in range(self.shard_count))
+
+    def _epoch(self, epoch: int) -> list:
+        if epoch in self._cache:
+            return self._cache[epoch]
+        order, bucket = self._assign(epoch)
+        shard = order % self.shard_count
+        kinds, dropped = [], 0
+        mine = []
+        for i, b in enumerate(self.buckets):
+            per_shard = np.bincount(shard[bucket == i], minlength=self.shard_count)
+            nb = int(per_shard.min()) // b.batch_size
+            kinds += [i] * nb
+            mine.append(order[(bucket == i) & (shard == self.shard_index)])
+            dropped += int(per_shard[self.shard_index]) - nb * b.batch_size
+        kinds = np.asarray(kinds, np.int64)[_rng(self.seed, epoch, _TAG_ORDER).permutation(len(kinds))]
+        used = [0] * len(self.buckets)
+        batches = []
+        for i in kinds:
+            bs = self.buckets[i].batch_size
+            batches.append((int(i), mine[i][used[i]:used[i] + bs]))
+            used[i] += bs
+        if dropped:
+            log.info("epoch %d shard %d/%d: %d clips left over after batching (not used this epoch)",
+                     epoch, self.shard_index, self.shard_count, dropped)
+        if len(self._cache) > 4:
+            self._cache.pop(min(self._cache))
+        self._cache[epoch] = batches
+        return batches
+
+    def __len__(self) -> int:
+        if self.num_epochs is None:
+            return _INFINITE
+        with self._lock:
+            return sum(len(self._epoch(e)) for e in range(self.num_epochs))
+
+    def __getitem__(self, j: int):
+        j = int(j)
+        with self._lock:
+            epoch = 0
+            while True:
+                if epoch == len(self._lengths):
+                    self._lengths.append(len(self._epoch(epoch)))
+                if j < self._lengths[epoch]:
+                    b, idx = self._epoch(epoch)[j]
+                    return epoch, b, idx
+                j -= self._lengths[epoch]
+                epoch += 1
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state["_lock"], state["_cache"] = None, {}
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
+
+
+class _LoadBatch:
+    """Loads, transforms and collates the clips of one batch spec (picklable for grain workers)."""
+
+    def __init__(self, source, plan: _BatchPlan, *, views, crop, drop_probs, max_boxes):
+        self.source, self.plan, self.views, self.crop = source, plan, views, crop
+        self.drop_probs, self.max_boxes = dict(drop_probs), max_boxes
+
+    def __call__(self, spec) -> dict:
+        epoch, b, indices = spec
+        bucket = self.plan.buckets[b]
+        samples = []
+        for idx in indices:
+            rng = _rng(self.plan.seed, epoch, int(idx), _TAG_SAMPLE)
+            clip = self.source[int(idx)]
+            T = int(np.shape(clip["ego_to_world"])[0])
+            start = int(rng.integers(0, T - bucket.needed(self.plan.stride) + 1))
+            s = sample_clip(clip, size=(bucket.height, bucket.width), frames=bucket.frames,
+                            stride=self.plan.stride, start=start, views=self.views, crop=self.crop,
+                            rng=rng, where=f"source clip {int(idx)}")
+            s["drop"] = {n: bool(rng.random() < p) for n, p in sorted(self.drop_probs.items())}
+            s["index"] = np.int64(idx)
+            samples.append(s)
+        return collate(samples, max_boxes=self.max_boxes)
+
+
+def make_pipeline(source, buckets, *, stride: int = 1, views=None, crop: str = "center",
+                  drop_probs: Mapping[str, float] | None = None, max_boxes: int | None = None,
+                  seed: int = 0, num_epochs: int | None = None, shard_index: int | None = None,
+                  shard_count: int | None = None, frame_counts: Sequence[int] | None = None,
+                  num_threads: int = 4, prefetch: int = 8, compression: int = 4) -> grain.IterDataset:
+    """A grain ``IterDataset`` of training batches from a random-access clip ``source``.
+
+    ``buckets``: ``{(H, W, F): batch_size}`` or ``{(H, W, F): (batch_size, prob)}`` with
+    F = 1 + ``compression`` * k. ``views``: indices or camera names (:data:`schema.CAMERAS`), None
+    for all. ``drop_probs``: condition -> drop probability (default 0.15 for each of
+    :data:`CONDITIONS`). Shards default to ``jax.process_index()`` / ``jax.process_count()``.
+    ``num_epochs=None`` repeats forever. ``iter(ds)`` has grain's ``get_state`` / ``set_state``.
+    """
+    parsed = parse_buckets(buckets, compression=compression)
+    stride = check_positive_int("stride", stride)
+    if shard_index is None or shard_count is None:
+        import jax
+        shard_index, shard_count = jax.process_index(), jax.process_count()
+    shard_count = check_positive_int("shard_count", shard_count)
+    if not 0 <= shard_index < shard_count:
+        raise ValueError(f"shard_index: expected in [0, {shard_count}), got {shard_index}")
+    if num_epochs is not None:
+        check_positive_int("num_epochs", num_epochs)
+    drop_probs = DEFAULT_DROP_PROBS if drop_probs is None else dict(drop_probs)
+    for name, p in drop_probs.items():
+        if not (isinstance(p, (int, float)) and 0 <= p <= 1):
+            raise ValueError(f"drop_probs[{name!r}]: expected a probability in [0, 1], got {p!r}")
+    if max_boxes is not None:
+        check_positive_int("max_boxes", max_boxes)
+    if len(source) == 0:
+        raise ValueError(f"source: expected at least one clip, got an empty {source!r}")
+    if frame_counts is None:
+        frame_counts = getattr(source, "frame_counts", None)
+    if frame_counts is None:
+        log.info("reading %d clips once to learn their frame counts (give frame_counts to skip)", len(source))
+        frame_counts = [int(np.shape(source[i]["ego_to_world"])[0]) for i in range(len(source))]
+    if len(frame_counts) != len(source):
+        raise ValueError(f"frame_counts: expected {len(source)} counts (one per clip), got {len(frame_counts)}")
+    plan = _BatchPlan(frame_counts, parsed, stride=stride, seed=seed, shard_index=int(shard_index),
+                      shard_count=shard_count, num_epochs=num_epochs)
+    load = _LoadBatch(source, plan, views=views, crop=crop, drop_probs=drop_probs, max_boxes=max_boxes)
+    return grain.MapDataset.source(plan).map(load).to_iter_dataset(
+        grain.ReadOptions(num_threads=num_threads, prefetch_buffer_size=prefetch))

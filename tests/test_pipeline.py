@@ -1,0 +1,191 @@
+import numpy as np
+import pytest
+
+from jaxdrive.data import pipeline, schema, tfds_io
+from test_tfds_io import random_clip
+
+
+def make_clips(n=24, V=3, H=12, W=20, base_frames=9, seed=0):
+    """Clips of 9.. frames with a moving ego (pure translation along x plus a yaw)."""
+    clips = []
+    for i in range(n):
+        F = base_frames + i % 8
+        c = random_clip(seed + i, V=V, F=F, H=H, W=W, N=2 + i % 3, instance_ids=False)
+        yaw = 0.1 * np.arange(F)
+        e2w = np.tile(np.eye(4), (F, 1, 1))
+        e2w[:, 0, 0], e2w[:, 0, 1], e2w[:, 1, 0], e2w[:, 1, 1] = np.cos(yaw), -np.sin(yaw), np.sin(yaw), np.cos(yaw)
+        e2w[:, 0, 3], e2w[:, 1, 3] = 100.0 + 2.0 * np.arange(F), 50.0
+        c["ego_to_world"] = e2w
+        c["intrinsics"] = np.tile(np.array([[20, 0, W / 2], [0, 20, H / 2], [0, 0, 1]], np.float32), (V, 1, 1))
+        clips.append(c)
+    return clips
+
+
+CLIPS = make_clips()
+BUCKETS = {(8, 8, 5): 2, (4, 6, 9): (3, 0.5)}
+
+
+def batches(n, **kw):
+    kw = {"buckets": BUCKETS, "seed": 3, "shard_index": 0, "shard_count": 1, "num_threads": 2, **kw}
+    it = iter(pipeline.make_pipeline(kw.pop("source", CLIPS), **kw))
+    return [next(it) for _ in range(n)]
+
+
+def assert_batches_equal(a, b):
+    for x, y in zip(a, b):
+        assert set(x) == set(y)
+        for k in x:
+            if k == "drop":
+                for n in x[k]:
+                    np.testing.assert_array_equal(x[k][n], y[k][n])
+            else:
+                np.testing.assert_array_equal(np.asarray(x[k]), np.asarray(y[k]), err_msg=k)
+
+
+def test_shapes_dtypes_ranges_from_tfds(tmp_path):
+    path = tfds_io.write_dataset(tmp_path / "ds", {"train": CLIPS[:12]})
+    src = tfds_io.open_source(path, "train")
+    ds = pipeline.make_pipeline(src, {(8, 8, 5): 2}, stride=1, views=("CAM_FRONT", 2), seed=0,
+                                shard_index=0, shard_count=1, max_boxes=6)
+    b = next(iter(ds))
+    assert b["video"].shape == (2, 2, 5, 8, 8, 3) and b["video"].dtype == np.float32
+    assert -1 <= b["video"].min() and b["video"].max() <= 1 and b["video"].std() > 0.1
+    assert b["intrinsics"].shape == (2, 2, 3, 3) and b["cam_to_ego"].shape == (2, 2, 4, 4)
+    assert b["ego_to_world"].shape == (2, 5, 4, 4) and b["ego_to_world"].dtype == np.float32
+    assert b["boxes"].shape == (2, 5, 6, 7) and b["box_valid"].dtype == np.bool_
+    assert b["box_classes"].shape == b["box_ids"].shape == (2, 5, 6) and b["box_classes"].dtype == np.int32
+    assert b["bev_map"].shape == (2, 5, 4, 4, 8) and b["bev_map"].dtype == np.uint8
+    assert b["waypoints"].shape == (2, 5, 2) and b["fps"].shape == (2,)
+    assert len(b["caption"]) == 2 and isinstance(b["caption"][0], str)
+    assert set(b["drop"]) == set(pipeline.CONDITIONS) and b["drop"]["text"].dtype == np.bool_
+    for j, idx in enumerate(b["index"]):
+        np.testing.assert_allclose(b["fps"][j], CLIPS[idx]["fps"])
+        np.testing.assert_array_equal(b["cam_to_ego"][j], CLIPS[idx]["cam_to_ego"][[0, 2]])
+        # padded box slots are invalid
+        n = CLIPS[idx]["boxes"].shape[1]
+        assert not b["box_valid"][j, :, n:].any()
+
+
+def test_frames_stride_and_waypoints():
+    clip = CLIPS[5]  # 14 frames
+    s = pipeline.sample_clip(clip, size=(12, 20), frames=5, stride=3, start=1)
+    t = 1 + 3 * np.arange(5)
+    np.testing.assert_allclose(s["video"], clip["video"][:, t] / 127.5 - 1, atol=1e-5)  # same size: identity
+    np.testing.assert_array_equal(s["boxes"], clip["boxes"][t])
+    np.testing.assert_allclose(s["fps"], clip["fps"] / 3)
+    # waypoints: ego positions in the ego frame of frame t[0] (yaw 0.1 * t[0], moving 2 m/frame in world x)
+    d = np.stack([2.0 * (t - t[0]), np.zeros(5)], 1)
+    yaw = 0.1 * t[0]
+    rot = np.array([[np.cos(yaw), np.sin(yaw)], [-np.sin(yaw), np.cos(yaw)]])
+    np.testing.assert_allclose(s["waypoints"], d @ rot.T, atol=1e-5)
+    assert np.all(s["waypoints"][0] == 0)
+    with pytest.raises(ValueError, match="need 13 source frames, but the clip has 14.*too long|need 17"):
+        pipeline.sample_clip(clip, size=(12, 20), frames=5, stride=4, start=0)
+
+
+def test_intrinsics_follow_resize_and_crop():
+    """A 3D point lit in the source image lands, after resize + crop, where the new K projects it."""
+    h, w = 30, 50
+    K = np.array([[40.0, 0, 25.0], [0, 40.0, 15.0], [0, 0, 1]], np.float32)
+    P = np.array([0.3, -0.1, 2.0])  # camera frame
+    u, v = (K @ P)[:2] / P[2]  # (31, 13): pixel centres at c + 0.5
+    video = np.zeros((1, 1, h, w, 3), np.uint8)
+    video[..., int(v) - 1:int(v) + 1, int(u) - 1:int(u) + 1, :] = 255  # 2x2 block centred on (u, v)
+    for crop, seed in (("center", 0), ("random", 1), ("random", 2)):
+        plan = pipeline.resize_plan((h, w), (16, 20), crop=crop, rng=np.random.default_rng(seed))
+        img = (pipeline.resize_crop_video(video, plan)[0, 0, ..., 0] + 1) / 2
+        K2 = pipeline.adjust_intrinsics(K, plan)
+        u2, v2 = (K2 @ P)[:2] / P[2]
+        rows, cols = np.mgrid[:16, :20] + 0.5
+        cu, cv = (img * cols).sum() / img.sum(), (img * rows).sum() / img.sum()
+        assert abs(cu - u2) < 0.05 and abs(cv - v2) < 0.05, (crop, cu, u2, cv, v2)
+    # worked example: cover scale 0.54 along x (50 -> 27), 16/30 along y, centre crop 3 px in x
+    plan = pipeline.resize_plan((h, w), (16, 20))
+    np.testing.assert_allclose(pipeline.adjust_intrinsics(K, plan),
+                               [[40 * 0.54, 0, 25 * 0.54 - 3], [0, 40 * 16 / 30, 15 * 16 / 30], [0, 0, 1]], rtol=1e-6)
+
+
+def test_deterministic_for_a_seed():
+    a, b = batches(5), batches(5)
+    assert_batches_equal(a, b)
+    c = batches(5, seed=4)
+    assert any(not np.array_equal(x["index"], y["index"]) for x, y in zip(a, c))
+
+
+def test_resume_is_exact():
+    ds = pipeline.make_pipeline(CLIPS, BUCKETS, seed=3, shard_index=0, shard_count=1, num_threads=2)
+    it = iter(ds)
+    for _ in range(7):  # crosses an epoch boundary (~5 batches per epoch)
+        next(it)
+    state = it.get_state()
+    cont = [next(it) for _ in range(4)]
+    fresh = iter(pipeline.make_pipeline(CLIPS, BUCKETS, seed=3, shard_index=0, shard_count=1, num_threads=2))
+    fresh.set_state(state)
+    assert_batches_equal([next(fresh) for _ in range(4)], cont)
+
+
+def test_shards_are_disjoint_and_in_step():
+    kw = dict(num_epochs=1, drop_probs={}, shard_count=3)
+    runs = [list(pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1, (4, 6, 9): 1}, seed=0, shard_index=s, **kw))
+            for s in range(3)]
+    seen = [np.concatenate([b["index"] for b in r]) for r in runs]
+    for s, idx in enumerate(seen):
+        assert len(idx) > 0 and np.all(idx % 3 == s) and len(set(idx)) == len(idx)
+    # every shard yields the same bucket at every step
+    shapes = [[b["video"].shape for b in r] for r in runs]
+    assert shapes[0] == shapes[1] == shapes[2]
+
+
+def test_buckets_have_their_batch_sizes():
+    seen = set()
+    for b in batches(12):
+        B, V, F, H, W, _ = b["video"].shape
+        want = BUCKETS[(H, W, F)]
+        assert B == (want[0] if isinstance(want, tuple) else want)
+        assert b["waypoints"].shape == (B, F, 2) and b["intrinsics"].shape == (B, V, 3, 3)
+        seen.add((H, W, F))
+    assert seen == set(BUCKETS)
+
+
+def test_empty_bucket_names_bucket_and_reason():
+    # 9 frames at stride 3 need 25 source frames; the clips have 9..16
+    with pytest.raises(ValueError, match=r"bucket \(H, W, F\) = \(4, 6, 9\): zero samples after bucketing: "
+                                         r"each clip needs .* = 25 source frames at stride 3, but the longest "
+                                         r"of the 24 clips has 16"):
+        pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1, (4, 6, 9): 1}, stride=3, shard_index=0, shard_count=1)
+    with pytest.raises(ValueError, match=r"bucket \(H, W, F\) = \(4, 6, 9\).*fewer clips .* than its batch size 50"):
+        pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1, (4, 6, 9): 50}, shard_index=0, shard_count=1)
+
+
+def test_stride_longer_than_every_scene():
+    with pytest.raises(ValueError, match="frame stride or clip length is longer than every scene"):
+        pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1}, stride=5, shard_index=0, shard_count=1)
+
+
+def test_short_clips_are_counted_in_the_log(caplog):
+    with caplog.at_level("WARNING"):
+        pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1}, stride=3, shard_index=0, shard_count=1)
+    # 13 source frames needed; 24 clips of 9 + (i % 8) frames: 12 have fewer than 13
+    assert "skipping 12 of 24 clips" in caplog.text
+
+
+def test_drop_mask_frequencies():
+    clips = make_clips(n=8, V=1, H=4, W=4, base_frames=5)
+    probs = {"text": 0.5, "boxes": 0.1, "map": 0.0, "trajectory": 1.0}
+    ds = pipeline.make_pipeline(clips, {(4, 4, 5): 8}, drop_probs=probs, seed=0, shard_index=0,
+                                shard_count=1, num_threads=0)
+    it = iter(ds)
+    drops = [next(it)["drop"] for _ in range(60)]  # 480 samples
+    for name, p in probs.items():
+        freq = np.concatenate([d[name] for d in drops]).mean()
+        assert abs(freq - p) < 0.07, (name, freq, p)
+
+
+def test_argument_errors():
+    with pytest.raises(ValueError, match=r"expected F = 1 \+ 4k frames, got 6"):
+        pipeline.make_pipeline(CLIPS, {(8, 8, 6): 1}, shard_index=0, shard_count=1)
+    with pytest.raises(ValueError, match="shard_index: expected in"):
+        pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1}, shard_index=2, shard_count=2)
+    with pytest.raises(ValueError, match="views: expected indices"):
+        pipeline.sample_clip(CLIPS[0], size=(8, 8), frames=5, views=["CAM_BACK"])
+    assert pipeline.frames_for(4) == 17 and schema.CAMERAS[0] == "CAM_FRONT"
