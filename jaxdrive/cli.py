@@ -27,6 +27,105 @@ def _bench(args, rest) -> int:
     return 0
 
 
+def _split_counts(scenes: int, val_fraction: float) -> tuple[int, int]:
+    if scenes < 1:
+        raise SystemExit(f"jaxdrive data synth: --scenes: expected an integer >= 1, got {scenes}")
+    if not 0.0 <= val_fraction < 1.0:
+        raise SystemExit(f"jaxdrive data synth: --val-fraction: expected a value in [0, 1), got {val_fraction}")
+    # At least one validation scene whenever there are two scenes and a fraction is asked for.
+    val = min(scenes - 1, max(1, round(scenes * val_fraction))) if scenes > 1 and val_fraction > 0 else 0
+    return scenes - val, val
+
+
+def _splits(train, validation, n_val):
+    return {"train": train, "validation": validation} if n_val else {"train": train}
+
+
+def _data_synth(args, rest) -> int:
+    from jaxdrive.data.synthetic import generate_clip
+    from jaxdrive.data.tfds_io import write_dataset
+
+    n_train, n_val = _split_counts(args.scenes, args.val_fraction)
+
+    def clips(first, count):
+        for i in range(first, first + count):  # one seed per scene: reproducible, disjoint splits
+            yield generate_clip(args.seed + i, views=args.views, frames=args.frames,
+                                height=args.height, width=args.width)
+    path = write_dataset(args.out, _splits(clips(0, n_train), clips(n_train, n_val), n_val),
+                         name="jaxdrive_synthetic", overwrite=args.overwrite,
+                         metadata={"source": "synthetic", "seed": args.seed, "views": args.views,
+                                   "frames": args.frames, "height": args.height, "width": args.width})
+    print(f"wrote {n_train} train and {n_val} validation clips to {path}")
+    return 0
+
+
+def _data_nuscenes(args, rest) -> int:
+    import numpy as np
+
+    from jaxdrive.data.nuscenes import read_clips, scene_names, load_tables
+    from jaxdrive.data.tfds_io import write_dataset
+
+    if (args.height is None) != (args.width is None):
+        raise SystemExit("jaxdrive data nuscenes: --height/--width: expected both or neither, "
+                         f"got height={args.height}, width={args.width}")
+    tables = load_tables(args.dataroot, args.version)
+    names = scene_names(tables)
+    n_train, n_val = _split_counts(len(names), args.val_fraction)
+    image_hw = None if args.height is None else (args.height, args.width)
+
+    def clips(scenes):
+        for clip in read_clips(args.dataroot, args.version, frames=args.frames, stride=args.stride,
+                               image_hw=image_hw, scenes=scenes, tables=tables):
+            meta = clip.pop("meta")  # keep what a dataset row can hold: names and arrays
+            yield {**clip, "scene": meta["scene"],
+                   "timestamps": np.asarray(meta["timestamps"], np.int64)}
+    path = write_dataset(args.out, _splits(clips(names[:n_train]), clips(names[n_train:]), n_val),
+                         name="jaxdrive_nuscenes", overwrite=args.overwrite,
+                         metadata={"source": "nuscenes", "version": args.version, "frames": args.frames,
+                                   "stride": args.stride})
+    print(f"wrote nuScenes {args.version} ({n_train} train / {n_val} validation scenes) to {path}")
+    return 0
+
+
+def _data_info(args, rest) -> int:
+    import json
+
+    from jaxdrive.data.tfds_io import dataset_info
+    info = dataset_info(args.path)
+    print(json.dumps(info, indent=2, default=str))
+    return 0
+
+
+def _add_data_commands(sub) -> None:
+    data = sub.add_parser("data", help="build and inspect datasets (TFDS, ArrayRecord)")
+    dsub = data.add_subparsers(dest="data_command", metavar="DATA_COMMAND", required=True)
+    synth = dsub.add_parser("synth", help="write a synthetic multi-view driving dataset")
+    synth.add_argument("--out", required=True, help="dataset directory to create")
+    synth.add_argument("--scenes", type=int, default=16)
+    synth.add_argument("--views", type=int, default=6, choices=[1, 6])
+    synth.add_argument("--frames", type=int, default=33)
+    synth.add_argument("--height", type=int, default=64)
+    synth.add_argument("--width", type=int, default=112)
+    synth.add_argument("--val-fraction", type=float, default=0.125)
+    synth.add_argument("--seed", type=int, default=0)
+    synth.add_argument("--overwrite", action="store_true")
+    synth.set_defaults(run=_data_synth)
+    nus = dsub.add_parser("nuscenes", help="convert a local nuScenes dataroot")
+    nus.add_argument("--dataroot", required=True)
+    nus.add_argument("--out", required=True)
+    nus.add_argument("--version", default="v1.0-mini", help="v1.0-mini or v1.0-trainval")
+    nus.add_argument("--frames", type=int, default=33)
+    nus.add_argument("--stride", type=int, default=1)
+    nus.add_argument("--height", type=int, default=None, help="resize images (with --width)")
+    nus.add_argument("--width", type=int, default=None)
+    nus.add_argument("--val-fraction", type=float, default=0.15)
+    nus.add_argument("--overwrite", action="store_true")
+    nus.set_defaults(run=_data_nuscenes)
+    info = dsub.add_parser("info", help="print what a dataset holds")
+    info.add_argument("path")
+    info.set_defaults(run=_data_info)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="jaxdrive",
@@ -38,6 +137,7 @@ def build_parser() -> argparse.ArgumentParser:
                            add_help=True)
     bench.add_argument("name", nargs="?", help="benchmark name, e.g. sampler")
     bench.set_defaults(run=_bench)
+    _add_data_commands(sub)
     return parser
 
 
@@ -50,7 +150,11 @@ def main(argv=None) -> int:
         return 0
     if rest and args.command != "bench":
         parser.error(f"unrecognized arguments: {' '.join(rest)}")
-    return args.run(args, rest)
+    try:
+        return args.run(args, rest)
+    except ValueError as e:  # bad input: one line that names the argument, not a traceback
+        print(f"jaxdrive {args.command}: error: {e}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":
