@@ -18,7 +18,8 @@ def _benchmarks() -> list[str]:
 
 def _bench(args, rest) -> int:
     names = _benchmarks()
-    if args.name is None:
+    if args.name is None or args.name in ("-h", "--help"):
+        print("usage: jaxdrive bench NAME [ARGS...]   (jaxdrive bench NAME --help for its options)")
         print("benchmarks: " + ", ".join(names))
         return 0
     if args.name not in names:
@@ -134,7 +135,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     bench = sub.add_parser("bench", help="run a benchmark (no name: list them); "
                                          "arguments after the name go to the benchmark",
-                           add_help=True)
+                           add_help=False)  # so `jaxdrive bench NAME --help` reaches the benchmark
     bench.add_argument("name", nargs="?", help="benchmark name, e.g. sampler")
     bench.set_defaults(run=_bench)
     _add_data_commands(sub)
