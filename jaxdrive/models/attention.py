@@ -1,0 +1,132 @@
+"""The one attention entry point of jaxdrive: every model layer calls :func:`attention`.
+
+Implementations (``impl``):
+
+- ``"xla"``: dense softmax attention, the reference (fp32 scores and softmax).
+- ``"blockwise"``: O(L) memory on one device, forward and backward
+  (:mod:`jaxdrive.parallel.blockwise`).
+- ``"ring"``: the sequence sharded over the mesh axis ``seq``; key/value chunks travel around the
+  ring (:mod:`jaxdrive.parallel.ring`).
+- ``"ulysses"``: all-to-all from sequence- to head-sharding over ``seq``, a local blockwise kernel,
+  and back (:mod:`jaxdrive.parallel.ulysses`).
+- ``"cudnn"``: ``jax.nn.dot_product_attention(..., implementation="cudnn")`` on GPUs (fp16/bf16).
+- ``"auto"``: ``"ring"`` when the mesh shards ``seq``; else ``"cudnn"`` where it applies; else
+  ``"blockwise"`` for long sequences and ``"xla"`` for short ones. It never fails where ``"xla"``
+  works.
+
+Masks: ``kv_mask [B, Lk]`` (True = attend; e.g. padded text tokens) and ``causal_block = n``:
+token block i (n tokens, e.g. one latent frame) attends to blocks <= i. A query row with no
+allowed key returns 0 in every implementation.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxdrive.parallel import softmax_blocks
+from jaxdrive.parallel.blockwise import blockwise_attention
+from jaxdrive.validate import check_choice, check_positive_int
+
+IMPLS = ("auto", "xla", "blockwise", "ring", "ulysses", "cudnn")
+# Above this many (query, key) pairs per head, "auto" prefers the O(L) kernel on one device.
+AUTO_BLOCKWISE_PAIRS = 4096 * 4096
+
+
+def _check_inputs(q, k, v, kv_mask, causal_block):
+    for name, x in (("q", q), ("k", k), ("v", v)):
+        if np.ndim(x) != 4:
+            raise ValueError(f"{name}: expected shape [B, L, H, D], got {list(np.shape(x))}")
+    if k.shape != v.shape:
+        raise ValueError(f"v: expected the shape of k {list(k.shape)}, got {list(v.shape)}")
+    if (k.shape[0], k.shape[2], k.shape[3]) != (q.shape[0], q.shape[2], q.shape[3]):
+        raise ValueError(f"k: expected shape [{q.shape[0]}, Lk, {q.shape[2]}, {q.shape[3]}] "
+                         f"(B, H, D of q), got {list(k.shape)}")
+    if not (q.dtype == k.dtype == v.dtype):
+        raise ValueError(f"k, v: expected the dtype of q ({q.dtype}), got {k.dtype} and {v.dtype}")
+    if kv_mask is not None:
+        if tuple(np.shape(kv_mask)) != (k.shape[0], k.shape[1]):
+            raise ValueError(f"kv_mask: expected shape [{k.shape[0]}, {k.shape[1]}] ([B, Lk]), "
+                             f"got {list(np.shape(kv_mask))}")
+        if jnp.result_type(kv_mask) != jnp.bool_:
+            raise ValueError(f"kv_mask: expected dtype bool, got {jnp.result_type(kv_mask)}")
+    if causal_block is not None:
+        check_positive_int("causal_block", causal_block)
+        if q.shape[1] != k.shape[1]:
+            raise ValueError(f"causal_block: needs self-attention (Lq == Lk), got Lq = {q.shape[1]}, "
+                             f"Lk = {k.shape[1]}")
+
+
+def _mesh_or_context(mesh):
+    if mesh is not None:
+        return mesh
+    context = jax.sharding.get_abstract_mesh()
+    return None if context.empty else context
+
+
+def _seq_size(mesh) -> int:
+    return 1 if mesh is None or "seq" not in mesh.axis_names else int(mesh.shape["seq"])
+
+
+def _cudnn_applies(q, kv_mask, causal_block) -> bool:
+    return (jax.default_backend() == "gpu" and q.dtype in (jnp.float16, jnp.bfloat16)
+            and causal_block is None)
+
+
+def _auto(q, k, mesh, kv_mask, causal_block) -> str:
+    if _seq_size(mesh) > 1:
+        return "ring"
+    if _cudnn_applies(q, kv_mask, causal_block):
+        return "cudnn"
+    return "blockwise" if q.shape[1] * k.shape[1] > AUTO_BLOCKWISE_PAIRS else "xla"
+
+
+def _xla(q, k, v, scale, kv_mask, causal_block):
+    return softmax_blocks.attend_block(q, k, v, scale=scale, kv_mask=kv_mask,
+                                       causal_block=causal_block)[0].astype(q.dtype)
+
+
+def _cudnn(q, k, v, scale, kv_mask):
+    mask = None if kv_mask is None else jnp.asarray(kv_mask, bool)[:, None, None, :]
+    return jax.nn.dot_product_attention(q, k, v, mask=mask, scale=scale, implementation="cudnn")
+
+
+def attention(q, k, v, *, impl: str = "auto", kv_mask=None, causal_block=None, mesh=None,
+              scale=None, block_q: int = 512, block_k: int = 512):
+    """Softmax attention ``softmax(q k^T * scale) v`` over ``q [B, Lq, H, D]``, ``k, v [B, Lk, H, D]``.
+
+    ``scale`` defaults to ``1 / sqrt(D)``. ``mesh`` (or the mesh set with ``jax.set_mesh``) is
+    needed by ``"ring"`` and ``"ulysses"``, which shard the sequence over its ``seq`` axis, the
+    batch over ``data``/``fsdp`` and the heads over ``tensor``. ``block_q``/``block_k`` are the
+    tile sizes of ``"blockwise"``. Raises ``ValueError`` naming the argument for mismatched
+    shapes or dtypes, a mask of the wrong length, an unknown impl, a mesh without ``seq`` for
+    ring/ulysses, or an impl this backend lacks.
+    """
+    check_choice("impl", impl, IMPLS)
+    _check_inputs(q, k, v, kv_mask, causal_block)
+    scale = 1.0 / math.sqrt(q.shape[-1]) if scale is None else float(scale)
+    mesh = _mesh_or_context(mesh)
+    if impl == "auto":
+        impl = _auto(q, k, mesh, kv_mask, causal_block)
+    if impl == "xla":
+        return _xla(q, k, v, scale, kv_mask, causal_block)
+    if impl == "blockwise":
+        return blockwise_attention(q, k, v, scale=scale, kv_mask=kv_mask, causal_block=causal_block,
+                                   block_q=block_q, block_k=block_k)
+    if impl == "cudnn":
+        if not _cudnn_applies(q, kv_mask, causal_block):
+            raise ValueError(f"impl: 'cudnn' needs a GPU backend, fp16/bf16 inputs and no causal_block, "
+                             f"got backend {jax.default_backend()}, dtype {q.dtype}, "
+                             f"causal_block {causal_block}")
+        return _cudnn(q, k, v, scale, kv_mask)
+    if mesh is None or "seq" not in mesh.axis_names:
+        raise ValueError(f"mesh: impl {impl!r} needs a mesh with a 'seq' axis, got "
+                         f"{None if mesh is None else tuple(mesh.axis_names)}")
+    if impl == "ring":
+        from jaxdrive.parallel.ring import ring_attention
+        return ring_attention(q, k, v, mesh=mesh, scale=scale, kv_mask=kv_mask, causal_block=causal_block)
+    from jaxdrive.parallel.ulysses import ulysses_attention
+    return ulysses_attention(q, k, v, mesh=mesh, scale=scale, kv_mask=kv_mask, causal_block=causal_block)

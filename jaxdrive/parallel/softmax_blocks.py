@@ -1,0 +1,96 @@
+"""Attention over one (query block, key block) pair, in pieces that merge exactly.
+
+Every memory-efficient and sequence-sharded attention in jaxdrive (blockwise on one device,
+ring over the ``seq`` axis, the local kernel of all-to-all) is built from these three pieces:
+
+- :func:`attend_block`: softmax attention of a query block against a key block, returning the
+  block-normalised output and the log-sum-exp of each query row's scores;
+- :func:`merge`: the online-softmax combination of two such partial results (Milakov &
+  Gimelshein 2018; Rabe & Staats 2021; Dao et al. 2022), exact up to rounding;
+- :func:`attend_block_grads`: the gradient contribution of one block pair given the *final*
+  output and log-sum-exp of the query rows (the FlashAttention backward), so backward passes
+  recompute scores block by block instead of storing the ``L x L`` matrix.
+
+Shapes: ``q [B, Lq, H, D]``, ``k, v [B, Lk, H, D]``, outputs ``[B, Lq, H, D]``, log-sum-exp
+``[B, H, Lq]``. All arithmetic is float32. Masking: ``kv_mask [B, Lk]`` (True = attend) and
+``causal_block = n``: query token i may attend to key token j iff ``j // n <= i // n`` with
+``i, j`` global positions (``q_start``/``k_start`` give the block's offset). A query row with no
+allowed key gets output 0 and log-sum-exp -inf (never NaN), in every implementation.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+NEG_INF = -jnp.inf
+
+
+def allowed(batch: int, lq: int, lk: int, *, kv_mask=None, causal_block=None, q_start=0, k_start=0):
+    """Boolean ``[B, 1, Lq, Lk]`` (or broadcastable) mask of allowed (query, key) pairs, or None."""
+    mask = None
+    if kv_mask is not None:
+        mask = jnp.asarray(kv_mask, bool)[:, None, None, :]
+    if causal_block is not None:
+        qi = (q_start + jnp.arange(lq)) // causal_block
+        kj = (k_start + jnp.arange(lk)) // causal_block
+        causal = (kj[None, :] <= qi[:, None])[None, None]
+        mask = causal if mask is None else mask & causal
+    return mask
+
+
+def _scores(q, k, scale, mask):
+    s = jnp.einsum("bqhd,bkhd->bhqk", q.astype(jnp.float32), k.astype(jnp.float32)) * scale
+    return s if mask is None else jnp.where(mask, s, NEG_INF)
+
+
+def attend_block(q, k, v, *, scale, kv_mask=None, causal_block=None, q_start=0, k_start=0):
+    """``(o [B, Lq, H, D], lse [B, H, Lq])`` of softmax attention restricted to this key block."""
+    mask = allowed(q.shape[0], q.shape[1], k.shape[1], kv_mask=kv_mask, causal_block=causal_block,
+                   q_start=q_start, k_start=k_start)
+    s = _scores(q, k, scale, mask)
+    m = jnp.max(s, axis=-1, keepdims=True)
+    m = jnp.where(jnp.isfinite(m), m, 0.0)            # rows with no allowed key
+    p = jnp.exp(s - m)
+    l = jnp.sum(p, axis=-1, keepdims=True)
+    o = jnp.einsum("bhqk,bkhd->bqhd", p / jnp.where(l > 0, l, 1.0), v.astype(jnp.float32))
+    lse = jnp.where(l[..., 0] > 0, m[..., 0] + jnp.log(jnp.where(l[..., 0] > 0, l[..., 0], 1.0)), NEG_INF)
+    return o, lse
+
+
+def merge(o1, lse1, o2, lse2):
+    """Combine two partial results over disjoint key sets into the result over their union."""
+    lse = jnp.logaddexp(lse1, lse2)
+    ref = jnp.where(jnp.isfinite(lse), lse, 0.0)
+    w1 = jnp.exp(lse1 - ref)                          # 0 where lse1 = -inf
+    w2 = jnp.exp(lse2 - ref)
+    to_rows = lambda w: jnp.swapaxes(w, 1, 2)[..., None]  # [B, H, Lq] -> [B, Lq, H, 1]
+    return o1 * to_rows(w1) + o2 * to_rows(w2), lse
+
+
+def empty(q):
+    """The neutral partial result for ``q``'s rows (no keys seen yet)."""
+    b, lq, h, d = q.shape
+    return jnp.zeros((b, lq, h, d), jnp.float32), jnp.full((b, h, lq), NEG_INF, jnp.float32)
+
+
+def attend_block_grads(q, k, v, o, lse, do, *, scale, kv_mask=None, causal_block=None, q_start=0,
+                       k_start=0):
+    """``(dq, dk, dv)`` contributed by this (query block, key block) pair.
+
+    ``o`` and ``lse`` are the final output and log-sum-exp of the query rows over *all* keys, and
+    ``do`` the output cotangent; summing the contributions over all key blocks gives ``dq``, over
+    all query blocks ``dk`` and ``dv``. Float32 results.
+    """
+    mask = allowed(q.shape[0], q.shape[1], k.shape[1], kv_mask=kv_mask, causal_block=causal_block,
+                   q_start=q_start, k_start=k_start)
+    s = _scores(q, k, scale, mask)
+    finite = jnp.isfinite(lse)[..., None]
+    p = jnp.where(finite, jnp.exp(s - jnp.where(finite, lse[..., None], 0.0)), 0.0)   # [B, H, Lq, Lk]
+    do = do.astype(jnp.float32)
+    delta = jnp.einsum("bqhd,bqhd->bhq", do, o.astype(jnp.float32))[..., None]        # rowsum(dO * O)
+    dv = jnp.einsum("bhqk,bqhd->bkhd", p, do)
+    dp = jnp.einsum("bqhd,bkhd->bhqk", do, v.astype(jnp.float32))
+    ds = p * (dp - delta)
+    dq = jnp.einsum("bhqk,bkhd->bqhd", ds, k.astype(jnp.float32)) * scale
+    dk = jnp.einsum("bhqk,bqhd->bkhd", ds, q.astype(jnp.float32)) * scale
+    return dq, dk, dv

@@ -1,0 +1,116 @@
+"""attention(): the dense reference, the blockwise kernel and the dispatcher's contract."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxdrive.models.attention import attention
+
+
+def _qkvd(b=2, lq=40, lk=40, h=3, d=8, seed=0):
+    ks = jax.random.split(jax.random.PRNGKey(seed), 4)
+    return (jax.random.normal(ks[0], (b, lq, h, d)), jax.random.normal(ks[1], (b, lk, h, d)),
+            jax.random.normal(ks[2], (b, lk, h, d)), jax.random.normal(ks[3], (b, lq, h, d)))
+
+
+def _rel(a, b):
+    return float(jnp.max(jnp.abs(a - b)) / jnp.max(jnp.abs(b)))
+
+
+def test_reference_matches_jax_dot_product_attention():
+    q, k, v, _ = _qkvd()
+    np.testing.assert_allclose(attention(q, k, v, impl="xla"), jax.nn.dot_product_attention(q, k, v),
+                               rtol=1e-5, atol=1e-5)
+    # causal_block = 1 is token-causal attention; one block spanning everything is no mask at all
+    np.testing.assert_allclose(attention(q, k, v, impl="xla", causal_block=1),
+                               jax.nn.dot_product_attention(q, k, v, is_causal=True), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(attention(q, k, v, impl="xla", causal_block=40),
+                               attention(q, k, v, impl="xla"), rtol=1e-6, atol=1e-6)
+
+
+def test_causal_block_worked_example():
+    # 4 tokens, blocks of 2: tokens 0-1 see 0-1, tokens 2-3 see all four; v holds the positions
+    q = jnp.zeros((1, 4, 1, 2))
+    k = jnp.zeros((1, 4, 1, 2))
+    v = jnp.arange(4.0).reshape(1, 4, 1, 1) * jnp.ones((1, 4, 1, 2))
+    out = attention(q, k, v, impl="xla", causal_block=2)[0, :, 0, 0]
+    np.testing.assert_allclose(out, [0.5, 0.5, 1.5, 1.5], atol=1e-6)  # uniform weights over allowed keys
+
+
+LAYOUTS = [
+    dict(lq=40, lk=40),
+    dict(lq=40, lk=40, mask=True),
+    dict(lq=40, lk=40, causal_block=5),
+    dict(lq=37, lk=37, mask=True, causal_block=4),   # lengths that do not divide the blocks
+    dict(lq=12, lk=50, mask=True),                   # cross-attention (e.g. to text tokens)
+]
+
+
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_blockwise_matches_dense_forward_and_gradients(layout):
+    q, k, v, do = _qkvd(lq=layout["lq"], lk=layout["lk"])
+    mask = None
+    if layout.get("mask"):
+        mask = jnp.ones((2, layout["lk"]), bool).at[1, layout["lk"] - 9:].set(False)
+    kw = dict(kv_mask=mask, causal_block=layout.get("causal_block"))
+    ref_out, ref_vjp = jax.vjp(lambda *a: attention(*a, impl="xla", **kw), q, k, v)
+    run = jax.jit(lambda *a: attention(*a, impl="blockwise", block_q=16, block_k=8, **kw))
+    out, vjp = jax.vjp(run, q, k, v)
+    assert _rel(out, ref_out) <= 1e-5
+    for got, want in zip(vjp(do), ref_vjp(do)):
+        assert _rel(got, want) <= 1e-5
+
+
+def test_fully_masked_rows_are_zero_not_nan():
+    q, k, v, do = _qkvd(lq=8, lk=8)
+    mask = jnp.zeros((2, 8), bool).at[0].set(True)   # sample 1 has no key at all
+    for impl in ("xla", "blockwise"):
+        out, vjp = jax.vjp(lambda *a: attention(*a, impl=impl, kv_mask=mask, block_q=4, block_k=4), q, k, v)
+        np.testing.assert_array_equal(out[1], 0.0)
+        assert all(bool(jnp.all(jnp.isfinite(g))) for g in vjp(do))
+
+
+def test_blockwise_memory_is_linear_in_length():
+    # compiled temporary memory of forward + backward (deterministic, read from the program)
+    def temp(impl, length):
+        q = jax.ShapeDtypeStruct((1, length, 1, 16), jnp.float32)
+        f = jax.jit(jax.grad(lambda q, k, v: attention(q, k, v, impl=impl, block_q=256, block_k=256).sum(),
+                             argnums=(0, 1, 2)))
+        return f.lower(q, q, q).compile().memory_analysis().temp_size_in_bytes
+    dense, blockwise = temp("xla", 4096), temp("blockwise", 4096)
+    assert blockwise < 0.1 * dense, (blockwise, dense)
+
+
+def test_auto_on_one_device_equals_xla_for_short_sequences():
+    q, k, v, _ = _qkvd()
+    np.testing.assert_array_equal(attention(q, k, v), attention(q, k, v, impl="xla"))
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(impl="flash"), "impl: expected one of"),
+    (dict(kv_mask=jnp.ones((2, 39), bool)), r"kv_mask: expected shape \[2, 40\] \(\[B, Lk\]\), got \[2, 39\]"),
+    (dict(kv_mask=jnp.ones((2, 40))), "kv_mask: expected dtype bool, got float32"),
+    (dict(causal_block=0), "causal_block: expected an integer >= 1, got 0"),
+    (dict(impl="ring"), r"mesh: impl 'ring' needs a mesh with a 'seq' axis, got None"),
+    (dict(impl="ulysses", mesh=jax.make_mesh((8,), ("data",))), r"mesh: impl 'ulysses' needs a mesh with a 'seq' axis, got \('data',\)"),
+    (dict(impl="cudnn"), "impl: 'cudnn' needs a GPU backend"),
+])
+def test_bad_arguments(kwargs, match):
+    q, k, v, _ = _qkvd()
+    with pytest.raises(ValueError, match=match):
+        attention(q, k, v, **kwargs)
+
+
+def test_bad_shapes_and_dtypes():
+    q, k, v, _ = _qkvd()
+    with pytest.raises(ValueError, match=r"v: expected the shape of k"):
+        attention(q, k, v[:, :5])
+    with pytest.raises(ValueError, match=r"k: expected shape \[2, Lk, 3, 8\]"):
+        attention(q, k[..., :4], v[..., :4])
+    with pytest.raises(ValueError, match="k, v: expected the dtype of q"):
+        attention(q, k.astype(jnp.bfloat16), v.astype(jnp.bfloat16))
+    with pytest.raises(ValueError, match=r"q: expected shape \[B, L, H, D\]"):
+        attention(q[0], k, v)
+    with pytest.raises(ValueError, match="causal_block: needs self-attention"):
+        attention(q[:, :10], k, v, causal_block=2)
