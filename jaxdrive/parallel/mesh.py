@@ -1,0 +1,142 @@
+"""Device meshes with the four jaxdrive axes ``data``, ``fsdp``, ``seq`` and ``tensor``.
+
+Every mesh built here names all four axes in that order, keeping axes of size 1, so that a
+``PartitionSpec`` produced by :mod:`jaxdrive.parallel.rules` can always name any axis. Axis types
+default to ``Explicit`` (sharding in types, see the JAX "explicit sharding" guide); pass
+``axis_types=jax.sharding.AxisType.Auto`` for compiler-chosen propagation.
+
+* :func:`make_mesh` — one mesh over a flat device list (single host, or all global devices).
+* :func:`make_hybrid_mesh` — multi-host / multi-slice: each axis size is ``ici * dcn``; the
+  ``dcn`` factor runs across slices (TPU ``slice_index``) or, where devices carry no slice index
+  (GPU, CPU), across processes; the ``ici`` factor runs within one slice / process.
+* :func:`parse_mesh_spec` — the CLI's ``--mesh data=2,seq=4`` flag.
+
+In each of these a size of ``-1`` for one axis means "whatever is left".
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+
+import jax
+import numpy as np
+from jax.experimental import mesh_utils
+from jax.sharding import AxisType, Mesh
+
+MESH_AXES: tuple[str, ...] = ("data", "fsdp", "seq", "tensor")
+
+
+def _resolve_sizes(sizes: Mapping[str, int], total: int, what: str) -> tuple[int, ...]:
+    """Sizes for MESH_AXES (missing axes = 1) whose product is ``total``; one -1 = the rest."""
+    for name in sizes:
+        if name not in MESH_AXES:
+            raise ValueError(f"{what}: expected axis names from {list(MESH_AXES)}, got {name!r}")
+    out = []
+    for name in MESH_AXES:
+        n = sizes.get(name, 1)
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or (n < 1 and n != -1):
+            raise ValueError(f"{name}: expected a positive integer or -1, got {n!r}")
+        out.append(int(n))
+    rest = [name for name, n in zip(MESH_AXES, out) if n == -1]
+    if len(rest) > 1:
+        raise ValueError(f"{what}: expected at most one axis of size -1, got {rest}")
+    known = math.prod(n for n in out if n != -1)
+    if rest:
+        if total % known:
+            raise ValueError(
+                f"{rest[0]}: expected the other axes' product {known} to divide {total} "
+                f"devices, got a remainder of {total % known}")
+        out[MESH_AXES.index(rest[0])] = total // known
+    elif known != total:
+        shape = dict(zip(MESH_AXES, out))
+        raise ValueError(f"{what}: expected axis sizes whose product is {total}, got {shape} "
+                         f"(product {known})")
+    return tuple(out)
+
+
+def _axis_types(axis_types) -> tuple[AxisType, ...]:
+    if isinstance(axis_types, AxisType):
+        return (axis_types,) * len(MESH_AXES)
+    types = tuple(axis_types)
+    if len(types) != len(MESH_AXES) or not all(isinstance(t, AxisType) for t in types):
+        raise ValueError(f"axis_types: expected one AxisType or {len(MESH_AXES)} of them, "
+                         f"got {axis_types!r}")
+    return types
+
+
+def make_mesh(data: int = 1, fsdp: int = 1, seq: int = 1, tensor: int = 1,
+              devices: Sequence[jax.Device] | None = None, *,
+              axis_types: AxisType | Sequence[AxisType] = AxisType.Explicit) -> Mesh:
+    """A mesh of shape ``(data, fsdp, seq, tensor)`` over ``devices`` (default ``jax.devices()``).
+
+    The product of the sizes must equal ``len(devices)``; one size may be ``-1`` (the rest).
+    Device order follows ``jax.make_mesh`` (topology-aware on TPU / GPU).
+    """
+    types = _axis_types(axis_types)
+    devices = list(jax.devices() if devices is None else devices)
+    if not devices:
+        raise ValueError("devices: expected at least one device, got none")
+    shape = _resolve_sizes({"data": data, "fsdp": fsdp, "seq": seq, "tensor": tensor},
+                           len(devices), "make_mesh")
+    return jax.make_mesh(shape, MESH_AXES, axis_types=types, devices=devices)
+
+
+def _granules(devices: Sequence[jax.Device]) -> tuple[str, int]:
+    """The unit of the slow network: TPU slices (``slice_index``), else processes.
+
+    Only TPU devices use ``slice_index``: multi-process CPU devices carry ``slice_index = 0``
+    for every process, and GPU hosts talk over the slow network anyway."""
+    if all(d.platform == "tpu" and getattr(d, "slice_index", None) is not None for d in devices):
+        return "slice_index", len({d.slice_index for d in devices})
+    return "process_index", len({d.process_index for d in devices})
+
+
+def make_hybrid_mesh(ici: Mapping[str, int] | None = None, dcn: Mapping[str, int] | None = None,
+                     devices: Sequence[jax.Device] | None = None, *,
+                     axis_types: AxisType | Sequence[AxisType] = AxisType.Explicit) -> Mesh:
+    """A multi-host mesh: axis ``a`` has size ``ici[a] * dcn[a]`` (missing entries are 1).
+
+    ``dcn`` splits axes across granules (TPU slices, or processes on GPU / CPU): the product of ``dcn`` must equal the number of granules. ``ici`` splits
+    axes within one granule: its product must equal the devices per granule. One ``-1`` is allowed
+    in each mapping. Put the communication-heavy axes (``tensor``, ``seq``) in ``ici`` and
+    ``data`` (or ``fsdp``) in ``dcn``. The result has the axis order of :func:`make_mesh`.
+    """
+    devices = list(jax.devices() if devices is None else devices)
+    if not devices:
+        raise ValueError("devices: expected at least one device, got none")
+    attr, n_granules = _granules(devices)
+    if len(devices) % n_granules:
+        raise ValueError(f"devices: expected the same number of devices in each of "
+                         f"{n_granules} granules ({attr}), got {len(devices)} devices")
+    dcn_shape = _resolve_sizes(dict(dcn or {}), n_granules, "dcn")
+    ici_shape = _resolve_sizes(dict(ici or {}), len(devices) // n_granules, "ici")
+    grid = mesh_utils.create_hybrid_device_mesh(
+        ici_shape, dcn_shape, devices, process_is_granule=(attr == "process_index"))
+    return Mesh(np.asarray(grid), MESH_AXES, axis_types=_axis_types(axis_types))
+
+
+def parse_mesh_spec(spec: str) -> dict[str, int]:
+    """``"data=2,seq=4"`` -> ``{"data": 2, "seq": 4}`` (``-1`` allowed; empty string -> ``{}``).
+
+    Pass the result as keyword arguments to :func:`make_mesh`.
+    """
+    if not isinstance(spec, str):
+        raise ValueError(f"mesh spec: expected a string like 'data=2,seq=4', got {spec!r}")
+    out: dict[str, int] = {}
+    for item in filter(None, (s.strip() for s in spec.split(","))):
+        name, sep, value = (s.strip() for s in item.partition("="))
+        if not sep or name not in MESH_AXES:
+            raise ValueError(f"mesh spec: expected items 'axis=size' with axis in "
+                             f"{list(MESH_AXES)}, got {item!r}")
+        if name in out:
+            raise ValueError(f"mesh spec: expected each axis once, got {name!r} twice")
+        try:
+            size = int(value)
+        except ValueError:
+            size = 0
+        if size < 1 and size != -1:
+            raise ValueError(f"mesh spec: expected {name} to be a positive integer or -1, "
+                             f"got {value!r}")
+        out[name] = size
+    return out
