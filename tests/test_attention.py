@@ -114,3 +114,17 @@ def test_bad_shapes_and_dtypes():
         attention(q[0], k, v)
     with pytest.raises(ValueError, match="causal_block: needs self-attention"):
         attention(q[:, :10], k, v, causal_block=2)
+
+
+def test_auto_shards_over_seq_and_never_fails_where_xla_works():
+    from jax.sharding import AxisType
+    q, k, v, _ = _qkvd(b=2, lq=32, lk=32, h=4)
+    mesh = jax.make_mesh((1, 1, 8, 1), ("data", "fsdp", "seq", "tensor"), axis_types=(AxisType.Explicit,) * 4)
+    ref = attention(q, k, v, impl="xla", causal_block=4)
+    with jax.set_mesh(mesh):  # the context mesh is picked up
+        out = jax.jit(lambda *a: attention(*a, causal_block=4))(q, k, v)
+    assert _rel(out, ref) <= 1e-5
+    # 3 heads cannot be split over tensor = 2: auto falls back to one device instead of failing
+    q3, k3, v3, _ = _qkvd(b=2, lq=16, lk=16, h=3)
+    odd = jax.make_mesh((1, 1, 4, 2), ("data", "fsdp", "seq", "tensor"), axis_types=(AxisType.Explicit,) * 4)
+    np.testing.assert_allclose(attention(q3, k3, v3, mesh=odd), attention(q3, k3, v3, impl="xla"), atol=1e-6)

@@ -76,8 +76,17 @@ def _cudnn_applies(q, kv_mask, causal_block) -> bool:
             and causal_block is None)
 
 
-def _auto(q, k, mesh, kv_mask, causal_block) -> str:
-    if _seq_size(mesh) > 1:
+def _ring_applies(q, k, v, mesh, kv_mask, causal_block) -> bool:
+    from jaxdrive.parallel.ring import layout
+    try:  # batch divisible by data x fsdp, heads by tensor: otherwise "auto" must not fail
+        layout(q, k, v, kv_mask, causal_block, mesh, "seq")
+    except ValueError:
+        return False
+    return True
+
+
+def _auto(q, k, v, mesh, kv_mask, causal_block) -> str:
+    if _seq_size(mesh) > 1 and _ring_applies(q, k, v, mesh, kv_mask, causal_block):
         return "ring"
     if _cudnn_applies(q, kv_mask, causal_block):
         return "cudnn"
@@ -110,7 +119,7 @@ def attention(q, k, v, *, impl: str = "auto", kv_mask=None, causal_block=None, m
     scale = 1.0 / math.sqrt(q.shape[-1]) if scale is None else float(scale)
     mesh = _mesh_or_context(mesh)
     if impl == "auto":
-        impl = _auto(q, k, mesh, kv_mask, causal_block)
+        impl = _auto(q, k, v, mesh, kv_mask, causal_block)
     if impl == "xla":
         return _xla(q, k, v, scale, kv_mask, causal_block)
     if impl == "blockwise":
