@@ -128,3 +128,21 @@ def test_auto_shards_over_seq_and_never_fails_where_xla_works():
     q3, k3, v3, _ = _qkvd(b=2, lq=16, lk=16, h=3)
     odd = jax.make_mesh((1, 1, 4, 2), ("data", "fsdp", "seq", "tensor"), axis_types=(AxisType.Explicit,) * 4)
     np.testing.assert_allclose(attention(q3, k3, v3, mesh=odd), attention(q3, k3, v3, impl="xla"), atol=1e-6)
+
+
+def test_sharded_output_takes_the_input_sharding_so_any_use_differentiates():
+    # slicing a size-1 head axis of the output once broke the shard_map transpose (cotangent typed
+    # without the 'tensor' axis); the output now carries q's own sharding
+    from jax.sharding import AxisType, NamedSharding
+    from jax.sharding import PartitionSpec as P
+    mesh = jax.make_mesh((1, 1, 8, 1), ("data", "fsdp", "seq", "tensor"), axis_types=(AxisType.Explicit,) * 4)
+    x = jax.random.normal(jax.random.PRNGKey(0), (2, 16, 8))
+
+    def loss(x, impl, mesh=None):
+        h = x[:, :, None, :]
+        return jnp.sum(attention(h, h, h, impl=impl, mesh=mesh, causal_block=4)[:, :, 0] * jnp.cos(x))
+    ref = jax.grad(loss)(x, "xla")
+    with jax.set_mesh(mesh):
+        xs = jax.device_put(x, NamedSharding(mesh, P(None, "seq", None)))
+        got = jax.jit(jax.grad(lambda x: loss(x, "ring", mesh)))(xs)
+    assert _rel(got, ref) <= 1e-5

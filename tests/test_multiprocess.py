@@ -2,7 +2,8 @@
 
 Each worker builds ``make_mesh(data=2, seq=4)`` over the 8 global devices, assembles a global
 batch from its host-local rows with ``host_local_to_global``, runs a jitted reduction, a jitted
-matmul and a cross-process contraction, and writes its results; the test recomputes the same in
+matmul, a cross-process contraction and ring attention (forward and input gradient), and writes
+its results; the test recomputes the same in
 this process and compares.
 """
 
@@ -53,9 +54,10 @@ WORKER = textwrap.dedent('''
     xg = host_local_to_global(local, mesh, ("batch", "tokens"))
     wg = host_local_to_global(w, mesh, (None, None))
     assert xg.shape == x.shape and wg.shape == w.shape
-    total, y, gram = compute(mesh, xg, wg)
-    back = global_to_host_local({"x": xg, "y": y})
+    total, y, gram, att, datt = compute(mesh, xg, wg)
+    back = global_to_host_local({"x": xg, "y": y, "att": att, "datt": datt})
     np.savez(out, rows=np.asarray(rows), local=local, x_back=back["x"], y=back["y"],
+             att=back["att"], datt=back["datt"],
              total=np.asarray(total.addressable_data(0)), gram=np.asarray(gram.addressable_data(0)),
              hybrid_ok=hybrid_ok)
     jax.distributed.shutdown()
@@ -69,12 +71,21 @@ def global_inputs():
 
 
 def compute(mesh, x, w):
-    """Jitted reduction, matmul and a contraction over both sharded axes (all-reduce)."""
+    """Jitted reduction, matmul, a contraction over both sharded axes (all-reduce), and ring
+    attention over the seq axis (tokens as one head) with its input gradient."""
+    from jaxdrive.models.attention import attention
+
+    def ring(x):
+        h = x[:, :, None, :]
+        return attention(h, h, h, impl="ring", mesh=mesh, causal_block=2)[:, :, 0, :]
+
     with jax.set_mesh(mesh):
         total = jax.jit(lambda x: jnp.sum(x * x))(x)
         y = jax.jit(lambda x, w: jnp.einsum("btc,cd->btd", x, w))(x, w)
         gram = jax.jit(lambda x: jnp.einsum("btc,bte->ce", x, x, out_sharding=P()))(x)
-    return total, y, gram
+        att = jax.jit(ring)(x)
+        datt = jax.jit(jax.grad(lambda x: jnp.sum(ring(x) * jnp.cos(x))))(x)
+    return total, y, gram, att, datt
 
 
 def _free_port() -> int:
@@ -118,7 +129,7 @@ def test_two_processes_match_one(tmp_path):
     x, w = global_inputs()
     mesh = make_mesh(data=2, seq=4)
     xs = jax.device_put(x, NamedSharding(mesh, logical_to_spec(("batch", "tokens"), mesh=mesh)))
-    total, y, gram = (np.asarray(a) for a in compute(mesh, xs, jnp.asarray(w)))
+    total, y, gram, att, datt = (np.asarray(a) for a in compute(mesh, xs, jnp.asarray(w)))
     np.testing.assert_allclose(total, np.sum(x * x), rtol=1e-5)  # the reference itself
     seen = []
     for i in range(2):
@@ -130,4 +141,6 @@ def test_two_processes_match_one(tmp_path):
         np.testing.assert_allclose(r["y"], y[rows], rtol=1e-5, atol=1e-5)
         np.testing.assert_allclose(r["total"], total, rtol=1e-5)
         np.testing.assert_allclose(r["gram"], gram, rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(r["att"], att[rows], rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(r["datt"], datt[rows], rtol=1e-5, atol=1e-5)
     assert sorted(seen) == list(range(8)), "each batch row held by exactly one process"

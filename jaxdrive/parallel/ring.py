@@ -117,12 +117,20 @@ def to_specs(mesh, lay: Layout, q, k, v, kv_mask):
     return jax.reshard((q, k, v, kv_mask), (spec(lay.qkv_spec),) * 3 + (spec(lay.mask_spec),))
 
 
-def unpad(o, length, mesh, lay: Layout):
-    """Drop padded query rows (gathering the sequence first: a ragged length cannot be split)."""
-    if o.shape[1] == length:
-        return o
-    gathered = P(lay.batch_axes or None, None, lay.head_axis, None)
-    return jax.reshard(o, jax.sharding.NamedSharding(mesh, gathered))[:, :length]
+def unpad(o, length, mesh, lay: Layout, like=None):
+    """Drop padded query rows (gathering the sequence first: a ragged length cannot be split),
+    then give the output the sharding of ``like`` (the input q's type) when it had one on this
+    mesh. Under Explicit axes the transpose of the shard_map demands cotangents typed exactly like
+    its out_specs; matching the caller's q makes any use of the output (slicing a size-1 head axis
+    included) transpose back to that type."""
+    if o.shape[1] != length:
+        gathered = P(lay.batch_axes or None, None, lay.head_axis, None)
+        o = jax.reshard(o, jax.sharding.NamedSharding(mesh, gathered))[:, :length]
+    target = None if like is None else getattr(like, "sharding", None)
+    spec = getattr(target, "spec", None)
+    if spec is not None and tuple(getattr(target.mesh, "axis_names", ())) == tuple(mesh.axis_names):
+        o = jax.reshard(o, jax.sharding.NamedSharding(mesh, spec))
+    return o
 
 
 def _hidden(src, cq, ck, q_start, causal_block):
@@ -224,7 +232,7 @@ def ring_attention(q, k, v, *, mesh, scale, kv_mask=None, causal_block=None, seq
     ``[B, Lq, H, D]`` in ``q.dtype``; differentiable in q, k and v (custom ring backward).
     """
     lay = layout(q, k, v, kv_mask, causal_block, mesh, seq_axis)
-    lq = q.shape[1]
+    lq, q_type = q.shape[1], jax.typeof(q)
     has_mask = kv_mask is not None or k.shape[1] % lay.n != 0
     q, k, v, kv_mask = pad_inputs(q, k, v, kv_mask, lay.n)
     if kv_mask is None:
@@ -232,4 +240,4 @@ def ring_attention(q, k, v, *, mesh, scale, kv_mask=None, causal_block=None, seq
     kernel = _ring_kernel(float(scale), causal_block, seq_axis, lay.n, has_mask)
     fn = jax.shard_map(kernel, mesh=mesh, in_specs=(lay.qkv_spec,) * 3 + (lay.mask_spec,),
                        out_specs=lay.qkv_spec, check_vma=False)
-    return unpad(fn(*to_specs(mesh, lay, q, k, v, kv_mask)), lq, mesh, lay)
+    return unpad(fn(*to_specs(mesh, lay, q, k, v, kv_mask)), lq, mesh, lay, like=q_type)

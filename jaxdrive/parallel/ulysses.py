@@ -53,7 +53,7 @@ def ulysses_attention(q, k, v, *, mesh, scale, kv_mask=None, causal_block=None, 
         raise ValueError(f"q: expected a number of heads per {ring.HEAD_AXIS!r} shard divisible by "
                          f"the size {lay.n} of mesh axis {seq_axis!r}, got {q.shape[2]} heads "
                          f"({lay.heads_per_shard} per shard)")
-    lq = q.shape[1]
+    lq, q_type = q.shape[1], jax.typeof(q)
     q, k, v, kv_mask = ring.pad_inputs(q, k, v, kv_mask, lay.n)
     has_mask = kv_mask is not None
     if not has_mask:
@@ -67,4 +67,4 @@ def ulysses_attention(q, k, v, *, mesh, scale, kv_mask=None, causal_block=None, 
 
     fn = jax.shard_map(per_device, mesh=mesh, in_specs=(lay.qkv_spec,) * 3 + (lay.mask_spec,),
                        out_specs=lay.qkv_spec, check_vma=False)
-    return ring.unpad(fn(*ring.to_specs(mesh, lay, q, k, v, kv_mask)), lq, mesh, lay)
+    return ring.unpad(fn(*ring.to_specs(mesh, lay, q, k, v, kv_mask)), lq, mesh, lay, like=q_type)
