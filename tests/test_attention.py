@@ -146,3 +146,22 @@ def test_sharded_output_takes_the_input_sharding_so_any_use_differentiates():
         xs = jax.device_put(x, NamedSharding(mesh, P(None, "seq", None)))
         got = jax.jit(jax.grad(lambda x: loss(x, "ring", mesh)))(xs)
     assert _rel(got, ref) <= 1e-5
+
+
+@pytest.mark.parametrize("causal_block", [None, 7])
+def test_ring_tiles_chunks_longer_than_its_block(causal_block):
+    # chunks of 38 tokens with block = 16: padded to 4 x 48 and attended tile by tile
+    from jax.sharding import AxisType
+
+    from jaxdrive.parallel.ring import ring_attention
+    mesh = jax.make_mesh((1, 1, 4, 1), ("data", "fsdp", "seq", "tensor"),
+                         axis_types=(AxisType.Explicit,) * 4, devices=jax.devices()[:4])
+    q, k, v, do = _qkvd(b=2, lq=150, lk=150, h=2)
+    mask = jnp.ones((2, 150), bool).at[1, 120:].set(False)
+    ref, ref_vjp = jax.vjp(lambda *a: attention(*a, impl="xla", kv_mask=mask, causal_block=causal_block), q, k, v)
+    run = jax.jit(lambda *a: ring_attention(*a, mesh=mesh, scale=8 ** -0.5, kv_mask=mask,
+                                            causal_block=causal_block, block=16))
+    out, vjp = jax.vjp(run, q, k, v)
+    assert _rel(out, ref) <= 1e-5
+    for got, want in zip(vjp(do), ref_vjp(do)):
+        assert _rel(got, want) <= 1e-5

@@ -42,81 +42,101 @@ def _unblocks(x):
     return x.reshape((x.shape[0], x.shape[1] * x.shape[2]) + x.shape[3:])
 
 
-def _hidden(i, j, bq, bk, causal_block):
-    """True when causal masking hides key block j from every query of query block i."""
+def _hidden(i, j, bq, bk, causal_block, q_start=0, k_start=0):
+    """True when causal masking hides key tile j from every query of query tile i."""
     if causal_block is None:
         return False
-    return (j * bk) // causal_block > ((i + 1) * bq - 1) // causal_block
+    return (k_start + j * bk) // causal_block > (q_start + (i + 1) * bq - 1) // causal_block
+
+
+def _key_tiles(k, v, mask, bk):
+    mb = None if mask is None else _blocks(mask, bk)
+    return jnp.arange(k.shape[1] // bk), _blocks(k, bk), _blocks(v, bk), mb
+
+
+def tiled_attend(q, k, v, mask, *, scale, causal_block, bq, bk, q_start=0, k_start=0):
+    """``(o [B, Lq, H, D], lse [B, H, Lq])`` over tiles of ``bq x bk`` (lengths multiples of them).
+
+    The building block of :func:`blockwise_attention` and of each ring step: at most one score
+    tile per head is alive. ``q_start``/``k_start`` (may be traced) are the global positions of
+    the first query and key, for causal masking; ``mask [B, Lk]`` or None.
+    """
+    idx, kb, vb, mb = _key_tiles(k, v, mask, bk)
+
+    def one_query_tile(args):
+        i, qi = args
+
+        def step(acc, kv):
+            j, kj, vj, mj = kv
+
+            def attend():
+                o, lse = sb.attend_block(qi, kj, vj, scale=scale, kv_mask=mj, causal_block=causal_block,
+                                         q_start=q_start + i * bq, k_start=k_start + j * bk)
+                return sb.merge(*acc, o, lse)
+            if causal_block is None:
+                return attend(), None
+            return jax.lax.cond(_hidden(i, j, bq, bk, causal_block, q_start, k_start),
+                                lambda: acc, attend), None
+
+        return jax.lax.scan(step, sb.empty(qi), (idx, kb, vb, mb))[0]
+
+    qb = _blocks(q, bq)
+    o, lse = jax.lax.map(one_query_tile, (jnp.arange(qb.shape[0]), qb))
+    lse = jnp.moveaxis(lse, 0, 2)                                         # [B, H, nq, bq]
+    return _unblocks(o), lse.reshape(lse.shape[:2] + (-1,))
+
+
+def tiled_grads(q, k, v, mask, o, lse, do, *, scale, causal_block, bq, bk, q_start=0, k_start=0):
+    """``(dq, dk, dv)`` (float32) of :func:`tiled_attend`'s key range, given the final ``o``/``lse``
+    of the query rows over all keys (FlashAttention backward, one score tile alive at a time)."""
+    qb, ob, dob = _blocks(q, bq), _blocks(o, bq), _blocks(do, bq)
+    lseb = jnp.moveaxis(lse.reshape(lse.shape[:-1] + (-1, bq)), -2, 0)    # [nq, B, H, bq]
+    idx, kb, vb, mb = _key_tiles(k, v, mask, bk)
+
+    def key_tile(dq_acc, kv):
+        j, kj, vj, mj = kv
+
+        def query_tile(dkv, qs):
+            i, qi, oi, lsei, doi = qs
+
+            def grads():
+                dq, dk, dv = sb.attend_block_grads(qi, kj, vj, oi, lsei, doi, scale=scale, kv_mask=mj,
+                                                   causal_block=causal_block, q_start=q_start + i * bq,
+                                                   k_start=k_start + j * bk)
+                return dq, (dkv[0] + dk, dkv[1] + dv)
+
+            if causal_block is None:
+                dq, dkv = grads()
+            else:
+                dq, dkv = jax.lax.cond(_hidden(i, j, bq, bk, causal_block, q_start, k_start),
+                                       lambda: (jnp.zeros(qi.shape, jnp.float32), dkv), grads)
+            return dkv, dq
+
+        zeros = jnp.zeros(kj.shape, jnp.float32)
+        (dk, dv), dq = jax.lax.scan(query_tile, (zeros, zeros), (jnp.arange(qb.shape[0]), qb, ob, lseb, dob))
+        return dq_acc + dq, (dk, dv)
+
+    dq, (dk, dv) = jax.lax.scan(key_tile, jnp.zeros(qb.shape, jnp.float32), (idx, kb, vb, mb))
+    return _unblocks(dq), _unblocks(dk), _unblocks(dv)
 
 
 @functools.lru_cache(maxsize=None)
 def _kernel(scale: float, causal_block, bq: int, bk: int):
-    """The custom-VJP kernel for fixed static settings (arrays already padded to the blocks)."""
-
-    def forward(q, k, v, mask):
-        kb, vb, mb = _blocks(k, bk), _blocks(v, bk), _blocks(mask, bk)
-
-        def one_query_block(args):
-            i, qi = args
-
-            def step(acc, kv):
-                j, kj, vj, mj = kv
-
-                def attend():
-                    o, lse = sb.attend_block(qi, kj, vj, scale=scale, kv_mask=mj,
-                                             causal_block=causal_block, q_start=i * bq, k_start=j * bk)
-                    return sb.merge(*acc, o, lse)
-                return jax.lax.cond(_hidden(i, j, bq, bk, causal_block), lambda: acc, attend), None
-
-            (o, lse), _ = jax.lax.scan(step, sb.empty(qi), (jnp.arange(kb.shape[0]), kb, vb, mb))
-            return o, lse
-
-        qb = _blocks(q, bq)
-        o, lse = jax.lax.map(one_query_block, (jnp.arange(qb.shape[0]), qb))
-        lse = jnp.moveaxis(lse, 0, 2)                                     # [B, H, nq, bq]
-        return _unblocks(o), lse.reshape(lse.shape[:2] + (-1,))
+    """The custom-VJP kernel for fixed static settings (arrays already padded to the tiles)."""
+    settings = dict(scale=scale, causal_block=causal_block, bq=bq, bk=bk)
 
     @jax.custom_vjp
     def kernel(q, k, v, mask):
-        return forward(q, k, v, mask)[0]
+        return tiled_attend(q, k, v, mask, **settings)[0]
 
     def kernel_fwd(q, k, v, mask):
-        o, lse = forward(q, k, v, mask)
+        o, lse = tiled_attend(q, k, v, mask, **settings)
         return o, (q, k, v, mask, o, lse)
 
     def kernel_bwd(res, do):
         q, k, v, mask, o, lse = res
-        qb, ob, dob = _blocks(q, bq), _blocks(o, bq), _blocks(do, bq)
-        lseb = jnp.moveaxis(lse.reshape(lse.shape[:-1] + (-1, bq)), -2, 0)   # [nq, B, H, bq]
-        kb, vb, mb = _blocks(k, bk), _blocks(v, bk), _blocks(mask, bk)
-        nq = qb.shape[0]
-
-        def key_block(dq_acc, kv):
-            j, kj, vj, mj = kv
-
-            def query_block(dkv, qs):
-                i, qi, oi, lsei, doi = qs
-
-                def grads():
-                    dq, dk, dv = sb.attend_block_grads(qi, kj, vj, oi, lsei, doi, scale=scale, kv_mask=mj,
-                                                       causal_block=causal_block, q_start=i * bq,
-                                                       k_start=j * bk)
-                    return dq, (dkv[0] + dk, dkv[1] + dv)
-
-                def skip():
-                    return jnp.zeros(qi.shape, jnp.float32), dkv
-                dq, dkv = jax.lax.cond(_hidden(i, j, bq, bk, causal_block), skip, grads)
-                return dkv, dq
-
-            zeros = jnp.zeros(kj.shape, jnp.float32)
-            (dk, dv), dq = jax.lax.scan(query_block, (zeros, zeros),
-                                        (jnp.arange(nq), qb, ob, lseb, dob))
-            return dq_acc + dq, (dk, dv)
-
-        dq, (dk, dv) = jax.lax.scan(key_block, jnp.zeros(qb.shape, jnp.float32),
-                                    (jnp.arange(kb.shape[0]), kb, vb, mb))
-        return (_unblocks(dq).astype(q.dtype), _unblocks(dk).astype(k.dtype),
-                _unblocks(dv).astype(v.dtype), None)
+        dq, dk, dv = tiled_grads(q, k, v, mask, o, lse, do, **settings)
+        return dq.astype(q.dtype), dk.astype(k.dtype), dv.astype(v.dtype), None
 
     kernel.defvjp(kernel_fwd, kernel_bwd)
     return kernel

@@ -32,6 +32,7 @@ from jax.sharding import PartitionSpec as P
 
 from jaxdrive import validate
 from jaxdrive.parallel import softmax_blocks as sb
+from jaxdrive.parallel.blockwise import tiled_attend, tiled_grads
 
 BATCH_AXES = ("data", "fsdp")
 HEAD_AXIS = "tensor"
@@ -97,13 +98,19 @@ def _pad_len(x, length, value=0):
     return jnp.pad(x, widths, constant_values=value)
 
 
-def pad_inputs(q, k, v, kv_mask, n):
-    """Pad q and k/v along the sequence to multiples of ``n``; the returned mask hides padded keys.
+def _tile(length: int, n: int, block: int) -> int:
+    """Tile size for chunks of ``ceil(length / n)``: the whole chunk when it fits in ``block``."""
+    return min(-(-length // n), block)
+
+
+def pad_inputs(q, k, v, kv_mask, n, lk=None):
+    """Pad q and k/v along the sequence to multiples of ``n`` (k/v to ``lk`` when given); the
+    returned mask hides padded keys.
 
     Returns ``(q, k, v, kv_mask)``; ``kv_mask`` stays None when nothing was padded and none came.
     """
     lq = -(-q.shape[1] // n) * n
-    lk = -(-k.shape[1] // n) * n
+    lk = -(-k.shape[1] // n) * n if lk is None else lk
     if lk != k.shape[1]:
         if kv_mask is None:
             kv_mask = jnp.ones(k.shape[:2], bool)
@@ -139,8 +146,13 @@ def _hidden(src, cq, ck, q_start, causal_block):
 
 
 @functools.lru_cache(maxsize=None)
-def _ring_kernel(scale: float, causal_block, axis: str, n: int, has_mask: bool):
-    """Per-device custom-VJP ring attention (runs inside ``shard_map``) for fixed static settings."""
+def _ring_kernel(scale: float, causal_block, axis: str, n: int, has_mask: bool, tile_q: int, tile_k: int):
+    """Per-device custom-VJP ring attention (runs inside ``shard_map``) for fixed static settings.
+
+    Each step attends the local queries to the visiting key chunk in ``tile_q x tile_k`` tiles
+    (:func:`jaxdrive.parallel.blockwise.tiled_attend`), so a device never holds a chunk x chunk
+    score matrix: memory is linear in the chunk length."""
+    tiles = dict(scale=scale, causal_block=causal_block, bq=tile_q, bk=tile_k)
     shift = [(i, (i + 1) % n) for i in range(n)]      # chunk on device i moves to device i + 1
 
     rotate = lambda x: jax.lax.ppermute(x, axis, shift)
@@ -157,9 +169,8 @@ def _ring_kernel(scale: float, causal_block, axis: str, n: int, has_mask: bool):
             src = (idx - t) % n                       # owner of the chunk visiting at step t
 
             def compute():
-                o, lse = sb.attend_block(q, kc, vc, scale=scale, kv_mask=mc if has_mask else None,
-                                         causal_block=causal_block, q_start=q_start,
-                                         k_start=src * ck)
+                o, lse = tiled_attend(q, kc, vc, mc if has_mask else None, q_start=q_start,
+                                      k_start=src * ck, **tiles)
                 return sb.merge(*carry, o, lse)
             if causal_block is None:
                 return compute()
@@ -191,10 +202,8 @@ def _ring_kernel(scale: float, causal_block, axis: str, n: int, has_mask: bool):
             src = (idx - t) % n
 
             def compute():
-                return sb.attend_block_grads(q, kc, vc, o, lse, do, scale=scale,
-                                             kv_mask=mc if has_mask else None,
-                                             causal_block=causal_block, q_start=q_start,
-                                             k_start=src * ck)
+                return tiled_grads(q, kc, vc, mc if has_mask else None, o, lse, do, q_start=q_start,
+                                   k_start=src * ck, **tiles)
             zeros = lambda: (jnp.zeros(q.shape, jnp.float32), jnp.zeros(kc.shape, jnp.float32),
                              jnp.zeros(vc.shape, jnp.float32))
             if causal_block is None:
@@ -221,7 +230,8 @@ def _ring_kernel(scale: float, causal_block, axis: str, n: int, has_mask: bool):
     return kernel
 
 
-def ring_attention(q, k, v, *, mesh, scale, kv_mask=None, causal_block=None, seq_axis="seq"):
+def ring_attention(q, k, v, *, mesh, scale, kv_mask=None, causal_block=None, seq_axis="seq",
+                   block: int = 512):
     """Softmax attention of ``q [B, Lq, H, D]`` over ``k, v [B, Lk, H, D]`` as a ring over ``seq``.
 
     ``kv_mask [B, Lk]`` bool (True = attend) and ``causal_block`` follow
@@ -230,14 +240,21 @@ def ring_attention(q, k, v, *, mesh, scale, kv_mask=None, causal_block=None, seq
     those axes exist, so ``B`` and ``H`` must divide accordingly. Sequence lengths that ``seq``
     does not divide are padded (padded keys masked, padded query rows dropped). Returns
     ``[B, Lq, H, D]`` in ``q.dtype``; differentiable in q, k and v (custom ring backward).
+    Chunks longer than ``block`` are processed in ``block``-sized tiles (lengths padded to a
+    multiple of ``n * block`` then), so per-device memory is linear in the chunk length.
     """
     lay = layout(q, k, v, kv_mask, causal_block, mesh, seq_axis)
     lq, q_type = q.shape[1], jax.typeof(q)
-    has_mask = kv_mask is not None or k.shape[1] % lay.n != 0
-    q, k, v, kv_mask = pad_inputs(q, k, v, kv_mask, lay.n)
+    tile_q, tile_k = (_tile(length, lay.n, block) for length in (lq, k.shape[1]))
+    multiple = lambda tile, length: lay.n * tile if -(-length // lay.n) > block else lay.n
+    q = _pad_len(q, -(-lq // multiple(tile_q, lq)) * multiple(tile_q, lq))
+    lk_pad = -(-k.shape[1] // multiple(tile_k, k.shape[1])) * multiple(tile_k, k.shape[1])
+    has_mask = kv_mask is not None or k.shape[1] != lk_pad
+    q, k, v, kv_mask = pad_inputs(q, k, v, kv_mask, lay.n, lk=lk_pad)
     if kv_mask is None:
         kv_mask = jnp.ones(k.shape[:2], bool)         # placeholder, ignored when has_mask is False
-    kernel = _ring_kernel(float(scale), causal_block, seq_axis, lay.n, has_mask)
+    kernel = _ring_kernel(float(scale), causal_block, seq_axis, lay.n, has_mask,
+                          min(tile_q, q.shape[1] // lay.n), min(tile_k, k.shape[1] // lay.n))
     fn = jax.shard_map(kernel, mesh=mesh, in_specs=(lay.qkv_spec,) * 3 + (lay.mask_spec,),
                        out_specs=lay.qkv_spec, check_vma=False)
     return unpad(fn(*to_specs(mesh, lay, q, k, v, kv_mask)), lq, mesh, lay, like=q_type)
