@@ -1,6 +1,6 @@
 """Memory-efficient attention on one device: O(L) memory forward and backward.
 
-Queries are processed in blocks of ``block_q``; for each, a ``lax.scan`` over key blocks of
+Queries are processed in blocks of ``block_q``; for each, a loop over key blocks of
 ``block_k`` merges partial softmax results (:mod:`jaxdrive.parallel.softmax_blocks`), so at most
 one ``block_q x block_k`` score tile per head is alive (Rabe & Staats 2021). The backward is a
 ``custom_vjp`` that stores only q, k, v, the output and the row log-sum-exp, and recomputes the
@@ -30,18 +30,6 @@ def _pad(x, length, axis=1, value=0):
     return jnp.pad(x, widths, constant_values=value)
 
 
-def _blocks(x, size):
-    """``[B, L, ...] -> [L / size, B, size, ...]``."""
-    b, length = x.shape[:2]
-    return jnp.moveaxis(x.reshape((b, length // size, size) + x.shape[2:]), 1, 0)
-
-
-def _unblocks(x):
-    """``[n, B, size, ...] -> [B, n * size, ...]``."""
-    x = jnp.moveaxis(x, 0, 1)
-    return x.reshape((x.shape[0], x.shape[1] * x.shape[2]) + x.shape[3:])
-
-
 def _hidden(i, j, bq, bk, causal_block, q_start=0, k_start=0):
     """True when causal masking hides key tile j from every query of query tile i."""
     if causal_block is None:
@@ -49,75 +37,75 @@ def _hidden(i, j, bq, bk, causal_block, q_start=0, k_start=0):
     return (k_start + j * bk) // causal_block > (q_start + (i + 1) * bq - 1) // causal_block
 
 
-def _key_tiles(k, v, mask, bk):
-    mb = None if mask is None else _blocks(mask, bk)
-    return jnp.arange(k.shape[1] // bk), _blocks(k, bk), _blocks(v, bk), mb
+def _tile(x, start, size, axis=1):
+    return jax.lax.dynamic_slice_in_dim(x, start, size, axis=axis)
 
+
+def _put(x, tile, start, axis=1):
+    return jax.lax.dynamic_update_slice_in_dim(x, tile, start, axis=axis)
+
+
+# The tile loops slice their operands in place (dynamic_slice) and write results into carried
+# buffers (dynamic_update_slice) rather than stacking blocked copies: besides the inputs and
+# outputs, only one score tile per head and a few tile-sized arrays are alive.
 
 def tiled_attend(q, k, v, mask, *, scale, causal_block, bq, bk, q_start=0, k_start=0):
     """``(o [B, Lq, H, D], lse [B, H, Lq])`` over tiles of ``bq x bk`` (lengths multiples of them).
 
-    The building block of :func:`blockwise_attention` and of each ring step: at most one score
-    tile per head is alive. ``q_start``/``k_start`` (may be traced) are the global positions of
-    the first query and key, for causal masking; ``mask [B, Lk]`` or None.
+    The building block of :func:`blockwise_attention` and of each ring step. ``q_start`` /
+    ``k_start`` (may be traced) are the global positions of the first query and key, for causal
+    masking; ``mask [B, Lk]`` or None. Float32 results.
     """
-    idx, kb, vb, mb = _key_tiles(k, v, mask, bk)
+    nq, nk = q.shape[1] // bq, k.shape[1] // bk
 
-    def one_query_tile(args):
-        i, qi = args
+    def query_tile(i, out):
+        qi = _tile(q, i * bq, bq)
 
-        def step(acc, kv):
-            j, kj, vj, mj = kv
-
+        def key_tile(j, acc):
             def attend():
-                o, lse = sb.attend_block(qi, kj, vj, scale=scale, kv_mask=mj, causal_block=causal_block,
-                                         q_start=q_start + i * bq, k_start=k_start + j * bk)
+                o, lse = sb.attend_block(qi, _tile(k, j * bk, bk), _tile(v, j * bk, bk), scale=scale,
+                                         kv_mask=None if mask is None else _tile(mask, j * bk, bk),
+                                         causal_block=causal_block, q_start=q_start + i * bq,
+                                         k_start=k_start + j * bk)
                 return sb.merge(*acc, o, lse)
             if causal_block is None:
-                return attend(), None
-            return jax.lax.cond(_hidden(i, j, bq, bk, causal_block, q_start, k_start),
-                                lambda: acc, attend), None
+                return attend()
+            return jax.lax.cond(_hidden(i, j, bq, bk, causal_block, q_start, k_start), lambda: acc, attend)
 
-        return jax.lax.scan(step, sb.empty(qi), (idx, kb, vb, mb))[0]
+        o, lse = jax.lax.fori_loop(0, nk, key_tile, sb.empty(qi))
+        return _put(out[0], o, i * bq), _put(out[1], lse, i * bq, axis=2)
 
-    qb = _blocks(q, bq)
-    o, lse = jax.lax.map(one_query_tile, (jnp.arange(qb.shape[0]), qb))
-    lse = jnp.moveaxis(lse, 0, 2)                                         # [B, H, nq, bq]
-    return _unblocks(o), lse.reshape(lse.shape[:2] + (-1,))
+    return jax.lax.fori_loop(0, nq, query_tile, sb.empty(q))
 
 
 def tiled_grads(q, k, v, mask, o, lse, do, *, scale, causal_block, bq, bk, q_start=0, k_start=0):
     """``(dq, dk, dv)`` (float32) of :func:`tiled_attend`'s key range, given the final ``o``/``lse``
     of the query rows over all keys (FlashAttention backward, one score tile alive at a time)."""
-    qb, ob, dob = _blocks(q, bq), _blocks(o, bq), _blocks(do, bq)
-    lseb = jnp.moveaxis(lse.reshape(lse.shape[:-1] + (-1, bq)), -2, 0)    # [nq, B, H, bq]
-    idx, kb, vb, mb = _key_tiles(k, v, mask, bk)
+    nq, nk = q.shape[1] // bq, k.shape[1] // bk
+    f32 = lambda x: jnp.zeros(x.shape, jnp.float32)
 
-    def key_tile(dq_acc, kv):
-        j, kj, vj, mj = kv
+    def key_tile(j, grads):
+        dq, dk, dv = grads
+        kj, vj = _tile(k, j * bk, bk), _tile(v, j * bk, bk)
+        mj = None if mask is None else _tile(mask, j * bk, bk)
 
-        def query_tile(dkv, qs):
-            i, qi, oi, lsei, doi = qs
+        def query_tile(i, inner):
+            dq, dkj, dvj = inner
 
-            def grads():
-                dq, dk, dv = sb.attend_block_grads(qi, kj, vj, oi, lsei, doi, scale=scale, kv_mask=mj,
-                                                   causal_block=causal_block, q_start=q_start + i * bq,
-                                                   k_start=k_start + j * bk)
-                return dq, (dkv[0] + dk, dkv[1] + dv)
-
+            def add():
+                gq, gk, gv = sb.attend_block_grads(
+                    _tile(q, i * bq, bq), kj, vj, _tile(o, i * bq, bq), _tile(lse, i * bq, bq, axis=2),
+                    _tile(do, i * bq, bq), scale=scale, kv_mask=mj, causal_block=causal_block,
+                    q_start=q_start + i * bq, k_start=k_start + j * bk)
+                return _put(dq, _tile(dq, i * bq, bq) + gq, i * bq), dkj + gk, dvj + gv
             if causal_block is None:
-                dq, dkv = grads()
-            else:
-                dq, dkv = jax.lax.cond(_hidden(i, j, bq, bk, causal_block, q_start, k_start),
-                                       lambda: (jnp.zeros(qi.shape, jnp.float32), dkv), grads)
-            return dkv, dq
+                return add()
+            return jax.lax.cond(_hidden(i, j, bq, bk, causal_block, q_start, k_start), lambda: inner, add)
 
-        zeros = jnp.zeros(kj.shape, jnp.float32)
-        (dk, dv), dq = jax.lax.scan(query_tile, (zeros, zeros), (jnp.arange(qb.shape[0]), qb, ob, lseb, dob))
-        return dq_acc + dq, (dk, dv)
+        dq, dkj, dvj = jax.lax.fori_loop(0, nq, query_tile, (dq, f32(kj), f32(vj)))
+        return dq, _put(dk, dkj, j * bk), _put(dv, dvj, j * bk)
 
-    dq, (dk, dv) = jax.lax.scan(key_tile, jnp.zeros(qb.shape, jnp.float32), (idx, kb, vb, mb))
-    return _unblocks(dq), _unblocks(dk), _unblocks(dv)
+    return jax.lax.fori_loop(0, nk, key_tile, (f32(q), f32(k), f32(v)))
 
 
 @functools.lru_cache(maxsize=None)

@@ -179,11 +179,12 @@ def _ring_kernel(scale: float, causal_block, axis: str, n: int, has_mask: bool, 
 
         def step(t, state):
             carry, kc, vc, mc = state
-            kc, vc, mc = *rotate((kc, vc)), rotate_mask(mc)
-            return attend(t, carry, kc, vc, mc), kc, vc, mc
+            carry = attend(t, carry, kc, vc, mc)
+            # One body for all n steps (a peeled first step would be a second copy of the tile
+            # loops with buffers of its own); the last rotation is spent, K/V are back home.
+            return (carry, *rotate((kc, vc)), rotate_mask(mc))
 
-        carry = attend(0, sb.empty(q), k, v, mask)
-        carry, *_ = jax.lax.fori_loop(1, n, step, (carry, k, v, mask))
+        carry, *_ = jax.lax.fori_loop(0, n, step, (sb.empty(q), k, v, mask))
         return carry
 
     @jax.custom_vjp
@@ -213,18 +214,15 @@ def _ring_kernel(scale: float, causal_block, axis: str, n: int, has_mask: bool, 
         def step(t, state):
             dq, kc, vc, mc, dk, dv = state
             gq, gk, gv = grads(t, kc, vc, mc)
-            # K/V travel on with their accumulators; after the last step only dK/dV move.
-            dq, dk, dv = dq + gq, dk + gk, dv + gv
-            kc, vc, dk, dv = rotate((kc, vc, dk, dv))
-            mc = rotate_mask(mc)
-            return dq, kc, vc, mc, dk, dv
+            # K/V travel on with their accumulators; after n rotations dK/dV are back with the
+            # owner of their chunk (one loop body, as in the forward).
+            kc, vc, dk, dv = rotate((kc, vc, dk + gk, dv + gv))
+            return dq + gq, kc, vc, rotate_mask(mc), dk, dv
 
         zero = lambda x: jnp.zeros(x.shape, jnp.float32)
         state = (zero(q), k, v, mask, zero(k), zero(v))
-        dq, kc, vc, mc, dk, dv = jax.lax.fori_loop(0, n - 1, step, state)
-        gq, gk, gv = grads(n - 1, kc, vc, mc)
-        dk, dv = rotate((dk + gk, dv + gv))
-        return (dq + gq).astype(q.dtype), dk.astype(k.dtype), dv.astype(v.dtype), None
+        dq, _, _, _, dk, dv = jax.lax.fori_loop(0, n, step, state)
+        return dq.astype(q.dtype), dk.astype(k.dtype), dv.astype(v.dtype), None
 
     kernel.defvjp(kernel_fwd, kernel_bwd)
     return kernel
