@@ -165,3 +165,27 @@ def test_ring_tiles_chunks_longer_than_its_block(causal_block):
     assert _rel(out, ref) <= 1e-5
     for got, want in zip(vjp(do), ref_vjp(do)):
         assert _rel(got, want) <= 1e-5
+
+
+@pytest.mark.parametrize("kw", [dict(), dict(mask=True), dict(causal_block=8), dict(mask=True, causal_block=8)])
+def test_splash_kernel_matches_dense_in_the_pallas_interpreter(kw):
+    # the TPU kernel itself, run by the Pallas interpreter on CPU: padded lengths, segment-id
+    # masking, the block-causal mask computed in the kernel, its own backward kernels
+    from jaxdrive.parallel.splash import splash_attention
+    q, k, v, do = _qkvd(b=2, lq=200, lk=200, h=2, d=64)
+    mask = jnp.ones((2, 200), bool).at[1].set(False) if kw.get("mask") else None  # sample 1: no key
+    causal_block = kw.get("causal_block")
+    ref, ref_vjp = jax.vjp(lambda *a: attention(*a, impl="xla", kv_mask=mask, causal_block=causal_block), q, k, v)
+    out, vjp = jax.vjp(lambda *a: splash_attention(*a, scale=64 ** -0.5, kv_mask=mask, causal_block=causal_block,
+                                                   tile=128, interpret=True), q, k, v)
+    assert _rel(out, ref) <= 1e-5
+    for got, want in zip(vjp(do), ref_vjp(do)):
+        assert bool(jnp.all(jnp.isfinite(got))) and _rel(got, want) <= 1e-5
+    if mask is not None:
+        np.testing.assert_array_equal(out[1], 0.0)
+
+
+def test_splash_needs_a_tpu():
+    q, k, v, _ = _qkvd()
+    with pytest.raises(ValueError, match="impl: 'splash' needs a TPU backend, got cpu"):
+        attention(q, k, v, impl="splash")

@@ -10,9 +10,10 @@ Implementations (``impl``):
 - ``"ulysses"``: all-to-all from sequence- to head-sharding over ``seq``, a local blockwise kernel,
   and back (:mod:`jaxdrive.parallel.ulysses`).
 - ``"cudnn"``: ``jax.nn.dot_product_attention(..., implementation="cudnn")`` on GPUs (fp16/bf16).
-- ``"auto"``: ``"ring"`` when the mesh shards ``seq``; else ``"cudnn"`` where it applies; else
-  ``"blockwise"`` for long sequences and ``"xla"`` for short ones. It never fails where ``"xla"``
-  works.
+- ``"splash"``: JAX's Pallas splash kernel on TPUs (:mod:`jaxdrive.parallel.splash`).
+- ``"auto"``: ``"ring"`` when the mesh shards ``seq``; else ``"splash"`` on TPU or ``"cudnn"``
+  where it applies; else ``"blockwise"`` for long sequences and ``"xla"`` for short ones. It
+  never fails where ``"xla"`` works.
 
 Masks: ``kv_mask [B, Lk]`` (True = attend; e.g. padded text tokens) and ``causal_block = n``:
 token block i (n tokens, e.g. one latent frame) attends to blocks <= i. A query row with no
@@ -27,11 +28,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdrive.parallel import softmax_blocks
+from jaxdrive.parallel import softmax_blocks, splash
 from jaxdrive.parallel.blockwise import blockwise_attention
 from jaxdrive.validate import check_choice, check_positive_int
 
-IMPLS = ("auto", "xla", "blockwise", "ring", "ulysses", "cudnn")
+IMPLS = ("auto", "xla", "blockwise", "ring", "ulysses", "cudnn", "splash")
 # Above this many (query, key) pairs per head, "auto" prefers the O(L) kernel on one device.
 AUTO_BLOCKWISE_PAIRS = 4096 * 4096
 
@@ -88,6 +89,8 @@ def _ring_applies(q, k, v, mesh, kv_mask, causal_block) -> bool:
 def _auto(q, k, v, mesh, kv_mask, causal_block) -> str:
     if _seq_size(mesh) > 1 and _ring_applies(q, k, v, mesh, kv_mask, causal_block):
         return "ring"
+    if splash.available():
+        return "splash"
     if _cudnn_applies(q, kv_mask, causal_block):
         return "cudnn"
     return "blockwise" if q.shape[1] * k.shape[1] > AUTO_BLOCKWISE_PAIRS else "xla"
@@ -131,6 +134,10 @@ def attention(q, k, v, *, impl: str = "auto", kv_mask=None, causal_block=None, m
                              f"got backend {jax.default_backend()}, dtype {q.dtype}, "
                              f"causal_block {causal_block}")
         return _cudnn(q, k, v, scale, kv_mask)
+    if impl == "splash":
+        if not splash.available():
+            raise ValueError(f"impl: 'splash' needs a TPU backend, got {jax.default_backend()}")
+        return splash.splash_attention(q, k, v, scale=scale, kv_mask=kv_mask, causal_block=causal_block)
     if mesh is None or "seq" not in mesh.axis_names:
         raise ValueError(f"mesh: impl {impl!r} needs a mesh with a 'seq' axis, got "
                          f"{None if mesh is None else tuple(mesh.axis_names)}")

@@ -1,0 +1,95 @@
+"""Pallas splash attention (TPU), adapted to jaxdrive's masks and layout.
+
+JAX's splash kernel (``jax.experimental.pallas.ops.tpu.splash_attention``) computes block-sparse
+flash attention with its own forward and backward kernels on TPU. jaxdrive maps its arguments
+onto it:
+
+- layout ``[B, L, H, D]`` -> the kernel's ``[H, L, D]``, vmapped over the batch; the kernel does
+  not scale the logits, so ``q`` is multiplied by ``scale`` first;
+- ``causal_block = n`` -> a computable block-causal mask (``k // n <= q // n``), evaluated in the
+  kernel, never materialised as an ``L x L`` array;
+- ``kv_mask [B, Lk]`` -> segment ids (valid keys in segment 0, masked keys in segment 1, queries
+  in segment 0);
+- lengths are padded to the tile size (padded keys masked), and query rows with no allowed key
+  return 0 like every jaxdrive attention (the kernel's finite mask value would otherwise average
+  the masked keys).
+
+``interpret=True`` runs the same kernel through the Pallas interpreter on any backend: that is
+how the CPU tests check it against dense attention.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def available() -> bool:
+    """Splash compiles for TPUs only (elsewhere it runs through the interpreter, for tests)."""
+    return jax.default_backend() == "tpu"
+
+
+@functools.lru_cache(maxsize=None)
+def _block_causal_mask(shape: tuple[int, int], block: int):
+    from jax.experimental.pallas.ops.tpu.splash_attention import splash_attention_mask as masks
+
+    class BlockCausalMask(masks._ComputableMask):  # the kernel evaluates mask_function per tile
+        def __init__(self):
+            def mask_function(q_ids, kv_ids):
+                return kv_ids // block <= q_ids // block
+            super().__init__(shape=shape, mask_function=mask_function)
+
+        def __eq__(self, other):
+            return isinstance(other, BlockCausalMask) and other.shape == self.shape
+
+        def __hash__(self):
+            return hash(("jaxdrive.BlockCausalMask", shape, block))
+
+    return BlockCausalMask()
+
+
+@functools.lru_cache(maxsize=None)
+def _kernel(shape: tuple[int, int], heads: int, causal_block, tile_q: int, tile_k: int, interpret: bool):
+    from jax.experimental.pallas.ops.tpu.splash_attention import splash_attention_kernel as splash
+    from jax.experimental.pallas.ops.tpu.splash_attention import splash_attention_mask as masks
+
+    one = masks.FullMask(shape) if causal_block is None else _block_causal_mask(shape, causal_block)
+    blocks = splash.BlockSizes(block_q=tile_q, block_kv=tile_k, block_kv_compute=tile_k,
+                               block_q_dkv=tile_q, block_kv_dkv=tile_k, block_kv_dkv_compute=tile_k,
+                               block_q_dq=tile_q, block_kv_dq=tile_k)
+    return splash.make_splash_mha(masks.MultiHeadMask([one] * heads), block_sizes=blocks, head_shards=1,
+                                  q_seq_shards=1, interpret=interpret)
+
+
+def _has_key(kv_mask, lq: int, causal_block):
+    """``[B, Lq]``: whether query row i has any allowed key."""
+    if causal_block is None:
+        return jnp.broadcast_to(jnp.any(kv_mask, axis=1, keepdims=True), (kv_mask.shape[0], lq))
+    seen = jnp.cumsum(kv_mask, axis=1)                                   # allowed keys so far
+    last = np.minimum((np.arange(lq) // causal_block + 1) * causal_block, kv_mask.shape[1]) - 1
+    return seen[:, last] > 0
+
+
+def splash_attention(q, k, v, *, scale, kv_mask=None, causal_block=None, tile: int = 512,
+                     interpret: bool = False):
+    """Softmax attention ``[B, Lq, H, D]`` through the splash kernel (see the module docstring)."""
+    from jax.experimental.pallas.ops.tpu.splash_attention import splash_attention_kernel as splash
+
+    b, lq, h, _ = q.shape
+    lk = k.shape[1]
+    tile_q, tile_k = min(tile, -(-lq // 128) * 128), min(tile, -(-lk // 128) * 128)
+    lq_pad, lk_pad = -(-lq // tile_q) * tile_q, -(-lk // tile_k) * tile_k
+    mask = jnp.ones((b, lk), bool) if kv_mask is None else jnp.asarray(kv_mask, bool)
+    pad = lambda x, n: jnp.pad(x, [(0, 0), (0, n - x.shape[1])] + [(0, 0)] * (x.ndim - 2))
+    heads_first = lambda x: jnp.swapaxes(x, 1, 2)                        # [B, L, H, D] -> [B, H, L, D]
+    qh = heads_first(pad(q * jnp.asarray(scale, q.dtype), lq_pad))
+    kh, vh = heads_first(pad(k, lk_pad)), heads_first(pad(v, lk_pad))
+    segments = splash.SegmentIds(q=jnp.zeros((b, lq_pad), jnp.int32),
+                                 kv=jnp.where(pad(mask, lk_pad), 0, 1).astype(jnp.int32))
+    kernel = _kernel((lq_pad, lk_pad), h, causal_block, tile_q, tile_k, interpret)
+    out = jax.vmap(lambda q, k, v, s: kernel(q, k, v, segment_ids=s))(qh, kh, vh, segments)
+    out = jnp.swapaxes(out, 1, 2)[:, :lq]
+    return jnp.where(_has_key(mask, lq, causal_block)[:, :, None, None], out, 0).astype(q.dtype)
