@@ -21,22 +21,6 @@ import jax.numpy as jnp
 from jaxdrive.parallel import softmax_blocks as sb
 
 
-def _pad(x, length, axis=1, value=0):
-    extra = length - x.shape[axis]
-    if extra == 0:
-        return x
-    widths = [(0, 0)] * x.ndim
-    widths[axis] = (0, extra)
-    return jnp.pad(x, widths, constant_values=value)
-
-
-def _hidden(i, j, bq, bk, causal_block, q_start=0, k_start=0):
-    """True when causal masking hides key tile j from every query of query tile i."""
-    if causal_block is None:
-        return False
-    return (k_start + j * bk) // causal_block > (q_start + (i + 1) * bq - 1) // causal_block
-
-
 def _tile(x, start, size, axis=1):
     return jax.lax.dynamic_slice_in_dim(x, start, size, axis=axis)
 
@@ -70,7 +54,8 @@ def tiled_attend(q, k, v, mask, *, scale, causal_block, bq, bk, q_start=0, k_sta
                 return sb.merge(*acc, o, lse)
             if causal_block is None:
                 return attend()
-            return jax.lax.cond(_hidden(i, j, bq, bk, causal_block, q_start, k_start), lambda: acc, attend)
+            hidden = sb.hidden(q_start + i * bq, bq, k_start + j * bk, causal_block)
+            return jax.lax.cond(hidden, lambda: acc, attend)
 
         o, lse = jax.lax.fori_loop(0, nk, key_tile, sb.empty(qi))
         return _put(out[0], o, i * bq), _put(out[1], lse, i * bq, axis=2)
@@ -100,7 +85,8 @@ def tiled_grads(q, k, v, mask, o, lse, do, *, scale, causal_block, bq, bk, q_sta
                 return _put(dq, _tile(dq, i * bq, bq) + gq, i * bq), dkj + gk, dvj + gv
             if causal_block is None:
                 return add()
-            return jax.lax.cond(_hidden(i, j, bq, bk, causal_block, q_start, k_start), lambda: inner, add)
+            hidden = sb.hidden(q_start + i * bq, bq, k_start + j * bk, causal_block)
+            return jax.lax.cond(hidden, lambda: inner, add)
 
         dq, dkj, dvj = jax.lax.fori_loop(0, nq, query_tile, (dq, f32(kj), f32(vj)))
         return dq, _put(dk, dkj, j * bk), _put(dv, dvj, j * bk)
@@ -144,5 +130,6 @@ def blockwise_attention(q, k, v, *, scale, kv_mask=None, causal_block=None, bloc
     lq_pad, lk_pad = -(-lq // bq) * bq, -(-lk // bk) * bk
     mask = jnp.ones((b, lk), bool) if kv_mask is None else jnp.asarray(kv_mask, bool)
     out = _kernel(float(scale), causal_block, bq, bk)(
-        _pad(q, lq_pad), _pad(k, lk_pad), _pad(v, lk_pad), _pad(mask, lk_pad, value=False))
+        sb.pad_sequence(q, lq_pad), sb.pad_sequence(k, lk_pad), sb.pad_sequence(v, lk_pad),
+        sb.pad_sequence(mask, lk_pad, value=False))
     return out[:, :lq].astype(q.dtype)

@@ -89,33 +89,19 @@ def layout(q, k, v, kv_mask, causal_block, mesh, seq_axis) -> Layout:
     return Layout(seq_axis, sizes[seq_axis], batch_axes, head_axis, h // nt)
 
 
-def _pad_len(x, length, value=0):
-    extra = length - x.shape[1]
-    if extra == 0:
-        return x
-    widths = [(0, 0)] * x.ndim
-    widths[1] = (0, extra)
-    return jnp.pad(x, widths, constant_values=value)
-
-
-def _tile(length: int, n: int, block: int) -> int:
-    """Tile size for chunks of ``ceil(length / n)``: the whole chunk when it fits in ``block``."""
-    return min(-(-length // n), block)
-
-
-def pad_inputs(q, k, v, kv_mask, n, lk=None):
-    """Pad q and k/v along the sequence to multiples of ``n`` (k/v to ``lk`` when given); the
-    returned mask hides padded keys.
+def pad_inputs(q, k, v, kv_mask, n, *, lq=None, lk=None):
+    """Pad q and k/v along the sequence to multiples of ``n`` (or to ``lq``/``lk`` when given);
+    the returned mask hides padded keys.
 
     Returns ``(q, k, v, kv_mask)``; ``kv_mask`` stays None when nothing was padded and none came.
     """
-    lq = -(-q.shape[1] // n) * n
+    lq = -(-q.shape[1] // n) * n if lq is None else lq
     lk = -(-k.shape[1] // n) * n if lk is None else lk
     if lk != k.shape[1]:
         if kv_mask is None:
             kv_mask = jnp.ones(k.shape[:2], bool)
-        kv_mask = _pad_len(jnp.asarray(kv_mask, bool), lk, False)
-    return _pad_len(q, lq), _pad_len(k, lk), _pad_len(v, lk), kv_mask
+        kv_mask = sb.pad_sequence(jnp.asarray(kv_mask, bool), lk, False)
+    return sb.pad_sequence(q, lq), sb.pad_sequence(k, lk), sb.pad_sequence(v, lk), kv_mask
 
 
 def to_specs(mesh, lay: Layout, q, k, v, kv_mask):
@@ -138,11 +124,6 @@ def unpad(o, length, mesh, lay: Layout, like=None):
     if spec is not None and tuple(getattr(target.mesh, "axis_names", ())) == tuple(mesh.axis_names):
         o = jax.reshard(o, jax.sharding.NamedSharding(mesh, spec))
     return o
-
-
-def _hidden(src, cq, ck, q_start, causal_block):
-    """True when causal masking hides key chunk ``src`` from every query of this device's chunk."""
-    return (src * ck) // causal_block > (q_start + cq - 1) // causal_block
 
 
 @functools.lru_cache(maxsize=None)
@@ -174,7 +155,7 @@ def _ring_kernel(scale: float, causal_block, axis: str, n: int, has_mask: bool, 
                 return sb.merge(*carry, o, lse)
             if causal_block is None:
                 return compute()
-            return jax.lax.cond(_hidden(src, q.shape[1], ck, q_start, causal_block),
+            return jax.lax.cond(sb.hidden(q_start, q.shape[1], src * ck, causal_block),
                                 lambda: carry, compute)
 
         def step(t, state):
@@ -209,7 +190,7 @@ def _ring_kernel(scale: float, causal_block, axis: str, n: int, has_mask: bool, 
                              jnp.zeros(vc.shape, jnp.float32))
             if causal_block is None:
                 return compute()
-            return jax.lax.cond(_hidden(src, q.shape[1], ck, q_start, causal_block), zeros, compute)
+            return jax.lax.cond(sb.hidden(q_start, q.shape[1], src * ck, causal_block), zeros, compute)
 
         def step(t, state):
             dq, kc, vc, mc, dk, dv = state
@@ -243,16 +224,18 @@ def ring_attention(q, k, v, *, mesh, scale, kv_mask=None, causal_block=None, seq
     """
     lay = layout(q, k, v, kv_mask, causal_block, mesh, seq_axis)
     lq, q_type = q.shape[1], jax.typeof(q)
-    tile_q, tile_k = (_tile(length, lay.n, block) for length in (lq, k.shape[1]))
-    multiple = lambda tile, length: lay.n * tile if -(-length // lay.n) > block else lay.n
-    q = _pad_len(q, -(-lq // multiple(tile_q, lq)) * multiple(tile_q, lq))
-    lk_pad = -(-k.shape[1] // multiple(tile_k, k.shape[1])) * multiple(tile_k, k.shape[1])
+
+    def padded(length):  # chunks longer than a tile become whole tiles
+        multiple = lay.n * block if -(-length // lay.n) > block else lay.n
+        return -(-length // multiple) * multiple
+    lk_pad = padded(k.shape[1])
     has_mask = kv_mask is not None or k.shape[1] != lk_pad
-    q, k, v, kv_mask = pad_inputs(q, k, v, kv_mask, lay.n, lk=lk_pad)
+    q, k, v, kv_mask = pad_inputs(q, k, v, kv_mask, lay.n, lq=padded(lq), lk=lk_pad)
     if kv_mask is None:
         kv_mask = jnp.ones(k.shape[:2], bool)         # placeholder, ignored when has_mask is False
+    tile = lambda length: min(length // lay.n, block)  # the chunk, or a block dividing it
     kernel = _ring_kernel(float(scale), causal_block, seq_axis, lay.n, has_mask,
-                          min(tile_q, q.shape[1] // lay.n), min(tile_k, k.shape[1] // lay.n))
+                          tile(q.shape[1]), tile(k.shape[1]))
     fn = jax.shard_map(kernel, mesh=mesh, in_specs=(lay.qkv_spec,) * 3 + (lay.mask_spec,),
                        out_specs=lay.qkv_spec, check_vma=False)
     return unpad(fn(*to_specs(mesh, lay, q, k, v, kv_mask)), lq, mesh, lay, like=q_type)

@@ -25,6 +25,22 @@ import jax.numpy as jnp
 NEG_INF = -jnp.inf
 
 
+def pad_sequence(x, length: int, value=0):
+    """Pad ``x [B, L, ...]`` along the sequence axis to ``length`` with ``value``."""
+    extra = length - x.shape[1]
+    if extra == 0:
+        return x
+    return jnp.pad(x, [(0, 0), (0, extra)] + [(0, 0)] * (x.ndim - 2), constant_values=value)
+
+
+def hidden(q_start, q_len: int, k_start, causal_block):
+    """True when causal masking hides keys from ``k_start`` on from all ``q_len`` queries starting
+    at ``q_start`` (global positions; may be traced): the key range can be skipped."""
+    if causal_block is None:
+        return False
+    return k_start // causal_block > (q_start + q_len - 1) // causal_block
+
+
 def allowed(batch: int, lq: int, lk: int, *, kv_mask=None, causal_block=None, q_start=0, k_start=0):
     """Boolean ``[B, 1, Lq, Lk]`` (or broadcastable) mask of allowed (query, key) pairs, or None."""
     mask = None

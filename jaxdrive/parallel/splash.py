@@ -26,6 +26,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdrive.parallel.softmax_blocks import pad_sequence
+
 
 def available() -> bool:
     """Splash compiles for TPUs only (elsewhere it runs through the interpreter, for tests)."""
@@ -83,12 +85,11 @@ def splash_attention(q, k, v, *, scale, kv_mask=None, causal_block=None, tile: i
     tile_q, tile_k = min(tile, -(-lq // 128) * 128), min(tile, -(-lk // 128) * 128)
     lq_pad, lk_pad = -(-lq // tile_q) * tile_q, -(-lk // tile_k) * tile_k
     mask = jnp.ones((b, lk), bool) if kv_mask is None else jnp.asarray(kv_mask, bool)
-    pad = lambda x, n: jnp.pad(x, [(0, 0), (0, n - x.shape[1])] + [(0, 0)] * (x.ndim - 2))
     heads_first = lambda x: jnp.swapaxes(x, 1, 2)                        # [B, L, H, D] -> [B, H, L, D]
-    qh = heads_first(pad(q * jnp.asarray(scale, q.dtype), lq_pad))
-    kh, vh = heads_first(pad(k, lk_pad)), heads_first(pad(v, lk_pad))
+    qh = heads_first(pad_sequence(q * jnp.asarray(scale, q.dtype), lq_pad))
+    kh, vh = heads_first(pad_sequence(k, lk_pad)), heads_first(pad_sequence(v, lk_pad))
     segments = splash.SegmentIds(q=jnp.zeros((b, lq_pad), jnp.int32),
-                                 kv=jnp.where(pad(mask, lk_pad), 0, 1).astype(jnp.int32))
+                                 kv=jnp.where(pad_sequence(mask, lk_pad), 0, 1).astype(jnp.int32))
     kernel = _kernel((lq_pad, lk_pad), h, causal_block, tile_q, tile_k, interpret)
     out = jax.vmap(lambda q, k, v, s: kernel(q, k, v, segment_ids=s))(qh, kh, vh, segments)
     out = jnp.swapaxes(out, 1, 2)[:, :lq]
