@@ -1,0 +1,388 @@
+"""The 3D causal video VAE (CogVideoX architecture), with flat memory for minute-long videos.
+
+``CausalVAE(config)`` holds no parameters: ``vae.init(key)`` makes them, ``vae.encode(params,
+video)`` returns the posterior mean and ``vae.decode(params, latents)`` the video, all jitted.
+
+Layouts (channels-last): ``video [B, F, H, W, 3]`` or ``[B, V, F, H, W, 3]`` in [-1, 1] (views are
+folded into the batch, which is sharded over ``data``/``fsdp`` under a mesh); unscaled latents
+``[B, (V,) F', h, w, C]``. With the default ``temporal_compression = 4``, ``F = 1 + 4k`` frames give
+``F' = 1 + k`` latent frames; ``h = H / s``, ``w = W / s`` with ``s = 2 ** (len(block_out_channels) - 1)``.
+The scaling factor is exposed (:meth:`CausalVAE.scale_latents`), never applied by encode/decode.
+
+Modes (``config.mode``, or the ``mode=`` argument):
+
+- ``"chunked"`` (default): CogVideoX's released weights are used with diffusers' chunking, so
+  this is the numerically faithful mode. Encoding takes ``encode_chunk_frames`` (8) frames at a
+  time and decoding ``decode_chunk_latents`` (2) latent frames, the remainder joining the first
+  chunk; each causal convolution's last input frames carry over to the next chunk (the *cache*).
+  The chunks after the first run in one ``lax.fori_loop`` that writes into the output in place, so
+  temporary memory does not grow with the video length.
+- ``"whole"``: the whole clip in one pass. GroupNorm takes its statistics over time, so this
+  differs from ``"chunked"`` (on the order of 0.1-0.3 on a random model).
+- ``"frame_wise"``: every frame is its own one-frame clip (LongDWM's Coarse DiT), ``F -> F``.
+
+Spatial tiling (``config.tiling`` or ``tiled=``) follows diffusers' ``tiled_encode`` /
+``tiled_decode``: overlapping tiles of ``tile_sample_height x tile_sample_width`` pixels, blended
+linearly over the overlap, for resolutions whose activations do not fit at once.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from typing import Any
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxdrive import validate
+from jaxdrive.models import vae_layers as L
+from jaxdrive.parallel.rules import constrain
+
+MODES = ("chunked", "whole", "frame_wise")
+
+
+@dataclasses.dataclass(frozen=True)
+class VAEConfig:
+    """Architecture and inference settings; the defaults are CogVideoX-2B's VAE."""
+
+    in_channels: int = 3
+    out_channels: int = 3
+    block_out_channels: tuple[int, ...] = (128, 256, 256, 512)
+    layers_per_block: int = 3
+    latent_channels: int = 16
+    norm_num_groups: int = 32
+    norm_eps: float = 1e-6
+    temporal_compression: int = 4
+    scaling_factor: float = 1.15258426
+    shift_factor: float = 0.0
+    mode: str = "chunked"
+    encode_chunk_frames: int = 8
+    decode_chunk_latents: int = 2
+    tiling: bool = False
+    tile_sample_height: int = 240
+    tile_sample_width: int = 360
+    tile_overlap_height: float = 1 / 6
+    tile_overlap_width: float = 1 / 5
+    dtype: str = "float32"          # compute dtype; params are always float32
+
+    def __post_init__(self):
+        object.__setattr__(self, "block_out_channels", tuple(int(c) for c in self.block_out_channels))
+        for name in ("in_channels", "out_channels", "layers_per_block", "latent_channels",
+                     "norm_num_groups", "temporal_compression", "encode_chunk_frames",
+                     "decode_chunk_latents", "tile_sample_height", "tile_sample_width"):
+            validate.check_positive_int(name, getattr(self, name))
+        if not self.block_out_channels:
+            raise ValueError("block_out_channels: expected at least one block, got ()")
+        for c in self.block_out_channels:
+            if c % self.norm_num_groups:
+                raise ValueError(f"block_out_channels: expected multiples of norm_num_groups "
+                                 f"{self.norm_num_groups}, got {list(self.block_out_channels)}")
+        levels = math.log2(self.temporal_compression)
+        if levels != int(levels) or levels > len(self.block_out_channels) - 1:
+            raise ValueError(f"temporal_compression: expected a power of 2 up to "
+                             f"{2 ** (len(self.block_out_channels) - 1)} (one level per downsampling "
+                             f"block), got {self.temporal_compression}")
+        if self.encode_chunk_frames % self.temporal_compression:
+            raise ValueError(f"encode_chunk_frames: expected a multiple of temporal_compression "
+                             f"{self.temporal_compression}, got {self.encode_chunk_frames}")
+        validate.check_choice("mode", self.mode, MODES)
+        validate.check_choice("dtype", self.dtype, ("float32", "bfloat16", "float16"))
+        validate.check_range("tile_overlap_height", self.tile_overlap_height, 0, 1, hi_open=True)
+        validate.check_range("tile_overlap_width", self.tile_overlap_width, 0, 1, hi_open=True)
+    @property
+    def spatial_compression(self) -> int:
+        return 2 ** (len(self.block_out_channels) - 1)
+
+    def tile_geometry(self, axis: str) -> dict:
+        """diffusers' tile arithmetic for one axis (kept verbatim: it decides tile boundaries).
+
+        Raises ``ValueError`` for a tile size and overlap whose strides in pixels and in latents
+        disagree: the blended tiles, cropped to their stride, would not tile the frame."""
+        sample = getattr(self, f"tile_sample_{axis}")
+        overlap = getattr(self, f"tile_overlap_{axis}")
+        latent = int(sample / self.spatial_compression)
+        geo = dict(tile_sample=sample, tile_latent=latent,
+                   encode_stride=int(sample * (1 - overlap)), encode_blend=int(latent * overlap),
+                   encode_keep=latent - int(latent * overlap),
+                   decode_stride=int(latent * (1 - overlap)), decode_blend=int(sample * overlap),
+                   decode_keep=sample - int(sample * overlap))
+        s = self.spatial_compression
+        if (min(geo["tile_latent"], geo["encode_stride"], geo["decode_stride"]) < 1
+                or geo["encode_keep"] * s != geo["encode_stride"] or geo["decode_keep"] != geo["decode_stride"] * s):
+            raise ValueError(f"tile_overlap_{axis}: expected a tile size and overlap whose strides agree in "
+                             f"pixels and latents (spatial compression {s}), got tile_sample_{axis} = "
+                             f"{sample} and tile_overlap_{axis} = {overlap}")
+        return geo
+
+
+class Encoder3D(nn.Module):
+    """Video ``[N, T, H, W, Cin]`` -> posterior moments ``[N, T', h, w, 2 C]`` (mean, log-variance)."""
+
+    config: VAEConfig
+
+    @nn.compact
+    def __call__(self, x, cache=None):
+        c, dtype = self.config, jnp.dtype(self.config.dtype)
+        cache = cache or {}
+        new = {}
+        levels = int(math.log2(c.temporal_compression))
+        h, new["conv_in"] = L.CausalConv3d(c.block_out_channels[0], dtype=dtype, name="conv_in")(
+            x, cache.get("conv_in"))
+        for i, width in enumerate(c.block_out_channels):
+            for j in range(c.layers_per_block):
+                key = f"down_blocks_{i}/resnets_{j}"
+                h, new[key] = L.ResnetBlock3D(width, c.norm_num_groups, c.norm_eps, dtype=dtype,
+                                              name=key.replace("/", "_"))(h, cache=cache.get(key))
+            if i < len(c.block_out_channels) - 1:
+                h = L.Downsample3D(width, compress_time=i < levels, dtype=dtype,
+                                   name=f"down_blocks_{i}_downsamplers_0")(h)
+        for j in range(2):
+            key = f"mid_block/resnets_{j}"
+            h, new[key] = L.ResnetBlock3D(c.block_out_channels[-1], c.norm_num_groups, c.norm_eps,
+                                          dtype=dtype, name=key.replace("/", "_"))(h, cache=cache.get(key))
+        h = nn.silu(L.GroupNorm(c.norm_num_groups, 1e-6, name="norm_out")(h))
+        h, new["conv_out"] = L.CausalConv3d(2 * c.latent_channels, dtype=dtype, name="conv_out")(
+            h, cache.get("conv_out"))
+        return h, new
+
+
+class Decoder3D(nn.Module):
+    """Latents ``[N, T', h, w, C]`` -> video ``[N, T, H, W, Cout]``; every norm after the first
+    convolution is conditioned on the latents (SpatialNorm3D)."""
+
+    config: VAEConfig
+
+    @nn.compact
+    def __call__(self, z, cache=None):
+        c, dtype = self.config, jnp.dtype(self.config.dtype)
+        cache = cache or {}
+        new = {}
+        levels = int(math.log2(c.temporal_compression))
+        widths = c.block_out_channels[::-1]
+        h, new["conv_in"] = L.CausalConv3d(widths[0], dtype=dtype, name="conv_in")(z, cache.get("conv_in"))
+        resnet = functools.partial(L.ResnetBlock3D, groups=c.norm_num_groups, eps=c.norm_eps,
+                                   spatial_norm=True, dtype=dtype)
+        for j in range(2):
+            key = f"mid_block/resnets_{j}"
+            h, new[key] = resnet(widths[0], name=key.replace("/", "_"))(h, z, cache.get(key))
+        for i, width in enumerate(widths):
+            for j in range(c.layers_per_block + 1):
+                key = f"up_blocks_{i}/resnets_{j}"
+                h, new[key] = resnet(width, name=key.replace("/", "_"))(h, z, cache.get(key))
+            if i < len(widths) - 1:
+                h = L.Upsample3D(width, compress_time=i < levels, dtype=dtype,
+                                 name=f"up_blocks_{i}_upsamplers_0")(h)
+        h = nn.silu(L.SpatialNorm3D(c.norm_num_groups, 1e-6, dtype, name="norm_out")(h, z))
+        h, new["conv_out"] = L.CausalConv3d(c.out_channels, dtype=dtype, name="conv_out")(h, cache.get("conv_out"))
+        return h, new
+
+
+def _chunk_plan(total: int, size: int) -> tuple[int, int]:
+    """diffusers' temporal chunking: ``(first chunk length, number of further chunks of size)``;
+    the remainder ``total % size`` joins the first chunk."""
+    n = max(total // size, 1)
+    return (total if n == 1 else size + total % size), n - 1
+
+
+def _run_chunks(apply, x, size: int):
+    """``apply(chunk, cache) -> (y, cache)`` over time chunks of ``x [N, T, ...]``, cache threaded.
+
+    The first chunk (which holds the remainder) runs on its own; the others run in one
+    ``fori_loop`` that writes each output into a preallocated buffer in place."""
+    first, rest = _chunk_plan(x.shape[1], size)
+    y0, cache = apply(x[:, :first], None)
+    if rest == 0:
+        return y0
+    step = jax.eval_shape(apply, x[:, first:first + size], cache)[0].shape[1]
+    out = jnp.zeros((y0.shape[0], y0.shape[1] + rest * step, *y0.shape[2:]), y0.dtype)
+    out = jax.lax.dynamic_update_slice_in_dim(out, y0, 0, axis=1)
+
+    def body(i, carry):
+        out, cache = carry
+        y, cache = apply(jax.lax.dynamic_slice_in_dim(x, first + i * size, size, axis=1), cache)
+        return jax.lax.dynamic_update_slice_in_dim(out, y, y0.shape[1] + i * step, axis=1), cache
+
+    return jax.lax.fori_loop(0, rest, body, (out, cache))[0]
+
+
+def _blend(a, b, extent: int, axis: int):
+    """diffusers' blend_v / blend_h: the first ``extent`` rows (columns) of ``b`` fade in from the
+    last ones of ``a``."""
+    extent = min(a.shape[axis], b.shape[axis], extent)
+    if extent == 0:
+        return b
+    w = jnp.asarray(np.arange(extent) / extent, b.dtype)
+    w = w.reshape([-1 if d == axis else 1 for d in range(b.ndim)])
+    head = jax.lax.slice_in_dim(a, a.shape[axis] - extent, a.shape[axis], axis=axis) * (1 - w) \
+        + jax.lax.slice_in_dim(b, 0, extent, axis=axis) * w
+    return jnp.concatenate([head, jax.lax.slice_in_dim(b, extent, b.shape[axis], axis=axis)], axis=axis)
+
+
+def _tiled(apply, x, geo_h: dict, geo_w: dict, kind: str):
+    """Run ``apply`` on overlapping spatial tiles of ``x [N, T, H, W, C]`` and blend them, in
+    diffusers' order: each tile is blended with the already-blended tiles above and to its left."""
+    size_h = geo_h["tile_sample"] if kind == "encode" else geo_h["tile_latent"]
+    size_w = geo_w["tile_sample"] if kind == "encode" else geo_w["tile_latent"]
+    grid = []
+    for i in range(0, x.shape[2], geo_h[f"{kind}_stride"]):
+        grid.append([apply(x[:, :, i:i + size_h, j:j + size_w])
+                     for j in range(0, x.shape[3], geo_w[f"{kind}_stride"])])
+    rows = []
+    for i, row in enumerate(grid):
+        for j in range(len(row)):
+            tile = row[j]
+            if i > 0:
+                tile = _blend(grid[i - 1][j], tile, geo_h[f"{kind}_blend"], axis=2)
+            if j > 0:
+                tile = _blend(row[j - 1], tile, geo_w[f"{kind}_blend"], axis=3)
+            row[j] = tile
+        rows.append(jnp.concatenate([t[:, :, :geo_h[f"{kind}_keep"], :geo_w[f"{kind}_keep"]] for t in row], axis=3))
+    return jnp.concatenate(rows, axis=2)
+
+
+@dataclasses.dataclass(frozen=True)
+class CausalVAE:
+    """The VAE's functions over explicit ``params`` (see the module docstring)."""
+
+    config: VAEConfig = VAEConfig()
+
+    # ---------------------------------------------------------------- parameters
+    def init(self, key, *, boxed: bool = False):
+        """Fresh parameters ``{"encoder": ..., "decoder": ...}``. ``boxed=True`` keeps flax's
+        logical-axis metadata, for :func:`jaxdrive.parallel.param_shardings`."""
+        c = self.config
+        s = c.spatial_compression
+        k1, k2 = jax.random.split(key)
+        video = jnp.zeros((1, 1, s, s, c.in_channels), jnp.float32)
+        latent = jnp.zeros((1, 1, 1, 1, c.latent_channels), jnp.float32)
+        params = {"encoder": Encoder3D(c).init(k1, video)["params"],
+                  "decoder": Decoder3D(c).init(k2, latent)["params"]}
+        return params if boxed else nn.unbox(params)
+
+    # ---------------------------------------------------------------- shapes
+    def latent_frames(self, frames: int) -> int:
+        """Latent frames for ``frames`` input frames in the configured mode."""
+        if self.config.mode == "frame_wise":
+            return frames
+        return 1 + (frames - 1) // self.config.temporal_compression
+
+    def video_frames(self, latent_frames: int) -> int:
+        if self.config.mode == "frame_wise":
+            return latent_frames
+        return 1 + (latent_frames - 1) * self.config.temporal_compression
+
+    def scale_latents(self, z):
+        """Latents as the diffusion model sees them: ``(z - shift_factor) * scaling_factor``."""
+        return (z - self.config.shift_factor) * self.config.scaling_factor
+
+    def unscale_latents(self, z):
+        return z / self.config.scaling_factor + self.config.shift_factor
+
+    # ---------------------------------------------------------------- checks
+    def _check(self, name, x, channels, *, pixels: bool, mode: str):
+        c = self.config
+        validate.check_ndim(name, x, (5, 6))
+        if not jnp.issubdtype(jnp.result_type(x), jnp.floating):
+            raise ValueError(f"{name}: expected a floating dtype, got {jnp.result_type(x)}")
+        if x.shape[-1] != channels:
+            raise ValueError(f"{name}: expected {channels} channels in the last axis, got shape {list(x.shape)}")
+        frames = x.shape[-4]
+        if pixels:
+            s = c.spatial_compression
+            if x.shape[-3] % s or x.shape[-2] % s:
+                raise ValueError(f"{name}: expected height and width divisible by the spatial "
+                                 f"compression {s}, got {x.shape[-3]} x {x.shape[-2]}")
+            r = c.temporal_compression
+            if mode != "frame_wise" and (frames - 1) % r:
+                raise ValueError(f"{name}: expected 1 + {r}k frames, got {frames} (pad or trim the clip, "
+                                 f"or use mode='frame_wise')")
+            validate.check_range(name, x, -1.0, 1.0)
+        if frames < 1:
+            raise ValueError(f"{name}: expected at least one frame, got shape {list(x.shape)}")
+
+    def _resolve(self, mode, tiled):
+        mode = self.config.mode if mode is None else mode
+        validate.check_choice("mode", mode, MODES)
+        return mode, self.config.tiling if tiled is None else bool(tiled)
+
+    # ---------------------------------------------------------------- encode / decode
+    def posterior(self, params, video, *, mode: str | None = None, tiled: bool | None = None):
+        """``(mean, logvar)`` of the diagonal Gaussian posterior, each ``[B, (V,) F', h, w, C]``."""
+        mode, tiled = self._resolve(mode, tiled)
+        self._check("video", video, self.config.in_channels, pixels=True, mode=mode)
+        return _posterior(self, params, video, mode, tiled)
+
+    def encode(self, params, video, *, mode: str | None = None, tiled: bool | None = None):
+        """The posterior mean (unscaled latents) of ``video [B, (V,) F, H, W, 3]`` in [-1, 1]."""
+        return self.posterior(params, video, mode=mode, tiled=tiled)[0]
+
+    def decode(self, params, latents, *, mode: str | None = None, tiled: bool | None = None):
+        """Video ``[B, (V,) F, H, W, 3]`` from unscaled ``latents [B, (V,) F', h, w, C]``."""
+        mode, tiled = self._resolve(mode, tiled)
+        self._check("latents", latents, self.config.latent_channels, pixels=False, mode=mode)
+        return _decode(self, params, latents, mode, tiled)
+
+    # ---------------------------------------------------------------- internals
+    def _moments(self, params, x, mode: str, tiled: bool):
+        """``[N, F, H, W, Cin] -> [N, F', h, w, 2C]``."""
+        enc = Encoder3D(self.config)
+        apply = lambda chunk, cache: enc.apply({"params": params["encoder"]}, chunk, cache)
+        if mode == "frame_wise":
+            n, f = x.shape[:2]
+            out = self._moments(params, x.reshape(n * f, 1, *x.shape[2:]), "whole", tiled)
+            return out.reshape(n, f, *out.shape[2:])
+        run = (lambda t: apply(t, None)[0]) if mode == "whole" else \
+            (lambda t: _run_chunks(apply, t, self.config.encode_chunk_frames))
+        if tiled:
+            geo_h, geo_w = self.config.tile_geometry("height"), self.config.tile_geometry("width")
+            if x.shape[2] > geo_h["tile_sample"] or x.shape[3] > geo_w["tile_sample"]:
+                return _tiled(run, x, geo_h, geo_w, "encode")
+        return run(x)
+
+    def _video(self, params, z, mode: str, tiled: bool):
+        """``[N, F', h, w, C] -> [N, F, H, W, Cout]``."""
+        dec = Decoder3D(self.config)
+        apply = lambda chunk, cache: dec.apply({"params": params["decoder"]}, chunk, cache)
+        if mode == "frame_wise":
+            n, f = z.shape[:2]
+            out = self._video(params, z.reshape(n * f, 1, *z.shape[2:]), "whole", tiled)
+            return out.reshape(n, f, *out.shape[2:])
+        run = (lambda t: apply(t, None)[0]) if mode == "whole" else \
+            (lambda t: _run_chunks(apply, t, self.config.decode_chunk_latents))
+        if tiled:
+            geo_h, geo_w = self.config.tile_geometry("height"), self.config.tile_geometry("width")
+            if z.shape[2] > geo_h["tile_latent"] or z.shape[3] > geo_w["tile_latent"]:
+                return _tiled(run, z, geo_h, geo_w, "decode")
+        return run(z)
+
+
+def _fold_views(x):
+    """``[B, V, F, ...] -> [B * V, F, ...]`` (batch sharded over data/fsdp), and the unfold."""
+    if x.ndim == 5:
+        return constrain(x, ("batch", None, None, None, None)), lambda y: y
+    b, v = x.shape[:2]
+    folded = constrain(x.reshape(b * v, *x.shape[2:]), ("batch", None, None, None, None))
+    return folded, lambda y: y.reshape(b, v, *y.shape[1:])
+
+
+@functools.partial(jax.jit, static_argnums=(0, 3, 4))
+def _posterior(vae: CausalVAE, params, video, mode: str, tiled: bool):
+    x, unfold = _fold_views(video)
+    moments = vae._moments(params, x, mode, tiled).astype(jnp.float32)
+    c = vae.config.latent_channels
+    mean, logvar = moments[..., :c], jnp.clip(moments[..., c:], -30.0, 20.0)
+    return unfold(mean), unfold(logvar)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 3, 4))
+def _decode(vae: CausalVAE, params, latents, mode: str, tiled: bool):
+    z, unfold = _fold_views(latents)
+    return unfold(vae._video(params, z, mode, tiled).astype(jnp.float32))
+
+
+def vae_param_count(params: Any) -> int:
+    return int(sum(np.prod(x.shape) for x in jax.tree_util.tree_leaves(params)))
