@@ -152,7 +152,8 @@ class Encoder3D(nn.Module):
 
 class Decoder3D(nn.Module):
     """Latents ``[N, T', h, w, C]`` -> video ``[N, T, H, W, Cout]``; every norm after the first
-    convolution is conditioned on the latents (SpatialNorm3D)."""
+    convolution is conditioned on the latents (SpatialNorm3D). Without a cache the chunk starts
+    the video, and its frame 0 is decoded as an image (see :class:`Upsample3D`)."""
 
     config: VAEConfig
 
@@ -175,7 +176,7 @@ class Decoder3D(nn.Module):
                 h, new[key] = resnet(width, name=key.replace("/", "_"))(h, z, cache.get(key))
             if i < len(widths) - 1:
                 h = L.Upsample3D(width, compress_time=i < levels, dtype=dtype,
-                                 name=f"up_blocks_{i}_upsamplers_0")(h)
+                                 name=f"up_blocks_{i}_upsamplers_0")(h, first_chunk=not cache)
         h = nn.silu(L.SpatialNorm3D(c.norm_num_groups, 1e-6, dtype, name="norm_out")(h, z))
         h, new["conv_out"] = L.CausalConv3d(c.out_channels, dtype=dtype, name="conv_out")(h, cache.get("conv_out"))
         return h, new
@@ -224,24 +225,35 @@ def _blend(a, b, extent: int, axis: int):
 
 def _tiled(apply, x, geo_h: dict, geo_w: dict, kind: str):
     """Run ``apply`` on overlapping spatial tiles of ``x [N, T, H, W, C]`` and blend them, in
-    diffusers' order: each tile is blended with the already-blended tiles above and to its left."""
+    diffusers' order: each tile is blended with the already-blended tiles above and to its left.
+
+    Tiles of one shape (interior, right edge, bottom edge, corner) go through one ``lax.map``:
+    one tile at a time, as tiling is for memory, and one compilation per shape."""
     size_h = geo_h["tile_sample"] if kind == "encode" else geo_h["tile_latent"]
     size_w = geo_w["tile_sample"] if kind == "encode" else geo_w["tile_latent"]
-    grid = []
-    for i in range(0, x.shape[2], geo_h[f"{kind}_stride"]):
-        grid.append([apply(x[:, :, i:i + size_h, j:j + size_w])
-                     for j in range(0, x.shape[3], geo_w[f"{kind}_stride"])])
-    rows = []
-    for i, row in enumerate(grid):
-        for j in range(len(row)):
-            tile = row[j]
-            if i > 0:
-                tile = _blend(grid[i - 1][j], tile, geo_h[f"{kind}_blend"], axis=2)
-            if j > 0:
-                tile = _blend(row[j - 1], tile, geo_w[f"{kind}_blend"], axis=3)
-            row[j] = tile
-        rows.append(jnp.concatenate([t[:, :, :geo_h[f"{kind}_keep"], :geo_w[f"{kind}_keep"]] for t in row], axis=3))
-    return jnp.concatenate(rows, axis=2)
+    rows = range(0, x.shape[2], geo_h[f"{kind}_stride"])
+    cols = range(0, x.shape[3], geo_w[f"{kind}_stride"])
+    groups: dict[tuple[int, int], list] = {}
+    for i in rows:
+        for j in cols:
+            shape = (min(size_h, x.shape[2] - i), min(size_w, x.shape[3] - j))
+            groups.setdefault(shape, []).append((i, j))
+    out = {}
+    for (h, w), starts in groups.items():
+        tiles = jnp.stack([x[:, :, i:i + h, j:j + w] for i, j in starts])
+        results = jax.lax.map(apply, tiles)
+        out.update({start: results[g] for g, start in enumerate(starts)})
+    grid = [[out[(i, j)] for j in cols] for i in rows]
+    mosaic = []
+    for r, row in enumerate(grid):
+        for c in range(len(row)):
+            if r > 0:
+                row[c] = _blend(grid[r - 1][c], row[c], geo_h[f"{kind}_blend"], axis=2)
+            if c > 0:
+                row[c] = _blend(row[c - 1], row[c], geo_w[f"{kind}_blend"], axis=3)
+        mosaic.append(jnp.concatenate([t[:, :, :geo_h[f"{kind}_keep"], :geo_w[f"{kind}_keep"]] for t in row],
+                                      axis=3))
+    return jnp.concatenate(mosaic, axis=2)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -254,13 +266,7 @@ class CausalVAE:
     def init(self, key, *, boxed: bool = False):
         """Fresh parameters ``{"encoder": ..., "decoder": ...}``. ``boxed=True`` keeps flax's
         logical-axis metadata, for :func:`jaxdrive.parallel.param_shardings`."""
-        c = self.config
-        s = c.spatial_compression
-        k1, k2 = jax.random.split(key)
-        video = jnp.zeros((1, 1, s, s, c.in_channels), jnp.float32)
-        latent = jnp.zeros((1, 1, 1, 1, c.latent_channels), jnp.float32)
-        params = {"encoder": Encoder3D(c).init(k1, video)["params"],
-                  "decoder": Decoder3D(c).init(k2, latent)["params"]}
+        params = _init(self, key)
         return params if boxed else nn.unbox(params)
 
     # ---------------------------------------------------------------- shapes
@@ -358,6 +364,16 @@ class CausalVAE:
             if z.shape[2] > geo_h["tile_latent"] or z.shape[3] > geo_w["tile_latent"]:
                 return _tiled(run, z, geo_h, geo_w, "decode")
         return run(z)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _init(vae: CausalVAE, key):
+    c = vae.config
+    s = c.spatial_compression
+    k1, k2 = jax.random.split(key)
+    video = jnp.zeros((1, 1, s, s, c.in_channels), jnp.float32)
+    latent = jnp.zeros((1, 1, 1, 1, c.latent_channels), jnp.float32)
+    return {"encoder": Encoder3D(c).init(k1, video)["params"], "decoder": Decoder3D(c).init(k2, latent)["params"]}
 
 
 def _fold_views(x):

@@ -188,21 +188,26 @@ def _upsample(x, time: bool):
 
 
 class Upsample3D(nn.Module):
-    """Nearest x2 in space (and in time, frame 0 excepted, when compressing time), then a 3x3
-    convolution per frame."""
+    """Nearest x2 in space (and in time when compressing time), then a 3x3 convolution per frame.
+
+    Frame 0 of a video is an image: it is upsampled in space only, so ``T`` latent frames give
+    ``1 + 2 (T - 1)`` frames. ``first_chunk`` says whether ``x`` starts the video. diffusers
+    decides by parity instead (odd ``T``: frame 0 apart; even ``T``: every frame doubled), which
+    is the same for the chunks it makes from an odd number of latent frames (CogVideoX's 13
+    included), but turns an even number ``F'`` into ``4 F'`` frames instead of ``1 + 4 (F' - 1)``;
+    jaxdrive keeps the ``F = 1 + 4k <-> F' = 1 + k`` correspondence for every ``k``."""
 
     features: int
     compress_time: bool = False
     dtype: Any = jnp.float32
 
     @nn.compact
-    def __call__(self, x):
+    def __call__(self, x, first_chunk: bool = True):
         kernel = _param(self, "kernel", nn.initializers.lecun_normal(), (3, 3, x.shape[-1], self.features),
                         CONV2D_AXES)
         bias = _param(self, "bias", nn.initializers.zeros, (self.features,), VECTOR_AXES)
-        t = x.shape[1]
-        if self.compress_time and t > 1 and t % 2 == 1:
+        if self.compress_time and first_chunk:
             x = jnp.concatenate([_upsample(x[:, :1], False), _upsample(x[:, 1:], True)], axis=1)
         else:
-            x = _upsample(x, self.compress_time and t > 1)
+            x = _upsample(x, self.compress_time)
         return conv(x, kernel, bias, padding=((0, 0), (1, 1), (1, 1)), dtype=self.dtype)
