@@ -34,6 +34,12 @@ def test_readme_python_examples_run(index, tmp_path, monkeypatch):
     if "data/synth" in block:  # the data example reads the dataset the README's command writes
         from jaxdrive.cli import main
         assert main(["data", "synth", "--out", "data/synth", "--scenes", "16", "--frames", "33"]) == 0
+    if "CogVideoX-2b/vae" in block:  # the import example reads a diffusers VAE: a tiny random one
+        diffusers = pytest.importorskip("diffusers")
+        diffusers.AutoencoderKLCogVideoX(
+            block_out_channels=(8, 8, 16), latent_channels=4, layers_per_block=1, norm_num_groups=4,
+            down_block_types=("CogVideoXDownBlock3D",) * 3, up_block_types=("CogVideoXUpBlock3D",) * 3,
+        ).save_pretrained("CogVideoX-2b/vae")
     exec(compile(block, f"README.md python block {index}", "exec"), {})
 
 

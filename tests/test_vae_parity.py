@@ -20,6 +20,7 @@ import pytest
 torch = pytest.importorskip("torch")
 diffusers = pytest.importorskip("diffusers")
 
+import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 from jaxdrive.convert.diffusers_vae import load_diffusers_vae  # noqa: E402
@@ -148,3 +149,72 @@ def test_even_latent_count_keeps_the_frame_correspondence(tmp_dir, frames):
     assert latents % 2 == 0
     assert theirs.shape[2] == 4 * latents                     # diffusers: 4 F' frames
     assert vae.decode(params, z).shape[1] == frames == vae.video_frames(latents)   # jaxdrive: 1 + 4k
+
+
+def _copy_with(src, dst, *, drop=(), add=None, config=None):
+    """A copy of the diffusers directory ``src`` with tensors dropped/added or the config changed."""
+    import json
+    import shutil
+
+    from safetensors.numpy import load_file, save_file
+
+    shutil.copytree(src, dst)
+    weights = f"{dst}/diffusion_pytorch_model.safetensors"
+    tensors = {k: v for k, v in load_file(weights).items() if k not in drop}
+    tensors.update(add or {})
+    save_file(tensors, weights)
+    if config:
+        cfg = json.loads(open(f"{dst}/config.json").read())
+        cfg.update(config)
+        open(f"{dst}/config.json", "w").write(json.dumps(cfg))
+    return dst
+
+
+def test_import_errors_name_the_file_and_the_keys(tmp_dir, tmp_path):
+    _, _, _, path = _pair("b3", str(tmp_dir))
+    dropped = "decoder.mid_block.resnets.0.norm1.conv_y.conv.weight"
+    bad = _copy_with(path, tmp_path / "keys", drop=[dropped],
+                     add={"encoder.extra.weight": np.zeros((2, 2), np.float32)})
+    with pytest.raises(ValueError, match=r"diffusion_pytorch_model.safetensors: weights do not match") as e:
+        load_diffusers_vae(bad)
+    assert "unknown keys (1): ['encoder.extra.weight']" in str(e.value) and "decoder/mid_block_resnets_0/norm1/conv_y/kernel" in str(e.value)
+    wrong = _copy_with(path, tmp_path / "shape",
+                       add={"encoder.conv_in.conv.bias": np.zeros((5,), np.float32)})
+    with pytest.raises(ValueError, match=r"shape mismatches .*encoder/conv_in/bias: expected \[8\], got \[5\]"):
+        load_diffusers_vae(wrong)
+    # a truncated file
+    broken = _copy_with(path, tmp_path / "truncated")
+    data = (broken / "diffusion_pytorch_model.safetensors").read_bytes()
+    (broken / "diffusion_pytorch_model.safetensors").write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match=r"truncated/diffusion_pytorch_model.safetensors: not a complete"):
+        load_diffusers_vae(broken)
+    # a garbled header
+    (broken / "diffusion_pytorch_model.safetensors").write_bytes(data[:8] + b"{x" + data[10:])
+    with pytest.raises(ValueError, match=r"diffusion_pytorch_model.safetensors: corrupt safetensors file"):
+        load_diffusers_vae(broken)
+    # pickled weights are refused, not loaded
+    (broken / "diffusion_pytorch_model.safetensors").unlink()
+    (broken / "diffusion_pytorch_model.bin").write_bytes(b"pickle")
+    with pytest.raises(ValueError, match=r"pickled weights are never loaded"):
+        load_diffusers_vae(broken)
+    other = _copy_with(path, tmp_path / "class", config={"_class_name": "AutoencoderKL"})
+    with pytest.raises(ValueError, match=r"config.json: expected _class_name 'AutoencoderKLCogVideoX'"):
+        load_diffusers_vae(other)
+    quant = _copy_with(path, tmp_path / "quant", config={"use_quant_conv": True})
+    with pytest.raises(ValueError, match=r"use_quant_conv: expected False"):
+        load_diffusers_vae(quant)
+
+
+def test_convert_command_writes_a_loadable_model(tmp_dir, tmp_path, capsys):
+    from jaxdrive.cli import main
+    from jaxdrive.models.pretrained import load_pretrained
+
+    model, vae, params, path = _pair("b3", str(tmp_dir))
+    assert main(["convert", "vae", str(path), str(tmp_path / "out")]) == 0
+    assert "wrote the VAE" in capsys.readouterr().out
+    loaded, restored = load_pretrained(tmp_path / "out")
+    assert loaded.config == vae.config
+    for a, b in zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(restored)):
+        np.testing.assert_array_equal(a, b)
+    assert main(["convert", "vae", str(tmp_path / "nowhere"), str(tmp_path / "out2")]) == 2
+    assert "error: path: expected a diffusers directory" in capsys.readouterr().err

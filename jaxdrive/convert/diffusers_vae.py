@@ -74,8 +74,11 @@ def load_diffusers_vae(path, **overrides):
     as ``mode``, ``tiling`` or ``dtype``. Unknown or missing keys raise ``ValueError`` listing them."""
     config = read_config(path, CLASS_NAME)
     vae = CausalVAE(vae_config_from_diffusers(config, f"{path}/config.json", **overrides))
-    flat = dict(_convert(name, np.asarray(value)) for name, value in read_weights(path).items())
+    flat, origin = {}, {}
+    for name, value in read_weights(path).items():
+        key, flat[key] = _convert(name, np.asarray(value))
+        origin[key] = name
     expected = jax.eval_shape(vae.init, jax.random.PRNGKey(0))
-    params = assemble_params(expected, flat, f"{path}/{WEIGHTS}")
+    params = assemble_params(expected, flat, f"{path}/{WEIGHTS}", origin)
     return vae, jax.tree_util.tree_map(jax.numpy.asarray, params)
 

@@ -38,12 +38,22 @@ def read_config(path, expected_class: str) -> dict:
 def _read_file(file: Path) -> dict[str, np.ndarray]:
     from safetensors import SafetensorError, safe_open
 
+    # A truncated download is the common failure: say so plainly, from the header, before
+    # safetensors reports it in its own terms.
     size = file.stat().st_size
     with open(file, "rb") as f:
         head = f.read(8)
-    # safetensors' own message for a truncated file is terse; check the header length first.
-    if len(head) < 8 or struct.unpack("<Q", head)[0] + 8 > size:
-        raise ValueError(f"{file}: not a complete safetensors file ({size} bytes)")
+        header_len = struct.unpack("<Q", head)[0] if len(head) == 8 else None
+        header = f.read(header_len) if header_len is not None and header_len + 8 <= size else None
+    if header is None:
+        raise ValueError(f"{file}: not a complete safetensors file ({size} bytes, no complete header)")
+    try:
+        ends = [entry["data_offsets"][1] for name, entry in json.loads(header).items() if name != "__metadata__"]
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, IndexError, AttributeError) as e:
+        raise ValueError(f"{file}: corrupt safetensors file (unreadable header: {e})") from e
+    if 8 + header_len + max(ends, default=0) > size:
+        raise ValueError(f"{file}: not a complete safetensors file ({size} bytes, its header describes "
+                         f"{8 + header_len + max(ends, default=0)})")
     try:
         with safe_open(str(file), framework="numpy") as f:
             return {name: f.get_tensor(name) for name in f.keys()}
@@ -74,18 +84,20 @@ def read_weights(path) -> dict[str, np.ndarray]:
     raise ValueError(f"path: expected {WEIGHTS} or {INDEX} in {str(root)!r}{hint}")
 
 
-def assemble_params(expected, flat: dict[tuple[str, ...], np.ndarray], source) -> dict:
+def assemble_params(expected, flat: dict[tuple[str, ...], np.ndarray], source,
+                    origin: dict[tuple[str, ...], str] | None = None) -> dict:
     """Nest ``flat`` (parameter path -> array) into the structure of ``expected`` (a params tree
     of arrays or ``ShapeDtypeStruct``), as float32.
 
     Raises ``ValueError`` naming ``source`` and listing every unknown key (in ``flat``, not in
-    ``expected``), missing key and shape mismatch, so a wrong or partial checkpoint is never
-    half-loaded."""
+    ``expected``; shown by its name in the file when ``origin`` maps paths to those names),
+    missing key and shape mismatch, so a wrong or partial checkpoint is never half-loaded."""
     import jax
 
+    origin = origin or {}
     want = {tuple(getattr(k, "key", str(k)) for k in path): leaf
             for path, leaf in jax.tree_util.tree_flatten_with_path(expected)[0]}
-    unknown = sorted("/".join(k) for k in flat.keys() - want.keys())
+    unknown = sorted(origin.get(k, "/".join(k)) for k in flat.keys() - want.keys())
     missing = sorted("/".join(k) for k in want.keys() - flat.keys())
     shapes = sorted(f"{'/'.join(k)}: expected {list(want[k].shape)}, got {list(flat[k].shape)}"
                     for k in want.keys() & flat.keys() if tuple(want[k].shape) != tuple(flat[k].shape))
