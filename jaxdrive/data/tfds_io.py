@@ -42,6 +42,7 @@ import numpy as np
 import tensorflow_datasets as tfds
 from array_record.python.array_record_module import ArrayRecordWriter
 
+from jaxdrive.atomic import move_into_place
 from jaxdrive.data import schema
 
 log = logging.getLogger(__name__)
@@ -164,13 +165,7 @@ def write_dataset(out_dir, splits: Mapping[str, Iterable[dict]], *, name: str = 
             data_dir=tmp, features=features, split_infos=infos, version=VERSION,
             filename_template=template, check_data=False, description=description,
             metadata=tfds.core.MetadataDict(metadata), disable_shuffling=True)
-        if out_dir.exists():  # overwrite: move the old one aside, then swap
-            old = out_dir.parent / f".{out_dir.name}.old-{uuid.uuid4().hex[:8]}"
-            os.rename(out_dir, old)
-            os.rename(tmp, out_dir)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.rename(tmp, out_dir)
+        move_into_place(tmp, out_dir)
     except ValueError as e:
         raise ValueError(f"writing dataset {out_dir}: {e}") from e
     except Exception as e:

@@ -15,13 +15,14 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import shutil
 import uuid
 from pathlib import Path
 
 import jax
 import numpy as np
+
+from jaxdrive.atomic import move_into_place
 
 MODEL_FILE = "model.json"
 PARAMS_DIR = "params"
@@ -64,13 +65,7 @@ def save_pretrained(path, model, params, *, overwrite: bool = False) -> Path:
         checkpointer.wait_until_finished()
         meta = {"format": FORMAT_VERSION, "kind": kind, "config": _config_json(model.config)}
         (staging / MODEL_FILE).write_text(json.dumps(meta, indent=2) + "\n")
-        if path.exists():
-            old = path.parent / f".{path.name}.old-{uuid.uuid4().hex[:8]}"
-            os.replace(path, old)
-            os.replace(staging, path)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(staging, path)
+        move_into_place(staging, path)
     finally:
         if staging.exists():
             shutil.rmtree(staging, ignore_errors=True)

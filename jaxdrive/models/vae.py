@@ -333,37 +333,24 @@ class CausalVAE:
         return _decode(self, params, latents, mode, tiled)
 
     # ---------------------------------------------------------------- internals
-    def _moments(self, params, x, mode: str, tiled: bool):
-        """``[N, F, H, W, Cin] -> [N, F', h, w, 2C]``."""
-        enc = Encoder3D(self.config)
-        apply = lambda chunk, cache: enc.apply({"params": params["encoder"]}, chunk, cache)
+    def _run(self, kind: str, params, x, mode: str, tiled: bool):
+        """Encoder (``kind="encode"``: ``[N, F, H, W, Cin] -> [N, F', h, w, 2C]`` moments) or
+        decoder (``"decode"``: ``[N, F', h, w, C] -> [N, F, H, W, Cout]``) in the given mode."""
+        c = self.config
+        module, chunk, tile_key = ((Encoder3D(c), c.encode_chunk_frames, "tile_sample") if kind == "encode"
+                                   else (Decoder3D(c), c.decode_chunk_latents, "tile_latent"))
         if mode == "frame_wise":
             n, f = x.shape[:2]
-            out = self._moments(params, x.reshape(n * f, 1, *x.shape[2:]), "whole", tiled)
+            out = self._run(kind, params, x.reshape(n * f, 1, *x.shape[2:]), "whole", tiled)
             return out.reshape(n, f, *out.shape[2:])
-        run = (lambda t: apply(t, None)[0]) if mode == "whole" else \
-            (lambda t: _run_chunks(apply, t, self.config.encode_chunk_frames))
+        weights = {"params": params["encoder" if kind == "encode" else "decoder"]}
+        apply = lambda t, cache: module.apply(weights, t, cache)
+        run = (lambda t: apply(t, None)[0]) if mode == "whole" else (lambda t: _run_chunks(apply, t, chunk))
         if tiled:
-            geo_h, geo_w = self.config.tile_geometry("height"), self.config.tile_geometry("width")
-            if x.shape[2] > geo_h["tile_sample"] or x.shape[3] > geo_w["tile_sample"]:
-                return _tiled(run, x, geo_h, geo_w, "encode")
+            geo_h, geo_w = c.tile_geometry("height"), c.tile_geometry("width")
+            if x.shape[2] > geo_h[tile_key] or x.shape[3] > geo_w[tile_key]:
+                return _tiled(run, x, geo_h, geo_w, kind)
         return run(x)
-
-    def _video(self, params, z, mode: str, tiled: bool):
-        """``[N, F', h, w, C] -> [N, F, H, W, Cout]``."""
-        dec = Decoder3D(self.config)
-        apply = lambda chunk, cache: dec.apply({"params": params["decoder"]}, chunk, cache)
-        if mode == "frame_wise":
-            n, f = z.shape[:2]
-            out = self._video(params, z.reshape(n * f, 1, *z.shape[2:]), "whole", tiled)
-            return out.reshape(n, f, *out.shape[2:])
-        run = (lambda t: apply(t, None)[0]) if mode == "whole" else \
-            (lambda t: _run_chunks(apply, t, self.config.decode_chunk_latents))
-        if tiled:
-            geo_h, geo_w = self.config.tile_geometry("height"), self.config.tile_geometry("width")
-            if z.shape[2] > geo_h["tile_latent"] or z.shape[3] > geo_w["tile_latent"]:
-                return _tiled(run, z, geo_h, geo_w, "decode")
-        return run(z)
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -388,7 +375,7 @@ def _fold_views(x):
 @functools.partial(jax.jit, static_argnums=(0, 3, 4))
 def _posterior(vae: CausalVAE, params, video, mode: str, tiled: bool):
     x, unfold = _fold_views(video)
-    moments = vae._moments(params, x, mode, tiled).astype(jnp.float32)
+    moments = vae._run("encode", params, x, mode, tiled).astype(jnp.float32)
     c = vae.config.latent_channels
     mean, logvar = moments[..., :c], jnp.clip(moments[..., c:], -30.0, 20.0)
     return unfold(mean), unfold(logvar)
@@ -397,7 +384,7 @@ def _posterior(vae: CausalVAE, params, video, mode: str, tiled: bool):
 @functools.partial(jax.jit, static_argnums=(0, 3, 4))
 def _decode(vae: CausalVAE, params, latents, mode: str, tiled: bool):
     z, unfold = _fold_views(latents)
-    return unfold(vae._video(params, z, mode, tiled).astype(jnp.float32))
+    return unfold(vae._run("decode", params, z, mode, tiled).astype(jnp.float32))
 
 
 def vae_param_count(params: Any) -> int:

@@ -77,7 +77,7 @@ def make_vae_train_step(vae: CausalVAE, optimizer: optax.GradientTransformation,
         grad_fn = jax.value_and_grad(lambda p: vae_loss(vae, p, video, key, config, perceptual), has_aux=True)
         (_, metrics), grads = grad_fn(params)
         updates, opt_state = optimizer.update(grads, opt_state, params)
-        metrics["grad_norm"] = optax.global_norm(grads)
+        metrics["grad_norm"] = optax.tree_utils.tree_norm(grads)
         return optax.apply_updates(params, updates), opt_state, metrics
 
     return jax.jit(step, donate_argnums=(0, 1))
