@@ -1,0 +1,215 @@
+"""The one configuration schema of jaxdrive: typed dataclasses, built by python files in
+``configs/`` and changed from the command line with ``--set a.b=value``.
+
+A config file defines ``get_config() -> Config``. :func:`load_config` runs it and applies the
+overrides; every override is checked against the schema before anything compiles: an unknown key
+names the section and lists the keys it has, and a value that does not parse as the field's type
+names the field, the type and the value.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import importlib.util
+import types
+import typing
+from pathlib import Path
+from typing import Any
+
+from jaxdrive import validate
+
+
+@dataclasses.dataclass(frozen=True)
+class DataConfig:
+    """Training clips from a TFDS dataset written by ``jaxdrive data synth`` / ``data nuscenes``."""
+
+    path: str = "data/synth"
+    split: str = "train"
+    frames: int = 9                   # pixel frames per clip, 1 + 4k for the 3D VAE
+    height: int = 32
+    width: int = 56
+    views: int = 6                    # the first V cameras in nuScenes order
+    stride: int = 1                   # frame stride when sampling a clip
+    batch_size: int = 2               # global batch; every process loads batch_size / processes
+    drop_prob: float = 0.15           # classifier-free-guidance drop per condition
+    shuffle_seed: int = 0
+    threads: int = 0                  # grain read threads (0: in the main thread)
+
+
+@dataclasses.dataclass(frozen=True)
+class LatentConfig:
+    """Where the DiT's latents come from.
+
+    ``"vae"``: a saved jaxdrive VAE (``vae_path``, see ``jaxdrive convert vae``), encoding on the
+    fly in ``vae_mode``. ``"space_to_depth"``: frame-wise pixel latents, each ``factor x factor``
+    patch folded into channels (exact and parameter-free: the CPU demo uses it so that it needs no
+    VAE training)."""
+
+    source: str = "space_to_depth"
+    vae_path: str = ""
+    vae_mode: str = "chunked"
+    factor: int = 4
+    scale: float = 1.0                # latents are multiplied by this before the DiT (VAE: its scaling factor)
+
+
+@dataclasses.dataclass(frozen=True)
+class FlowConfig:
+    """Per-frame noise levels and losses of the rectified-flow step (``jaxdrive.flow``)."""
+
+    sigma_sampling: str = "logit_normal"   # or "uniform"
+    logit_loc: float = 0.0
+    logit_scale: float = 1.0
+    shift: float = 1.0                     # SD3 / Open-Sora shift; 0: the resolution/length rule
+    cond_frames: int = 1                   # clean latent condition frames at the start (max)
+    cond_frames_random: bool = True        # draw 0..cond_frames per clip (unconditional too)
+    tpd: bool = False                      # MiLA's temporal progressive denoising levels
+    tpd_omega: float = 1.5707963267948966
+    jdc_anchor_rate: float = 0.0           # fraction of clips whose last frame is a JDC anchor
+    jdc_slope: float = 0.5
+    jdc_alpha1: float = 0.1
+    structure_weight: float = 0.0          # LongDWM's structure-preservation loss weight
+
+
+@dataclasses.dataclass(frozen=True)
+class OptimConfig:
+    """AdamW with warmup and a schedule, clipping, accumulation, EMA and partial training."""
+
+    lr: float = 1e-4
+    warmup_steps: int = 100
+    schedule: str = "cosine"               # "cosine", "linear" or "constant" after warmup
+    min_lr_ratio: float = 0.1
+    weight_decay: float = 0.0
+    b1: float = 0.9
+    b2: float = 0.999
+    eps: float = 1e-8
+    clip_norm: float = 1.0                 # 0: no clipping
+    grad_accum: int = 1                    # micro-batches per update (optax.MultiSteps)
+    ema_decay: float = 0.9999              # 0: no EMA
+    trainable: tuple[str, ...] = ()        # regexes over "a/b/kernel" paths; empty: all
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    steps: int = 1000
+    seed: int = 0
+    log_every: int = 10
+    checkpoint_every: int = 500
+    keep_checkpoints: int = 3
+    sample_every: int = 0                  # 0: no periodic sample videos
+    sample_steps: int = 20
+    max_bad_steps: int = 5                 # NaN/Inf losses in a row that stop the run
+    compute_dtype: str = "float32"         # bfloat16 on accelerators
+
+
+@dataclasses.dataclass(frozen=True)
+class MeshConfig:
+    data: int = -1                         # -1: the devices left over
+    fsdp: int = 1
+    seq: int = 1
+    tensor: int = 1
+
+
+# ------------------------------------------------------------------------------------ overrides
+def _field_types(cls) -> dict[str, Any]:
+    hints = typing.get_type_hints(cls)
+    return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
+
+
+def _parse(name: str, text: str, tp) -> Any:
+    """``text`` as a value of type ``tp`` (int, float, bool, str, tuples of those, optionals)."""
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        if text in ("None", "none", "null") and type(None) in args:
+            return None
+        errors = []
+        for arg in (a for a in args if a is not type(None)):
+            try:
+                return _parse(name, text, arg)
+            except ValueError as e:
+                errors.append(str(e))
+        raise ValueError(errors[0])
+    if tp is bool:
+        if text.lower() in ("true", "1", "yes"):
+            return True
+        if text.lower() in ("false", "0", "no"):
+            return False
+        raise ValueError(f"{name}: expected a bool (true/false), got {text!r}")
+    if tp in (int, float):
+        try:
+            value = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            value = None
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or (tp is int and not isinstance(value, int)):
+            raise ValueError(f"{name}: expected {tp.__name__}, got {text!r}")
+        return tp(value)
+    if tp is str:
+        return text
+    if origin is tuple:
+        inner = args[0] if args else str
+        parts = [p.strip() for p in text.strip("()[] ").split(",") if p.strip()]
+        return tuple(_parse(name, p, inner) for p in parts)
+    raise ValueError(f"{name}: cannot be set from the command line (type {tp})")
+
+
+def override(config, assignment: str):
+    """``config`` with ``"a.b=value"`` applied (a new frozen dataclass; ``config`` is unchanged)."""
+    if "=" not in assignment:
+        raise ValueError(f"--set: expected key=value, got {assignment!r}")
+    key, text = assignment.split("=", 1)
+    path = key.strip().split(".")
+
+    def apply(node, prefix, rest):
+        if not dataclasses.is_dataclass(node):
+            raise ValueError(f"--set {key}: {'.'.join(prefix) or 'config'} is not a section")
+        fields = _field_types(type(node))
+        if rest[0] not in fields:
+            where = ".".join(prefix) or "config"
+            raise ValueError(f"--set {key}: unknown key {rest[0]!r} in {where}; expected one of {sorted(fields)}")
+        name = ".".join(prefix + [rest[0]])
+        if len(rest) == 1:
+            value = _parse(name, text.strip(), fields[rest[0]])
+        else:
+            value = apply(getattr(node, rest[0]), prefix + [rest[0]], rest[1:])
+        return dataclasses.replace(node, **{rest[0]: value})
+
+    return apply(config, [], path)
+
+
+def load_config(path, overrides=()):
+    """Run the config file ``path`` (``get_config()``) and apply ``overrides`` (``"a.b=v"``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"config: expected a python config file, got {str(path)!r} (not found)")
+    spec = importlib.util.spec_from_file_location(f"jaxdrive_config_{path.stem}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    if not hasattr(module, "get_config"):
+        raise ValueError(f"{path}: expected a function get_config() returning the config")
+    config = module.get_config()
+    for assignment in overrides:
+        config = override(config, assignment)
+    return config
+
+
+def to_dict(config) -> dict:
+    """The config as plain JSON-able data (saved next to checkpoints)."""
+    return dataclasses.asdict(config)
+
+
+def check_sections(config) -> None:
+    """Range checks of the sections defined here (the model's config checks itself)."""
+    d, o, t, f = config.data, config.optim, config.train, config.flow
+    for name, value in (("data.frames", d.frames), ("data.height", d.height), ("data.width", d.width),
+                        ("data.views", d.views), ("data.stride", d.stride), ("data.batch_size", d.batch_size),
+                        ("optim.grad_accum", o.grad_accum), ("train.steps", t.steps),
+                        ("train.log_every", t.log_every), ("train.max_bad_steps", t.max_bad_steps)):
+        validate.check_positive_int(name, value)
+    validate.check_range("data.drop_prob", d.drop_prob, 0.0, 1.0)
+    validate.check_range("optim.lr", o.lr, 0.0, float("inf"), lo_open=True)
+    validate.check_range("optim.ema_decay", o.ema_decay, 0.0, 1.0, hi_open=True)
+    validate.check_choice("optim.schedule", o.schedule, ("cosine", "linear", "constant"))
+    validate.check_choice("flow.sigma_sampling", f.sigma_sampling, ("logit_normal", "uniform"))
+    validate.check_range("flow.jdc_anchor_rate", f.jdc_anchor_rate, 0.0, 1.0)
+    validate.check_choice("train.compute_dtype", t.compute_dtype, ("float32", "bfloat16"))
+    validate.check_choice("latents.source", config.latents.source, ("vae", "space_to_depth"))

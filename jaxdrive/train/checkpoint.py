@@ -1,0 +1,66 @@
+"""Checkpoints of a run: orbax, asynchronous, keep-N, with the data iterator's state alongside.
+
+``Checkpoints(workdir)`` manages ``workdir/checkpoints/<step>/`` with three items: ``state`` (the
+:class:`jaxdrive.train.state.TrainState`), ``data`` (the grain iterator state, JSON) and ``meta``
+(step, config, time). Orbax writes each checkpoint into a temporary directory and commits it
+by rename, so a crash mid-save leaves the previous checkpoints intact.
+
+Restoring takes an abstract state whose leaves carry the target shardings, so a run can resume
+on a different mesh shape. When the newest checkpoint cannot be read (a partial copy, a damaged
+file), :meth:`Checkpoints.restore_latest` says which one and why, and falls back to the one
+before it.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import orbax.checkpoint as ocp
+
+_log = logging.getLogger(__name__)
+
+
+class Checkpoints:
+    def __init__(self, workdir, *, keep: int = 3, asynchronous: bool = True):
+        self.directory = Path(workdir).absolute() / "checkpoints"
+        options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=True,
+                                               enable_async_checkpointing=asynchronous)
+        self.manager = ocp.CheckpointManager(self.directory, options=options,
+                                             item_names=("state", "data", "meta"))
+
+    def steps(self) -> list[int]:
+        return sorted(self.manager.all_steps())
+
+    def save(self, step: int, state, data_state: dict | None, meta: dict) -> None:
+        """Start saving (asynchronously); a step saved already is left as it is."""
+        if step in self.manager.all_steps():
+            return
+        self.manager.save(step, args=ocp.args.Composite(
+            state=ocp.args.StandardSave(state), data=ocp.args.JsonSave(data_state or {}),
+            meta=ocp.args.JsonSave(meta)), force=True)
+
+    def wait(self) -> None:
+        self.manager.wait_until_finished()
+
+    def restore(self, step: int, abstract_state):
+        """``(state, data_state, meta)`` of checkpoint ``step``, placed as ``abstract_state`` says."""
+        out = self.manager.restore(step, args=ocp.args.Composite(
+            state=ocp.args.StandardRestore(abstract_state), data=ocp.args.JsonRestore(),
+            meta=ocp.args.JsonRestore()))
+        return out["state"], out["data"], out["meta"]
+
+    def restore_latest(self, abstract_state, *, log=print):
+        """The newest readable checkpoint as ``(step, state, data_state, meta)``, or None when
+        there is none. Unreadable newer ones are reported through ``log`` and skipped."""
+        for step in reversed(self.steps()):
+            try:
+                return (step, *self.restore(step, abstract_state))
+            except Exception as e:  # orbax raises many types for a damaged checkpoint
+                log(f"checkpoint {self.directory / str(step)} is incomplete or damaged "
+                    f"({type(e).__name__}: {str(e)[:200]}); using the one before it")
+        return None
+
+    def close(self) -> None:
+        self.manager.wait_until_finished()
+        self.manager.close()

@@ -1,0 +1,134 @@
+"""Training infrastructure: config overrides, the optimizer's schedule and masks, non-finite step
+skipping, and checkpoints (fallback past a damaged one, restore onto another mesh)."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
+
+from jaxdrive.config import DataConfig, OptimConfig, load_config, override
+from jaxdrive.parallel import make_mesh
+from jaxdrive.train.checkpoint import Checkpoints
+from jaxdrive.train.optim import learning_rate, make_optimizer, trainable_labels
+from jaxdrive.train.state import apply_gradients, create_state
+
+
+@dataclasses.dataclass(frozen=True)
+class _Cfg:
+    data: DataConfig = DataConfig()
+    optim: OptimConfig = OptimConfig()
+    name: str | None = None
+
+
+def test_override_parses_by_type_and_names_bad_keys():
+    c = _Cfg()
+    c = override(c, "data.frames=17")
+    c = override(c, "optim.lr=3e-4")
+    c = override(c, "optim.trainable=blocks_27/.*,final.*")
+    c = override(c, "name=none")
+    assert (c.data.frames, c.optim.lr, c.optim.trainable, c.name) == (17, 3e-4, ("blocks_27/.*", "final.*"), None)
+    assert _Cfg().data.frames == 9                       # frozen: the original is untouched
+    with pytest.raises(ValueError, match=r"unknown key 'frame' in data; expected one of \[.*'frames'"):
+        override(c, "data.frame=3")
+    with pytest.raises(ValueError, match=r"data.frames: expected int, got '2.5'"):
+        override(c, "data.frames=2.5")
+    with pytest.raises(ValueError, match=r"--set: expected key=value"):
+        override(c, "data.frames")
+    with pytest.raises(ValueError, match=r"data.frames.x: .*not a section|data.frames is not a section"):
+        override(c, "data.frames.x=1")
+
+
+def test_load_config_runs_the_file(tmp_path):
+    path = tmp_path / "c.py"
+    path.write_text("from jaxdrive.config import DataConfig\n"
+                    "def get_config():\n    return DataConfig(frames=5)\n")
+    assert load_config(path, ["height=64"]) == DataConfig(frames=5, height=64)
+    with pytest.raises(ValueError, match="config: expected a python config file"):
+        load_config(tmp_path / "missing.py")
+
+
+def test_learning_rate_schedule_worked_numbers():
+    sched = learning_rate(OptimConfig(lr=1.0, warmup_steps=10, schedule="cosine", min_lr_ratio=0.1), 110)
+    assert float(sched(0)) == 0.0 and float(sched(5)) == pytest.approx(0.5)
+    assert float(sched(10)) == pytest.approx(1.0)
+    assert float(sched(60)) == pytest.approx(0.1 + 0.9 * 0.5, rel=1e-5)       # half way down the cosine
+    assert float(sched(110)) == pytest.approx(0.1, rel=1e-5)
+    lin = learning_rate(OptimConfig(lr=2.0, warmup_steps=0, schedule="linear", min_lr_ratio=0.0), 4)
+    assert [float(lin(i)) for i in range(5)] == pytest.approx([2.0, 1.5, 1.0, 0.5, 0.0])
+
+
+def test_partial_training_updates_only_the_matched_parameters():
+    params = {"blocks_0": {"kernel": jnp.ones((2, 2))}, "blocks_1": {"kernel": jnp.ones((2, 2))},
+              "final": {"bias": jnp.ones(2)}}
+    labels = trainable_labels(params, ("blocks_1/.*", "^final"))
+    assert labels == {"blocks_0": {"kernel": "freeze"}, "blocks_1": {"kernel": "train"}, "final": {"bias": "train"}}
+    cfg = OptimConfig(lr=0.1, warmup_steps=0, schedule="constant", trainable=("blocks_1/.*", "^final"))
+    opt = make_optimizer(cfg, 10, params)
+    state = create_state(params, opt, 0)
+    grads = jax.tree_util.tree_map(jnp.ones_like, params)
+    state = apply_gradients(state, grads, jnp.float32(1.0), opt, 0.0, state.rng)
+    assert float(state.params["blocks_0"]["kernel"][0, 0]) == 1.0
+    assert float(state.params["blocks_1"]["kernel"][0, 0]) < 1.0 and float(state.params["final"]["bias"][0]) < 1.0
+    with pytest.raises(ValueError, match=r"optim.trainable: expected patterns that match .*'htft'"):
+        trainable_labels(params, ("htft",))
+
+
+def test_non_finite_steps_are_skipped_and_counted():
+    params = {"w": jnp.ones((2, 2))}
+    opt = make_optimizer(OptimConfig(lr=0.1, warmup_steps=0, schedule="constant"), 10, params)
+    state = create_state(params, opt, 0)
+    good = {"w": jnp.ones((2, 2))}
+    bad = {"w": jnp.full((2, 2), jnp.nan)}
+    s1 = apply_gradients(state, bad, jnp.float32(1.0), opt, 0.9, state.rng)
+    s2 = apply_gradients(s1, good, jnp.float32(jnp.inf), opt, 0.9, state.rng)
+    assert (int(s2.step), int(s2.bad_steps), int(s2.skipped)) == (2, 2, 2)
+    for a, b in zip(jax.tree_util.tree_leaves((s2.params, s2.opt_state, s2.ema)),
+                    jax.tree_util.tree_leaves((state.params, state.opt_state, state.ema))):
+        np.testing.assert_array_equal(a, b)
+    s3 = apply_gradients(s2, good, jnp.float32(1.0), opt, 0.9, state.rng)
+    assert (int(s3.bad_steps), int(s3.skipped)) == (0, 2)
+    assert float(s3.params["w"][0, 0]) < 1.0
+    # EMA moves by (1 - decay) towards the new parameters
+    np.testing.assert_allclose(s3.ema["w"], 0.9 * 1.0 + 0.1 * s3.params["w"], rtol=1e-6)
+
+
+def _state_after(steps):
+    params = {"w": jnp.arange(16.0).reshape(4, 4), "b": jnp.ones(4)}
+    opt = optax.adamw(1e-2)
+    state = create_state(params, opt, 0)
+    for _ in range(steps):
+        state = apply_gradients(state, jax.tree_util.tree_map(jnp.ones_like, state.params), jnp.float32(1.0),
+                                opt, 0.9, state.rng)
+    return state
+
+
+def test_checkpoints_fall_back_past_a_damaged_one_and_reshard(tmp_path):
+    ck = Checkpoints(tmp_path, keep=2)
+    for step in (1, 2, 3):
+        ck.save(step, _state_after(step), {"next_index": step}, {"step": step})
+    ck.wait()
+    assert ck.steps() == [2, 3]                                   # keep-N
+    abstract = jax.eval_shape(lambda: _state_after(0))
+    step, state, data, meta = ck.restore_latest(abstract)
+    assert (step, data, meta["step"], int(state.step)) == (3, {"next_index": 3}, 3, 3)
+    np.testing.assert_array_equal(state.params["w"], _state_after(3).params["w"])
+    for f in (tmp_path / "checkpoints" / "3" / "state").rglob("*"):      # damage the newest
+        if f.is_file() and f.name != "commit_success.txt":
+            f.write_bytes(b"garbage")
+    messages = []
+    step, state, data, _ = ck.restore_latest(abstract, log=messages.append)
+    assert (step, data) == (2, {"next_index": 2})
+    assert len(messages) == 1 and "checkpoints/3 is incomplete or damaged" in messages[0]
+    mesh = make_mesh(data=2, fsdp=4)
+    sharded = jax.tree_util.tree_map(
+        lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=NamedSharding(mesh, P("fsdp") if a.ndim == 2 else P())),
+        abstract)
+    state, _, _ = ck.restore(2, sharded)
+    assert state.params["w"].sharding.spec == P("fsdp")
+    np.testing.assert_array_equal(state.params["w"], _state_after(2).params["w"])
+    ck.close()
