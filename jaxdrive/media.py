@@ -1,0 +1,95 @@
+"""Writing what a run produces: multi-view mp4 videos, frame-grid PNGs and loss plots.
+
+Videos are ``[V, F, H, W, 3]`` (or ``[F, H, W, 3]``) floats in [-1, 1] or uint8. Six views are
+laid out as a driver sees them, in nuScenes order (front, front-right, back-right, back,
+back-left, front-left): front-left, front, front-right on top; back-left, back, back-right below.
+Other view counts go in one row.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from jaxdrive import validate
+
+SIX_VIEW_LAYOUT = ((5, 0, 1), (4, 3, 2))
+
+
+def to_uint8(video) -> np.ndarray:
+    video = np.asarray(video)
+    if video.dtype == np.uint8:
+        return video
+    return np.clip(np.round((video.astype(np.float32) + 1.0) * 127.5), 0, 255).astype(np.uint8)
+
+
+def _with_views(video) -> np.ndarray:
+    video = to_uint8(video)
+    validate.check_ndim("video", video, (4, 5))
+    if video.shape[-1] != 3:
+        raise ValueError(f"video: expected 3 channels in the last axis, got shape {list(video.shape)}")
+    return video[None] if video.ndim == 4 else video
+
+
+def view_mosaic(video) -> np.ndarray:
+    """``[V, F, H, W, 3] -> [F, rows * H, cols * W, 3]`` uint8 (the layout in the module docstring)."""
+    video = _with_views(video)
+    layout = SIX_VIEW_LAYOUT if video.shape[0] == 6 else (tuple(range(video.shape[0])),)
+    rows = [np.concatenate([video[v] for v in row], axis=2) for row in layout]
+    return np.concatenate(rows, axis=1)
+
+
+def write_mp4(path, video, fps: float = 12.0) -> Path:
+    """Write ``video`` (views tiled by :func:`view_mosaic`) as H.264 mp4; sizes are padded to even."""
+    import av
+
+    frames = view_mosaic(video)
+    f, h, w, _ = frames.shape
+    frames = np.pad(frames, ((0, 0), (0, h % 2), (0, w % 2), (0, 0)))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("libx264", rate=round(fps))
+        stream.width, stream.height, stream.pix_fmt = frames.shape[2], frames.shape[1], "yuv420p"
+        stream.options = {"crf": "18"}
+        for frame in frames:
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")))
+        container.mux(stream.encode())
+    return path
+
+
+def write_frame_grid(path, video, num_frames: int = 4) -> Path:
+    """A PNG with ``num_frames`` evenly spaced frames of ``video``, one mosaic per row."""
+    from PIL import Image
+
+    frames = view_mosaic(video)
+    picks = np.unique(np.linspace(0, frames.shape[0] - 1, min(num_frames, frames.shape[0])).round().astype(int))
+    gap = np.full((2, frames.shape[2], 3), 255, np.uint8)
+    rows = [r for i in picks for r in (frames[i], gap)][:-1]
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.concatenate(rows, axis=0)).save(path)
+    return path
+
+
+def plot_losses(path, steps, losses, *, title: str = "training loss") -> Path:
+    """A PNG of ``losses`` against ``steps`` (log scale when they span a decade)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps, losses = np.asarray(steps), np.asarray(losses, np.float64)
+    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=120)
+    ax.plot(steps, losses, lw=1.2)
+    finite = losses[np.isfinite(losses) & (losses > 0)]
+    if finite.size and finite.max() > 10 * finite.min():
+        ax.set_yscale("log")
+    ax.set(xlabel="step", ylabel="loss", title=title)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path

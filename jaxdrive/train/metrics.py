@@ -1,0 +1,81 @@
+"""Where a run reports: ``DIR/metrics.jsonl`` (one JSON object per logged step, at least ``step``
+and ``loss``), TensorBoard event files under ``DIR/tensorboard`` and a progress bar with step/s,
+loss, tokens/s and the ETA. Only process 0 writes."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import jax
+
+
+class MetricsWriter:
+    def __init__(self, workdir, *, total_steps: int, start_step: int = 0, tokens_per_step: int = 0,
+                 progress: bool = True):
+        self.enabled = jax.process_index() == 0
+        self.workdir = Path(workdir)
+        self.tokens_per_step = tokens_per_step
+        self._last = (time.perf_counter(), start_step)
+        self._bar = self._tb = self._jsonl = None
+        if not self.enabled:
+            return
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        self._jsonl = open(self.workdir / "metrics.jsonl", "a", buffering=1)
+        from tensorboardX import SummaryWriter
+        self._tb = SummaryWriter(str(self.workdir / "tensorboard"))
+        if progress:
+            from tqdm import tqdm
+            self._bar = tqdm(total=total_steps, initial=start_step, unit="step", dynamic_ncols=True)
+
+    def write(self, step: int, metrics: dict) -> dict:
+        """Log ``metrics`` (scalars) at ``step``; adds ``steps_per_s`` and ``tokens_per_s`` since the
+        last call. Returns the row written."""
+        now = time.perf_counter()
+        elapsed, steps = now - self._last[0], step - self._last[1]
+        self._last = (now, step)
+        row = {"step": int(step), **{k: _scalar(v) for k, v in metrics.items()}}
+        if steps > 0 and elapsed > 0:
+            row["steps_per_s"] = steps / elapsed
+            row["tokens_per_s"] = steps * self.tokens_per_step / elapsed
+        if not self.enabled:
+            return row
+        self._jsonl.write(json.dumps(row) + "\n")
+        for key, value in row.items():
+            if key != "step" and isinstance(value, float) and math.isfinite(value):
+                self._tb.add_scalar(key, value, step)
+        if self._bar is not None:
+            self._bar.update(step - self._bar.n)
+            shown = {k: row[k] for k in ("loss", "steps_per_s", "tokens_per_s") if k in row}
+            self._bar.set_postfix({k: f"{v:.4g}" for k, v in shown.items()})
+        return row
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+        if self._tb is not None:
+            self._tb.close()
+        if self._jsonl is not None:
+            self._jsonl.close()
+
+
+def _scalar(value):
+    value = jax.device_get(value)
+    try:
+        return float(value)
+    except TypeError:
+        return value
+
+
+def read_metrics(workdir) -> list[dict]:
+    """The rows of ``workdir/metrics.jsonl`` (the last row per step when a resumed run re-logged)."""
+    rows = {}
+    path = Path(workdir) / "metrics.jsonl"
+    if path.exists():
+        for line in path.read_text().splitlines():
+            if line.strip():
+                row = json.loads(line)
+                rows[row["step"]] = row
+    return [rows[k] for k in sorted(rows)]
