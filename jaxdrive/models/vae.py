@@ -40,6 +40,7 @@ import numpy as np
 
 from jaxdrive import validate
 from jaxdrive.models import vae_layers as L
+from jaxdrive.models.initializers import init_key
 from jaxdrive.parallel.rules import constrain
 
 MODES = ("chunked", "whole", "frame_wise")
@@ -357,7 +358,7 @@ class CausalVAE:
 def _init(vae: CausalVAE, key):
     c = vae.config
     s = c.spatial_compression
-    k1, k2 = jax.random.split(key)
+    k1, k2 = jax.random.split(init_key(key))   # fast-compiling keys, see jaxdrive.models.initializers
     video = jnp.zeros((1, 1, s, s, c.in_channels), jnp.float32)
     latent = jnp.zeros((1, 1, 1, 1, c.latent_channels), jnp.float32)
     return {"encoder": Encoder3D(c).init(k1, video)["params"], "decoder": Decoder3D(c).init(k2, latent)["params"]}
