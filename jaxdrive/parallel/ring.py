@@ -17,114 +17,19 @@ are masked out through ``kv_mask`` and padded query rows are dropped from the ou
 ``Lq``/``Lk`` works (``Lq != Lk`` included: positions for ``causal_block`` are global indices
 counted from 0 in each of q and k).
 
-The helpers :func:`layout` (input checks), :func:`pad_inputs`, :func:`to_specs` and :func:`unpad`
-are shared with :mod:`jaxdrive.parallel.ulysses`.
+The input checks, padding and layout helpers live in :mod:`jaxdrive.parallel.seq_shard`.
 """
 
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
-from jax.sharding import PartitionSpec as P
 
-from jaxdrive import validate
 from jaxdrive.parallel import softmax_blocks as sb
+from jaxdrive.parallel.seq_shard import layout, pad_inputs, to_specs, unpad
 from jaxdrive.parallel.blockwise import tiled_attend, tiled_grads
-
-BATCH_AXES = ("data", "fsdp")
-HEAD_AXIS = "tensor"
-
-
-@dataclass(frozen=True)
-class Layout:
-    """How ``[B, L, H, D]`` arrays are laid out on the mesh for sequence-sharded attention."""
-
-    seq_axis: str
-    n: int                      # size of the seq axis
-    batch_axes: tuple           # mesh axes sharding the batch
-    head_axis: str | None       # mesh axis sharding the heads
-    heads_per_shard: int        # heads on one tensor shard
-
-    @property
-    def qkv_spec(self):
-        return P(self.batch_axes or None, self.seq_axis, self.head_axis, None)
-
-    @property
-    def mask_spec(self):
-        return P(self.batch_axes or None, self.seq_axis)
-
-
-def layout(q, k, v, kv_mask, causal_block, mesh, seq_axis) -> Layout:
-    """Check the inputs of a sequence-sharded attention and return its :class:`Layout`."""
-    validate.check_ndim("q", q, 4)
-    validate.check_ndim("k", k, 4)
-    b, _, h, d = q.shape
-    validate.check_shape("k", k, [b, None, h, d])
-    validate.check_same_shape("v", v, "k", k)
-    if kv_mask is not None:
-        validate.check_shape("kv_mask", kv_mask, [b, k.shape[1]])
-        if jnp.asarray(kv_mask).dtype != jnp.bool_:
-            raise ValueError(f"kv_mask: expected dtype bool, got {jnp.asarray(kv_mask).dtype}")
-    if causal_block is not None:
-        validate.check_positive_int("causal_block", causal_block)
-    names = tuple(mesh.axis_names)
-    if seq_axis not in names:
-        raise ValueError(f"mesh: expected a mesh axis named {seq_axis!r}, got axes {list(names)}")
-    sizes = dict(zip(names, mesh.devices.shape))
-    batch_axes = tuple(a for a in BATCH_AXES if a in names)
-    nb = 1
-    for a in batch_axes:
-        nb *= sizes[a]
-    if b % nb:
-        raise ValueError(f"q: expected a batch size divisible by the batch mesh axes {batch_axes} "
-                         f"(size {nb}), got batch {b}")
-    head_axis = HEAD_AXIS if HEAD_AXIS in names else None
-    nt = sizes[head_axis] if head_axis else 1
-    if h % nt:
-        raise ValueError(f"q: expected a number of heads divisible by the mesh axis "
-                         f"{HEAD_AXIS!r} (size {nt}), got {h} heads")
-    return Layout(seq_axis, sizes[seq_axis], batch_axes, head_axis, h // nt)
-
-
-def pad_inputs(q, k, v, kv_mask, n, *, lq=None, lk=None):
-    """Pad q and k/v along the sequence to multiples of ``n`` (or to ``lq``/``lk`` when given);
-    the returned mask hides padded keys.
-
-    Returns ``(q, k, v, kv_mask)``; ``kv_mask`` stays None when nothing was padded and none came.
-    """
-    lq = -(-q.shape[1] // n) * n if lq is None else lq
-    lk = -(-k.shape[1] // n) * n if lk is None else lk
-    if lk != k.shape[1]:
-        if kv_mask is None:
-            kv_mask = jnp.ones(k.shape[:2], bool)
-        kv_mask = sb.pad_sequence(jnp.asarray(kv_mask, bool), lk, False)
-    return sb.pad_sequence(q, lq), sb.pad_sequence(k, lk), sb.pad_sequence(v, lk), kv_mask
-
-
-def to_specs(mesh, lay: Layout, q, k, v, kv_mask):
-    """Reshard (no-op when already so) q, k, v and the mask to the layout's specs."""
-    spec = lambda p: jax.sharding.NamedSharding(mesh, p)
-    return jax.reshard((q, k, v, kv_mask), (spec(lay.qkv_spec),) * 3 + (spec(lay.mask_spec),))
-
-
-def unpad(o, length, mesh, lay: Layout, like=None):
-    """Drop padded query rows (gathering the sequence first: a ragged length cannot be split),
-    then give the output the sharding of ``like`` (the input q's type) when it had one on this
-    mesh. Under Explicit axes the transpose of the shard_map demands cotangents typed exactly like
-    its out_specs; matching the caller's q makes any use of the output (slicing a size-1 head axis
-    included) transpose back to that type."""
-    if o.shape[1] != length:
-        gathered = P(lay.batch_axes or None, None, lay.head_axis, None)
-        o = jax.reshard(o, jax.sharding.NamedSharding(mesh, gathered))[:, :length]
-    target = None if like is None else getattr(like, "sharding", None)
-    spec = getattr(target, "spec", None)
-    if spec is not None and tuple(getattr(target.mesh, "axis_names", ())) == tuple(mesh.axis_names):
-        o = jax.reshard(o, jax.sharding.NamedSharding(mesh, spec))
-    return o
-
 
 @functools.lru_cache(maxsize=None)
 def _ring_kernel(scale: float, causal_block, axis: str, n: int, has_mask: bool, tile_q: int, tile_k: int):

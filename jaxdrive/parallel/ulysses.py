@@ -14,15 +14,14 @@ all-to-all); the local kernel brings its own memory-efficient ``custom_vjp``.
 
 Batch is sharded over ``data``/``fsdp`` and heads over ``tensor`` (those present in the mesh) at
 the same time. Lengths the seq axis cannot split are padded to a multiple of ``n``: padded keys
-are masked through ``kv_mask`` and padded query rows dropped (see :mod:`jaxdrive.parallel.ring`,
-whose input checks and padding this module shares).
+are masked through ``kv_mask`` and padded query rows dropped (:mod:`jaxdrive.parallel.seq_shard`).
 """
 
 from __future__ import annotations
 
 import jax
 
-from jaxdrive.parallel import ring
+from jaxdrive.parallel import seq_shard
 from jaxdrive.parallel.blockwise import blockwise_attention
 
 
@@ -48,13 +47,13 @@ def ulysses_attention(q, k, v, *, mesh, scale, kv_mask=None, causal_block=None, 
     kernel run over the full sequence. Sequence lengths that ``seq`` does not divide are padded
     (padded keys masked, padded query rows dropped). Returns ``[B, Lq, H, D]`` in ``q.dtype``.
     """
-    lay = ring.layout(q, k, v, kv_mask, causal_block, mesh, seq_axis)
+    lay = seq_shard.layout(q, k, v, kv_mask, causal_block, mesh, seq_axis)
     if lay.heads_per_shard % lay.n:
-        raise ValueError(f"q: expected a number of heads per {ring.HEAD_AXIS!r} shard divisible by "
-                         f"the size {lay.n} of mesh axis {seq_axis!r}, got {q.shape[2]} heads "
+        raise ValueError(f"q: expected a number of heads per {seq_shard.HEAD_AXIS!r} shard divisible "
+                         f"by the size {lay.n} of mesh axis {seq_axis!r}, got {q.shape[2]} heads "
                          f"({lay.heads_per_shard} per shard)")
     lq, q_type = q.shape[1], jax.typeof(q)
-    q, k, v, kv_mask = ring.pad_inputs(q, k, v, kv_mask, lay.n)
+    q, k, v, kv_mask = seq_shard.pad_inputs(q, k, v, kv_mask, lay.n)
     has_mask = kv_mask is not None
     if not has_mask:
         kv_mask = jax.numpy.ones(k.shape[:2], bool)   # placeholder, never gathered nor used
@@ -67,4 +66,5 @@ def ulysses_attention(q, k, v, *, mesh, scale, kv_mask=None, causal_block=None, 
 
     fn = jax.shard_map(per_device, mesh=mesh, in_specs=(lay.qkv_spec,) * 3 + (lay.mask_spec,),
                        out_specs=lay.qkv_spec, check_vma=False)
-    return ring.unpad(fn(*ring.to_specs(mesh, lay, q, k, v, kv_mask)), lq, mesh, lay, like=q_type)
+    out = fn(*seq_shard.to_specs(mesh, lay, q, k, v, kv_mask))
+    return seq_shard.unpad(out, lq, mesh, lay, like=q_type)
