@@ -84,13 +84,14 @@ def _ring_kernel(scale: float, causal_block, axis: str, n: int, has_mask: bool, 
     def kernel_bwd(res, do):
         q, k, v, mask, o, lse = res
         idx, q_start, ck = _starts(q, k)
+        delta = sb.delta(o, do)
 
         def grads(t, kc, vc, mc):
             src = (idx - t) % n
 
             def compute():
-                return tiled_grads(q, kc, vc, mc if has_mask else None, o, lse, do, q_start=q_start,
-                                   k_start=src * ck, **tiles)
+                return tiled_grads(q, kc, vc, mc if has_mask else None, lse, delta, do,
+                                   q_start=q_start, k_start=src * ck, **tiles)
             zeros = lambda: (jnp.zeros(q.shape, jnp.float32), jnp.zeros(kc.shape, jnp.float32),
                              jnp.zeros(vc.shape, jnp.float32))
             if causal_block is None:
