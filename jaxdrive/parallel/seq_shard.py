@@ -1,6 +1,6 @@
 """Plumbing shared by the sequence-sharded attentions (:mod:`~jaxdrive.parallel.ring`,
-:mod:`~jaxdrive.parallel.ulysses`): input checks and the mesh layout, padding, and resharding
-in and out.
+:mod:`~jaxdrive.parallel.ulysses`): input checks and the mesh layout, padding to whole tiles per
+``seq`` chunk, the tile-size rule, and running a per-device kernel under ``shard_map``.
 
 Lengths the ``seq`` axis cannot split are padded: padded keys are masked out through ``kv_mask``
 and padded query rows are dropped from the output, so any ``Lq``/``Lk`` works (``Lq != Lk``
@@ -108,3 +108,53 @@ def unpad(o, length, mesh, lay: Layout, like=None):
     if spec is not None and tuple(getattr(target.mesh, "axis_names", ())) == tuple(mesh.axis_names):
         o = jax.reshard(o, jax.sharding.NamedSharding(mesh, spec))
     return o
+
+
+# A score tile holds at most 1 / TILE_FRACTION of the elements of a device's query rows, so the
+# handful of tiles alive in the backward stay a fraction of the chunk-sized arrays at every ``seq``
+# size (fixed 512 x 512 tiles dominate a device's memory once its chunk gets short).
+TILE_FRACTION = 16
+# Below this many tokens a tile costs more in loop overhead than it saves in memory.
+MIN_TILE = 16
+
+
+def tile_size(rows: int, dim: int, block: int) -> int:
+    """Tile length for a device holding ``rows`` query rows per head of head dim ``dim`` (its
+    chunk for the ring, the whole sequence for all-to-all): ``block`` halved while a
+    ``tile x tile`` score tile has more than ``rows * dim / TILE_FRACTION`` elements, down to
+    ``MIN_TILE``. Long chunks get ``block``; short ones get tiles that shrink with them."""
+    tile = block
+    while tile > MIN_TILE and tile * tile * TILE_FRACTION > rows * dim:
+        tile = max(tile // 2, MIN_TILE)
+    return tile
+
+
+def chunk(length: int, n: int) -> int:
+    """Tokens per device when ``length`` tokens are split over ``n`` devices (before tile padding)."""
+    return -(-length // n)
+
+
+def pad_to_tiles(q, k, v, kv_mask, n: int, tile: int | None):
+    """Pad q and k/v so that every ``seq`` chunk is a whole number of tiles.
+
+    Returns ``(q, k, v, kv_mask, bq, bk, has_mask)``: the tile lengths (``tile``, or the whole
+    chunk where it is shorter or ``tile`` is None) and whether the kernel must read the mask;
+    ``kv_mask`` is a placeholder of ones where it need not.
+    """
+    fit = lambda length: chunk(length, n) if tile is None else min(tile, chunk(length, n))
+    bq, bk = fit(q.shape[1]), fit(k.shape[1])
+    padded = lambda length, t: n * (-(-chunk(length, n) // t) * t)
+    lk = padded(k.shape[1], bk)
+    has_mask = kv_mask is not None or lk != k.shape[1]
+    q, k, v, kv_mask = pad_inputs(q, k, v, kv_mask, n, lq=padded(q.shape[1], bq), lk=lk)
+    if kv_mask is None:
+        kv_mask = jnp.ones(k.shape[:2], bool)
+    return q, k, v, kv_mask, bq, bk, has_mask
+
+
+def run(kernel, mesh, lay: Layout, q, k, v, kv_mask, length: int, like):
+    """``kernel(q, k, v, mask)`` on every device's chunks (``shard_map`` over the layout), then
+    :func:`unpad` to ``length`` query rows typed like ``like``."""
+    fn = jax.shard_map(kernel, mesh=mesh, in_specs=(lay.qkv_spec,) * 3 + (lay.mask_spec,),
+                       out_specs=lay.qkv_spec, check_vma=False)
+    return unpad(fn(*to_specs(mesh, lay, q, k, v, kv_mask)), length, mesh, lay, like=like)
