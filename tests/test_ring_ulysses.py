@@ -2,7 +2,8 @@
 
 Forward and the gradients w.r.t. q, k, v (random cotangent) on 8 fake CPU devices, on meshes
 seq=8, data=2 x seq=4 and fsdp=2 x seq=2 x tensor=2, with and without kv_mask / causal_block,
-lengths the seq axis does not divide (padded path), cross attention (Lq != Lk), and the errors.
+lengths the seq axis does not divide (padded path), cross attention (Lq != Lk), several K/V
+pieces per chunk, bf16 inputs, the tile-size rule, and the errors.
 """
 
 import jax
@@ -44,9 +45,9 @@ def _rel(a, b):
     return float(jnp.max(jnp.abs(a - b)) / jnp.max(jnp.abs(b)))
 
 
-def _check(impl, mesh, q, k, v, ct, mask, causal_block):
+def _check(impl, mesh, q, k, v, ct, mask, causal_block, **kw):
     fn = jax.jit(lambda q, k, v: IMPLS[impl](q, k, v, mesh=mesh, scale=SCALE, kv_mask=mask,
-                                             causal_block=causal_block))
+                                             causal_block=causal_block, **kw))
     ref = lambda q, k, v: sb.attend_block(q, k, v, scale=SCALE, kv_mask=mask,
                                           causal_block=causal_block)[0]
     out, vjp = jax.vjp(fn, q, k, v)
@@ -163,3 +164,50 @@ def test_ulysses_with_small_local_blocks():
     want, vjp_ref = jax.vjp(ref, q, k, v)
     errs = [_rel(out, want)] + [_rel(g, r) for g, r in zip(vjp(ct), vjp_ref(ct))]
     assert max(errs) <= TOL, errs
+
+
+@pytest.mark.parametrize("impl", IMPLS)
+@pytest.mark.parametrize("lq,lk,causal_block", [(150, 150, None), (150, 150, 7), (70, 150, 5)])
+def test_several_pieces_per_chunk(impl, lq, lk, causal_block):
+    """block = 16 on seq = 4: 38-token key chunks are padded to 3 tiles and K/V travel (ring) or
+    cross (all-to-all) in 3 pieces per chunk; causal blocks straddle pieces, the mask hides a
+    whole batch row, and lengths do not divide the mesh."""
+    from jaxdrive.parallel import seq_shard
+
+    assert seq_shard.tile_size(seq_shard.chunk(lk, 4), 8, 16) == 16
+    q, k, v, ct, mask = _inputs(11, 2, lq, lk, 8, 8, True)
+    _check(impl, _mesh(MESHES["data2_seq4"]), q, k, v, ct, mask, causal_block, block=16)
+
+
+def test_tile_size_shrinks_with_the_chunk():
+    from jaxdrive.parallel.seq_shard import MIN_TILE, TILE_FRACTION, tile_size
+
+    assert tile_size(65536, 64, 512) == 512      # long chunks: the block
+    assert tile_size(8192, 64, 512) == 128       # 128^2 * 16 <= 8192 * 64 < 256^2 * 16
+    assert tile_size(512, 64, 512) == 32
+    assert tile_size(8, 8, 512) == MIN_TILE      # never below the floor
+    assert tile_size(10**5, 8, 24) == 24         # a block that is no power of two, kept whole
+    assert tile_size(100, 8, 24) == MIN_TILE     # or halved, but not below the floor
+    for rows in (1, 7, 100, 1000, 4096, 10**5):
+        for dim in (8, 64, 128):
+            t = tile_size(rows, dim, 512)
+            assert t == MIN_TILE or t * t * TILE_FRACTION <= rows * dim
+            assert t == 512 or (2 * t) ** 2 * TILE_FRACTION > rows * dim
+
+
+@pytest.mark.parametrize("impl", IMPLS)
+def test_bfloat16_inputs(impl):
+    """Residuals and dK/dV are kept in the input dtype: bf16 in, bf16 out, close to fp32 dense."""
+    mesh = _mesh(MESHES["fsdp2_seq2_tensor2"])
+    q, k, v, ct, mask = _inputs(12, 2, 64, 64, 8, 8, True)
+    fn = jax.jit(lambda q, k, v: IMPLS[impl](q, k, v, mesh=mesh, scale=SCALE, kv_mask=mask,
+                                             causal_block=4))
+    ref = lambda q, k, v: sb.attend_block(q, k, v, scale=SCALE, kv_mask=mask, causal_block=4)[0]
+    low = [x.astype(jnp.bfloat16) for x in (q, k, v)]
+    out, vjp = jax.vjp(fn, *low)
+    want, vjp_ref = jax.vjp(ref, *(x.astype(jnp.float32) for x in low))
+    grads = vjp(ct.astype(jnp.bfloat16))
+    assert out.dtype == jnp.bfloat16 and all(g.dtype == jnp.bfloat16 for g in grads)
+    errs = [_rel(out.astype(jnp.float32), want)]
+    errs += [_rel(g.astype(jnp.float32), r) for g, r in zip(grads, vjp_ref(ct))]
+    assert max(errs) <= 1e-2, errs             # bf16 rounds at 2^-8 ~ 4e-3

@@ -40,3 +40,14 @@ def temp_bytes(compiled) -> int | None:
     """Temporary (scratch) memory of a compiled program, or None where the backend has no analysis."""
     analysis = compiled.memory_analysis()
     return None if analysis is None else int(analysis.temp_size_in_bytes)
+
+
+def footprint_bytes(compiled) -> int | None:
+    """Everything a compiled program holds on one device while it runs: its arguments, outputs and
+    temporary memory, less the outputs that alias (donated) arguments (``memory_analysis()``), or
+    None where the backend has no analysis."""
+    a = compiled.memory_analysis()
+    if a is None:
+        return None
+    return int(a.argument_size_in_bytes + a.output_size_in_bytes + a.temp_size_in_bytes
+               - a.alias_size_in_bytes)

@@ -78,7 +78,7 @@ def _cudnn_applies(q, kv_mask, causal_block) -> bool:
 
 
 def _ring_applies(q, k, v, mesh, kv_mask, causal_block) -> bool:
-    from jaxdrive.parallel.ring import layout
+    from jaxdrive.parallel.seq_shard import layout
     try:  # batch divisible by data x fsdp, heads by tensor: otherwise "auto" must not fail
         layout(q, k, v, kv_mask, causal_block, mesh, "seq")
     except ValueError:

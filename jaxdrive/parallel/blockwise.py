@@ -33,14 +33,19 @@ def _put(x, tile, start, axis=1):
 # buffers (dynamic_update_slice) rather than stacking blocked copies: besides the inputs and
 # outputs, only one score tile per head and a few tile-sized arrays are alive.
 
-def tiled_attend(q, k, v, mask, *, scale, causal_block, bq, bk, q_start=0, k_start=0):
+def tiled_attend(q, k, v, mask, *, scale, causal_block, bq, bk, q_start=0, k_start=0, k_step=None,
+                 acc=None):
     """``(o [B, Lq, H, D], lse [B, H, Lq])`` over tiles of ``bq x bk`` (lengths multiples of them).
 
-    The building block of :func:`blockwise_attention` and of each ring step. ``q_start`` /
-    ``k_start`` (may be traced) are the global positions of the first query and key, for causal
-    masking; ``mask [B, Lk]`` or None. Float32 results.
+    The building block of :func:`blockwise_attention` and of each ring or all-to-all step.
+    ``q_start`` / ``k_start`` (may be traced) are the global positions of the first query and
+    key, for causal masking, and ``k_step`` the global distance between the starts of consecutive
+    key tiles (``bk`` unless given: contiguous keys); ``mask [B, Lk]`` or None. ``acc`` is a
+    partial ``(o, lse)`` over other keys to merge into, tile by tile and in place, so a step adds
+    its keys to the running result without a second query-sized array. Float32 results.
     """
     nq, nk = q.shape[1] // bq, k.shape[1] // bk
+    k_step = bk if k_step is None else k_step
 
     def query_tile(i, out):
         qi = _tile(q, i * bq, bq)
@@ -50,24 +55,30 @@ def tiled_attend(q, k, v, mask, *, scale, causal_block, bq, bk, q_start=0, k_sta
                 o, lse = sb.attend_block(qi, _tile(k, j * bk, bk), _tile(v, j * bk, bk), scale=scale,
                                          kv_mask=None if mask is None else _tile(mask, j * bk, bk),
                                          causal_block=causal_block, q_start=q_start + i * bq,
-                                         k_start=k_start + j * bk)
+                                         k_start=k_start + j * k_step)
                 return sb.merge(*acc, o, lse)
             if causal_block is None:
                 return attend()
-            hidden = sb.hidden(q_start + i * bq, bq, k_start + j * bk, causal_block)
+            hidden = sb.hidden(q_start + i * bq, bq, k_start + j * k_step, causal_block)
             return jax.lax.cond(hidden, lambda: acc, attend)
 
-        o, lse = jax.lax.fori_loop(0, nk, key_tile, sb.empty(qi))
+        start = (_tile(out[0], i * bq, bq), _tile(out[1], i * bq, bq, axis=2))
+        o, lse = jax.lax.fori_loop(0, nk, key_tile, start)
         return _put(out[0], o, i * bq), _put(out[1], lse, i * bq, axis=2)
 
-    return jax.lax.fori_loop(0, nq, query_tile, sb.empty(q))
+    return jax.lax.fori_loop(0, nq, query_tile, sb.empty(q) if acc is None else acc)
 
 
-def tiled_grads(q, k, v, mask, o, lse, do, *, scale, causal_block, bq, bk, q_start=0, k_start=0):
-    """``(dq, dk, dv)`` (float32) of :func:`tiled_attend`'s key range, given the final ``o``/``lse``
-    of the query rows over all keys (FlashAttention backward, one score tile alive at a time)."""
+def tiled_grads(q, k, v, mask, lse, delta, do, *, scale, causal_block, bq, bk, q_start=0, k_start=0,
+                k_step=None, acc=None):
+    """``(dq, dk, dv)`` (float32) of :func:`tiled_attend`'s key range, given the final ``lse`` and
+    :func:`~jaxdrive.parallel.softmax_blocks.delta` of the query rows over all keys (FlashAttention
+    backward, one score tile alive at a time). ``k_step`` as in :func:`tiled_attend`; ``acc``:
+    float32 ``(dq, dk, dv)`` to add into in place (a step's running gradients), zeros when None."""
     nq, nk = q.shape[1] // bq, k.shape[1] // bk
-    f32 = lambda x: jnp.zeros(x.shape, jnp.float32)
+    k_step = bk if k_step is None else k_step
+    if acc is None:
+        acc = tuple(jnp.zeros(x.shape, jnp.float32) for x in (q, k, v))
 
     def key_tile(j, grads):
         dq, dk, dv = grads
@@ -79,19 +90,20 @@ def tiled_grads(q, k, v, mask, o, lse, do, *, scale, causal_block, bq, bk, q_sta
 
             def add():
                 gq, gk, gv = sb.attend_block_grads(
-                    _tile(q, i * bq, bq), kj, vj, _tile(o, i * bq, bq), _tile(lse, i * bq, bq, axis=2),
-                    _tile(do, i * bq, bq), scale=scale, kv_mask=mj, causal_block=causal_block,
-                    q_start=q_start + i * bq, k_start=k_start + j * bk)
+                    _tile(q, i * bq, bq), kj, vj, _tile(lse, i * bq, bq, axis=2),
+                    _tile(delta, i * bq, bq, axis=2), _tile(do, i * bq, bq), scale=scale, kv_mask=mj,
+                    causal_block=causal_block, q_start=q_start + i * bq, k_start=k_start + j * k_step)
                 return _put(dq, _tile(dq, i * bq, bq) + gq, i * bq), dkj + gk, dvj + gv
             if causal_block is None:
                 return add()
-            hidden = sb.hidden(q_start + i * bq, bq, k_start + j * bk, causal_block)
+            hidden = sb.hidden(q_start + i * bq, bq, k_start + j * k_step, causal_block)
             return jax.lax.cond(hidden, lambda: inner, add)
 
-        dq, dkj, dvj = jax.lax.fori_loop(0, nq, query_tile, (dq, f32(kj), f32(vj)))
+        start = (dq, _tile(dk, j * bk, bk), _tile(dv, j * bk, bk))
+        dq, dkj, dvj = jax.lax.fori_loop(0, nq, query_tile, start)
         return dq, _put(dk, dkj, j * bk), _put(dv, dvj, j * bk)
 
-    return jax.lax.fori_loop(0, nk, key_tile, (f32(q), f32(k), f32(v)))
+    return jax.lax.fori_loop(0, nk, key_tile, acc)
 
 
 @functools.lru_cache(maxsize=None)
@@ -109,7 +121,7 @@ def _kernel(scale: float, causal_block, bq: int, bk: int):
 
     def kernel_bwd(res, do):
         q, k, v, mask, o, lse = res
-        dq, dk, dv = tiled_grads(q, k, v, mask, o, lse, do, **settings)
+        dq, dk, dv = tiled_grads(q, k, v, mask, lse, sb.delta(o, do), do, **settings)
         return dq.astype(q.dtype), dk.astype(k.dtype), dv.astype(v.dtype), None
 
     kernel.defvjp(kernel_fwd, kernel_bwd)

@@ -1,172 +1,78 @@
 """Ring attention: exact softmax attention with the sequence sharded over the ``seq`` mesh axis.
 
 Each of the ``n`` devices of the ``seq`` axis holds one chunk of the queries and one chunk of the
-keys/values (Liu et al. 2023, "Ring Attention with Blockwise Transformers"). In ``n`` steps the
-key/value chunks (and their ``kv_mask`` chunk) travel once around the ring by ``lax.ppermute``;
-each step merges the partial result of the local queries against the visiting chunk
-(:mod:`jaxdrive.parallel.softmax_blocks`) into the running ``(o, lse)``. Causal blocks that hide a
-whole visiting chunk from every local query are skipped (``lax.cond``; devices take different
-branches). The backward is a ``custom_vjp`` that keeps only q, k, v, the output and the row
-log-sum-exp; it sends K/V around the ring again *together with* their dK/dV accumulators, so after
-``n`` steps every accumulator is back on the device that owns the chunk. No score matrix survives a
-step: memory per device is O(L / n) plus one ``(L / n) x (L / n)`` tile per head.
+keys/values (Liu et al. 2023, "Ring Attention with Blockwise Transformers"). Keys and values (and
+their ``kv_mask``) travel around the ring by ``lax.ppermute`` in *pieces* of one key tile: piece p
+of every chunk goes once round the ring (``n`` steps) and is home again before piece p + 1 leaves.
+Each step attends all local query tiles to the visiting piece and merges the result into the
+running ``(o, lse)`` in place (:func:`jaxdrive.parallel.blockwise.tiled_attend`); tiles that
+causal masking hides are skipped. The backward is a ``custom_vjp`` that keeps only q, k, v, the
+output and the row log-sum-exp; each piece travels again *together with* its dK/dV accumulators
+and lands, complete, on the device that owns it.
+
+Memory per device: the chunk-sized inputs, outputs and running accumulators, plus tile-sized
+rotation buffers (a ``ppermute`` output cannot reuse its input, so each travelling array is held
+twice, but only one tile long) and a few score tiles. Tiles shrink with short chunks
+(:func:`jaxdrive.parallel.seq_shard.tile_size`), so nothing in it stays constant as ``n`` grows.
 
 Batch is sharded over ``data``/``fsdp`` and heads over ``tensor`` (those present in the mesh) at
-the same time. Lengths the seq axis cannot split are padded up to a multiple of ``n``: padded keys
-are masked out through ``kv_mask`` and padded query rows are dropped from the output, so any
-``Lq``/``Lk`` works (``Lq != Lk`` included: positions for ``causal_block`` are global indices
-counted from 0 in each of q and k).
-
-The helpers :func:`layout` (input checks), :func:`pad_inputs`, :func:`to_specs` and :func:`unpad`
-are shared with :mod:`jaxdrive.parallel.ulysses`.
+the same time; padding follows :mod:`jaxdrive.parallel.seq_shard`.
 """
 
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
-from jax.sharding import PartitionSpec as P
 
-from jaxdrive import validate
+from jaxdrive.parallel import seq_shard
 from jaxdrive.parallel import softmax_blocks as sb
 from jaxdrive.parallel.blockwise import tiled_attend, tiled_grads
 
-BATCH_AXES = ("data", "fsdp")
-HEAD_AXIS = "tensor"
-
-
-@dataclass(frozen=True)
-class Layout:
-    """How ``[B, L, H, D]`` arrays are laid out on the mesh for sequence-sharded attention."""
-
-    seq_axis: str
-    n: int                      # size of the seq axis
-    batch_axes: tuple           # mesh axes sharding the batch
-    head_axis: str | None       # mesh axis sharding the heads
-    heads_per_shard: int        # heads on one tensor shard
-
-    @property
-    def qkv_spec(self):
-        return P(self.batch_axes or None, self.seq_axis, self.head_axis, None)
-
-    @property
-    def mask_spec(self):
-        return P(self.batch_axes or None, self.seq_axis)
-
-
-def layout(q, k, v, kv_mask, causal_block, mesh, seq_axis) -> Layout:
-    """Check the inputs of a sequence-sharded attention and return its :class:`Layout`."""
-    validate.check_ndim("q", q, 4)
-    validate.check_ndim("k", k, 4)
-    b, _, h, d = q.shape
-    validate.check_shape("k", k, [b, None, h, d])
-    validate.check_same_shape("v", v, "k", k)
-    if kv_mask is not None:
-        validate.check_shape("kv_mask", kv_mask, [b, k.shape[1]])
-        if jnp.asarray(kv_mask).dtype != jnp.bool_:
-            raise ValueError(f"kv_mask: expected dtype bool, got {jnp.asarray(kv_mask).dtype}")
-    if causal_block is not None:
-        validate.check_positive_int("causal_block", causal_block)
-    names = tuple(mesh.axis_names)
-    if seq_axis not in names:
-        raise ValueError(f"mesh: expected a mesh axis named {seq_axis!r}, got axes {list(names)}")
-    sizes = dict(zip(names, mesh.devices.shape))
-    batch_axes = tuple(a for a in BATCH_AXES if a in names)
-    nb = 1
-    for a in batch_axes:
-        nb *= sizes[a]
-    if b % nb:
-        raise ValueError(f"q: expected a batch size divisible by the batch mesh axes {batch_axes} "
-                         f"(size {nb}), got batch {b}")
-    head_axis = HEAD_AXIS if HEAD_AXIS in names else None
-    nt = sizes[head_axis] if head_axis else 1
-    if h % nt:
-        raise ValueError(f"q: expected a number of heads divisible by the mesh axis "
-                         f"{HEAD_AXIS!r} (size {nt}), got {h} heads")
-    return Layout(seq_axis, sizes[seq_axis], batch_axes, head_axis, h // nt)
-
-
-def pad_inputs(q, k, v, kv_mask, n, *, lq=None, lk=None):
-    """Pad q and k/v along the sequence to multiples of ``n`` (or to ``lq``/``lk`` when given);
-    the returned mask hides padded keys.
-
-    Returns ``(q, k, v, kv_mask)``; ``kv_mask`` stays None when nothing was padded and none came.
-    """
-    lq = -(-q.shape[1] // n) * n if lq is None else lq
-    lk = -(-k.shape[1] // n) * n if lk is None else lk
-    if lk != k.shape[1]:
-        if kv_mask is None:
-            kv_mask = jnp.ones(k.shape[:2], bool)
-        kv_mask = sb.pad_sequence(jnp.asarray(kv_mask, bool), lk, False)
-    return sb.pad_sequence(q, lq), sb.pad_sequence(k, lk), sb.pad_sequence(v, lk), kv_mask
-
-
-def to_specs(mesh, lay: Layout, q, k, v, kv_mask):
-    """Reshard (no-op when already so) q, k, v and the mask to the layout's specs."""
-    spec = lambda p: jax.sharding.NamedSharding(mesh, p)
-    return jax.reshard((q, k, v, kv_mask), (spec(lay.qkv_spec),) * 3 + (spec(lay.mask_spec),))
-
-
-def unpad(o, length, mesh, lay: Layout, like=None):
-    """Drop padded query rows (gathering the sequence first: a ragged length cannot be split),
-    then give the output the sharding of ``like`` (the input q's type) when it had one on this
-    mesh. Under Explicit axes the transpose of the shard_map demands cotangents typed exactly like
-    its out_specs; matching the caller's q makes any use of the output (slicing a size-1 head axis
-    included) transpose back to that type."""
-    if o.shape[1] != length:
-        gathered = P(lay.batch_axes or None, None, lay.head_axis, None)
-        o = jax.reshard(o, jax.sharding.NamedSharding(mesh, gathered))[:, :length]
-    target = None if like is None else getattr(like, "sharding", None)
-    spec = getattr(target, "spec", None)
-    if spec is not None and tuple(getattr(target.mesh, "axis_names", ())) == tuple(mesh.axis_names):
-        o = jax.reshard(o, jax.sharding.NamedSharding(mesh, spec))
-    return o
-
 
 @functools.lru_cache(maxsize=None)
-def _ring_kernel(scale: float, causal_block, axis: str, n: int, has_mask: bool, tile_q: int, tile_k: int):
+def _ring_kernel(scale: float, causal_block, axis: str, n: int, has_mask: bool, bq: int, bk: int):
     """Per-device custom-VJP ring attention (runs inside ``shard_map``) for fixed static settings.
 
-    Each step attends the local queries to the visiting key chunk in ``tile_q x tile_k`` tiles
-    (:func:`jaxdrive.parallel.blockwise.tiled_attend`), so a device never holds a chunk x chunk
-    score matrix: memory is linear in the chunk length."""
-    tiles = dict(scale=scale, causal_block=causal_block, bq=tile_q, bk=tile_k)
-    shift = [(i, (i + 1) % n) for i in range(n)]      # chunk on device i moves to device i + 1
+    K/V travel in pieces of one ``bk`` key tile: piece p of every chunk goes once round the ring
+    (``n`` steps) and comes home before piece p + 1 leaves, so the rotation buffers are tile-sized.
+    Each step attends all local query tiles to the visiting piece
+    (:func:`jaxdrive.parallel.blockwise.tiled_attend`), merging into the running ``(o, lse)`` in
+    place; in the backward the piece's dK/dV accumulators travel with it and land in dK/dV at home.
+    """
+    tiles = dict(scale=scale, causal_block=causal_block, bq=bq, bk=bk)
+    shift = [(i, (i + 1) % n) for i in range(n)]      # piece on device i moves to device i + 1
+    piece = lambda x, p: None if x is None else jax.lax.dynamic_slice_in_dim(x, p * bk, bk, axis=1)
 
-    rotate = lambda x: jax.lax.ppermute(x, axis, shift)
-    rotate_mask = rotate if has_mask else (lambda m: m)   # a placeholder mask stays put
+    def round_trips(k, start, visit, land, state):
+        """For each piece p: ``start(p)`` builds what travels, ``visit(p, t, state, travelling)``
+        runs at ring step t (returning both), and after ``n`` rotations ``land(p, state,
+        travelling)`` receives it back home. One loop body for all steps: a peeled or shortened
+        last step would be a second copy of the tile loops with buffers of its own."""
+        def one_piece(p, state):
+            def step(t, carry):
+                state, travelling = visit(p, t, *carry)
+                return state, jax.lax.ppermute(travelling, axis, shift)
+            return land(p, *jax.lax.fori_loop(0, n, step, (state, start(p))))
+        return jax.lax.fori_loop(0, k.shape[1] // bk, one_piece, state)
 
-    def _starts(q, k):
+    def positions(q, k, p, t):
+        """Global start of the local queries and of piece p visiting at step t."""
         idx = jax.lax.axis_index(axis)
-        return idx, idx * q.shape[1], k.shape[1]
+        return idx * q.shape[1], ((idx - t) % n) * k.shape[1] + p * bk
 
     def forward(q, k, v, mask):
-        idx, q_start, ck = _starts(q, k)
+        mask = mask if has_mask else None
 
-        def attend(t, carry, kc, vc, mc):
-            src = (idx - t) % n                       # owner of the chunk visiting at step t
+        def visit(p, t, acc, travelling):
+            kp, vp, mp = travelling
+            q_start, k_start = positions(q, k, p, t)
+            return tiled_attend(q, kp, vp, mp, q_start=q_start, k_start=k_start, acc=acc,
+                                **tiles), travelling
 
-            def compute():
-                o, lse = tiled_attend(q, kc, vc, mc if has_mask else None, q_start=q_start,
-                                      k_start=src * ck, **tiles)
-                return sb.merge(*carry, o, lse)
-            if causal_block is None:
-                return compute()
-            return jax.lax.cond(sb.hidden(q_start, q.shape[1], src * ck, causal_block),
-                                lambda: carry, compute)
-
-        def step(t, state):
-            carry, kc, vc, mc = state
-            carry = attend(t, carry, kc, vc, mc)
-            # One body for all n steps (a peeled first step would be a second copy of the tile
-            # loops with buffers of its own); the last rotation is spent, K/V are back home.
-            return (carry, *rotate((kc, vc)), rotate_mask(mc))
-
-        carry, *_ = jax.lax.fori_loop(0, n, step, (sb.empty(q), k, v, mask))
-        return carry
+        start = lambda p: (piece(k, p), piece(v, p), piece(mask, p))
+        return round_trips(k, start, visit, lambda p, acc, _: acc, sb.empty(q))
 
     @jax.custom_vjp
     def kernel(q, k, v, mask):
@@ -174,36 +80,34 @@ def _ring_kernel(scale: float, causal_block, axis: str, n: int, has_mask: bool, 
 
     def kernel_fwd(q, k, v, mask):
         o, lse = forward(q, k, v, mask)
-        return o.astype(q.dtype), (q, k, v, mask, o, lse)
+        o = o.astype(q.dtype)   # the output doubles as the residual (only delta needs it)
+        return o, (q, k, v, mask, o, lse)
 
     def kernel_bwd(res, do):
         q, k, v, mask, o, lse = res
-        idx, q_start, ck = _starts(q, k)
+        mask = mask if has_mask else None
+        delta = sb.delta(o, do)
+        zeros = lambda x: jnp.zeros(x.shape, jnp.float32)
 
-        def grads(t, kc, vc, mc):
-            src = (idx - t) % n
+        def start(p):
+            kp, vp = piece(k, p), piece(v, p)
+            return kp, vp, piece(mask, p), zeros(kp), zeros(vp)
 
-            def compute():
-                return tiled_grads(q, kc, vc, mc if has_mask else None, o, lse, do, q_start=q_start,
-                                   k_start=src * ck, **tiles)
-            zeros = lambda: (jnp.zeros(q.shape, jnp.float32), jnp.zeros(kc.shape, jnp.float32),
-                             jnp.zeros(vc.shape, jnp.float32))
-            if causal_block is None:
-                return compute()
-            return jax.lax.cond(sb.hidden(q_start, q.shape[1], src * ck, causal_block), zeros, compute)
+        def visit(p, t, grads, travelling):
+            kp, vp, mp, dkp, dvp = travelling
+            q_start, k_start = positions(q, k, p, t)
+            dq, dkp, dvp = tiled_grads(q, kp, vp, mp, lse, delta, do, q_start=q_start,
+                                       k_start=k_start, acc=(grads[0], dkp, dvp), **tiles)
+            return (dq, *grads[1:]), (kp, vp, mp, dkp, dvp)
 
-        def step(t, state):
-            dq, kc, vc, mc, dk, dv = state
-            gq, gk, gv = grads(t, kc, vc, mc)
-            # K/V travel on with their accumulators; after n rotations dK/dV are back with the
-            # owner of their chunk (one loop body, as in the forward).
-            kc, vc, dk, dv = rotate((kc, vc, dk + gk, dv + gv))
-            return dq + gq, kc, vc, rotate_mask(mc), dk, dv
+        def land(p, grads, travelling):   # piece p is home, its dK/dV complete: store in k's dtype
+            dq, dk, dv = grads
+            put = lambda x, g: jax.lax.dynamic_update_slice_in_dim(x, g.astype(x.dtype), p * bk, axis=1)
+            return dq, put(dk, travelling[3]), put(dv, travelling[4])
 
-        zero = lambda x: jnp.zeros(x.shape, jnp.float32)
-        state = (zero(q), k, v, mask, zero(k), zero(v))
-        dq, _, _, _, dk, dv = jax.lax.fori_loop(0, n, step, state)
-        return dq.astype(q.dtype), dk.astype(k.dtype), dv.astype(v.dtype), None
+        like = lambda x: jnp.zeros(x.shape, x.dtype)
+        dq, dk, dv = round_trips(k, start, visit, land, (zeros(q), like(k), like(v)))
+        return dq.astype(q.dtype), dk, dv, None
 
     kernel.defvjp(kernel_fwd, kernel_bwd)
     return kernel
@@ -219,23 +123,12 @@ def ring_attention(q, k, v, *, mesh, scale, kv_mask=None, causal_block=None, seq
     those axes exist, so ``B`` and ``H`` must divide accordingly. Sequence lengths that ``seq``
     does not divide are padded (padded keys masked, padded query rows dropped). Returns
     ``[B, Lq, H, D]`` in ``q.dtype``; differentiable in q, k and v (custom ring backward).
-    Chunks longer than ``block`` are processed in ``block``-sized tiles (lengths padded to a
-    multiple of ``n * block`` then), so per-device memory is linear in the chunk length.
+    Chunks are processed in square tiles of at most ``block`` tokens, shorter for short chunks
+    (:func:`jaxdrive.parallel.seq_shard.tile_size`); K/V rotate one tile at a time.
     """
-    lay = layout(q, k, v, kv_mask, causal_block, mesh, seq_axis)
+    lay = seq_shard.layout(q, k, v, kv_mask, causal_block, mesh, seq_axis)
     lq, q_type = q.shape[1], jax.typeof(q)
-
-    def padded(length):  # chunks longer than a tile become whole tiles
-        multiple = lay.n * block if -(-length // lay.n) > block else lay.n
-        return -(-length // multiple) * multiple
-    lk_pad = padded(k.shape[1])
-    has_mask = kv_mask is not None or k.shape[1] != lk_pad
-    q, k, v, kv_mask = pad_inputs(q, k, v, kv_mask, lay.n, lq=padded(lq), lk=lk_pad)
-    if kv_mask is None:
-        kv_mask = jnp.ones(k.shape[:2], bool)         # placeholder, ignored when has_mask is False
-    tile = lambda length: min(length // lay.n, block)  # the chunk, or a block dividing it
-    kernel = _ring_kernel(float(scale), causal_block, seq_axis, lay.n, has_mask,
-                          tile(q.shape[1]), tile(k.shape[1]))
-    fn = jax.shard_map(kernel, mesh=mesh, in_specs=(lay.qkv_spec,) * 3 + (lay.mask_spec,),
-                       out_specs=lay.qkv_spec, check_vma=False)
-    return unpad(fn(*to_specs(mesh, lay, q, k, v, kv_mask)), lq, mesh, lay, like=q_type)
+    tile = seq_shard.tile_size(seq_shard.chunk(lq, lay.n), q.shape[3], block)
+    q, k, v, kv_mask, bq, bk, has_mask = seq_shard.pad_to_tiles(q, k, v, kv_mask, lay.n, tile)
+    kernel = _ring_kernel(float(scale), causal_block, seq_axis, lay.n, has_mask, bq, bk)
+    return seq_shard.run(kernel, mesh, lay, q, k, v, kv_mask, lq, q_type)

@@ -8,8 +8,8 @@ ring over the ``seq`` axis, the local kernel of all-to-all) is built from these 
 - :func:`merge`: the online-softmax combination of two such partial results (Milakov &
   Gimelshein 2018; Rabe & Staats 2021; Dao et al. 2022), exact up to rounding;
 - :func:`attend_block_grads`: the gradient contribution of one block pair given the *final*
-  output and log-sum-exp of the query rows (the FlashAttention backward), so backward passes
-  recompute scores block by block instead of storing the ``L x L`` matrix.
+  log-sum-exp and :func:`delta` of the query rows (the FlashAttention backward), so backward
+  passes recompute scores block by block instead of storing the ``L x L`` matrix.
 
 Shapes: ``q [B, Lq, H, D]``, ``k, v [B, Lk, H, D]``, outputs ``[B, Lq, H, D]``, log-sum-exp
 ``[B, H, Lq]``. All arithmetic is float32. Masking: ``kv_mask [B, Lk]`` (True = attend) and
@@ -89,13 +89,22 @@ def empty(q):
     return jnp.zeros((b, lq, h, d), jnp.float32), jnp.full((b, h, lq), NEG_INF, jnp.float32)
 
 
-def attend_block_grads(q, k, v, o, lse, do, *, scale, kv_mask=None, causal_block=None, q_start=0,
-                       k_start=0):
+def delta(o, do):
+    """``rowsum(dO * O)`` of each query row, ``[B, H, Lq]`` float32: the one place the backward
+    needs the output. Computed once per query row before the tile loops, so the output itself need
+    not stay alive through them."""
+    # a fused multiply-and-reduce: as a batched dot, XLA would transpose both operands first
+    rows = jnp.sum(do.astype(jnp.float32) * o.astype(jnp.float32), axis=-1)     # [B, Lq, H]
+    return jnp.swapaxes(rows, 1, 2)
+
+
+def attend_block_grads(q, k, v, lse, delta_rows, do, *, scale, kv_mask=None, causal_block=None,
+                       q_start=0, k_start=0):
     """``(dq, dk, dv)`` contributed by this (query block, key block) pair.
 
-    ``o`` and ``lse`` are the final output and log-sum-exp of the query rows over *all* keys, and
-    ``do`` the output cotangent; summing the contributions over all key blocks gives ``dq``, over
-    all query blocks ``dk`` and ``dv``. Float32 results.
+    ``lse`` is the final log-sum-exp of the query rows over *all* keys, ``delta_rows`` their
+    :func:`delta` and ``do`` the output cotangent; summing the contributions over all key blocks
+    gives ``dq``, over all query blocks ``dk`` and ``dv``. Float32 results.
     """
     mask = allowed(q.shape[0], q.shape[1], k.shape[1], kv_mask=kv_mask, causal_block=causal_block,
                    q_start=q_start, k_start=k_start)
@@ -103,10 +112,9 @@ def attend_block_grads(q, k, v, o, lse, do, *, scale, kv_mask=None, causal_block
     finite = jnp.isfinite(lse)[..., None]
     p = jnp.where(finite, jnp.exp(s - jnp.where(finite, lse[..., None], 0.0)), 0.0)   # [B, H, Lq, Lk]
     do = do.astype(jnp.float32)
-    delta = jnp.einsum("bqhd,bqhd->bhq", do, o.astype(jnp.float32))[..., None]        # rowsum(dO * O)
     dv = jnp.einsum("bhqk,bqhd->bkhd", p, do)
     dp = jnp.einsum("bqhd,bkhd->bhqk", do, v.astype(jnp.float32))
-    ds = p * (dp - delta)
+    ds = p * (dp - delta_rows[..., None])
     dq = jnp.einsum("bhqk,bkhd->bqhd", ds, k.astype(jnp.float32)) * scale
     dk = jnp.einsum("bhqk,bqhd->bkhd", ds, q.astype(jnp.float32)) * scale
     return dq, dk, dv
