@@ -3,9 +3,13 @@
 import os
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
-_flag = "--xla_force_host_platform_device_count=8"
-if _flag not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + _flag).strip()
+# 8 fake devices; and collective rendezvous timeouts far above XLA:CPU's defaults, because the 8
+# device threads of a sharded test share 2 cores with other test workers: on a busy machine a
+# thread can miss the default deadline, and XLA then aborts the process instead of waiting.
+for _flag in ("--xla_force_host_platform_device_count=8", "--xla_cpu_collective_timeout_seconds=900",
+              "--xla_cpu_collective_call_terminate_timeout_seconds=900"):
+    if _flag.split("=")[0] not in os.environ.get("XLA_FLAGS", ""):
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + _flag).strip()
 
 import jax  # noqa: E402  (must come after the flags above)
 
