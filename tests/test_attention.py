@@ -189,3 +189,14 @@ def test_splash_needs_a_tpu():
     q, k, v, _ = _qkvd()
     with pytest.raises(ValueError, match="impl: 'splash' needs a TPU backend, got cpu"):
         attention(q, k, v, impl="splash")
+
+
+def test_auto_picks_ring_under_the_context_mesh():
+    # under jax.set_mesh the mesh is an AbstractMesh (no devices): ring's layout check must read
+    # its axis sizes from it, else "auto" silently fell back to one-device attention
+    from jax.sharding import AxisType
+    q, k, v, _ = _qkvd(b=2, lq=32, lk=32, h=4)
+    mesh = jax.make_mesh((1, 1, 8, 1), ("data", "fsdp", "seq", "tensor"), axis_types=(AxisType.Explicit,) * 4)
+    with jax.set_mesh(mesh):
+        jaxpr = str(jax.make_jaxpr(lambda *a: attention(*a))(q, k, v))
+    assert "ppermute" in jaxpr
