@@ -279,6 +279,7 @@ class BoxEncoder(nn.Module):
             coords, mask = corners[:, :, None], valid[:, :, None]
         feats = fourier_features(coords.reshape(*coords.shape[:-2], 24), self.num_freqs, self.temperature)
         table = param(self, "class_embed", normal(0.02), (self.num_classes, self.width), ("vocab", "embed"))
+        table = constrain(table, (None, "embed"))           # whole table on every device for the lookup
         cls = jnp.take(table, jnp.clip(jnp.asarray(classes, jnp.int32), 0, self.num_classes - 1), axis=0)
         cls = jnp.broadcast_to(cls[:, :, None], feats.shape[:-1] + (self.width,))
         h = Dense(self.width, ("channels", "embed"), dtype=self.dtype, name="fc1")(
@@ -348,7 +349,8 @@ class CaptionEncoder(nn.Module):
 
     @nn.compact
     def __call__(self, ids, mask):
-        table = param(self, "embed", normal(0.02), (self.vocab, self.dim), ("vocab", "text_embed"))
+        table = constrain(param(self, "embed", normal(0.02), (self.vocab, self.dim), ("vocab", "text_embed")),
+                          (None, "text_embed"))
         pos = param(self, "pos", normal(0.02), (self.max_len, self.dim), ("text_tokens", "text_embed"))
         ids = jnp.clip(jnp.asarray(ids, jnp.int32), 0, self.vocab - 1)
         x = (jnp.take(table, ids, axis=0) + pos[: ids.shape[1]]).astype(self.dtype)
