@@ -96,7 +96,24 @@ def _auto(q, k, v, mesh, kv_mask, causal_block) -> str:
     return "blockwise" if q.shape[1] * k.shape[1] > AUTO_BLOCKWISE_PAIRS else "xla"
 
 
+def _gather_kv(k, v, kv_mask):
+    """Keys, values and mask with their sequence axis gathered when an Explicit mesh shards it
+    (e.g. over ``seq``, even of size 1): a one-device kernel contracting q against k with both
+    sharded over the same mesh axis is an illegal sharding. Queries keep their sharding, so the
+    output stays sequence-sharded like q (an all-gather of K/V, no more)."""
+    def gather(x):
+        if x is None:
+            return x
+        sharding = getattr(jax.typeof(x), "sharding", None)
+        spec = tuple(getattr(sharding, "spec", ()) or ())
+        if len(spec) < 2 or spec[1] is None:
+            return x
+        return jax.sharding.reshard(x, jax.sharding.PartitionSpec(spec[0], None, *spec[2:]))
+    return gather(k), gather(v), gather(kv_mask)
+
+
 def _xla(q, k, v, scale, kv_mask, causal_block):
+    k, v, kv_mask = _gather_kv(k, v, kv_mask)
     return softmax_blocks.attend_block(q, k, v, scale=scale, kv_mask=kv_mask,
                                        causal_block=causal_block)[0].astype(q.dtype)
 
