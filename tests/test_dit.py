@@ -2,6 +2,7 @@
 zero-initialised branches, classifier-free-guidance nulls, scan/remat, presets and bad input."""
 
 import dataclasses
+import json
 import functools
 
 import flax.linen as nn
@@ -285,3 +286,13 @@ def test_cogvideox_2b_preset_has_the_diffusers_parameter_count():
         ref = diffusers.CogVideoXTransformer3DModel(num_layers=2)
     want = sum(p.numel() for p in ref.parameters())
     assert param_count(preset("cogvideox-2b", depth=2)) == want
+
+
+def test_dit_benchmark_prints_json_figures(capsys):
+    from jaxdrive.cli import main
+    main(["bench", "dit", "--presets", "tiny", "--seq", "2", "--repeats", "1"])
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
+    figures = {r["figure"] for r in rows}
+    assert {"fwd_bwd_time", "tokens_per_s", "per_device_temp_memory", "compile_time"} <= figures
+    assert all(r["bench"] == "dit" for r in rows)
+    assert next(r for r in rows if r["figure"] == "per_device_temp_memory")["value"] > 0

@@ -12,14 +12,6 @@ tens of GB). On a CPU host the sharded figures use fake devices, which the bench
 from __future__ import annotations
 
 import argparse
-import os
-
-
-def _ensure_devices(n: int) -> None:
-    """Fake CPU devices for the sharded figures; must run before JAX initialises its backend."""
-    flag = f"--xla_force_host_platform_device_count={n}"
-    if flag not in os.environ.get("XLA_FLAGS", ""):
-        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()
 
 
 def _grad_fn(impl, mesh=None, **kw):
@@ -93,7 +85,8 @@ def main(argv=None):
     parser.add_argument("--dim", type=int, default=64)
     parser.add_argument("--block", type=int, default=512)
     args = parser.parse_args(argv)
-    _ensure_devices(max(args.seq))
+    from jaxdrive.bench.report import ensure_devices
+    ensure_devices(max(args.seq))
     return run(args.lengths, args.seq, args.time_max, args.heads, args.dim, args.block)
 
 
