@@ -202,16 +202,19 @@ def test_auto_picks_ring_under_the_context_mesh():
     assert "ppermute" in jaxpr
 
 
-def test_xla_takes_sequence_sharded_inputs():
-    # q, k, v sharded over seq (a DiT's activations, also on a seq axis of size 1): the dense kernel
-    # gathers K/V and keeps q's sharding instead of failing on an illegal sharding
+def test_one_device_kernels_take_sequence_sharded_inputs():
+    # q, k, v sharded over seq (a DiT's activations, also on a seq axis of size 1): xla gathers K/V,
+    # blockwise gathers all three, and the output keeps q's sharding instead of an illegal sharding
     from jax.sharding import AxisType, NamedSharding
     from jax.sharding import PartitionSpec as P
     q, k, v, _ = _qkvd(b=2, lq=32, lk=32, h=4)
     ref = attention(q, k, v, impl="xla", causal_block=8)
     for shape in ((1, 1, 8, 1), (8, 1, 1, 1)):
         mesh = jax.make_mesh(shape, ("data", "fsdp", "seq", "tensor"), axis_types=(AxisType.Explicit,) * 4)
-        with jax.set_mesh(mesh):
-            put = lambda x: jax.device_put(x, NamedSharding(mesh, P(None, "seq", None, None)))
-            out = jax.jit(lambda *a: attention(*a, impl="xla", causal_block=8))(put(q), put(k), put(v))
-        assert _rel(out, ref) <= 1e-6
+        for impl in ("xla", "blockwise"):
+            with jax.set_mesh(mesh):
+                put = lambda x: jax.device_put(x, NamedSharding(mesh, P(None, "seq", None, None)))
+                fn = lambda *a: attention(*a, impl=impl, causal_block=8, block_q=8, block_k=8)
+                out = jax.jit(fn)(put(q), put(k), put(v))
+                assert out.sharding.spec == P(None, "seq", None, None)
+            assert _rel(out, ref) <= 1e-5
