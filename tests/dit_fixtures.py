@@ -15,7 +15,6 @@ import numpy as np
 from flax.traverse_util import flatten_dict, unflatten_dict
 
 from jaxdrive.models.dit import DiT
-from jaxdrive.models.dit_inputs import example_inputs
 
 # Zero-initialised projections of the control branches (they must leave the output unchanged).
 # "out" is a ControlNet branch layer's output projection (distinct from attention's "to_out").

@@ -83,14 +83,15 @@ def test_htft_starts_as_identity_and_attends_to_the_buffer():
     np.testing.assert_array_equal(past[:, 1], frames[-5])
     np.testing.assert_array_equal(mask, [[True, True, False]] * 2)   # only 6 frames pushed so far
     mod = HTFT(16, 2, 8, groups=4)
-    variables = nn.unbox(mod.init(jax.random.PRNGKey(1), f, past, mask))
-    np.testing.assert_array_equal(mod.apply(variables, f, past, mask), f)     # zero-initialised Linear
+    variables = nn.unbox(jax.jit(mod.init)(jax.random.PRNGKey(1), f, past, mask))
+    apply = jax.jit(mod.apply)
+    np.testing.assert_array_equal(apply(variables, f, past, mask), f)     # zero-initialised Linear
     trained = jax.tree_util.tree_map(lambda x: x + 0.1, variables)
-    out = mod.apply(trained, f, past, mask)
+    out = apply(trained, f, past, mask)
     assert float(jnp.abs(out - f).max()) > 1e-3
     # an empty slot is not attended to: its content does not matter
     other = past.at[:, 2].set(100.0)
-    np.testing.assert_allclose(mod.apply(trained, f, other, mask), out, atol=1e-6)
+    np.testing.assert_allclose(apply(trained, f, other, mask), out, atol=1e-6)
     with pytest.raises(ValueError, match=r"offsets: expected values in \[-10, -1\]"):
         buffer_select(buf, (-11,))
 

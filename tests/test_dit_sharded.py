@@ -7,7 +7,6 @@ layout with scanned, rematerialised layers. Parameters are sharded by their logi
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import pytest
 from dit_fixtures import boxed_params, max_rel, params_for, split_inputs, tree_max_rel
 

@@ -427,7 +427,8 @@ class DiT(nn.Module):
                 video = _video(cfg, carry)
                 feats[end - 1] = video
                 if features is not None:
-                    fused = HTFT(cfg.width, cfg.heads, cfg.head_dim, cfg.htft_groups, impl=cfg.attn_impl,
+                    fused = HTFT(cfg.width, cfg.heads, cfg.head_dim, cfg.htft_groups, cfg.htft_dropout,
+                                 impl=cfg.attn_impl,
                                  dtype=cfg.compute_dtype, name=f"htft_{end - 1}")(
                         video, jnp.asarray(features[end - 1], cfg.compute_dtype), features_mask,
                         deterministic=deterministic)

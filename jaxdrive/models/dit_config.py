@@ -103,7 +103,9 @@ class DiTConfig:
     ``attn_impl`` for the attentions that run sequence-sharded (spatial, cross-view, full, HTFT)
     and ``local_attn_impl`` for those that never need communication (temporal, cross-attention
     to text and control tokens). ``htft_layers``: layers after which STAGE's HTFT fuses past
-    features (and whose outputs :meth:`DiT.__call__` returns with ``return_features``).
+    features (and whose outputs :meth:`DiT.__call__` returns with ``return_features``);
+    ``htft_groups`` is its GroupNorm's group count, ``htft_dropout`` the rate of its
+    ``Dropout(f)``.
     """
 
     layout: str = "factorized"
@@ -143,6 +145,7 @@ class DiTConfig:
     local_attn_impl: str = "xla"
     htft_layers: tuple[int, ...] = ()
     htft_groups: int = 8
+    htft_dropout: float = 0.0
 
     @property
     def width(self) -> int:
@@ -217,6 +220,8 @@ def check_config(cfg: DiTConfig) -> DiTConfig:
     if cfg.htft_layers and cfg.width % cfg.htft_groups:
         raise ValueError(f"htft_groups: expected a divisor of the width {cfg.width}, "
                          f"got {cfg.htft_groups}")
+    if not 0.0 <= cfg.htft_dropout < 1.0:
+        raise ValueError(f"htft_dropout: expected a rate in [0, 1), got {cfg.htft_dropout}")
     if cfg.ofs_embed_dim is not None and cfg.ofs_embed_dim != cfg.t_dim:
         raise ValueError(f"ofs_embed_dim: expected the time embedding size {cfg.t_dim}, "
                          f"got {cfg.ofs_embed_dim}")

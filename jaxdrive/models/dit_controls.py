@@ -115,6 +115,30 @@ def use_null(drop, value, null):
     return jnp.where(d, null.astype(value.dtype), value)
 
 
+class EncoderLayer(nn.Module):
+    """A pre-norm transformer layer (self-attention with an optional key mask and rotary tables,
+    then an MLP) for the small condition encoders; ``axis_name`` is the logical name of the width."""
+
+    width: int
+    heads: int
+    impl: str = "xla"
+    dtype: jnp.dtype = jnp.float32
+    axis_name: str = "embed"
+
+    @nn.compact
+    def __call__(self, x, mask=None, rope=None):
+        name = self.axis_name
+        proj = AttnProj(self.heads, self.width // self.heads, self.width, dtype=self.dtype, context_name=name,
+                        name="attn")
+        h = LayerNorm(name="norm1", name_=name)(x)
+        q, (k, v) = proj.q(h), proj.kv(h)
+        if rope is not None:
+            q, k = apply_rope(q, *rope), apply_rope(k, *rope)
+        x = x + proj.out(attention(q, k, v, impl=self.impl, kv_mask=mask))
+        mlp = MLP(4 * self.width, self.width, dtype=self.dtype, in_name=name, name="mlp")
+        return x + mlp(LayerNorm(name="norm2", name_=name)(x))
+
+
 class TemporalEncoder(nn.Module):
     """A small pre-norm transformer over frames, per item, with RoPE over the frame index
     (MagicDrive-V2 sec. 4.3: "a temporal transformer and RoPE"). ``x [B, F, *items, D]``,
@@ -130,23 +154,16 @@ class TemporalEncoder(nn.Module):
     def __call__(self, x, mask=None):
         if self.layers == 0:
             return x
-        b, f = x.shape[:2]
+        f = x.shape[1]
         items = x.shape[2:-1]
         seq = jnp.moveaxis(x, 1, -2)                           # [B, *items, F, D]
         m = None if mask is None else jnp.moveaxis(mask, 1, -1)
         for _ in range(len(items)):
             seq = merge(seq, 0)
             m = None if m is None else merge(m, 0)
-        head_dim = self.width // self.heads
-        cos, sin = (jnp.asarray(a)[:, None, :] for a in rope_1d(np.arange(f), head_dim))
+        rope = tuple(jnp.asarray(a)[:, None, :] for a in rope_1d(np.arange(f), self.width // self.heads))
         for i in range(self.layers):
-            proj = AttnProj(self.heads, head_dim, self.width, dtype=self.dtype, name=f"attn_{i}")
-            h = LayerNorm(name=f"norm1_{i}")(seq)
-            q, (k, v) = proj.q(h), proj.kv(h)
-            q, k = apply_rope(q, cos, sin), apply_rope(k, cos, sin)
-            seq = seq + proj.out(attention(q, k, v, impl=self.impl, kv_mask=m))
-            seq = seq + MLP(4 * self.width, self.width, dtype=self.dtype,
-                            name=f"mlp_{i}")(LayerNorm(name=f"norm2_{i}")(seq))
+            seq = EncoderLayer(self.width, self.heads, self.impl, self.dtype, name=f"layer_{i}")(seq, m, rope)
         for size in reversed(items):
             seq = split(seq, 0, seq.shape[0] // size)
         return jnp.moveaxis(seq, -2, 1)
@@ -356,11 +373,5 @@ class CaptionEncoder(nn.Module):
         x = (jnp.take(table, ids, axis=0) + pos[: ids.shape[1]]).astype(self.dtype)
         heads = self.dim // 64 if self.dim % 64 == 0 else 1
         for i in range(self.layers):
-            proj = AttnProj(heads, self.dim // heads, self.dim, dtype=self.dtype, context_name="text_embed",
-                            name=f"attn_{i}")
-            h = LayerNorm(name=f"norm1_{i}", name_="text_embed")(x)
-            q, (k, v) = proj.q(h), proj.kv(h)
-            x = x + proj.out(attention(q, k, v, impl=self.impl, kv_mask=mask))
-            x = x + MLP(4 * self.dim, self.dim, dtype=self.dtype, in_name="text_embed",
-                        name=f"mlp_{i}")(LayerNorm(name=f"norm2_{i}", name_="text_embed")(x))
+            x = EncoderLayer(self.dim, heads, self.impl, self.dtype, "text_embed", name=f"layer_{i}")(x, mask)
         return LayerNorm(name="norm_out", name_="text_embed")(x)
