@@ -8,8 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxdrive.models.dit_layers import (Init, apply_rope, fourier_features, from_sequence, rope_3d, sincos_3d,
-                                        timestep_embedding, to_sequence)
+from jaxdrive.models.dit_layers import (Init, apply_rope, fourier_features, from_sequence, host_init, rope_3d,
+                                        sincos_3d, timestep_embedding, to_sequence)
 from jaxdrive.models.htft import HTFT, buffer_init, buffer_push, buffer_select
 
 
@@ -83,7 +83,7 @@ def test_htft_starts_as_identity_and_attends_to_the_buffer():
     np.testing.assert_array_equal(past[:, 1], frames[-5])
     np.testing.assert_array_equal(mask, [[True, True, False]] * 2)   # only 6 frames pushed so far
     mod = HTFT(16, 2, 8, groups=4)
-    variables = nn.unbox(jax.jit(mod.init)(jax.random.PRNGKey(1), f, past, mask))
+    variables = nn.unbox(host_init(mod, f, past, mask))
     apply = jax.jit(mod.apply)
     np.testing.assert_array_equal(apply(variables, f, past, mask), f)     # zero-initialised Linear
     trained = jax.tree_util.tree_map(lambda x: x + 0.1, variables)

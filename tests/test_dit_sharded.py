@@ -1,7 +1,8 @@
 """The DiT sharded over (data, fsdp, seq, tensor) meshes of 8 fake CPU devices matches the
 single-device model: outputs and gradients (parameters and latents), for the factorized layout
-with spatial attention over all views, the MVDiT layout with every control and HTFT, and the full
-layout with scanned, rematerialised layers. Parameters are sharded by their logical names
+with spatial attention over all views, the MVDiT layout with cross-view attention, the map
+ControlNet, box tokens, condition frames and HTFT, and the full layout with scanned,
+rematerialised layers. Parameters are sharded by their logical names
 (FSDP over ``embed``, tensor parallel over heads and MLP features) and the spatial patches over
 ``seq``, so every sequence-sharded attention runs as a ring."""
 
@@ -17,7 +18,10 @@ from jaxdrive.parallel import make_mesh, shard_params
 
 CASES = {
     "factorized-joint": (preset("tiny", depth=1), dict(data=2, seq=4), 2),
-    "mvdit-all-controls": (preset("tiny-mv", depth=1), dict(fsdp=2, seq=2, tensor=2), 3),
+    # MVDiT with the controls whose tensors meet the sharded patches: cross-view attention, the map
+    # ControlNet, box tokens (per-frame-and-view cross-attention), condition frames and HTFT
+    "mvdit-controls": (preset("tiny-mv", depth=1, controls=dict(trajectory=False, warp=False, waypoints=False,
+                                                                camera=False)), dict(fsdp=2, seq=2, tensor=2), 3),
     "full-scan-remat": (preset("tiny-full", scan_layers=True, remat="full"), dict(seq=8), 2),
 }
 

@@ -56,8 +56,8 @@ from jaxdrive.models.dit_controls import (BoxEncoder, CameraEncoder, CaptionEnco
                                           TimestepMLP, TrajectoryEncoder, WaypointEncoder, null_param,
                                           use_null)
 from jaxdrive.models.dit_inputs import check_inputs, example_inputs
-from jaxdrive.models.dit_layers import (MLP, TEXT, VIDEO, ZEROS, Dense, LayerNorm, host_params, modulate,
-                                        normal, param, pool_frames, record_inits, reshape, rope_3d, sincos_2d,
+from jaxdrive.models.dit_layers import (MLP, TEXT, VIDEO, ZEROS, Dense, LayerNorm, abstract_params, host_params,
+                                        modulate, normal, param, pool_frames, reshape, rope_3d, sincos_2d,
                                         sincos_3d)
 from jaxdrive.models.htft import HTFT
 from jaxdrive.parallel.rules import constrain
@@ -142,18 +142,11 @@ class DiT(nn.Module):
         (for :func:`jaxdrive.parallel.shard_params`). ``shapes`` go to :func:`example_inputs`
         (the parameter shapes do not depend on them). ``self.init(key, ...)`` (e.g. jitted with
         ``out_shardings`` from :func:`jaxdrive.parallel.param_shardings`) initialises on devices."""
-        tree, recorded = self._abstract(shapes)
-        return host_params(tree, recorded, seed, boxed=boxed)
+        return host_params(*abstract_params(self, **example_inputs(self.config, **shapes)), seed, boxed=boxed)
 
     def abstract_params(self, **shapes):
         """The boxed params tree with ``jax.ShapeDtypeStruct`` leaves (``jax.eval_shape``)."""
-        return self._abstract(shapes)[0]
-
-    def _abstract(self, shapes):
-        ex = example_inputs(self.config, **shapes)
-        with record_inits() as rec:
-            tree = jax.eval_shape(lambda: self.init(jax.random.PRNGKey(0), **ex)["params"])
-        return tree, dict(rec)
+        return abstract_params(self, **example_inputs(self.config, **shapes))[0]
 
     # ------------------------------------------------------------------ the network
 
@@ -243,8 +236,6 @@ class DiT(nn.Module):
 
         carry = hid
         if cfg.layout == "full":
-            if text_ctx is None:
-                raise ValueError("text: the full layout needs text tokens")
             carry = (hid, constrain(Dense(cfg.width, ("text_embed", "embed"), dtype=dt, name="text_proj")(
                 ctx.pop("text")), TEXT))
         elif "text" in ctx:

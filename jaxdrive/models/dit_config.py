@@ -209,6 +209,9 @@ def check_config(cfg: DiTConfig) -> DiTConfig:
     if cfg.layout == "factorized" and cfg.width % 4:
         raise ValueError(f"heads * head_dim: 2D sin-cos positions need a width divisible by 4, "
                          f"got {cfg.width}")
+    if cfg.layout == "full" and cfg.controls.text is None:
+        raise ValueError("controls.text: the full layout attends over [text; video] and needs a text "
+                         "control, got None")
     if cfg.controls.map and not 1 <= cfg.controls.map_blocks <= cfg.depth:
         raise ValueError(f"controls.map_blocks: expected 1 .. depth = {cfg.depth}, "
                          f"got {cfg.controls.map_blocks}")

@@ -59,6 +59,8 @@ def check_inputs(cfg: DiTConfig, latents, sigma, text, kw: Mapping) -> None:
                          f"got {cfg.heads}")
     _check_text(cfg, b, text, kw.get("text_mask"))
     for name, control in CONTROL_OF.items():
+        if control == "camera" and c.boxes and c.box_per_view:
+            continue                                     # per-view boxes use the cameras too
         if kw.get(name) is not None and not getattr(c, control):
             raise ValueError(f"{name}: this DiT takes no {control} (controls.{control} is False), "
                              f"got an array of shape {_shape(kw[name])}")

@@ -133,6 +133,19 @@ def param(module: nn.Module, name: str, init: Init, shape, names):
     return constrain(value, tuple(names))
 
 
+def abstract_params(module: nn.Module, *args, **kwargs):
+    """``(boxed params tree of jax.ShapeDtypeStruct, {path: (Init, rank)})`` of ``module`` for
+    these call arguments, from ``jax.eval_shape`` (nothing is compiled or allocated)."""
+    with record_inits() as rec:
+        tree = jax.eval_shape(lambda: module.init(jax.random.PRNGKey(0), *args, **kwargs)["params"])
+    return tree, dict(rec)
+
+
+def host_init(module: nn.Module, *args, seed: int = 0, boxed: bool = False, **kwargs):
+    """``{"params": ...}`` for ``module.apply``, drawn on the host (:func:`host_params`)."""
+    return {"params": host_params(*abstract_params(module, *args, **kwargs), seed, boxed=boxed)}
+
+
 def host_params(abstract, recorded: dict, seed: int = 0, *, boxed: bool = False):
     """Fill an abstract boxed params tree (``jax.eval_shape`` of ``init`` under
     :func:`record_inits`) with NumPy values drawn per each parameter's :class:`Init`."""
