@@ -121,8 +121,10 @@ def test_precompute_t5_without_transformers_is_a_clear_error(monkeypatch, tmp_pa
         precompute_t5(["a"], tmp_path)
 
 
-def test_precompute_t5_pads_batches_and_masks(monkeypatch, tmp_path):
-    """The batching, padding and mask plumbing, with a stand-in for transformers' T5 classes."""
+@pytest.fixture
+def fake_transformers(monkeypatch):
+    """A stand-in for transformers' tokenizer and T5 encoder: token i of a caption's words has id
+    i + 1, the encoder returns the id in every feature (masked by the attention mask)."""
     import sys
     import types
     torch = pytest.importorskip("torch")
@@ -156,8 +158,27 @@ def test_precompute_t5_pads_batches_and_masks(monkeypatch, tmp_path):
     fake = types.ModuleType("transformers")
     fake.AutoTokenizer, fake.T5EncoderModel = Tok, Enc
     monkeypatch.setitem(sys.modules, "transformers", fake)
+
+
+def test_precompute_t5_pads_batches_and_masks(fake_transformers, tmp_path):
+    """The batching, padding and mask plumbing around transformers' T5 classes."""
     from jaxdrive.data.text import precompute_t5
     emb, mask = precompute_t5(["a b c", "d", "e f"], tmp_path, max_length=4, batch_size=2)
     assert emb.shape == (3, 4, 3) and emb.dtype == np.float32
     np.testing.assert_array_equal(mask, [[1, 1, 1, 0], [1, 0, 0, 0], [1, 1, 0, 0]])
     np.testing.assert_array_equal(emb[0, :, 0], [1, 2, 3, 0])
+
+
+def test_text_embed_command_writes_the_captions_of_a_dataset(fake_transformers, tmp_path):
+    from jaxdrive.cli import main
+    data, enc, out = tmp_path / "synth", tmp_path / "t5", tmp_path / "emb.npz"
+    enc.mkdir()
+    assert main(["data", "synth", "--out", str(data), "--scenes", "3", "--frames", "5", "--height", "16",
+                 "--width", "32", "--val-fraction", "0"]) == 0
+    assert main(["data", "text-embed", "--dataset", str(data), "--encoder", str(enc), "--out", str(out),
+                 "--max-length", "40"]) == 0
+    got = np.load(out)
+    caps = list(got["captions"])
+    assert 1 <= len(caps) <= 3 and caps == sorted(set(caps)) and caps[0].startswith("This is a driving scene")
+    assert got["embeddings"].shape == (len(caps), 40, 3) and got["mask"].shape == (len(caps), 40)
+    assert got["mask"][0].sum() == len(caps[0].split())
