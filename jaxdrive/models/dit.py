@@ -5,7 +5,7 @@ MagicDrive-V2, with per-frame noise levels, multi-view attention and the driving
     from jaxdrive.models.dit_presets import preset
 
     dit = DiT(preset("tiny"))
-    params = dit.init_params(jax.random.PRNGKey(0), views=6, frames=5)
+    params = dit.init_params(seed=0)                  # on the host; or dit.init(key, ...) on devices
     v = dit.forward(params, latents, sigma, text, text_mask=mask)     # latents [B, V, F', h, w, C]
 
 Layouts (``DiTConfig.layout``): ``"factorized"`` (STDiT-3 / STDiT-2 layers with spatial attention
@@ -253,6 +253,13 @@ class DiT(nn.Module):
     # ------------------------------------------------------------------ pieces
 
     def _additive(self, cfg, x, cond_latents, cond_mask, intrinsics, cam_to_ego, waypoints, drop, hw, grid):
+        """Conditions added to the tokens (MiLA eq. 2, ``h_fuse = h_f + h_c``) and the concat-mode
+        condition frames.
+
+        Reading of MiLA eq. 1 (``h_c = MLP(FFT(c))`` over all cameras and waypoints fused): one
+        Fourier + MLP per condition, summed: the camera term per view, the waypoint term per frame.
+        This keeps each condition droppable on its own with its own learned null (MiLA appendix B
+        drops conditions independently), which one MLP over the concatenation would not allow."""
         c, dt, width = cfg.controls, cfg.compute_dtype, cfg.width
         b, nv, nf = x.shape[:3]
         pt = cfg.patch[0]
