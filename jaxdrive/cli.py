@@ -97,6 +97,23 @@ def _data_info(args, rest) -> int:
     return 0
 
 
+def _data_text_embed(args, rest) -> int:
+    import numpy as np
+
+    from jaxdrive.data.text import precompute_t5
+    from jaxdrive.data.tfds_io import open_source
+
+    captions = []
+    for split in args.split:
+        src = open_source(args.dataset, split)
+        captions += [src[i]["caption"] for i in range(len(src))]
+    unique = sorted(set(captions))
+    emb, mask = precompute_t5(unique, args.encoder, max_length=args.max_length, batch_size=args.batch_size)
+    np.savez(args.out, captions=np.asarray(unique), embeddings=emb, mask=mask)
+    print(f"wrote T5 embeddings {list(emb.shape)} of {len(unique)} captions to {args.out}")
+    return 0
+
+
 def _add_data_commands(sub) -> None:
     data = sub.add_parser("data", help="build and inspect datasets (TFDS, ArrayRecord)")
     dsub = data.add_subparsers(dest="data_command", metavar="DATA_COMMAND", required=True)
@@ -122,6 +139,15 @@ def _add_data_commands(sub) -> None:
     nus.add_argument("--val-fraction", type=float, default=0.15)
     nus.add_argument("--overwrite", action="store_true")
     nus.set_defaults(run=_data_nuscenes)
+    text = dsub.add_parser("text-embed", help="precompute T5 embeddings of a dataset's captions "
+                                              "(needs transformers + torch and local T5 weights)")
+    text.add_argument("--dataset", required=True, help="TFDS dataset directory")
+    text.add_argument("--encoder", required=True, help="folder of a T5 encoder (safetensors) and tokenizer")
+    text.add_argument("--out", required=True, help="output .npz: captions, embeddings [N, L, D], mask [N, L]")
+    text.add_argument("--split", nargs="+", default=["train"])
+    text.add_argument("--max-length", type=int, default=300)
+    text.add_argument("--batch-size", type=int, default=8)
+    text.set_defaults(run=_data_text_embed)
     info = dsub.add_parser("info", help="print what a dataset holds")
     info.add_argument("path")
     info.set_defaults(run=_data_info)

@@ -105,3 +105,17 @@ def project_to_image(points_cam, intrinsics):
     z = jnp.where(safe, depth, _MIN_ABS_DEPTH)
     uvw = jnp.matmul(points_cam, jnp.swapaxes(intrinsics[..., :2, :], -1, -2))  # [..., P, 2]
     return uvw / z[..., None], depth
+
+
+def relative_to_first(poses):
+    """Rigid poses ``[..., F, 4, 4]`` (e.g. ego-to-world) -> each frame's pose in the frame of the
+    first: ``inv(P_0) @ P_f``, with the rigid inverse ``[R^T, -R^T t]``. Frame 0 becomes the
+    identity (MagicDrive-V2's ego trajectory, "the transformation from each frame to the first")."""
+    check_trailing_shape("poses", poses, (None, 4, 4), "[..., F, 4, 4]")
+    poses = jnp.asarray(poses, jnp.float32)
+    rot0, t0 = poses[..., :1, :3, :3], poses[..., :1, :3, 3:]
+    rot = jnp.matmul(jnp.swapaxes(rot0, -1, -2), poses[..., :3, :3])
+    trans = jnp.matmul(jnp.swapaxes(rot0, -1, -2), poses[..., :3, 3:] - t0)
+    top = jnp.concatenate([rot, trans], axis=-1)
+    bottom = jnp.broadcast_to(jnp.asarray([0.0, 0.0, 0.0, 1.0], jnp.float32), top.shape[:-2] + (1, 4))
+    return jnp.concatenate([top, bottom], axis=-2)

@@ -189,3 +189,32 @@ def test_splash_needs_a_tpu():
     q, k, v, _ = _qkvd()
     with pytest.raises(ValueError, match="impl: 'splash' needs a TPU backend, got cpu"):
         attention(q, k, v, impl="splash")
+
+
+def test_auto_picks_ring_under_the_context_mesh():
+    # under jax.set_mesh the mesh is an AbstractMesh (no devices): ring's layout check must read
+    # its axis sizes from it, else "auto" silently fell back to one-device attention
+    from jax.sharding import AxisType
+    q, k, v, _ = _qkvd(b=2, lq=32, lk=32, h=4)
+    mesh = jax.make_mesh((1, 1, 8, 1), ("data", "fsdp", "seq", "tensor"), axis_types=(AxisType.Explicit,) * 4)
+    with jax.set_mesh(mesh):
+        jaxpr = str(jax.make_jaxpr(lambda *a: attention(*a))(q, k, v))
+    assert "ppermute" in jaxpr
+
+
+def test_one_device_kernels_take_sequence_sharded_inputs():
+    # q, k, v sharded over seq (a DiT's activations, also on a seq axis of size 1): xla gathers K/V,
+    # blockwise gathers all three, and the output keeps q's sharding instead of an illegal sharding
+    from jax.sharding import AxisType, NamedSharding
+    from jax.sharding import PartitionSpec as P
+    q, k, v, _ = _qkvd(b=2, lq=32, lk=32, h=4)
+    ref = attention(q, k, v, impl="xla", causal_block=8)
+    for shape in ((1, 1, 8, 1), (8, 1, 1, 1)):
+        mesh = jax.make_mesh(shape, ("data", "fsdp", "seq", "tensor"), axis_types=(AxisType.Explicit,) * 4)
+        for impl in ("xla", "blockwise"):
+            with jax.set_mesh(mesh):
+                put = lambda x: jax.device_put(x, NamedSharding(mesh, P(None, "seq", None, None)))
+                fn = lambda *a: attention(*a, impl=impl, causal_block=8, block_q=8, block_k=8)
+                out = jax.jit(fn)(put(q), put(k), put(v))
+                assert out.sharding.spec == P(None, "seq", None, None)
+            assert _rel(out, ref) <= 1e-5

@@ -34,18 +34,10 @@ give the last ``seq`` size over the first, with the target and whether it is met
 from __future__ import annotations
 
 import argparse
-import os
 
 TARGET = 1 / 6   # per-device memory at the largest seq size over the smallest (seq 8 over seq 1)
 SHARDED = ("ring", "ulysses")
 DEFINITIONS = {"per_device_memory": "footprint_bytes", "per_device_temp_memory": "temp_bytes"}
-
-
-def _ensure_devices(n: int) -> None:
-    """Fake CPU devices for the sharded figures; must run before JAX initialises its backend."""
-    flag = f"--xla_force_host_platform_device_count={n}"
-    if flag not in os.environ.get("XLA_FLAGS", ""):
-        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()
 
 
 def _grad_fn(impl, mesh=None, **kw):
@@ -129,7 +121,8 @@ def main(argv=None):
     parser.add_argument("--dim", type=int, default=64)
     parser.add_argument("--block", type=int, default=512)
     args = parser.parse_args(argv)
-    _ensure_devices(max(args.seq))
+    from jaxdrive.bench.report import ensure_devices
+    ensure_devices(max(args.seq))
     return run(args.lengths, args.seq, args.time_max, args.heads, args.dim, args.block)
 
 

@@ -16,6 +16,7 @@ import numpy as np
 
 WEIGHTS = "diffusion_pytorch_model.safetensors"
 INDEX = "diffusion_pytorch_model.safetensors.index.json"
+PICKLE_SUFFIXES = (".bin", ".pt", ".pth", ".ckpt", ".pkl")   # unpickling runs arbitrary code
 
 
 def read_config(path, expected_class: str) -> dict:
@@ -78,7 +79,7 @@ def read_weights(path) -> dict[str, np.ndarray]:
                 raise ValueError(f"{index}: names the shard {name}, which is missing from {root}")
             tensors.update(_read_file(root / name))
         return tensors
-    pickles = sorted(p.name for p in root.glob("*.bin")) + sorted(p.name for p in root.glob("*.pt"))
+    pickles = sorted(p.name for p in root.iterdir() if p.suffix in PICKLE_SUFFIXES) if root.is_dir() else []
     hint = f" (found {pickles}: pickled weights are never loaded; re-save with safe_serialization=True)" \
         if pickles else ""
     raise ValueError(f"path: expected {WEIGHTS} or {INDEX} in {str(root)!r}{hint}")

@@ -96,7 +96,38 @@ def _auto(q, k, v, mesh, kv_mask, causal_block) -> str:
     return "blockwise" if q.shape[1] * k.shape[1] > AUTO_BLOCKWISE_PAIRS else "xla"
 
 
+def _gather_sequence(x):
+    """``x [B, L, ...]`` with its sequence axis gathered when an Explicit mesh shards it (e.g. over
+    ``seq``, even of size 1): a one-device kernel contracting q against k with both sharded over
+    the same mesh axis is an illegal sharding."""
+    if x is None:
+        return x
+    sharding = getattr(jax.typeof(x), "sharding", None)
+    spec = tuple(getattr(sharding, "spec", ()) or ())
+    if len(spec) < 2 or spec[1] is None:
+        return x
+    return jax.sharding.reshard(x, jax.sharding.PartitionSpec(spec[0], None, *spec[2:]))
+
+
+def _gather_kv(k, v, kv_mask):
+    """Dense attention keeps q's sharding (the output stays sequence-sharded like q) and gathers
+    K/V: an all-gather of K/V, no more."""
+    return _gather_sequence(k), _gather_sequence(v), _gather_sequence(kv_mask)
+
+
+def _blockwise(q, k, v, *, kv_mask, **kw):
+    """The O(L) kernel slices q in tiles: it runs on gathered sequences, and the output takes q's
+    sequence sharding back."""
+    spec = tuple(getattr(getattr(jax.typeof(q), "sharding", None), "spec", ()) or ())
+    k, v, kv_mask = _gather_kv(k, v, kv_mask)
+    o = blockwise_attention(_gather_sequence(q), k, v, kv_mask=kv_mask, **kw)
+    if len(spec) > 1 and spec[1] is not None:
+        o = jax.sharding.reshard(o, jax.sharding.PartitionSpec(*spec))
+    return o
+
+
 def _xla(q, k, v, scale, kv_mask, causal_block):
+    k, v, kv_mask = _gather_kv(k, v, kv_mask)
     return softmax_blocks.attend_block(q, k, v, scale=scale, kv_mask=kv_mask,
                                        causal_block=causal_block)[0].astype(q.dtype)
 
@@ -126,8 +157,8 @@ def attention(q, k, v, *, impl: str = "auto", kv_mask=None, causal_block=None, m
     if impl == "xla":
         return _xla(q, k, v, scale, kv_mask, causal_block)
     if impl == "blockwise":
-        return blockwise_attention(q, k, v, scale=scale, kv_mask=kv_mask, causal_block=causal_block,
-                                   block_q=block_q, block_k=block_k)
+        return _blockwise(q, k, v, scale=scale, kv_mask=kv_mask, causal_block=causal_block,
+                          block_q=block_q, block_k=block_k)
     if impl == "cudnn":
         if not _cudnn_applies(q, kv_mask, causal_block):
             raise ValueError(f"impl: 'cudnn' needs a GPU backend, fp16/bf16 inputs and no causal_block, "

@@ -57,7 +57,7 @@ def layout(q, k, v, kv_mask, causal_block, mesh, seq_axis) -> Layout:
     names = tuple(mesh.axis_names)
     if seq_axis not in names:
         raise ValueError(f"mesh: expected a mesh axis named {seq_axis!r}, got axes {list(names)}")
-    sizes = dict(zip(names, mesh.devices.shape))
+    sizes = dict(zip(names, mesh.axis_sizes))  # Mesh or AbstractMesh (the context mesh under jit)
     batch_axes = tuple(a for a in BATCH_AXES if a in names)
     nb = 1
     for a in batch_axes:

@@ -1,0 +1,462 @@
+"""The diffusion transformer of jaxdrive: one linen module for MiLA, LongDWM, STAGE and
+MagicDrive-V2, with per-frame noise levels, multi-view attention and the driving controls.
+
+    from jaxdrive.models.dit import DiT
+    from jaxdrive.models.dit_presets import preset
+
+    dit = DiT(preset("tiny"))
+    params = dit.init_params(seed=0)                  # on the host; or dit.init(key, ...) on devices
+    v = dit.forward(params, latents, sigma, text, text_mask=mask)     # latents [B, V, F', h, w, C]
+
+Layouts (``DiTConfig.layout``): ``"factorized"`` (STDiT-3 / STDiT-2 layers with spatial attention
+over all views, MiLA eq. 3, or per view plus MagicDrive-V2's cross-view attention; temporal
+attention with RoPE; cross-attention to text and control tokens; adaLN-single) and ``"full"``
+(CogVideoX: full 3D attention over ``[text; video]`` with expert adaLN, 3D RoPE or 3D sin-cos).
+
+**Noise levels.** ``sigma`` is ``[B]`` (broadcast) or ``[B, F']`` per latent frame; the net
+embeds ``timestep_scale * sigma`` per frame, so each frame gets its own modulation (adaLN-single
+vectors, the final layer's shift/scale, CogVideoX's expert adaLN). Condition frames carry 0. With
+a patch spanning ``pt > 1`` frames a token frame takes the mean level of its frames. The text
+stream of the full layout is modulated by the embedding of the largest level of the clip (the
+whole clip's level for an imported model, whose sigma is ``[B]``; a choice, CogVideoX has one
+level per clip).
+
+**Sequence parallelism** shards the spatial patches S of the activations ``[B, F, S, V, D]`` over
+``seq``; :mod:`jaxdrive.models.dit_blocks` lists which attentions communicate.
+
+**Controls** (``DiTConfig.controls``, :class:`jaxdrive.models.dit_config.Controls`), each
+droppable for classifier-free guidance by ``drop={name: [B] bool}``:
+
+- learned nulls replace the embedding of a dropped ``text``, ``fps``, ``camera``, ``waypoints``,
+  ``trajectory``, ``boxes`` or ``warp``; leaving the input out (None) is the same as dropping it
+  for every sample;
+- a dropped ``map`` is the all-zero map (MagicDrive-V2 appendix E, after MagicDrive); leaving
+  ``bev_map`` out switches the ControlNet branch off;
+- condition frames are set by ``cond_latents``/``cond_mask`` (interpolation = first and last frame
+  in the mask, LongDWM's fine DiT dropping the last frame = leaving it out of the mask).
+
+**STAGE hook.** ``return_features=True`` also returns ``{layer: [B, F, S, V, D]}``, the outputs of
+the ``htft_layers`` before fusion; ``features={layer: [B, K, S, V, D]}`` (past frames' features at
+the same layer and denoising step) with ``features_mask [B, K]`` are fused after those layers by
+:class:`jaxdrive.models.htft.HTFT` (STAGE sec. 4B).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxdrive.models.dit_blocks import layer_class
+from jaxdrive.models.dit_config import DiTConfig, check_config
+from jaxdrive.models.dit_controls import (BoxEncoder, CameraEncoder, CaptionEncoder, MapEncoder,
+                                          TimestepMLP, TrajectoryEncoder, WaypointEncoder, null_param,
+                                          use_null)
+from jaxdrive.models.dit_inputs import check_inputs, example_inputs
+from jaxdrive.models.dit_layers import (MLP, TEXT, VIDEO, ZEROS, Dense, LayerNorm, abstract_params, host_params,
+                                        modulate, normal, param, pool_frames, reshape, rope_3d, sincos_2d,
+                                        sincos_3d)
+from jaxdrive.models.htft import HTFT
+from jaxdrive.parallel.rules import constrain
+
+POLICIES = {"full": jax.checkpoint_policies.nothing_saveable,
+            "dots": jax.checkpoint_policies.checkpoint_dots,
+            "dots_no_batch": jax.checkpoint_policies.dots_with_no_batch_dims_saveable}
+
+
+def patchify(x, patch):
+    """``[B, V, F', h, w, C]`` -> tokens ``[B, F' / pt, (h / ph) (w / pw), V, pt ph pw C]``."""
+    b, nv, nf, h, w, c = x.shape
+    pt, ph, pw = patch
+    x = reshape(x, (b, nv, nf // pt, pt, h // ph, ph, w // pw, pw, c))
+    x = jnp.transpose(x, (0, 2, 4, 6, 1, 3, 5, 7, 8))
+    return reshape(x, (b, nf // pt, (h // ph) * (w // pw), nv, pt * ph * pw * c))
+
+
+def unpatchify(tokens, patch, grid_hw, channels):
+    """Inverse of :func:`patchify`."""
+    b, ft, _, nv, _ = tokens.shape
+    pt, ph, pw = patch
+    gh, gw = grid_hw
+    x = reshape(tokens, (b, ft, gh, gw, nv, pt, ph, pw, channels))
+    x = jnp.transpose(x, (0, 4, 1, 5, 2, 6, 3, 7, 8))
+    return reshape(x, (b, nv, ft * pt, gh * ph, gw * pw, channels))
+
+
+class _Body(nn.Module):
+    """One layer as a scan body: ``carry -> layer(carry) [+ residual]``; with ``emit`` it also
+    returns a zero-initialised projection of its video output (a ControlNet branch layer)."""
+
+    cfg: DiTConfig
+    emit: bool = False
+
+    @nn.compact
+    def __call__(self, carry, res, ctx):
+        cfg = self.cfg
+        carry = layer_class(cfg)(cfg, name="layer")(carry, ctx)
+        video = carry[0] if cfg.layout == "full" else carry
+        if res is not None:
+            video = video + res
+            carry = (video, carry[1]) if cfg.layout == "full" else video
+        out = None
+        if self.emit:
+            out = Dense(cfg.width, ("embed", None), dtype=cfg.compute_dtype,
+                        kernel_init=ZEROS, name="out")(video)
+        return carry, out
+
+
+@functools.lru_cache(maxsize=None)
+def _body_class(remat: str, scanned: bool):
+    if remat == "none":
+        return _Body
+    return nn.remat(_Body, policy=POLICIES[remat], prevent_cse=not scanned)
+
+
+def _video(cfg, carry):
+    return carry[0] if cfg.layout == "full" else carry
+
+
+def _with_video(cfg, carry, video):
+    return (video, carry[1]) if cfg.layout == "full" else video
+
+
+class DiT(nn.Module):
+    """The diffusion transformer (see the module docstring). ``config``: a :class:`DiTConfig`."""
+
+    config: DiTConfig
+
+    # ------------------------------------------------------------------ public API
+
+    def forward(self, params, latents, sigma, text=None, *, rngs=None, **kw):
+        """``self.apply({"params": params}, latents, sigma, text, **kw)``: the network output
+        (the velocity ``noise - x`` for jaxdrive-trained models) ``[B, V, F', h, w, C_out]``."""
+        return self.apply({"params": params}, latents, sigma, text, rngs=rngs, **kw)
+
+    def init_params(self, seed: int = 0, *, boxed: bool = False, **shapes):
+        """Float32 parameters drawn on the host with NumPy (seeded by ``seed``), each from the
+        initialiser its layer declares: nothing is compiled, which on a CPU is the difference
+        between a second and minutes. ``boxed=True`` keeps the ``nn.LogicallyPartitioned`` boxes
+        (for :func:`jaxdrive.parallel.shard_params`). ``shapes`` go to :func:`example_inputs`
+        (the parameter shapes do not depend on them). ``self.init(key, ...)`` (e.g. jitted with
+        ``out_shardings`` from :func:`jaxdrive.parallel.param_shardings`) initialises on devices."""
+        return host_params(*abstract_params(self, **example_inputs(self.config, **shapes)), seed, boxed=boxed)
+
+    def abstract_params(self, **shapes):
+        """The boxed params tree with ``jax.ShapeDtypeStruct`` leaves (``jax.eval_shape``)."""
+        return abstract_params(self, **example_inputs(self.config, **shapes))[0]
+
+    # ------------------------------------------------------------------ the network
+
+    @nn.compact
+    def __call__(self, latents, sigma, text=None, *, text_mask=None, fps=None, intrinsics=None,
+                 cam_to_ego=None, waypoints=None, ego_to_world=None, boxes=None, box_classes=None,
+                 box_valid=None, bev_map=None, cond_latents=None, cond_mask=None, warp=None,
+                 features=None, features_mask=None, drop=None, ofs=None, return_features=False,
+                 deterministic=True):
+        """Network output ``[B, V, F', h, w, C_out]`` (and ``{layer: features}`` with
+        ``return_features``) for ``latents [B, V, F', h, w, C]`` at levels ``sigma [B]``/``[B, F']``.
+
+        Conditions (each only when its control is on; per-frame ones per latent frame ``F'`` or per
+        pixel frame ``1 + vae_temporal (F' - 1)``): ``text [B, L, text_dim]`` (or token ids
+        ``[B, L]`` for the caption encoder) with ``text_mask [B, L]``; ``fps [B]``;
+        ``intrinsics [B, V, 3, 3]`` + ``cam_to_ego [B, V, 4, 4]``; ``waypoints [B, F, 2]``;
+        ``ego_to_world [B, F, 4, 4]`` (trajectory); ``boxes [B, F, N, 7]``, ``box_classes``,
+        ``box_valid [B, F, N]``; ``bev_map [B, F, Hm, Wm, C_map]``; ``cond_latents`` (like
+        latents) + ``cond_mask [B, F']``; ``warp`` (warped-frame latents, like latents);
+        ``features``/``features_mask`` (HTFT); ``drop`` ``{condition: [B] bool}``; ``ofs [B]``
+        (CogVideoX 1.5 I2V). ``deterministic=False`` enables HTFT's dropout (rng ``"dropout"``).
+        """
+        cfg = check_config(self.config)
+        kw = dict(text_mask=text_mask, fps=fps, intrinsics=intrinsics, cam_to_ego=cam_to_ego,
+                  waypoints=waypoints, ego_to_world=ego_to_world, boxes=boxes, box_classes=box_classes,
+                  box_valid=box_valid, bev_map=bev_map, cond_latents=cond_latents, cond_mask=cond_mask,
+                  warp=warp, features=features, features_mask=features_mask, drop=drop, ofs=ofs)
+        check_inputs(cfg, latents, sigma, text, kw)
+        drop = {k: jnp.asarray(v, bool) for k, v in (drop or {}).items()}
+        dt = cfg.compute_dtype
+        x = constrain(jnp.asarray(latents, jnp.float32), ("batch", "views", "frames", None, None, None))
+        b, nv, nf, h, w, _ = x.shape
+        pt, ph, pw = cfg.patch
+        grid = (h // ph, w // pw)
+        sig = jnp.broadcast_to(jnp.asarray(sigma, jnp.float32).reshape(b, -1), (b, nf))
+        if cond_latents is not None and cfg.controls.cond_frames == "replace":
+            m = jnp.asarray(cond_mask, bool)
+            x = jnp.where(m[:, None, :, None, None, None], jnp.asarray(cond_latents, jnp.float32), x)
+            sig = jnp.where(m, 0.0, sig)
+        sig_tok = pool_frames(sig, pt)                                     # [B, Ft]
+
+        # tokens: patch embedding, positions, additive conditions (MiLA eq. 2: h_fuse = h_f + h_c)
+        tokens = constrain(patchify(x, cfg.patch), VIDEO[:-1] + ("channels",))
+        hid = Dense(cfg.width, ("channels", "embed"), dtype=dt, name="patch_embed")(tokens)
+        if cfg.layout == "factorized":
+            pos = sincos_2d(*grid, cfg.width, cfg.spatial_interpolation_scale)
+            hid = hid + jnp.asarray(pos, dt)[None, None, :, None]
+        elif cfg.positions == "sincos":
+            pos = sincos_3d(nf // pt, *grid, cfg.width, cfg.spatial_interpolation_scale,
+                            cfg.temporal_interpolation_scale)
+            hid = hid + jnp.asarray(pos, dt)[None, :, :, None]
+        hid = hid + self._additive(cfg, x, cond_latents, cond_mask, intrinsics, cam_to_ego, waypoints,
+                                   drop, (h, w), grid)
+        hid = constrain(hid, VIDEO)
+        self.sow("intermediates", "tokens", hid)
+
+        # noise levels -> per-frame timestep embeddings (+ fps, + ofs)
+        temb = TimestepMLP(cfg.time_freq_dim, cfg.t_dim, cfg.flip_sin_to_cos, cfg.freq_shift, dt,
+                           name="t_embedder")
+        t = temb(sig_tok * cfg.timestep_scale)                             # [B, Ft, Dt]
+        extra = self._clip_embeddings(cfg, b, fps, ofs, drop)
+        t = t + extra[:, None]
+        ctx = {}
+        if cfg.layout == "full":
+            ctx["t"] = t
+            ctx["t_text"] = temb(jnp.max(sig_tok, axis=1) * cfg.timestep_scale) + extra
+            if cfg.positions == "rope":
+                ctx["rope"] = rope_3d(nf // pt, *grid, cfg.head_dim, theta=cfg.rope_theta, base=cfg.rope_base)
+        else:
+            k = 6 if cfg.block == "stdit3" else 9
+            ctx["t0"] = Dense(k * cfg.width, ("embed", None), dtype=dt, kernel_init=normal(0.02),
+                              name="t_block")(jax.nn.silu(t))
+        self.sow("intermediates", "modulation", ctx.get("t0", t))
+
+        # context: text and control tokens; warp tokens
+        text_ctx, tmask = self._text(cfg, b, text, text_mask, drop)
+        if text_ctx is not None:
+            ctx["text"], ctx["text_mask"] = text_ctx, tmask
+        tok, tok_mask = self._control_tokens(cfg, b, nv, nf, (h, w), intrinsics, cam_to_ego, ego_to_world,
+                                             boxes, box_classes, box_valid, drop)
+        if tok is not None:
+            ctx["tokens"], ctx["tokens_mask"] = tok, tok_mask
+        if warp is not None:
+            wt = Dense(cfg.width, ("channels", "embed"), dtype=dt, name="warp_embed")(
+                constrain(patchify(jnp.asarray(warp, jnp.float32), cfg.patch), VIDEO[:-1] + ("channels",)))
+            ctx["warp"] = use_null(drop.get("warp"), wt, null_param(self, "warp_null", (cfg.width,), ("embed",)))
+
+        carry = hid
+        if cfg.layout == "full":
+            carry = (hid, constrain(Dense(cfg.width, ("text_embed", "embed"), dtype=dt, name="text_proj")(
+                ctx.pop("text")), TEXT))
+        elif "text" in ctx:
+            ctx["text"] = MLP(cfg.width, cfg.width, dtype=dt, in_name="text_embed", name="text_proj")(ctx["text"])
+
+        residuals = None
+        if cfg.controls.map and bev_map is not None:
+            residuals = self._map_branch(cfg, carry, ctx, bev_map, drop, nf, grid)
+        carry, feats = self._stack(cfg, carry, ctx, residuals, features, features_mask, deterministic)
+        out = self._final(cfg, _video(cfg, carry), t)
+        out = constrain(out, ("batch", "frames", None, "views", None))
+        out = unpatchify(out, cfg.patch, grid, cfg.out_dim).astype(jnp.float32)
+        return (out, feats) if return_features else out
+
+    # ------------------------------------------------------------------ pieces
+
+    def _additive(self, cfg, x, cond_latents, cond_mask, intrinsics, cam_to_ego, waypoints, drop, hw, grid):
+        """Conditions added to the tokens (MiLA eq. 2, ``h_fuse = h_f + h_c``) and the concat-mode
+        condition frames.
+
+        Reading of MiLA eq. 1 (``h_c = MLP(FFT(c))`` over all cameras and waypoints fused): one
+        Fourier + MLP per condition, summed: the camera term per view, the waypoint term per frame.
+        This keeps each condition droppable on its own with its own learned null (MiLA appendix B
+        drops conditions independently), which one MLP over the concatenation would not allow."""
+        c, dt, width = cfg.controls, cfg.compute_dtype, cfg.width
+        b, nv, nf = x.shape[:3]
+        pt = cfg.patch[0]
+        add = jnp.zeros((), dt)
+        image_hw = (hw[0] * cfg.vae_spatial, hw[1] * cfg.vae_spatial)
+        if c.camera:
+            null = null_param(self, "camera_null", (width,), ("embed",))
+            if intrinsics is None:
+                cam = jnp.broadcast_to(null.astype(dt), (b, nv, width))
+            else:
+                cam = CameraEncoder(width, c.fourier_freqs, c.fourier_temperature, dt, name="camera_embed")(
+                    intrinsics, cam_to_ego, image_hw)
+                cam = use_null(drop.get("camera"), cam, null)
+            add = add + cam[:, None, None]                                  # [B, 1, 1, V, D]
+        if c.waypoints:
+            null = null_param(self, "waypoints_null", (width,), ("embed",))
+            if waypoints is None:
+                wp = jnp.broadcast_to(null.astype(dt), (b, nf // pt, width))
+            else:
+                wp = WaypointEncoder(width, c.fourier_freqs, c.fourier_temperature, cfg.vae_temporal, dt,
+                                     name="waypoints_embed")(jnp.asarray(waypoints, jnp.float32), nf)
+                wp = use_null(drop.get("waypoints"), pool_frames(wp, pt), null)
+            add = add + wp[:, :, None, None]                                # [B, Ft, 1, 1, D]
+        if c.cond_frames == "concat":
+            if cond_latents is None:
+                cl, cm = jnp.zeros_like(x), jnp.zeros((b, nf), bool)
+            else:
+                cl, cm = jnp.asarray(cond_latents, jnp.float32), jnp.asarray(cond_mask, bool)
+            mb = jnp.broadcast_to(cm[:, None, :, None, None, None], x.shape[:-1] + (1,)).astype(jnp.float32)
+            cin = jnp.concatenate([cl * mb, mb], axis=-1)
+            add = add + Dense(width, ("channels", "embed"), dtype=dt, kernel_init=ZEROS,
+                              name="cond_embed")(constrain(patchify(cin, cfg.patch), VIDEO[:-1] + ("channels",)))
+        return add
+
+    def _clip_embeddings(self, cfg, b, fps, ofs, drop):
+        """Per-clip additions to the timestep embedding: fps (Open-Sora) and ofs (CogVideoX 1.5)."""
+        extra = jnp.zeros((b, cfg.t_dim), cfg.compute_dtype)
+        if cfg.controls.fps:
+            null = null_param(self, "fps_null", (cfg.t_dim,), ("embed",))
+            if fps is None:
+                extra = extra + null.astype(extra.dtype)
+            else:
+                e = TimestepMLP(256, cfg.t_dim, dtype=cfg.compute_dtype, name="fps_embedder")(fps)
+                extra = extra + use_null(drop.get("fps"), e, null)
+        if cfg.ofs_embed_dim is not None:
+            o = jnp.full((b,), 2.0, jnp.float32) if ofs is None else jnp.asarray(ofs, jnp.float32)
+            extra = extra + TimestepMLP(cfg.ofs_embed_dim, cfg.ofs_embed_dim, cfg.flip_sin_to_cos,
+                                        cfg.freq_shift, cfg.compute_dtype, name="ofs_embedder")(o)
+        return extra
+
+    def _text(self, cfg, b, text, text_mask, drop):
+        c = cfg.controls
+        if c.text is None:
+            return None, None
+        if text is not None:
+            mask = jnp.ones(np.shape(text)[:2], bool) if text_mask is None else jnp.asarray(text_mask, bool)
+            if c.text == "caption":
+                y = CaptionEncoder(cfg.text_dim, c.caption_vocab, cfg.text_len, c.caption_layers,
+                                   cfg.local_attn_impl, cfg.compute_dtype, name="caption_encoder")(text, mask)
+            else:
+                y = jnp.asarray(text, cfg.compute_dtype)
+        if not c.text_null:
+            return y, (None if text_mask is None else mask)
+        # the learned null is text_len tokens (Open-Sora's y_embedding); given text is padded to
+        # text_len (padding masked) so that a dropped row and an absent text are the same input
+        null = null_param(self, "text_null", (cfg.text_len, cfg.text_dim), ("text_tokens", "text_embed"))
+        if text is None:
+            return (jnp.broadcast_to(null.astype(cfg.compute_dtype), (b,) + null.shape),
+                    jnp.ones((b, cfg.text_len), bool))
+        pad = cfg.text_len - y.shape[1]
+        y = jnp.pad(y, ((0, 0), (0, pad), (0, 0)))
+        mask = jnp.pad(mask, ((0, 0), (0, pad)))
+        return use_null(drop.get("text"), y, null), use_null(drop.get("text"), mask, jnp.ones((), bool))
+
+    def _control_tokens(self, cfg, b, nv, nf, hw, intrinsics, cam_to_ego, ego_to_world, boxes, box_classes,
+                        box_valid, drop):
+        """Cross-attention tokens per (token frame, view): trajectory (1) and boxes (N)."""
+        c, dt, width, pt = cfg.controls, cfg.compute_dtype, cfg.width, cfg.patch[0]
+        ft = nf // pt
+        toks, masks = [], []
+        if c.trajectory:
+            null = null_param(self, "trajectory_null", (width,), ("embed",))
+            if ego_to_world is None:
+                tr = jnp.broadcast_to(null.astype(dt), (b, ft, width))
+            else:
+                tr = TrajectoryEncoder(width, cfg.heads, c.encoder_layers, c.fourier_freqs, c.fourier_temperature,
+                                       cfg.vae_temporal, cfg.local_attn_impl, dt, name="trajectory_embed")(
+                    ego_to_world, nf)
+                tr = use_null(drop.get("trajectory"), pool_frames(tr, pt), null)
+            toks.append(jnp.broadcast_to(tr[:, :, None, None], (b, ft, nv, 1, width)))
+            masks.append(jnp.ones((b, ft, nv, 1), bool))
+        if c.boxes:
+            null = null_param(self, "boxes_null", (width,), ("embed",))
+            if boxes is None:
+                bt = jnp.broadcast_to(null.astype(dt), (b, ft, nv, 1, width))
+                bm = jnp.ones((b, ft, nv, 1), bool)
+            else:
+                image_hw = (hw[0] * cfg.vae_spatial, hw[1] * cfg.vae_spatial)
+                bt, bm = BoxEncoder(width, cfg.heads, c.encoder_layers, c.num_classes, c.fourier_freqs,
+                                    c.fourier_temperature, cfg.vae_temporal, c.box_per_view, cfg.local_attn_impl,
+                                    dt, name="boxes_embed")(boxes, box_classes, box_valid, nf, intrinsics,
+                                                             cam_to_ego, image_hw)
+                bt = pool_frames(bt, pt)
+                bm = jnp.any(bm.reshape(b, ft, pt, *bm.shape[2:]), axis=2)
+                bt = jnp.broadcast_to(bt, (b, ft, nv) + bt.shape[3:])
+                bm = jnp.broadcast_to(bm, (b, ft, nv) + bm.shape[3:])
+                d = drop.get("boxes")
+                if d is not None:
+                    first = jnp.arange(bm.shape[-1]) == 0
+                    bt = use_null(d, bt, null)
+                    bm = use_null(d, bm, first)
+            toks.append(bt)
+            masks.append(bm)
+        if not toks:
+            return None, None
+        return jnp.concatenate(toks, axis=3), jnp.concatenate(masks, axis=3)
+
+    def _map_branch(self, cfg, carry, ctx, bev_map, drop, nf, grid):
+        """MagicDrive-V2's map ControlNet (sec. 4.2, Zhang et al. 2023): the map encoder's tokens
+        enter a trainable copy of the first ``map_blocks`` layers through a zero-initialised
+        projection; each copy's output returns through a zero-initialised projection and is added
+        to the output of the matching base layer. Returns the residuals ``[map_blocks, ...]``."""
+        c, dt, pt = cfg.controls, cfg.compute_dtype, cfg.patch[0]
+        bev = jnp.asarray(bev_map, jnp.float32)
+        if drop.get("map") is not None:
+            bev = use_null(drop["map"], bev, jnp.zeros((), jnp.float32))
+        m = MapEncoder(cfg.width, c.map_hidden, cfg.vae_temporal, dt, name="map_embed")(bev, nf, grid)
+        m = pool_frames(m, pt)                                             # [B, Ft, S, D]
+        m = Dense(cfg.width, ("embed", None), dtype=dt, kernel_init=ZEROS, name="map_in")(m)
+        video = _video(cfg, carry)
+        branch = _with_video(cfg, carry, constrain(video + m[:, :, :, None], VIDEO))
+        _, res = self._run(cfg, branch, ctx, 0, c.map_blocks, None, "control", emit=True)
+        return res
+
+    def _run(self, cfg, carry, ctx, start, end, res, prefix, emit=False):
+        """Layers ``start .. end - 1``: one ``nn.scan`` when ``scan_layers`` and more than one
+        layer (params stacked on a leading ``layers`` axis), else a Python loop."""
+        if cfg.scan_layers and end - start > 1:
+            body = nn.scan(_body_class(cfg.remat, True), variable_axes={"params": 0},
+                           split_rngs={"params": True, "dropout": True}, in_axes=(0, nn.broadcast),
+                           length=end - start, metadata_params={nn.PARTITION_NAME: "layers"})
+            return body(cfg, emit, name=f"{prefix}_{start}_{end}")(carry, res, ctx)
+        outs = []
+        for i in range(start, end):
+            layer = _body_class(cfg.remat, False)(cfg, emit, name=f"{prefix}_{i}")
+            carry, y = layer(carry, None if res is None else res[i - start], ctx)
+            outs.append(y)
+        return carry, (jnp.stack(outs) if emit else None)
+
+    def _stack(self, cfg, carry, ctx, residuals, features, features_mask, deterministic):
+        """The base layers, split into runs at the ControlNet depth and after each HTFT layer."""
+        bounds = {0, cfg.depth} | {i + 1 for i in cfg.htft_layers}
+        if cfg.controls.map:
+            bounds.add(cfg.controls.map_blocks)
+        bounds = sorted(bounds)
+        feats = {}
+        for start, end in zip(bounds[:-1], bounds[1:]):
+            res = None
+            if residuals is not None and start < cfg.controls.map_blocks:
+                res = residuals[start:end]
+            carry, _ = self._run(cfg, carry, ctx, start, end, res, "layers")
+            if end - 1 in cfg.htft_layers:
+                video = _video(cfg, carry)
+                feats[end - 1] = video
+                if features is not None:
+                    fused = HTFT(cfg.width, cfg.heads, cfg.head_dim, cfg.htft_groups, cfg.htft_dropout,
+                                 impl=cfg.attn_impl,
+                                 dtype=cfg.compute_dtype, name=f"htft_{end - 1}")(
+                        video, jnp.asarray(features[end - 1], cfg.compute_dtype), features_mask,
+                        deterministic=deterministic)
+                    carry = _with_video(cfg, carry, fused)
+        return carry, feats
+
+    def _final(self, cfg, x, t):
+        dt = cfg.compute_dtype
+        if cfg.layout == "factorized":
+            # T2I final layer (PixArt-alpha): per-frame shift/scale = table + t
+            table = param(self, "final_table", normal(1.0 / np.sqrt(cfg.width)), (2, cfg.width), (None, "embed"))
+            mod = table[None, None] + t[:, :, None, :]                    # [B, Ft, 2, D]
+            shift, scale = mod[:, :, 0, None, None], mod[:, :, 1, None, None]
+            h = modulate(LayerNorm(cfg.norm_eps, affine=False, name="final_norm")(x), shift, scale)
+        else:
+            # CogVideoX: norm_final, then AdaLayerNorm (shift, scale from silu(t))
+            h = LayerNorm(cfg.norm_eps, name="norm_final")(x)
+            mod = Dense(2 * cfg.width, ("embed", None), dtype=dt, name="norm_out_linear")(jax.nn.silu(t))
+            shift, scale = mod[:, :, None, None, : cfg.width], mod[:, :, None, None, cfg.width:]
+            h = modulate(LayerNorm(cfg.norm_eps, name="norm_out")(h), shift, scale)
+        p = cfg.patch[0] * cfg.patch[1] * cfg.patch[2] * cfg.out_dim
+        return Dense(p, ("embed", "channels"), dtype=dt, kernel_init=ZEROS, name="proj_out")(h)
+
+
+def param_count(cfg: DiTConfig) -> int:
+    """Number of parameters of ``DiT(cfg)``, from ``jax.eval_shape`` (nothing is allocated)."""
+    dit = DiT(cfg)
+    ex = example_inputs(cfg, views=2 if cfg.multiview == "cross_view" else 1)
+    shapes = jax.eval_shape(lambda: nn.unbox(dit.init(jax.random.PRNGKey(0), **ex)["params"]))
+    return int(sum(np.prod(x.shape) for x in jax.tree_util.tree_leaves(shapes)))
+
+
+__all__ = ["DiT", "DiTConfig", "example_inputs", "param_count", "patchify", "unpatchify"]

@@ -1,0 +1,233 @@
+"""The typed configuration of the diffusion transformer (:mod:`jaxdrive.models.dit`).
+
+``DiTConfig`` describes the backbone (layout, sizes, positions, execution options) and
+``Controls`` which driving conditions it takes. Both are frozen dataclasses (hashable, so a config
+can be a field of a linen Module); :func:`check_config` validates one and names the field.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import jax.numpy as jnp
+
+from jaxdrive.models.attention import IMPLS
+from jaxdrive.validate import check_choice, check_positive_int
+
+LAYOUTS = ("factorized", "full")
+BLOCKS = ("stdit3", "stdit2")
+MULTIVIEW = ("joint", "cross_view")
+QK_NORMS = ("rms", "layer", "none")
+POSITIONS = ("rope", "sincos")
+REMAT = ("none", "full", "dots", "dots_no_batch")
+# Attentions that never communicate run one of these (never ring / ulysses).
+LOCAL_IMPLS = ("xla", "blockwise", "cudnn", "splash")
+DTYPES = ("float32", "bfloat16", "float16")
+TEXT_KINDS = ("embeddings", "caption", None)
+COND_FRAMES = ("replace", "concat", None)
+
+# Condition names accepted in ``drop`` (classifier-free guidance), as in the data pipeline where
+# they overlap ("text", "boxes", "map", "trajectory", "camera").
+CONDITIONS = ("text", "fps", "camera", "waypoints", "trajectory", "boxes", "map", "warp")
+
+
+@dataclass(frozen=True)
+class Controls:
+    """Which conditions the DiT takes (each off by default except text).
+
+    - ``text``: ``"embeddings"`` (precomputed T5-style ``[B, L, text_dim]`` with a mask),
+      ``"caption"`` (token ids of the built-in caption encoder, :mod:`jaxdrive.data.text`) or
+      ``None``. ``text_null``: a learned null text for classifier-free guidance (imported CogVideoX
+      models have none: their null is the encoder's embedding of the empty prompt).
+    - ``fps``: frame rate added to the timestep embedding (Open-Sora).
+    - ``camera``: intrinsics + camera-to-ego per view, Fourier + MLP, added to the tokens of that
+      view (MiLA eq. 1-2). ``waypoints``: ego waypoints per frame, likewise (MiLA eq. 1-2).
+    - ``trajectory``: MagicDrive-V2's ego trajectory encoder (relative poses -> temporal
+      transformer -> downsampled to latent frames), one cross-attention token per frame.
+    - ``boxes``: 3D boxes (MagicDrive-V2): corners Fourier-embedded + class embedding, invisible
+      boxes masked, per-box temporal transformer with RoPE, downsampled to latent frames; cross-
+      attention tokens per (frame, view). ``box_per_view``: corners in each camera's frame and
+      boxes behind / outside a camera masked for that view.
+    - ``map``: the BEV map as a ControlNet branch over the first ``map_blocks`` layers.
+    - ``cond_frames``: clean condition frames: ``"replace"`` (Open-Sora / MiLA: the given latents
+      replace those frames, whose noise level becomes 0) or ``"concat"`` (CogVideoX-I2V / LongDWM:
+      ``[cond * mask, mask]`` through a zero-initialised patch embedding added to the tokens).
+    - ``warp``: LongDWM's warp-guided frames: warped latents through a trainable patch embedding,
+      injected into every layer through zero-initialised projections.
+    """
+
+    text: str | None = "embeddings"
+    text_null: bool = True
+    fps: bool = False
+    camera: bool = False
+    waypoints: bool = False
+    trajectory: bool = False
+    boxes: bool = False
+    box_per_view: bool = True
+    num_classes: int = 10
+    map: bool = False
+    map_channels: int = 8
+    map_blocks: int = 2
+    map_hidden: int = 64
+    cond_frames: str | None = None
+    warp: bool = False
+    fourier_freqs: int = 8
+    fourier_temperature: float = 100.0
+    encoder_layers: int = 1
+    caption_vocab: int = 4096
+    caption_layers: int = 2
+
+
+@dataclass(frozen=True)
+class DiTConfig:
+    """The diffusion transformer.
+
+    Layout ``"factorized"`` (STDiT-3 / MVDiT): ``block`` ``"stdit3"`` (a layer = a spatial block
+    + a temporal block, each with self-attention, text cross-attention and MLP; Open-Sora 1.2,
+    MagicDrive-V2) or ``"stdit2"`` (a layer = spatial attention, temporal attention,
+    cross-attention and MLP under one adaLN; Open-Sora 1.1, on which MiLA builds); ``multiview``
+    ``"joint"`` (spatial attention over all views' tokens of a frame, MiLA eq. 3) or
+    ``"cross_view"`` (spatial attention per view plus cross-view attention to the views at
+    ``neighbor_offsets``, MagicDrive-V2). Layout ``"full"`` (CogVideoX): full 3D attention over
+    ``[text; video]`` with expert adaLN, ``positions`` ``"rope"`` or ``"sincos"``.
+
+    Sizes: ``width = heads * head_dim``; ``patch = (pt, ph, pw)``. ``time_embed_dim`` (``None`` =
+    width) and ``time_freq_dim`` size the timestep embedding; ``timestep_scale`` maps sigma to the
+    embedded timestep (1000: Open-Sora's t and imported CogVideoX models). ``text_len`` is the
+    longest text (the learned null text has that many tokens).
+
+    Execution: ``dtype`` (compute; params are float32), ``remat`` (``"none"``, ``"full"``,
+    ``"dots"``, ``"dots_no_batch"``: which activations a layer keeps for the backward),
+    ``scan_layers`` (``lax.scan`` over runs of identical layers: compile time flat in depth),
+    ``attn_impl`` for the attentions that run sequence-sharded (spatial, cross-view, full, HTFT)
+    and ``local_attn_impl`` for those that never need communication (temporal, cross-attention
+    to text and control tokens). ``htft_layers``: layers after which STAGE's HTFT fuses past
+    features (and whose outputs :meth:`DiT.__call__` returns with ``return_features``);
+    ``htft_groups`` is its GroupNorm's group count, ``htft_dropout`` the rate of its
+    ``Dropout(f)``.
+    """
+
+    layout: str = "factorized"
+    depth: int = 2
+    heads: int = 4
+    head_dim: int = 16
+    mlp_ratio: float = 4.0
+    in_channels: int = 16
+    out_channels: int | None = None
+    patch: tuple[int, int, int] = (1, 2, 2)
+    block: str = "stdit3"
+    multiview: str = "joint"
+    neighbor_offsets: tuple[int, ...] = (-1, 1)
+    qk_norm: str = "rms"
+    qkv_bias: bool = True
+    norm_eps: float = 1e-6
+    positions: str = "rope"
+    rope_theta: float = 10000.0
+    rope_base: tuple[int, int] | None = None
+    spatial_interpolation_scale: float = 1.0
+    temporal_interpolation_scale: float = 1.0
+    time_embed_dim: int | None = None
+    time_freq_dim: int = 256
+    flip_sin_to_cos: bool = True
+    freq_shift: float = 0.0
+    timestep_scale: float = 1000.0
+    text_dim: int = 4096
+    text_len: int = 300
+    ofs_embed_dim: int | None = None
+    controls: Controls = field(default_factory=Controls)
+    vae_temporal: int = 4
+    vae_spatial: int = 8
+    dtype: str = "float32"
+    remat: str = "none"
+    scan_layers: bool = False
+    attn_impl: str = "auto"
+    local_attn_impl: str = "xla"
+    htft_layers: tuple[int, ...] = ()
+    htft_groups: int = 8
+    htft_dropout: float = 0.0
+
+    @property
+    def width(self) -> int:
+        return self.heads * self.head_dim
+
+    @property
+    def out_dim(self) -> int:
+        return self.in_channels if self.out_channels is None else self.out_channels
+
+    @property
+    def t_dim(self) -> int:
+        return self.width if self.time_embed_dim is None else self.time_embed_dim
+
+    @property
+    def compute_dtype(self):
+        return jnp.dtype(self.dtype)
+
+    @property
+    def patch_dim(self) -> int:
+        pt, ph, pw = self.patch
+        return pt * ph * pw * self.in_channels
+
+    def replace(self, **changes) -> DiTConfig:
+        """A copy with ``changes``; ``controls=dict(...)`` updates fields of the controls."""
+        if isinstance(changes.get("controls"), dict):
+            changes["controls"] = dataclasses.replace(self.controls, **changes["controls"])
+        return check_config(dataclasses.replace(self, **changes))
+
+
+def check_config(cfg: DiTConfig) -> DiTConfig:
+    """Validate ``cfg``; raises ``ValueError`` naming the field, the expected and the actual value."""
+    check_choice("layout", cfg.layout, LAYOUTS)
+    check_choice("block", cfg.block, BLOCKS)
+    check_choice("multiview", cfg.multiview, MULTIVIEW)
+    check_choice("qk_norm", cfg.qk_norm, QK_NORMS)
+    check_choice("positions", cfg.positions, POSITIONS)
+    check_choice("remat", cfg.remat, REMAT)
+    check_choice("dtype", cfg.dtype, DTYPES)
+    check_choice("attn_impl", cfg.attn_impl, IMPLS)
+    check_choice("local_attn_impl", cfg.local_attn_impl, LOCAL_IMPLS)
+    check_choice("controls.text", cfg.controls.text, TEXT_KINDS)
+    check_choice("controls.cond_frames", cfg.controls.cond_frames, COND_FRAMES)
+    for name in ("depth", "heads", "head_dim", "in_channels", "text_dim", "text_len", "time_freq_dim",
+                 "vae_temporal", "vae_spatial", "htft_groups"):
+        check_positive_int(name, getattr(cfg, name))
+    for name in ("num_classes", "map_channels", "map_hidden", "fourier_freqs", "caption_vocab"):
+        check_positive_int(f"controls.{name}", getattr(cfg.controls, name))
+    check_positive_int("controls.encoder_layers", cfg.controls.encoder_layers, minimum=0)
+    check_positive_int("controls.caption_layers", cfg.controls.caption_layers, minimum=0)
+    if len(cfg.patch) != 3:
+        raise ValueError(f"patch: expected (pt, ph, pw), got {cfg.patch!r}")
+    for p in cfg.patch:
+        check_positive_int("patch", p)
+    if cfg.layout == "full" and cfg.positions == "rope" and cfg.head_dim % 8:
+        raise ValueError(f"head_dim: 3D RoPE needs a multiple of 8, got {cfg.head_dim}")
+    if cfg.layout == "factorized" and cfg.head_dim % 2:
+        raise ValueError(f"head_dim: temporal RoPE needs an even head size, got {cfg.head_dim}")
+    if cfg.layout == "full" and cfg.positions == "sincos" and cfg.width % 16:
+        raise ValueError(f"heads * head_dim: 3D sin-cos positions need a width divisible by 16, "
+                         f"got {cfg.width}")
+    if cfg.layout == "factorized" and cfg.width % 4:
+        raise ValueError(f"heads * head_dim: 2D sin-cos positions need a width divisible by 4, "
+                         f"got {cfg.width}")
+    if cfg.layout == "full" and cfg.controls.text is None:
+        raise ValueError("controls.text: the full layout attends over [text; video] and needs a text "
+                         "control, got None")
+    if cfg.controls.map and not 1 <= cfg.controls.map_blocks <= cfg.depth:
+        raise ValueError(f"controls.map_blocks: expected 1 .. depth = {cfg.depth}, "
+                         f"got {cfg.controls.map_blocks}")
+    for i in cfg.htft_layers:
+        if not 0 <= i < cfg.depth:
+            raise ValueError(f"htft_layers: expected layer indices in [0, {cfg.depth}), got {i}")
+    if len(set(cfg.htft_layers)) != len(cfg.htft_layers):
+        raise ValueError(f"htft_layers: expected distinct layers, got {cfg.htft_layers}")
+    if cfg.htft_layers and cfg.width % cfg.htft_groups:
+        raise ValueError(f"htft_groups: expected a divisor of the width {cfg.width}, "
+                         f"got {cfg.htft_groups}")
+    if not 0.0 <= cfg.htft_dropout < 1.0:
+        raise ValueError(f"htft_dropout: expected a rate in [0, 1), got {cfg.htft_dropout}")
+    if cfg.ofs_embed_dim is not None and cfg.ofs_embed_dim != cfg.t_dim:
+        raise ValueError(f"ofs_embed_dim: expected the time embedding size {cfg.t_dim}, "
+                         f"got {cfg.ofs_embed_dim}")
+    if cfg.multiview == "cross_view" and (not cfg.neighbor_offsets or 0 in cfg.neighbor_offsets):
+        raise ValueError(f"neighbor_offsets: expected non-zero view offsets, got {cfg.neighbor_offsets}")
+    return cfg

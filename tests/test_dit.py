@@ -1,0 +1,316 @@
+"""The diffusion transformer on one device: shapes with every control, per-frame noise levels,
+zero-initialised branches, classifier-free-guidance nulls, scan/remat, presets and bad input."""
+
+import dataclasses
+import json
+import functools
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from dit_fixtures import BRANCH_ZERO, boxed_params, forward_fn, max_rel, params_for, perturb, split_inputs
+
+from jaxdrive.models.dit import DiT, param_count
+from jaxdrive.models.dit_blocks import CrossView
+from jaxdrive.models.dit_config import CONDITIONS
+from jaxdrive.models.dit_controls import frame_mode, group_frames
+from jaxdrive.models.dit_inputs import example_inputs
+from jaxdrive.models.dit_layers import host_init
+from jaxdrive.models.dit_presets import PRESETS, preset
+
+# 6 views x (1 + 4k) frames with k = 1: 5 pixel frames of conditions, 2 latent frames
+MV = preset("tiny-mv", depth=1)                       # every control; one layer keeps compiling short
+MV_SHAPES = (("batch", 2), ("views", 6), ("frames", 2), ("height", 4), ("width", 4))
+LEARNED_NULLS = ("text", "fps", "camera", "waypoints", "trajectory", "boxes")
+
+
+def _mv_inputs(seed=0):
+    return split_inputs(example_inputs(MV, seed=seed, **dict(MV_SHAPES)))
+
+
+def _mv_forward(*args):
+    return forward_fn(MV, return_features=True)(*args)[0]
+
+
+def _no_drop(b=2):
+    return {k: np.zeros(b, bool) for k in CONDITIONS}
+
+
+def _check_shapes_with_every_control():
+    params = params_for(MV, MV_SHAPES)
+    lat, sig, text, kw = _mv_inputs()
+    assert kw["boxes"].shape[1] == 5 and kw["bev_map"].shape[1] == 5 and lat.shape[:3] == (2, 6, 2)
+    out, feats = forward_fn(MV, return_features=True)(params, lat, sig, text, dict(kw, drop=_no_drop()))
+    assert out.shape == lat.shape and out.dtype == jnp.float32
+    assert np.isfinite(np.asarray(out)).all() and float(jnp.std(out)) > 0
+    assert set(feats) == {0} and feats[0].shape == (2, 2, 4, 6, MV.width)
+
+
+def _check_zero_initialised_branches_leave_the_output_unchanged():
+    params = params_for(MV, MV_SHAPES)                   # branch projections stay at zero
+    lat, sig, text, kw = _mv_inputs()
+    fwd = _mv_forward
+    full = fwd(params, lat, sig, text, dict(kw, drop=_no_drop()))
+    _, _, _, other = _mv_inputs(seed=5)                  # different map, warp, past features, cond
+    for name in ("bev_map", "warp", "features"):
+        changed = fwd(params, lat, sig, text, dict(kw, drop=_no_drop(), **{name: other[name]}))
+        np.testing.assert_array_equal(changed, full, err_msg=name)
+    off = {k: v for k, v in kw.items() if k not in ("bev_map", "warp", "features", "features_mask")}
+    np.testing.assert_allclose(fwd(params, lat, sig, text, dict(off, drop=_no_drop())), full, atol=1e-6)
+    # the test can fail: once a branch's zero projection is trained, its input matters
+    for part in ("map_in", "warp_proj", "linear_out"):
+        trained = perturb(params, skip=tuple(n for n in BRANCH_ZERO if n not in (part, "out")))
+        base = fwd(trained, lat, sig, text, dict(kw, drop=_no_drop()))
+        key = {"map_in": "bev_map", "warp_proj": "warp", "linear_out": "features"}[part]
+        moved = fwd(trained, lat, sig, text, dict(kw, drop=_no_drop(), **{key: other[key]}))
+        assert max_rel(moved, base) > 1e-4, part
+
+
+def test_cross_view_attention_starts_as_a_no_op():
+    x = jax.random.normal(jax.random.PRNGKey(0), (1, 2, 4, 6, MV.width))
+    mod = CrossView(MV)
+    variables = nn.unbox(host_init(mod, x))
+    apply = jax.jit(mod.apply)
+    np.testing.assert_array_equal(apply(variables, x), 0.0)
+    trained = perturb(variables)
+    assert float(jnp.abs(apply(trained, x)).max()) > 1e-3
+
+
+def _check_dropped_conditions_equal_the_null_path():
+    params = params_for(MV, MV_SHAPES)
+    params = perturb(params, skip=())                    # branches trained too: drops must still hold
+    lat, sig, text, kw = _mv_inputs()
+    _, _, text2, other = _mv_inputs(seed=7)
+    fwd = _mv_forward
+    half = np.array([True, False])
+    drop = {k: half for k in CONDITIONS}
+    dropped = fwd(params, lat, sig, text, dict(kw, drop=drop))
+    kept = fwd(params, lat, sig, text, dict(kw, drop=_no_drop()))
+    np.testing.assert_allclose(dropped[1], kept[1], atol=1e-6)         # undropped sample unchanged
+    # a dropped sample does not see its conditions: other values, same output
+    swapped = {**kw, **{k: other[k] for k in ("fps", "intrinsics", "cam_to_ego", "waypoints", "ego_to_world",
+                                               "boxes", "box_classes", "box_valid", "bev_map", "warp")}}
+    again = fwd(params, lat, sig, text2, dict(swapped, drop=drop))
+    np.testing.assert_allclose(again[0], dropped[0], atol=1e-6)
+    assert max_rel(again[1], dropped[1]) > 1e-4
+    # the learned nulls: leaving a condition out is dropping it; a dropped map is the zero map
+    only = {k: half if k in LEARNED_NULLS else np.zeros(2, bool) for k in CONDITIONS}
+    part = fwd(params, lat, sig, text, dict(kw, drop=only))
+    gone = ("text_mask", "fps", "intrinsics", "cam_to_ego", "waypoints", "ego_to_world", "boxes", "box_classes",
+            "box_valid")
+    absent = {k: v for k, v in kw.items() if k not in gone}
+    nulls = fwd(params, lat, sig, None, dict(absent, drop=_no_drop()))
+    np.testing.assert_allclose(nulls[0], part[0], atol=1e-5)
+    zero_map = fwd(params, lat, sig, text, dict(kw, bev_map=np.zeros_like(kw["bev_map"]), drop=_no_drop()))
+    map_drop = fwd(params, lat, sig, text, dict(kw, drop={k: (half if k == "map" else np.zeros(2, bool))
+                                                          for k in CONDITIONS}))
+    np.testing.assert_allclose(map_drop[0], zero_map[0], atol=1e-6)
+    assert max_rel(map_drop[1], zero_map[1]) > 1e-4
+
+
+def test_mvdit_with_every_control_on_six_views():
+    """One test for the checks that share the compiled all-controls model (compiling dominates;
+    separate tests would compile it once per test worker): the output and feature shapes for
+    6 views x (1 + 4k) frames, the zero-initialised branches (map ControlNet, warp injection,
+    HTFT) leaving the output unchanged, and dropped conditions equal to the null path."""
+    _check_shapes_with_every_control()
+    _check_zero_initialised_branches_leave_the_output_unchanged()
+    _check_dropped_conditions_equal_the_null_path()
+
+
+TINY = preset("tiny", controls=dict(cond_frames="replace"))
+TINY_SHAPES = (("batch", 2), ("views", 2), ("frames", 4), ("height", 4), ("width", 4))
+
+
+@functools.lru_cache(maxsize=None)
+def _apply_with_intermediates(cfg):
+    dit = DiT(cfg)
+    return jax.jit(lambda p, lat, sig, text, kw: dit.apply({"params": p}, lat, sig, text, **kw,
+                                                            mutable=["intermediates"]))
+
+
+def _intermediates(cfg, params, lat, sig, text, kw):
+    out, state = _apply_with_intermediates(cfg)(params, lat, sig, text, kw)
+    inter = state["intermediates"]
+    return out, inter["tokens"][0], inter["modulation"][0]
+
+
+@pytest.mark.parametrize("cfg", [TINY, preset("tiny-full")], ids=["factorized", "full"])
+def test_one_frames_sigma_changes_only_that_frames_modulation(cfg):
+    """One frame's sigma changes that frame's modulation and nothing upstream of it in any frame's
+    inputs; a [B] sigma is every frame at that level; (factorized, sharing its compiled model)
+    condition frames are modulated at sigma 0."""
+    shapes = TINY_SHAPES
+    params = params_for(cfg, shapes)
+    lat, sig, text, kw = split_inputs(example_inputs(cfg, **dict(shapes)))
+    if "cond_mask" in kw:                                # no condition frame here (same inputs, one compile)
+        kw["cond_mask"] = np.zeros_like(kw["cond_mask"])
+    sig = np.asarray([[0.9, 0.7, 0.5, 0.3], [0.2, 0.4, 0.6, 0.8]], np.float32)
+    out, tokens, mod = _intermediates(cfg, params, lat, sig, text, kw)
+    sig2 = sig.copy()
+    sig2[:, 2] = [0.05, 0.95]
+    out2, tokens2, mod2 = _intermediates(cfg, params, lat, sig2, text, kw)
+    assert mod.shape[:2] == (2, 4)
+    np.testing.assert_array_equal(tokens2, tokens)                      # the inputs of every frame
+    others = [0, 1, 3]
+    np.testing.assert_array_equal(np.asarray(mod2)[:, others], np.asarray(mod)[:, others])
+    assert max_rel(np.asarray(mod2)[:, 2], np.asarray(mod)[:, 2]) > 1e-3
+    assert max_rel(np.asarray(out2)[:, :, 2], np.asarray(out)[:, :, 2]) > 1e-4
+    # a [B] sigma is the same levels on every frame
+    flat, _, mflat = _intermediates(cfg, params, lat, np.asarray([0.3, 0.6], np.float32), text, kw)
+    same, _, msame = _intermediates(cfg, params, lat, np.repeat([[0.3], [0.6]], 4, 1).astype(np.float32),
+                                    text, kw)
+    np.testing.assert_allclose(flat, same, atol=1e-6)
+    np.testing.assert_allclose(mflat, msame, atol=1e-6)
+    if cfg.controls.cond_frames:
+        _check_condition_frames_carry_sigma_zero()
+
+
+def _check_condition_frames_carry_sigma_zero():
+    params = params_for(TINY, TINY_SHAPES)
+    lat, sig, text, kw = split_inputs(example_inputs(TINY, **dict(TINY_SHAPES)))
+    kw["cond_mask"] = np.array([[True, False, False, False], [True, True, False, False]])
+    _, tokens, mod = _intermediates(TINY, params, lat, sig, text, kw)
+    zero = sig.copy()
+    zero[kw["cond_mask"]] = 0.0
+    kw2 = dict(kw, cond_mask=np.zeros_like(kw["cond_mask"]))
+    lat2 = np.where(kw["cond_mask"][:, None, :, None, None, None], kw["cond_latents"], lat)
+    _, tokens2, mod2 = _intermediates(TINY, params, lat2, zero, text, kw2)
+    np.testing.assert_allclose(mod, mod2, atol=1e-6)
+    np.testing.assert_allclose(tokens, tokens2, atol=1e-6)
+
+
+def test_full_layout_with_controls_and_concat_condition_frames():
+    cfg = preset("tiny-full", controls=dict(camera=True, boxes=True, trajectory=True, cond_frames="concat",
+                                            warp=True, map=True, map_blocks=1, map_hidden=8))
+    shapes = (("batch", 2), ("views", 3), ("frames", 2), ("height", 4), ("width", 4))
+    params = params_for(cfg, shapes)
+    lat, sig, text, kw = split_inputs(example_inputs(cfg, **dict(shapes)))
+    fwd = forward_fn(cfg)
+    out = fwd(params, lat, sig, text, kw)
+    assert out.shape == lat.shape and np.isfinite(np.asarray(out)).all()
+    # zero-initialised concat embedding: the condition latents do not matter at init
+    other = dict(kw, cond_latents=kw["cond_latents"] + 1.0, warp=kw["warp"] * 2, bev_map=1 - kw["bev_map"])
+    np.testing.assert_array_equal(fwd(params, lat, sig, text, other), out)
+
+
+def test_stdit2_layers_patch_spanning_two_frames_and_the_caption_encoder():
+    from jaxdrive.data.text import tokenize_captions
+    cfg = preset("tiny", block="stdit2", patch=(2, 2, 2), text_len=12,
+                 controls=dict(waypoints=True, camera=True, text="caption", caption_vocab=64, caption_layers=1))
+    shapes = (("batch", 2), ("views", 2), ("frames", 4), ("height", 4), ("width", 4))
+    params = params_for(cfg, shapes)
+    lat, sig, _, kw = split_inputs(example_inputs(cfg, **dict(shapes)))
+    caps = ["This is a driving scene video captured by camera in CAM_FRONT of a car at gridville-centre "
+            "during summer daytime.", "This is a driving scene video captured by camera in CAM_FRONT of a car "
+            "at gridville-centre during winter night."]
+    ids, mask = tokenize_captions(caps, vocab=64, max_len=12)
+    fwd = forward_fn(cfg)
+    a = fwd(params, lat, sig, ids, dict(kw, text_mask=mask))
+    assert a.shape == lat.shape and float(jnp.std(a)) > 0
+    b = fwd(params, lat, sig, ids[::-1], dict(kw, text_mask=mask[::-1]))
+    assert max_rel(a, b) > 1e-4                         # the caption reaches the output
+
+
+def test_scan_and_remat_match_the_python_loop():
+    base = preset("tiny", depth=2)
+    scanned = dataclasses.replace(base, scan_layers=True, remat="dots")
+    shapes = (("batch", 1), ("views", 2), ("frames", 2), ("height", 4), ("width", 4))
+    params = params_for(base, shapes)
+    stacked = dict(params)
+    layers = [stacked.pop(f"layers_{i}") for i in (0, 1)]
+    stacked["layers_0_2"] = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *layers)
+    assert jax.tree_util.tree_structure(stacked) == jax.tree_util.tree_structure(
+        nn.unbox(boxed_params(scanned, shapes)))
+    lat, sig, text, kw = split_inputs(example_inputs(base, **dict(shapes)))
+
+    def loss(cfg):
+        dit = DiT(cfg)
+        return jax.jit(jax.value_and_grad(lambda p, x: jnp.sum(dit.forward(p, x, sig, text, **kw) * jnp.sin(x)),
+                                          argnums=1))
+    (v1, g1), (v2, g2) = loss(base)(params, lat), loss(scanned)(stacked, lat)
+    np.testing.assert_allclose(v2, v1, rtol=1e-5)
+    assert max_rel(g2, g1) < 1e-5
+
+
+def test_frame_alignment_with_the_vae():
+    assert frame_mode("boxes", 5, 2, 4) == "pixel" and frame_mode("boxes", 2, 2, 4) == "latent"
+    with pytest.raises(ValueError, match=r"boxes: expected 2 \(latent\) or 5 \(pixel\) frames .* got 4"):
+        frame_mode("boxes", 4, 2, 4)
+    x = jnp.arange(9)[None]                             # 9 = 1 + 4 * 2 pixel frames -> 3 latent
+    np.testing.assert_array_equal(group_frames(x, 4)[0], [[0, 0, 0, 0], [1, 2, 3, 4], [5, 6, 7, 8]])
+
+
+def _init_error(cfg, **changes):
+    ex = example_inputs(cfg, **dict(MV_SHAPES))
+    ex.update(changes)
+    DiT(cfg).init(jax.random.PRNGKey(0), **ex)
+
+
+@pytest.mark.parametrize("changes,pattern", [
+    (dict(intrinsics=np.zeros((2, 5, 3, 3), np.float32)), r"intrinsics: expected shape \[2, 6, 3, 3\], got \[2, 5, 3, 3\]"),
+    (dict(cam_to_ego=np.zeros((2, 4, 4, 4), np.float32)), r"cam_to_ego: expected shape \[2, 6, 4, 4\]"),
+    (dict(boxes=np.zeros((2, 4, 2, 7), np.float32)), r"boxes: expected 2 \(latent\) or 5 \(pixel\) frames"),
+    (dict(bev_map=np.zeros((2, 3, 16, 16, 8), np.float32)), r"bev_map: expected 2 \(latent\) or 5 \(pixel\)"),
+    (dict(bev_map=np.zeros((2, 5, 16, 16, 3), np.float32)), r"bev_map: expected shape \[2, \*, \*, \*, 8\]"),
+    (dict(waypoints=np.zeros((2, 3, 2), np.float32)), r"waypoints: expected 2 \(latent\) or 5 \(pixel\)"),
+    (dict(sigma=np.zeros((2, 3), np.float32)), r"sigma: expected shape \[B\] = \[2\] or \[B, F'\] = \[2, 2\], got \[2, 3\]"),
+    (dict(sigma=np.zeros((3,), np.float32)), r"sigma: expected shape \[2\], got \[3\]"),
+    (dict(sigma=np.full((2,), 1.5, np.float32)), r"sigma: expected values in \[0.0, 1.0\], got"),
+    (dict(drop={"weather": np.zeros(2, bool)}), r"drop: expected condition names .* got 'weather'"),
+    (dict(features={3: np.zeros((2, 1, 4, 6, 64), np.float32)}), r"features: expected a mapping with the layers \[0\]"),
+])
+def test_bad_input_names_the_argument(changes, pattern):
+    with pytest.raises(ValueError, match=pattern):
+        _init_error(MV, **changes)
+
+
+def test_bad_config_and_presets():
+    with pytest.raises(ValueError, match=r"name: expected one of \[.*'cogvideox-2b'.*\], got 'cogvideox-9b'"):
+        preset("cogvideox-9b")
+    with pytest.raises(ValueError, match="boxes: this DiT takes no boxes"):
+        cfg = preset("tiny")
+        ex = example_inputs(cfg)
+        ex["boxes"] = np.zeros((1, 1, 2, 7), np.float32)
+        DiT(cfg).init(jax.random.PRNGKey(0), **ex)
+    with pytest.raises(ValueError, match=r"layout: expected one of \['factorized', 'full'\], got 'mixed'"):
+        preset("tiny", layout="mixed")
+
+
+def test_heads_must_divide_the_tensor_axis():
+    from jaxdrive.parallel import make_mesh
+    cfg = preset("tiny", heads=3, head_dim=16)
+    with jax.set_mesh(make_mesh(data=4, tensor=2)):
+        with pytest.raises(ValueError, match=r"heads: expected a multiple of the mesh axis 'tensor' \(size 2\), got 3"):
+            jax.eval_shape(lambda: DiT(cfg).init(jax.random.PRNGKey(0), **example_inputs(cfg, batch=4)))
+
+
+def test_presets_exist_and_tiny_counts_are_exact():
+    assert {"stdit3-xl/2", "mila", "magicdrive-v2", "cogvideox-2b", "tiny", "small"} <= set(PRESETS)
+    cfg = preset("tiny")
+    n = sum(int(np.prod(x.shape)) for x in jax.tree_util.tree_leaves(
+        jax.eval_shape(lambda: jax.tree_util.tree_map(lambda b: b.value, boxed_params(cfg, TINY_SHAPES),
+                                                      is_leaf=lambda b: hasattr(b, "value")))))
+    assert param_count(cfg) == n
+
+
+def test_cogvideox_2b_preset_has_the_diffusers_parameter_count():
+    # two of the 30 layers: the same structure, a fraction of the tracing time
+    torch = pytest.importorskip("torch")
+    diffusers = pytest.importorskip("diffusers")
+    with torch.device("meta"):                          # its defaults are CogVideoX-2B's (30 layers)
+        ref = diffusers.CogVideoXTransformer3DModel(num_layers=2)
+    want = sum(p.numel() for p in ref.parameters())
+    assert param_count(preset("cogvideox-2b", depth=2)) == want
+
+
+def test_dit_benchmark_prints_json_figures(capsys):
+    from jaxdrive.cli import main
+    main(["bench", "dit", "--presets", "tiny", "--seq", "2", "--repeats", "1"])
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
+    figures = {r["figure"] for r in rows}
+    assert {"fwd_bwd_time", "tokens_per_s", "per_device_temp_memory", "compile_time"} <= figures
+    assert all(r["bench"] == "dit" for r in rows)
+    assert next(r for r in rows if r["figure"] == "per_device_temp_memory")["value"] > 0
