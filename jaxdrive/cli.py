@@ -188,6 +188,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench.set_defaults(run=_bench)
     _add_data_commands(sub)
     _add_convert_commands(sub)
+    from jaxdrive.cli_run import add_commands
+    add_commands(sub)
     return parser
 
 

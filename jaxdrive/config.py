@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from jaxdrive import validate
+from jaxdrive.models.dit_config import DiTConfig, check_config
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,6 +36,7 @@ class DataConfig:
     drop_prob: float = 0.15           # classifier-free-guidance drop per condition
     shuffle_seed: int = 0
     threads: int = 0                  # grain read threads (0: in the main thread)
+    text_embeddings: str = ""         # .npz of 'jaxdrive data text-embed' (models with text='embeddings')
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,7 +52,7 @@ class LatentConfig:
     vae_path: str = ""
     vae_mode: str = "chunked"
     factor: int = 4
-    scale: float = 1.0                # latents are multiplied by this before the DiT (VAE: its scaling factor)
+    scale: float = 1.0                # space_to_depth latents are multiplied by this (a VAE uses its scaling factor)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,6 +110,20 @@ class MeshConfig:
     fsdp: int = 1
     seq: int = 1
     tensor: int = 1
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """A whole run: the DiT (``model``, e.g. a :func:`jaxdrive.models.dit_presets.preset`) and
+    the sections above. ``--set model.depth=4`` and ``--set model.controls.fps=false`` work too."""
+
+    model: DiTConfig = DiTConfig()
+    data: DataConfig = DataConfig()
+    latents: LatentConfig = LatentConfig()
+    flow: FlowConfig = FlowConfig()
+    optim: OptimConfig = OptimConfig()
+    train: TrainConfig = TrainConfig()
+    mesh: MeshConfig = MeshConfig()
 
 
 # ------------------------------------------------------------------------------------ overrides
@@ -197,6 +213,22 @@ def to_dict(config) -> dict:
     return dataclasses.asdict(config)
 
 
+def from_dict(cls, data: dict):
+    """Inverse of :func:`to_dict`: nested dataclasses from plain data (lists become tuples)."""
+    hints = _field_types(cls)
+    kwargs = {}
+    for name, value in data.items():
+        if name not in hints:
+            raise ValueError(f"config: unknown key {name!r} in {cls.__name__}; expected one of {sorted(hints)}")
+        tp = hints[name]
+        if dataclasses.is_dataclass(tp) and isinstance(value, dict):
+            value = from_dict(tp, value)
+        elif isinstance(value, list):
+            value = tuple(tuple(v) if isinstance(v, list) else v for v in value)
+        kwargs[name] = value
+    return cls(**kwargs)
+
+
 def check_sections(config) -> None:
     """Range checks of the sections defined here (the model's config checks itself)."""
     d, o, t, f = config.data, config.optim, config.train, config.flow
@@ -213,3 +245,11 @@ def check_sections(config) -> None:
     validate.check_range("flow.jdc_anchor_rate", f.jdc_anchor_rate, 0.0, 1.0)
     validate.check_choice("train.compute_dtype", t.compute_dtype, ("float32", "bfloat16"))
     validate.check_choice("latents.source", config.latents.source, ("vae", "space_to_depth"))
+    validate.check_range("optim.min_lr_ratio", o.min_lr_ratio, 0.0, 1.0)
+    if f.cond_frames < 0:
+        raise ValueError(f"flow.cond_frames: expected >= 0, got {f.cond_frames}")
+    if d.batch_size % o.grad_accum:
+        raise ValueError(f"data.batch_size: expected a multiple of optim.grad_accum ({o.grad_accum}), "
+                         f"got {d.batch_size}")
+    if hasattr(config, "model"):
+        check_config(config.model)

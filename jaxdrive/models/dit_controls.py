@@ -23,7 +23,7 @@ from jaxdrive import geometry
 from jaxdrive.models.attention import attention
 from jaxdrive.parallel.rules import constrain
 from jaxdrive.models.dit_layers import (MLP, ZEROS, AttnProj, Dense, Init, LayerNorm, apply_rope,
-                                        fourier_features, merge, normal, param, rope_1d, split,
+                                        fourier_features, lookup, merge, normal, param, rope_1d, split,
                                         timestep_embedding)
 
 
@@ -297,7 +297,7 @@ class BoxEncoder(nn.Module):
         feats = fourier_features(coords.reshape(*coords.shape[:-2], 24), self.num_freqs, self.temperature)
         table = param(self, "class_embed", normal(0.02), (self.num_classes, self.width), ("vocab", "embed"))
         table = constrain(table, (None, "embed"))           # whole table on every device for the lookup
-        cls = jnp.take(table, jnp.clip(jnp.asarray(classes, jnp.int32), 0, self.num_classes - 1), axis=0)
+        cls = lookup(table, jnp.clip(jnp.asarray(classes, jnp.int32), 0, self.num_classes - 1))
         cls = jnp.broadcast_to(cls[:, :, None], feats.shape[:-1] + (self.width,))
         h = Dense(self.width, ("channels", "embed"), dtype=self.dtype, name="fc1")(
             jnp.concatenate([feats, cls], -1))
@@ -370,7 +370,7 @@ class CaptionEncoder(nn.Module):
                           (None, "text_embed"))
         pos = param(self, "pos", normal(0.02), (self.max_len, self.dim), ("text_tokens", "text_embed"))
         ids = jnp.clip(jnp.asarray(ids, jnp.int32), 0, self.vocab - 1)
-        x = (jnp.take(table, ids, axis=0) + pos[: ids.shape[1]]).astype(self.dtype)
+        x = (lookup(table, ids) + pos[: ids.shape[1]]).astype(self.dtype)
         heads = self.dim // 64 if self.dim % 64 == 0 else 1
         for i in range(self.layers):
             x = EncoderLayer(self.dim, heads, self.impl, self.dtype, "text_embed", name=f"layer_{i}")(x, mask)

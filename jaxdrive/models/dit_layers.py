@@ -475,6 +475,14 @@ def reshape(x, shape: Sequence[int]):
     return jax.lax.reshape(x, shape, out_sharding=PartitionSpec(*spec[:keep], *([None] * (len(shape) - keep))))
 
 
+def lookup(table, ids):
+    """Rows of an embedding ``table [N, D]`` at integer ``ids [...]`` -> ``[..., D]``, sharded like
+    ``ids`` under an Explicit mesh (where a gather needs its output sharding stated)."""
+    if _explicit_mesh() is None:
+        return jnp.take(table, ids, axis=0)
+    return table.at[ids].get(out_sharding=PartitionSpec(*_spec_of(ids), None))
+
+
 def to_sequence(x, order: Sequence[int]):
     """Transpose ``x [B, ...axes..., H, Dh]`` so the axes in ``order`` (indices into x, the sharded
     one first) follow the batch, then merge them into one sequence axis: ``[B, L, H, Dh]``."""

@@ -1,0 +1,155 @@
+"""``jaxdrive train``, ``jaxdrive sample`` and ``jaxdrive demo``.
+
+Before JAX starts, :func:`start_jax` honours ``JAXDRIVE_CPU_DEVICES`` (fake CPU devices with gloo
+collectives, set by ``launch/local.py --cpu-devices``) and starts the multi-process runtime from
+the environment (:func:`jaxdrive.parallel.initialize_distributed`: explicit ``JAXDRIVE_*``
+variables, SLURM or a TPU VM pod).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+REPO_CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+
+
+def start_jax() -> str:
+    import jax
+    n = os.environ.get("JAXDRIVE_CPU_DEVICES")
+    if n:
+        if not n.isdigit() or int(n) < 1:
+            raise ValueError(f"JAXDRIVE_CPU_DEVICES: expected a positive integer, got {n!r}")
+        jax.config.update("jax_platforms", "cpu")
+        jax.config.update("jax_num_cpu_devices", int(n))
+        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    from jaxdrive.parallel import initialize_distributed
+    return initialize_distributed()
+
+
+def _config(path, mesh: str | None, sets, extra=()):
+    from jaxdrive.config import load_config
+    config = load_config(path, list(extra) + list(sets or []))
+    return _config_mesh(config, mesh) if mesh else config
+
+
+def _train(args, rest) -> int:
+    extra = []
+    if args.steps is not None:
+        extra.append(f"train.steps={args.steps}")
+    if args.checkpoint_every is not None:
+        extra.append(f"train.checkpoint_every={args.checkpoint_every}")
+    config = _config(args.config, args.mesh, args.set, extra)
+    start_jax()
+    from jaxdrive.train.run import train
+    out = train(config, args.workdir, progress=not args.no_progress)
+    print(f"{out['status']} at step {out['step']} (loss {out['loss']}); run directory {Path(args.workdir).absolute()}")
+    return {"done": 0, "interrupted": 143, "diverged": 3}[out["status"]]
+
+
+def _sample(args, rest) -> int:
+    start_jax()
+    from jaxdrive.config import override
+    from jaxdrive.generate.samples import write_samples
+    from jaxdrive.train.run import Run, load_run_config, restore_params
+    config = load_run_config(args.workdir)
+    for s in args.set or []:
+        config = override(config, s)
+    config = _config_mesh(config, args.mesh) if args.mesh else config
+    run = Run(config)
+    step, params = restore_params(run, args.workdir, ema=not args.no_ema)
+    views = None if args.views is None else [int(v) for v in args.views]
+    out_dir = Path(args.out or Path(args.workdir) / "samples" / f"sample_{step:07d}")
+    t = time.perf_counter()
+    write_samples(run, params, out_dir, frames=args.frames, views=views, steps=args.steps,
+                  guidance=args.cfg, clips=1, seed=args.seed)
+    print(f"sampled from checkpoint {step} in {time.perf_counter() - t:.1f} s: {out_dir}")
+    return 0
+
+
+def _config_mesh(config, mesh: str):
+    from jaxdrive.config import override
+    from jaxdrive.parallel import parse_mesh_spec
+    sizes = parse_mesh_spec(mesh)
+    for k in ("data", "fsdp", "seq", "tensor"):
+        config = override(config, f"mesh.{k}={sizes.get(k, 1)}")
+    return config
+
+
+def _demo(args, rest) -> int:
+    """Synthesise a dataset, train the tiny DiT on frame-wise latents, sample a long clip."""
+    workdir = Path(args.workdir)
+    config_path = Path(args.config) if args.config else REPO_CONFIGS / "tiny.py"
+    if not config_path.is_file():
+        raise ValueError(f"config: expected the tiny config at {str(config_path)!r} (run from a checkout, or "
+                         f"pass --config), got a missing file")
+    data = workdir / "data"
+    extra = [f"data.path={data}", f"train.steps={args.steps}"]
+    config = _config(config_path, None, args.set, extra)
+    start_jax()
+    t0 = time.perf_counter()
+    if not data.exists():
+        from jaxdrive.data.synthetic import generate_clip
+        from jaxdrive.data.tfds_io import write_dataset
+        d = config.data
+        frames = max(args.frames, d.frames)
+        print(f"[1/3] synthesising {args.scenes} driving scenes ({d.views} views x {frames} frames) in {data}")
+        clips = lambda first, n: (generate_clip(first + i, views=6, frames=frames, height=2 * d.height,
+                                                width=2 * d.width) for i in range(n))
+        write_dataset(data, {"train": clips(0, args.scenes - 1), "validation": clips(10_000, 1)},
+                      name="jaxdrive_synthetic", overwrite=True, metadata={"source": "synthetic demo"})
+    from jaxdrive.media import plot_losses
+    from jaxdrive.train.metrics import read_metrics
+    from jaxdrive.train.run import train
+    print(f"[2/3] training the tiny DiT for {config.train.steps} steps in {workdir}")
+    out = train(config, workdir, progress=not args.no_progress)
+    if out["status"] != "done":
+        print(f"training {out['status']} at step {out['step']}; run 'jaxdrive demo' again to resume")
+        return 1
+    rows = read_metrics(workdir)
+    plot = plot_losses(workdir / "loss.png", [r["step"] for r in rows], [r["loss"] for r in rows])
+    from jaxdrive.generate.samples import write_samples
+    print(f"[3/3] sampling a {args.frames}-frame, {config.data.views}-view clip "
+          f"({args.frames // config.data.frames + 1} windows of {config.data.frames})")
+    paths = write_samples(out["run"], out["state"], workdir / "samples" / "demo", frames=args.frames,
+                          steps=config.train.sample_steps, guidance=args.cfg)
+    print(f"done in {time.perf_counter() - t0:.0f} s:\n  video      {paths.get('video')}\n"
+          f"  frame grid {paths.get('grid')}\n  loss plot  {plot}\n  metrics    {workdir / 'metrics.jsonl'}")
+    return 0
+
+
+def add_commands(sub) -> None:
+    train = sub.add_parser("train", help="train the DiT (resumes from the last checkpoint in --workdir)")
+    train.add_argument("--config", required=True, help="a config file, e.g. configs/tiny.py")
+    train.add_argument("--workdir", required=True, help="run directory: checkpoints, metrics, samples")
+    train.add_argument("--steps", type=int, help="total steps (train.steps)")
+    train.add_argument("--checkpoint-every", type=int, help="steps between checkpoints (train.checkpoint_every)")
+    train.add_argument("--mesh", help="mesh axis sizes, e.g. data=2,seq=4 (product = device count)")
+    train.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config field (repeatable)")
+    train.add_argument("--no-progress", action="store_true", help="no progress bar")
+    train.set_defaults(run=_train)
+
+    sample = sub.add_parser("sample", help="generate a clip from a run's latest checkpoint (mp4 + frame grid)")
+    sample.add_argument("--workdir", required=True)
+    sample.add_argument("--frames", type=int, help="pixel frames (longer than training: rolled out in windows)")
+    sample.add_argument("--views", nargs="+", help="camera indices (default: the training views)")
+    sample.add_argument("--steps", type=int, help="sampling steps (train.sample_steps)")
+    sample.add_argument("--cfg", type=float, default=2.0, help="classifier-free guidance scale (1: none)")
+    sample.add_argument("--seed", type=int, default=0)
+    sample.add_argument("--out", help="output directory (default WORKDIR/samples/sample_STEP)")
+    sample.add_argument("--mesh", help="mesh axis sizes for sampling")
+    sample.add_argument("--no-ema", action="store_true", help="sample with the raw parameters, not the EMA")
+    sample.add_argument("--set", action="append", metavar="KEY=VALUE")
+    sample.set_defaults(run=_sample)
+
+    demo = sub.add_parser("demo", help="synthesise data, train a tiny DiT, sample a long multi-view clip")
+    demo.add_argument("--workdir", default="jaxdrive-demo")
+    demo.add_argument("--config", help="default: configs/tiny.py of this checkout")
+    demo.add_argument("--steps", type=int, default=300)
+    demo.add_argument("--scenes", type=int, default=8)
+    demo.add_argument("--frames", type=int, default=33, help="frames of the sampled clip")
+    demo.add_argument("--cfg", type=float, default=2.0)
+    demo.add_argument("--set", action="append", metavar="KEY=VALUE")
+    demo.add_argument("--no-progress", action="store_true")
+    demo.set_defaults(run=_demo)

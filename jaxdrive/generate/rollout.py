@@ -1,0 +1,126 @@
+"""Sampling a clip with the trained DiT, and rolling windows out to long videos.
+
+:func:`sample_window` draws one window of latents with the jitted sampler
+(:func:`jaxdrive.flow.sample`): the first frames are clean condition frames (pinned, level 0),
+the others start from noise and follow the per-frame schedule of
+:func:`jaxdrive.flow.frame_schedule` (TPD when the run trained with it), with classifier-free
+guidance against the learned nulls of every droppable condition the model uses.
+
+:func:`rollout` reaches clips longer than the training window autoregressively (the streaming of
+STAGE / MiLA's continuation): each next window overlaps the last ``overlap`` generated latent
+frames, which it takes as its condition frames, and reads the per-frame controls (waypoints,
+poses, boxes, map) of its own frames. Every window has the training window's length, so the
+sampler compiles once; a last window that would run past the end starts earlier and conditions
+on all frames it overlaps.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxdrive import flow
+from jaxdrive.validate import check_positive_int
+
+PER_FRAME = ("waypoints", "ego_to_world", "boxes", "box_classes", "box_valid", "bev_map")
+
+
+def _velocity_fn(training, params):
+    def velocity(x, sigma, cond):
+        cond = dict(cond)
+        text = cond.pop("text", None)
+        return training.dit.forward(params, x, sigma, text, **cond)
+    return velocity
+
+
+def sample_window(training, params, x_cond, cond_mask, controls: dict, key, *, steps: int, guidance: float,
+                  shift: float = 1.0, method: str = "euler"):
+    """Latents ``[B, V, F', h, w, C]`` of one window: ``x_cond`` holds the clean condition frames
+    where ``cond_mask [B, F']`` is set; ``controls`` are the DiT's keyword inputs (``text`` too)."""
+    cond = {k: v for k, v in controls.items() if k != "drop"}
+    if training.model.controls.cond_frames is not None:
+        cond["cond_latents"], cond["cond_mask"] = x_cond, cond_mask
+    names = list(controls.get("drop", {}))
+    b = x_cond.shape[0]
+    null = None
+    if names and guidance != 1.0:
+        cond["drop"] = {n: jnp.zeros((b,), bool) for n in names}
+        null = dict(cond, drop={n: jnp.ones((b,), bool) for n in names})
+    schedule = flow.frame_schedule(flow.sampling_sigmas(steps, shift=shift), cond_mask,
+                                   tpd=training.flow.tpd, omega=training.flow.tpd_omega)
+    noise = jax.random.normal(key, x_cond.shape, jnp.float32)
+    keep = cond_mask[:, None, :, None, None, None]
+    x0 = jnp.where(keep, x_cond, noise)
+    return flow.sample(_velocity_fn(training, params), x0, schedule, cond=cond, null_cond=null,
+                       guidance_scale=None if null is None else guidance, cond_mask=cond_mask, method=method)
+
+
+def _window_controls(controls: dict, start: int, window: int, temporal: int) -> dict:
+    """The controls of latent frames ``[start, start + window)``; per-frame ones are per pixel
+    frame when ``temporal > 1`` (``1 + temporal (F' - 1)`` frames)."""
+    out = {}
+    for k, v in controls.items():
+        if k in PER_FRAME:
+            lo = start * temporal
+            out[k] = v[:, lo: lo + 1 + temporal * (window - 1)]
+        else:
+            out[k] = v
+    return out
+
+
+def rollout(training, params, codec_params, inputs: dict, *, total_frames: int, window: int, overlap: int,
+            cond_frames: int, steps: int, guidance: float, key, shift: float = 1.0):
+    """Latents ``[B, V, total_frames, h, w, C]`` generated window by window (module docstring).
+
+    ``inputs``: :func:`jaxdrive.train.flow_step.model_inputs` of clips that cover the whole
+    length (per-frame controls for every frame; ``video`` needs only the first ``cond_frames``
+    latent frames' pixels). ``window``: latent frames per window (the training length);
+    ``overlap``: frames each next window conditions on (``1 <= overlap < window``)."""
+    check_positive_int("total_frames", total_frames)
+    check_positive_int("window", window)
+    check_positive_int("overlap", overlap)
+    if overlap >= window:
+        raise ValueError(f"overlap: expected fewer than window = {window} frames, got {overlap}")
+    if not 0 <= cond_frames < min(window, total_frames):
+        raise ValueError(f"cond_frames: expected in [0, {min(window, total_frames)}), got {cond_frames}")
+    window = min(window, total_frames)
+    codec = training.codec
+    controls = {k: jnp.asarray(v) if not isinstance(v, dict) else {n: jnp.asarray(m) for n, m in v.items()}
+                for k, v in inputs.items() if k != "video"}
+    video = jnp.asarray(inputs["video"])
+    pixel_window = 1 + codec.temporal * (window - 1)
+    first = codec.encode(codec_params, video[:, :, :pixel_window])     # [B, V, window, h, w, C]
+    shape = first.shape[:2] + (total_frames,) + first.shape[3:]
+    out = jnp.zeros(shape, jnp.float32)
+    sample = jax.jit(lambda p, xc, m, c, k: sample_window(training, p, xc, m, c, k, steps=steps,
+                                                          guidance=guidance, shift=shift))
+    done, start = 0, 0
+    b = first.shape[0]
+    while done < total_frames:
+        if done == 0:
+            x_cond, n_cond = first, cond_frames
+        else:
+            start = min(done - overlap, total_frames - window)
+            x_cond = jax.lax.dynamic_slice_in_dim(out, start, window, axis=2)
+            n_cond = done - start
+        mask = jnp.broadcast_to(jnp.arange(window)[None] < n_cond, (b, window))
+        key, sub = jax.random.split(key)
+        z = sample(params, x_cond, mask, _window_controls(controls, start, window, codec.temporal), sub)
+        out = jax.lax.dynamic_update_slice_in_dim(out, z, start, axis=2)
+        done = start + window
+    return out
+
+
+def frames_needed(codec, latent_frames: int) -> int:
+    """Pixel frames of a clip of ``latent_frames`` latent frames."""
+    return 1 + codec.temporal * (int(latent_frames) - 1)
+
+
+def latent_frames_for(codec, pixel_frames: int) -> int:
+    return codec.latent_frames(int(pixel_frames))
+
+
+def to_numpy_video(codec, codec_params, latents) -> np.ndarray:
+    """Decoded video ``[B, V, F, H, W, 3]`` in [-1, 1] as NumPy."""
+    return np.asarray(jax.jit(codec.decode)(codec_params, latents))

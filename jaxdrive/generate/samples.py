@@ -1,0 +1,97 @@
+"""Sample videos of a run: condition frames and controls from dataset clips, the jitted sampler,
+and the outputs (an mp4 with the views tiled, a frame-grid PNG, the latents as ``.npy``).
+
+Used by the training loop (periodic samples) and by ``jaxdrive sample``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from jaxdrive import flow
+from jaxdrive.generate.rollout import rollout, to_numpy_video
+from jaxdrive.validate import check_positive_int
+
+
+def dataset_inputs(run, *, frames: int, views=None, clips: int = 1, split: str | None = None, seed: int = 0):
+    """Model inputs of ``clips`` dataset clips of ``frames`` pixel frames (no condition dropped):
+    the first frames give the condition latents, every frame its controls."""
+    from jaxdrive.data.pipeline import collate, sample_clip
+    from jaxdrive.data.tfds_io import open_source
+    from jaxdrive.train.flow_step import model_inputs
+    d = run.config.data
+    source = None
+    for name in ([split] if split else ["validation", d.split]):
+        try:
+            source = open_source(d.path, name)
+            break
+        except ValueError:
+            if split:
+                raise
+    views = list(range(d.views)) if views is None else views
+    rng = np.random.default_rng(seed)
+    samples = []
+    for i in range(clips):
+        clip = source[i % len(source)]
+        have = int(np.shape(clip["ego_to_world"])[0])
+        need = 1 + (frames - 1) * d.stride
+        if need > have:
+            raise ValueError(f"frames: expected at most {1 + (have - 1) // d.stride} frames (the dataset's clips have "
+                             f"{have} at stride {d.stride}), got {frames}")
+        samples.append(sample_clip(clip, size=(d.height, d.width), frames=frames, stride=d.stride, views=views,
+                                   rng=rng, where=f"{source.split} clip {i}"))
+    batch = collate(samples)
+    inputs = model_inputs(batch, run.training.model, run.text)
+    c = run.training.model.controls
+    names = [n for n, on in (("text", c.text is not None), ("camera", c.camera), ("waypoints", c.waypoints),
+                             ("trajectory", c.trajectory), ("boxes", c.boxes), ("map", c.map)) if on]
+    inputs["drop"] = {n: np.zeros((clips,), bool) for n in names}      # nothing dropped; CFG adds the nulls
+    return inputs
+
+
+def generate(run, params, *, frames: int | None = None, views=None, steps: int | None = None,
+             guidance: float = 1.0, cond_frames: int | None = None, overlap: int | None = None,
+             clips: int = 1, seed: int = 0):
+    """Generated video ``[clips, V, F, H, W, 3]`` in [-1, 1] and its latents."""
+    cfg = run.config
+    frames = cfg.data.frames if frames is None else check_positive_int("frames", frames)
+    steps = cfg.train.sample_steps if steps is None else check_positive_int("steps", steps)
+    codec = run.codec
+    total = codec.latent_frames(frames)
+    window = run.latent_frames
+    cond = max(1, cfg.flow.cond_frames) if cond_frames is None else cond_frames
+    overlap = max(1, cond) if overlap is None else overlap
+    inputs = dataset_inputs(run, frames=frames, views=views, clips=clips, seed=seed)
+    d = cfg.data
+    shift = cfg.flow.shift if cfg.flow.shift > 0 else flow.resolution_shift(d.height, d.width, window)
+    with jax.set_mesh(run.mesh):
+        latents = rollout(run.training, params, codec.params, inputs, total_frames=total, window=window,
+                          overlap=overlap, cond_frames=min(cond, window - 1), steps=steps, guidance=guidance,
+                          key=jax.random.key(seed), shift=shift)
+        video = to_numpy_video(codec, codec.params, latents)
+    return video, np.asarray(latents)
+
+
+def write_samples(run, state_or_params, outdir, *, log=print, fps: float | None = None, **kwargs) -> dict:
+    """Generate (``kwargs`` as :func:`generate`) and write ``sample.mp4``, ``frames.png`` and
+    ``latents.npy`` under ``outdir``; returns their paths. EMA parameters are used when the
+    state keeps them."""
+    from jaxdrive.media import write_frame_grid, write_mp4
+    params = state_or_params
+    if hasattr(state_or_params, "params"):
+        params = state_or_params.ema if state_or_params.ema is not None else state_or_params.params
+    video, latents = generate(run, params, **kwargs)
+    out = {}
+    if jax.process_index() == 0:
+        outdir = Path(outdir)
+        outdir.mkdir(parents=True, exist_ok=True)
+        rate = fps or 12.0
+        out["video"] = write_mp4(outdir / "sample.mp4", video[0], fps=rate)
+        out["grid"] = write_frame_grid(outdir / "frames.png", video[0], num_frames=min(6, video.shape[2]))
+        np.save(outdir / "latents.npy", latents)
+        out["latents"] = outdir / "latents.npy"
+        log(f"wrote {video.shape[2]} frames x {video.shape[1]} views: {out['video']}, {out['grid']}")
+    return out

@@ -1,0 +1,223 @@
+"""The rectified-flow train step of the DiT, and the host-side preparation of its batches.
+
+One step (:func:`make_train_step`) takes the train state and a stack of ``grad_accum``
+micro-batches ``[A, b, ...]``, and for each micro-batch (in a ``lax.scan``):
+
+1. encodes the video to latents ``x`` (:class:`jaxdrive.models.latents.LatentCodec`; a VAE runs
+   on the fly, without gradients);
+2. draws a base level per clip (logit-normal or uniform, then Open-Sora's shift; SD3 eq. 19),
+   ``k`` clean condition frames at the start (``0..cond_frames`` per clip, or exactly
+   ``cond_frames``), JDC anchors (the last frame at ``g = slope * sigma``, MiLA sec. 3.3) for a
+   fraction of clips, and per-frame levels by :func:`jaxdrive.flow.frame_sigmas` (TPD when on,
+   MiLA eq. 13-14);
+3. noises ``x_sigma = (1 - sigma) x + sigma noise`` per frame; the condition frames sit at level
+   0, i.e. clean, and the DiT sees level 0 for them (and ``cond_latents`` when it has a
+   condition-frame control);
+4. predicts the velocity with the batch's classifier-free-guidance drops (the data pipeline draws
+   them, 15% per condition by default) and takes MiLA eq. 15's loss over the non-condition frames,
+   plus LongDWM's structure-preservation loss when weighted.
+
+Gradients are averaged over the micro-batches, then :func:`jaxdrive.train.state.apply_gradients`
+updates (or skips a non-finite step). The step is jitted with the state's shardings as in/out
+shardings and the state donated; the batch is ``[A, b, ...]`` sharded over ``data``/``fsdp`` on
+axis 1, activations shard their tokens over ``seq`` inside the DiT.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
+
+from jaxdrive import flow
+from jaxdrive.config import FlowConfig
+from jaxdrive.models.dit import DiT
+from jaxdrive.models.dit_config import DiTConfig
+from jaxdrive.models.latents import LatentCodec
+from jaxdrive.train.state import TrainState, apply_gradients
+
+# pipeline drop names (jaxdrive.data.pipeline.CONDITIONS) -> the DiT conditions they drop
+DROPS = {"text": ("text",), "camera": ("camera",), "trajectory": ("trajectory", "waypoints"),
+         "boxes": ("boxes",), "map": ("map",)}
+BATCH_AXES = ("data", "fsdp")
+
+
+# ------------------------------------------------------------------------------ host side
+class TextEmbeddings:
+    """Precomputed T5 embeddings by caption (the ``.npz`` of ``jaxdrive data text-embed``)."""
+
+    def __init__(self, path):
+        path = Path(path)
+        if not path.is_file():
+            raise ValueError(f"data.text_embeddings: expected the .npz of 'jaxdrive data text-embed', "
+                             f"got {str(path)!r} (not found)")
+        with np.load(path) as f:
+            self.index = {str(c): i for i, c in enumerate(f["captions"])}
+            self.embeddings, self.mask = f["embeddings"], f["mask"]
+
+    def __call__(self, captions):
+        missing = [c for c in captions if c not in self.index]
+        if missing:
+            raise ValueError(f"data.text_embeddings: no embedding for captions {missing[:3]}; run "
+                             f"'jaxdrive data text-embed' on this dataset")
+        idx = [self.index[c] for c in captions]
+        return self.embeddings[idx], self.mask[idx]
+
+
+def model_inputs(batch: dict, model: DiTConfig, text_embeddings: TextEmbeddings | None = None) -> dict:
+    """The NumPy arrays a step needs from a pipeline batch (:mod:`jaxdrive.data.pipeline`):
+    ``video`` and what the DiT's controls read; captions become token ids (built-in caption
+    encoder) or looked-up T5 embeddings; ``drop`` is renamed to the DiT's conditions."""
+    c = model.controls
+    out = {"video": np.asarray(batch["video"], np.float32)}
+    if c.text == "caption":
+        from jaxdrive.data.text import tokenize_captions
+        out["text"], out["text_mask"] = tokenize_captions(batch["caption"], vocab=c.caption_vocab,
+                                                          max_len=model.text_len)
+    elif c.text == "embeddings":
+        if text_embeddings is None:
+            raise ValueError("data.text_embeddings: expected the .npz of 'jaxdrive data text-embed' for a model "
+                             "with text='embeddings', got none (or set model.controls.text=caption)")
+        out["text"], out["text_mask"] = text_embeddings(list(batch["caption"]))
+    if c.fps:
+        out["fps"] = np.asarray(batch["fps"], np.float32)
+    if c.camera:
+        out["intrinsics"] = np.asarray(batch["intrinsics"], np.float32)
+        out["cam_to_ego"] = np.asarray(batch["cam_to_ego"], np.float32)
+    if c.waypoints:
+        out["waypoints"] = np.asarray(batch["waypoints"], np.float32)
+    if c.trajectory:
+        out["ego_to_world"] = np.asarray(batch["ego_to_world"], np.float32)
+    if c.boxes:
+        for k in ("boxes", "box_classes", "box_valid"):
+            out[k] = np.asarray(batch[k])
+        if c.box_per_view and not c.camera:
+            out["intrinsics"] = np.asarray(batch["intrinsics"], np.float32)
+            out["cam_to_ego"] = np.asarray(batch["cam_to_ego"], np.float32)
+    if c.map:
+        out["bev_map"] = np.asarray(batch["bev_map"], np.float32) / 255.0
+    used = {"text": c.text is not None, "camera": c.camera, "waypoints": c.waypoints,
+            "trajectory": c.trajectory, "boxes": c.boxes, "map": c.map}
+    drop = {}
+    for name, targets in DROPS.items():
+        if name in batch.get("drop", {}):
+            for t in targets:
+                if used.get(t):
+                    drop[t] = np.asarray(batch["drop"][name], bool)
+    out["drop"] = drop
+    return out
+
+
+def stack_micro_batches(inputs: list[dict]) -> dict:
+    """``grad_accum`` micro-batches -> one tree with a leading ``[A]`` axis."""
+    return jax.tree_util.tree_map(lambda *xs: np.stack(xs), *inputs)
+
+
+def batch_sharding(mesh, tree):
+    """``[A, b, ...]`` leaves: ``b`` over the mesh's batch axes, the rest replicated."""
+    axes = tuple(a for a in BATCH_AXES if a in mesh.axis_names and dict(zip(mesh.axis_names, mesh.axis_sizes))[a] > 1)
+    spec = P(None, axes or None)
+    return jax.tree_util.tree_map(lambda _: NamedSharding(mesh, spec), tree)
+
+
+# ------------------------------------------------------------------------------ the loss
+@dataclasses.dataclass(frozen=True)
+class FlowTraining:
+    """What the loss needs besides parameters and data (hashable: a static jit argument)."""
+
+    model: DiTConfig
+    flow: FlowConfig
+    codec: LatentCodec
+
+    @property
+    def dit(self) -> DiT:
+        return DiT(self.model)
+
+
+def draw_levels(key, x, config: FlowConfig, *, height: int, width: int):
+    """Per-clip base levels, condition and anchor masks, per-frame levels ``[B, F']`` (step 2 of
+    the module docstring)."""
+    b, nf = x.shape[0], x.shape[-4]
+    k_sig, k_cond, k_anchor = jax.random.split(key, 3)
+    shift = config.shift if config.shift > 0 else flow.resolution_shift(height, width, nf)
+    sigma = flow.sample_sigmas(k_sig, (b,), distribution=config.sigma_sampling, loc=config.logit_loc,
+                               scale=config.logit_scale, shift=shift)
+    most = min(config.cond_frames, nf - 1)          # at least one frame is generated
+    if config.cond_frames_random and most > 0:
+        n_cond = jax.random.randint(k_cond, (b,), 0, most + 1)
+    else:
+        n_cond = jnp.full((b,), most)
+    frame = jnp.arange(nf)[None, :]
+    cond = frame < n_cond[:, None]
+    anchor = (frame == nf - 1) & (jax.random.uniform(k_anchor, (b, 1)) < config.jdc_anchor_rate)
+    levels = flow.frame_sigmas(sigma, cond, anchor_mask=anchor, tpd=config.tpd, omega=config.tpd_omega,
+                               anchor_slope=config.jdc_slope)
+    return sigma, cond, levels
+
+
+def flow_loss_fn(training: FlowTraining, params, codec_params, inputs: dict, key):
+    """The loss of one micro-batch and its metrics (steps 1-4 of the module docstring)."""
+    inputs = dict(inputs)
+    video = inputs.pop("video")
+    x = jax.lax.stop_gradient(training.codec.encode(codec_params, video))
+    k_levels, k_noise = jax.random.split(key)
+    _, cond, levels = draw_levels(k_levels, x, training.flow, height=video.shape[-3], width=video.shape[-2])
+    noise = jax.random.normal(k_noise, x.shape, jnp.float32)
+    x_t = flow.add_noise(x, noise, levels)
+    text = inputs.pop("text", None)
+    if training.model.controls.cond_frames is not None:
+        inputs["cond_latents"], inputs["cond_mask"] = x, cond
+    v = training.dit.forward(params, x_t, levels, text, **inputs)
+    loss = flow.flow_loss(v, x, noise, cond_mask=cond)
+    metrics = {"flow_loss": loss}
+    if training.flow.structure_weight > 0:
+        s = flow.structure_loss(flow.data_from_velocity(x_t, v, levels), x, cond_mask=cond)
+        metrics["structure_loss"] = s
+        loss = loss + training.flow.structure_weight * s
+    metrics["loss"] = loss
+    return loss, metrics
+
+
+def _grad_norm(grads):
+    import optax
+    return optax.tree.norm(grads)
+
+
+def train_step(training: FlowTraining, optimizer, ema_decay: float, state: TrainState, codec_params,
+               batch: dict):
+    """One update from the micro-batches ``batch`` (leaves ``[A, b, ...]``). Returns
+    ``(state, metrics)``; metrics are means over the micro-batches plus ``grad_norm``,
+    ``skipped`` and ``bad_steps``."""
+    key, next_key = jax.random.split(state.key)
+    n = jax.tree_util.tree_leaves(batch)[0].shape[0]
+    keys = jax.random.split(key, n)
+    grad_fn = jax.value_and_grad(lambda p, inp, k: flow_loss_fn(training, p, codec_params, inp, k), has_aux=True)
+
+    def micro(acc, xs):
+        inp, k = xs
+        (_, metrics), grads = grad_fn(state.params, inp, k)
+        return jax.tree_util.tree_map(jnp.add, acc, (grads, metrics)), None
+
+    zeros = jax.tree_util.tree_map(jnp.zeros_like, state.params)
+    m0 = jax.eval_shape(lambda: grad_fn(state.params, jax.tree_util.tree_map(lambda x: x[0], batch), keys[0])[0][1])
+    m0 = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), m0)
+    (grads, metrics), _ = jax.lax.scan(micro, (zeros, m0), (batch, keys))
+    grads = jax.tree_util.tree_map(lambda g: g / n, grads)
+    metrics = {k: v / n for k, v in metrics.items()}
+    new = apply_gradients(state, grads, metrics["loss"], optimizer, ema_decay, jax.random.key_data(next_key))
+    metrics.update(grad_norm=_grad_norm(grads), skipped=new.skipped, bad_steps=new.bad_steps)
+    return new, metrics
+
+
+def make_train_step(training: FlowTraining, optimizer, ema_decay: float, *, state_shardings,
+                    codec_shardings=None, batch_shardings=None):
+    """``train_step`` jitted with explicit shardings (state in = state out) and the state donated.
+    Call it under ``jax.set_mesh(mesh)``."""
+    fn = lambda state, codec_params, batch: train_step(training, optimizer, ema_decay, state, codec_params, batch)
+    return jax.jit(fn, in_shardings=(state_shardings, codec_shardings, batch_shardings),
+                   out_shardings=(state_shardings, None), donate_argnums=(0,))

@@ -1,0 +1,253 @@
+"""A training run from a :class:`jaxdrive.config.Config`: mesh, model, state, data, the loop.
+
+    run = Run(config)                       # checks everything before compiling anything
+    summary = train(config, "runs/tiny")    # resumes from runs/tiny/checkpoints when present
+
+The loop (:func:`train`): one jitted step per update (:mod:`jaxdrive.train.flow_step`), metrics
+every ``train.log_every`` steps (``metrics.jsonl``, TensorBoard, a progress bar), checkpoints
+every ``train.checkpoint_every`` steps, at the end, on SIGTERM / SIGINT (after the step in
+flight) and when ``train.max_bad_steps`` non-finite losses in a row stop the run (the state then
+is the last good one: non-finite steps never update it). A run started in a directory that holds
+checkpoints continues from the newest readable one, with the data iterator where it was, so a
+stopped and resumed run ends with the same parameters as one that never stopped.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import signal
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+from jax.sharding import PartitionSpec as P
+
+from jaxdrive.config import Config, check_sections, to_dict
+from jaxdrive.models.latents import LatentCodec
+from jaxdrive.parallel import host_local_to_global, make_mesh, shard_params
+from jaxdrive.train import flow_step
+from jaxdrive.train.checkpoint import Checkpoints
+from jaxdrive.train.optim import make_optimizer
+from jaxdrive.train.state import create_state
+
+_log = logging.getLogger(__name__)
+CONFIG_FILE = "config.json"
+
+
+def mesh_from_config(config: Config, devices=None):
+    m = config.mesh
+    devices = list(jax.devices() if devices is None else devices)
+    sizes = {"data": m.data, "fsdp": m.fsdp, "seq": m.seq, "tensor": m.tensor}
+    fixed = int(np.prod([s for s in sizes.values() if s != -1]))
+    if -1 not in sizes.values() and fixed != len(devices):
+        raise ValueError(f"mesh: expected sizes whose product is the device count {len(devices)}, got "
+                         f"{sizes} (product {fixed})")
+    return make_mesh(**sizes, devices=devices)
+
+
+def check_batch(config: Config, mesh) -> tuple[int, int]:
+    """``(micro-batch per process, micro-batch global)``; ``ValueError`` when the global batch
+    does not divide over processes, accumulation steps and the mesh's batch axes."""
+    sizes = dict(zip(mesh.axis_names, mesh.axis_sizes))
+    shards = sizes.get("data", 1) * sizes.get("fsdp", 1)
+    b, a, procs = config.data.batch_size, config.optim.grad_accum, jax.process_count()
+    micro = b // a if b % a == 0 else None
+    if micro is None or micro % shards or micro % procs:
+        raise ValueError(f"data.batch_size: expected a multiple of optim.grad_accum ({a}) x the batch mesh "
+                         f"axes data x fsdp ({shards}) and of the process count ({procs}), got {b}")
+    return micro // procs, micro
+
+
+class Run:
+    """Everything a run builds from its config (see the module docstring)."""
+
+    def __init__(self, config: Config, *, devices=None, total_steps: int | None = None):
+        check_sections(config)
+        self.config = config
+        self.total_steps = int(total_steps or config.train.steps)
+        self.mesh = mesh_from_config(config, devices)
+        self.local_batch, self.micro_batch = check_batch(config, self.mesh)
+        self.codec = LatentCodec.from_config(config.latents)
+        model = config.model
+        if config.train.compute_dtype != model.dtype:
+            model = model.replace(dtype=config.train.compute_dtype)
+        self.codec.check_model(model)
+        tensor = dict(zip(self.mesh.axis_names, self.mesh.axis_sizes)).get("tensor", 1)
+        if model.heads % tensor:
+            raise ValueError(f"model.heads: expected a multiple of the mesh axis tensor ({tensor}), got {model.heads}")
+        d = config.data
+        grid = self.codec.spatial * model.patch[1]
+        if d.height % grid or d.width % (self.codec.spatial * model.patch[2]):
+            raise ValueError(f"data.height, data.width: expected multiples of latent compression x patch "
+                             f"({grid}), got {d.height} x {d.width}")
+        self.training = flow_step.FlowTraining(model, config.flow, self.codec)
+        self.latent_frames = self.codec.latent_frames(d.frames)
+        self.tokens_per_step = (d.batch_size * d.views * self.latent_frames * (d.height // grid) *
+                                (d.width // (self.codec.spatial * model.patch[2])))
+        self.text = None
+        if model.controls.text == "embeddings":
+            self.text = flow_step.TextEmbeddings(d.text_embeddings) if d.text_embeddings else None
+
+    # ------------------------------------------------------------------ state
+    def init_state(self):
+        """A fresh state on the mesh (params FSDP / tensor sharded by their logical names)."""
+        cfg, d = self.config, self.config.data
+        dit = self.training.dit
+        boxed = dit.init_params(cfg.train.seed, boxed=True, batch=1, views=d.views, frames=self.latent_frames,
+                                height=d.height // self.codec.spatial, width=d.width // self.codec.spatial)
+        with jax.set_mesh(self.mesh):
+            params = shard_params(boxed, self.mesh)
+            self.optimizer = make_optimizer(cfg.optim, self.total_steps, params)
+            ema = cfg.optim.ema_decay > 0
+            state = jax.jit(lambda p: create_state(p, self.optimizer, cfg.train.seed, ema=ema))(params)
+        self.state_shardings = jax.tree_util.tree_map(lambda x: x.sharding, state)
+        return state
+
+    def abstract_state(self, state):
+        return jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding), state)
+
+    def step_fn(self):
+        return flow_step.make_train_step(self.training, self.optimizer, self.config.optim.ema_decay,
+                                         state_shardings=self.state_shardings)
+
+    # ------------------------------------------------------------------ data
+    def dataset(self, split: str | None = None):
+        from jaxdrive.data.pipeline import CONDITIONS, make_pipeline
+        from jaxdrive.data.tfds_io import open_source
+        d = self.config.data
+        source = open_source(d.path, split or d.split)
+        return make_pipeline(source, {(d.height, d.width, d.frames): self.local_batch}, stride=d.stride,
+                             views=list(range(d.views)), drop_probs={n: d.drop_prob for n in CONDITIONS},
+                             seed=d.shuffle_seed, num_threads=d.threads, prefetch=2 if d.threads else 0,
+                             compression=max(self.codec.temporal, 1))
+
+    def global_batch(self, micro_batches: list[dict]):
+        """Host micro-batches (this process's samples) -> one global ``[A, b, ...]`` tree."""
+        tree = flow_step.stack_micro_batches([flow_step.model_inputs(b, self.training.model, self.text)
+                                              for b in micro_batches])
+        axes = tuple(a for a in flow_step.BATCH_AXES if a in self.mesh.axis_names)
+        return host_local_to_global(tree, self.mesh, P(None, axes))
+
+
+class _Stop:
+    """SIGTERM / SIGINT set a flag that the loop reads after the step in flight."""
+
+    def __init__(self):
+        self.signum = None
+        self._old = {}
+
+    def __enter__(self):
+        for s in (signal.SIGTERM, signal.SIGINT):
+            try:
+                self._old[s] = signal.signal(s, self._handle)
+            except ValueError:          # not the main thread: no handlers, nothing to restore
+                pass
+        return self
+
+    def _handle(self, signum, frame):
+        self.signum = signum
+
+    def __exit__(self, *exc):
+        for s, h in self._old.items():
+            signal.signal(s, h)
+
+
+def _save(ckpts, step, state, it, config, **extra):
+    ckpts.save(step, state, it.get_state(), {"step": step, "time": time.time(), **extra,
+                                             "config": to_dict(config)})
+
+
+def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = True) -> dict:
+    """Train (or resume) in ``workdir``; returns ``{"step", "status", "loss", ...}``.
+    ``status``: ``"done"``, ``"interrupted"`` (a signal) or ``"diverged"`` (non-finite losses).
+    ``on_step(step, metrics)`` is called after every step (tests)."""
+    workdir = Path(workdir)
+    run = Run(config)
+    cfg = config
+    state = run.init_state()
+    it = iter(run.dataset())
+    ckpts = Checkpoints(workdir, keep=cfg.train.keep_checkpoints)
+    start = 0
+    restored = ckpts.restore_latest(run.abstract_state(state), log=log)
+    if restored is not None:
+        start, state, data_state, _ = restored
+        it.set_state(data_state)
+        log(f"resuming from checkpoint {ckpts.directory / str(start)} (step {start})")
+    if jax.process_index() == 0:
+        workdir.mkdir(parents=True, exist_ok=True)
+        (workdir / CONFIG_FILE).write_text(json.dumps(to_dict(cfg), indent=1))
+    step_fn = run.step_fn()
+    writer = MetricsWriterProxy(workdir, run, start, progress)
+    status, step, row = "done", start, {}
+    with _Stop() as stop, jax.set_mesh(run.mesh):
+        while step < run.total_steps:
+            batch = run.global_batch([next(it) for _ in range(cfg.optim.grad_accum)])
+            state, metrics = step_fn(state, run.codec.params, batch)
+            step += 1
+            bad = int(metrics["bad_steps"])
+            if step % cfg.train.log_every == 0 or step == run.total_steps or bad:
+                row = writer.write(step, metrics)
+            if on_step is not None:
+                on_step(step, metrics)
+            if bad >= cfg.train.max_bad_steps:
+                status = "diverged"
+                _save(ckpts, step, state, it, cfg, status=status)
+                log(f"stopping: {bad} non-finite losses in a row at step {step} (train.max_bad_steps = "
+                    f"{cfg.train.max_bad_steps}); checkpoint {ckpts.directory / str(step)} holds the last good "
+                    f"parameters")
+                break
+            if cfg.train.checkpoint_every and step % cfg.train.checkpoint_every == 0:
+                _save(ckpts, step, state, it, cfg)
+            if cfg.train.sample_every and step % cfg.train.sample_every == 0:
+                from jaxdrive.generate.samples import write_samples
+                write_samples(run, state, workdir / "samples" / f"step_{step:07d}", log=log)
+            if stop.signum is not None:
+                status = "interrupted"
+                _save(ckpts, step, state, it, cfg, status=status)
+                log(f"signal {signal.Signals(stop.signum).name}: saved checkpoint "
+                    f"{ckpts.directory / str(step)}; run the same command to resume")
+                break
+        else:
+            _save(ckpts, step, state, it, cfg, status=status)
+    ckpts.close()
+    writer.close()
+    return {"step": step, "status": status, "loss": row.get("loss"), "state": state, "run": run}
+
+
+class MetricsWriterProxy:
+    """The run's :class:`MetricsWriter` with the run's token count."""
+
+    def __init__(self, workdir, run: Run, start: int, progress: bool):
+        from jaxdrive.train.metrics import MetricsWriter
+        self.inner = MetricsWriter(workdir, total_steps=run.total_steps, start_step=start,
+                                   tokens_per_step=run.tokens_per_step, progress=progress)
+
+    def write(self, step, metrics):
+        return self.inner.write(step, jax.device_get(metrics))
+
+    def close(self):
+        self.inner.close()
+
+
+def load_run_config(workdir) -> Config:
+    """The config a run in ``workdir`` was started with (``workdir/config.json``)."""
+    from jaxdrive.config import from_dict
+    path = Path(workdir) / CONFIG_FILE
+    if not path.is_file():
+        raise ValueError(f"workdir: expected a training run directory with {CONFIG_FILE}, got {str(workdir)!r}")
+    return from_dict(Config, json.loads(path.read_text()))
+
+
+def restore_params(run: Run, workdir, *, ema: bool = True, log=print):
+    """``(step, params)`` of the newest readable checkpoint of ``workdir`` (EMA when kept)."""
+    state = run.init_state()
+    ckpts = Checkpoints(workdir, keep=run.config.train.keep_checkpoints, asynchronous=False)
+    restored = ckpts.restore_latest(run.abstract_state(state), log=log)
+    ckpts.close()
+    if restored is None:
+        raise ValueError(f"workdir: expected checkpoints under {Path(workdir) / 'checkpoints'}, found none")
+    step, state = restored[0], restored[1]
+    return step, (state.ema if ema and state.ema is not None else state.params)
+

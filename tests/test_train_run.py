@@ -1,0 +1,174 @@
+"""The DiT's training engine on 8 fake CPU devices: the flow step's levels and latents, a sharded
+step against the single-device step, exact resume after SIGTERM, non-finite losses stopping the
+run, bad configs rejected before compiling, and ``jaxdrive train`` / ``sample`` from the CLI."""
+
+import json
+import os
+import signal
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxdrive.cli import main as cli
+from jaxdrive.config import FlowConfig, load_config
+from jaxdrive.models.latents import depth_to_space, space_to_depth
+from jaxdrive.train import flow_step
+from jaxdrive.train.metrics import read_metrics
+from jaxdrive.train.run import Run, train
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ROOT / "configs" / "tiny.py"
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    from jaxdrive.data.synthetic import generate_clip
+    from jaxdrive.data.tfds_io import write_dataset
+    out = tmp_path_factory.mktemp("synth") / "data"
+    clips = lambda first, n: (generate_clip(first + i, views=6, frames=9, height=32, width=56) for i in range(n))
+    write_dataset(out, {"train": clips(0, 3), "validation": clips(100, 1)}, name="jaxdrive_synthetic")
+    return out
+
+
+SMALLER = ["data.views=2", "data.frames=5", "data.batch_size=2", "model.depth=1", "optim.warmup_steps=2",
+           "train.log_every=1"]
+
+
+def tiny(dataset, *sets):
+    """configs/tiny.py shrunk for tests: 2 views, 5 frames, one layer, on a data=2 x seq=4 mesh."""
+    return load_config(TINY, [f"data.path={dataset}", *SMALLER, "train.steps=4", "train.checkpoint_every=2",
+                              "mesh.data=2", "mesh.seq=4", *sets])
+
+
+def test_space_to_depth_round_trip_and_layout():
+    video = jax.random.normal(jax.random.key(0), (2, 3, 5, 8, 12, 3))
+    z = space_to_depth(video, 4)
+    assert z.shape == (2, 3, 5, 2, 3, 48)
+    np.testing.assert_array_equal(depth_to_space(z, 4), video)
+    # latent (0, 0) holds the top-left 4 x 4 patch, row-major, channels last
+    np.testing.assert_array_equal(z[0, 0, 0, 0, 0], video[0, 0, 0, :4, :4].reshape(-1))
+
+
+def test_draw_levels_condition_anchor_and_generated_frames():
+    x = jnp.zeros((512, 1, 6, 2, 2, 4))
+    cfg = FlowConfig(cond_frames=2, cond_frames_random=False, jdc_anchor_rate=0.5, jdc_slope=0.5)
+    sigma, cond, levels = flow_step.draw_levels(jax.random.key(1), x, cfg, height=16, width=16)
+    assert cond.shape == (512, 6) and bool(jnp.all(cond[:, :2])) and not bool(jnp.any(cond[:, 2:]))
+    np.testing.assert_array_equal(levels[:, :2], 0.0)                       # clean condition frames
+    np.testing.assert_allclose(levels[:, 2:5], jnp.broadcast_to(sigma[:, None], (512, 3)))
+    anchored = np.isclose(levels[:, 5], 0.5 * sigma)                          # g = slope * sigma
+    assert np.all(anchored | np.isclose(levels[:, 5], sigma))
+    assert 0.35 < anchored.mean() < 0.65                                      # about the anchor rate
+    rand = flow_step.draw_levels(jax.random.key(2), x, FlowConfig(cond_frames=3), height=16, width=16)[1]
+    assert set(np.asarray(rand.sum(1)).tolist()) == {0, 1, 2, 3}              # 0..cond_frames per clip
+
+
+def test_model_inputs_map_the_pipeline_drops(dataset):
+    cfg = tiny(dataset)
+    run = Run(cfg)
+    batch = next(iter(run.dataset()))
+    batch["drop"] = {n: np.array([True, False]) for n in ("text", "camera", "trajectory", "boxes", "map")}
+    inputs = flow_step.model_inputs(batch, run.training.model)
+    assert sorted(inputs["drop"]) == ["camera", "text", "waypoints"]          # the tiny model's conditions
+    assert inputs["text"].dtype == np.int32 and inputs["text"].shape == (2, cfg.model.text_len)
+    assert inputs["video"].shape == (2, 2, 5, 32, 56, 3)
+
+
+def test_sharded_step_matches_single_device(dataset):
+    cfg = tiny(dataset, "train.steps=1")
+    losses, grads = {}, {}
+    for name, devices in (("mesh", None), ("single", jax.devices()[:1])):
+        c = cfg if devices is None else tiny(dataset, "train.steps=1", "mesh.data=1", "mesh.seq=1")
+        run = Run(c, devices=devices)
+        state = run.init_state()
+        batch = run.global_batch([next(iter(run.dataset()))])
+        with jax.set_mesh(run.mesh):
+            new, metrics = run.step_fn()(state, None, batch)
+        losses[name], grads[name] = float(metrics["loss"]), float(metrics["grad_norm"])
+    assert losses["mesh"] == pytest.approx(losses["single"], rel=1e-5)
+    assert grads["mesh"] == pytest.approx(grads["single"], rel=1e-4)
+
+
+def test_resume_after_sigterm_is_bit_exact(dataset, tmp_path):
+    cfg = tiny(dataset)
+    whole = train(cfg, tmp_path / "whole", progress=False)
+    assert whole["status"] == "done" and whole["step"] == 4
+
+    def stop_at_2(step, metrics):
+        if step == 2:
+            os.kill(os.getpid(), signal.SIGTERM)
+    part = train(cfg, tmp_path / "split", progress=False, on_step=stop_at_2)
+    assert part["status"] == "interrupted" and part["step"] == 2
+    resumed = train(cfg, tmp_path / "split", progress=False)
+    assert resumed["status"] == "done" and resumed["step"] == 4
+    for a, b in zip(jax.tree_util.tree_leaves(whole["state"]), jax.tree_util.tree_leaves(resumed["state"])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))          # params, Adam moments, EMA, rng
+    rows = read_metrics(tmp_path / "split")
+    assert [r["step"] for r in rows] == [1, 2, 3, 4] and all(np.isfinite(r["loss"]) for r in rows)
+
+
+def test_non_finite_losses_skip_and_stop_with_the_last_good_state(dataset, tmp_path, monkeypatch):
+    cfg = tiny(dataset, "train.max_bad_steps=2", "train.steps=6", "train.checkpoint_every=100")
+    original = Run.global_batch
+    calls = []
+
+    def poisoned(self, micro_batches):
+        calls.append(1)
+        if len(calls) >= 2:                                   # every batch from step 2 on holds a NaN
+            for b in micro_batches:
+                b["video"] = np.array(b["video"], copy=True)
+                b["video"][0, 0, 0, 0, 0, 0] = np.nan
+        return original(self, micro_batches)
+    monkeypatch.setattr(Run, "global_batch", poisoned)
+    messages = []
+    out = train(cfg, tmp_path / "nan", progress=False, log=messages.append)
+    assert out["status"] == "diverged" and out["step"] == 3
+    assert any("2 non-finite losses in a row at step 3" in m for m in messages)
+    state = out["state"]
+    assert int(state.skipped) == 2 and int(state.step) == 3
+    for leaf in jax.tree_util.tree_leaves(state.params):
+        assert np.all(np.isfinite(np.asarray(leaf)))
+    assert (tmp_path / "nan" / "checkpoints" / "3").is_dir()
+
+
+@pytest.mark.parametrize("sets, match", [
+    (["mesh.data=3"], r"mesh: expected sizes whose product is the device count 8"),
+    (["data.batch_size=3", "mesh.data=2"], r"data.batch_size: expected a multiple of"),
+    (["model.heads=3", "mesh.tensor=2", "mesh.seq=2"], r"model.heads: expected a multiple of the mesh axis tensor"),
+    (["model.in_channels=16"], r"model.in_channels: expected 48 to match the latents"),
+    (["data.height=30"], r"data.height, data.width: expected multiples"),
+])
+def test_bad_configs_fail_before_compiling(dataset, sets, match):
+    with pytest.raises(ValueError, match=match):
+        Run(tiny(dataset, *sets))
+
+
+def test_cli_rejects_unknown_keys_and_bad_meshes(dataset, tmp_path, capsys):
+    assert cli(["train", "--config", str(TINY), "--workdir", str(tmp_path), "--set", "optim.lrate=1"]) == 2
+    assert "unknown key 'lrate' in optim" in capsys.readouterr().err
+    assert cli(["train", "--config", str(TINY), "--workdir", str(tmp_path), "--set", "train.steps=x"]) == 2
+    assert "train.steps: expected int, got 'x'" in capsys.readouterr().err
+    assert cli(["train", "--config", str(TINY), "--workdir", str(tmp_path), "--mesh", "data=3",
+                "--set", f"data.path={dataset}"]) == 2
+    assert "product is the device count 8" in capsys.readouterr().err
+
+
+def test_cli_train_then_sample_writes_video_and_grid(dataset, tmp_path):
+    work = tmp_path / "run"
+    args = ["train", "--config", str(TINY), "--workdir", str(work), "--steps", "2", "--checkpoint-every", "1",
+            "--mesh", "data=2,seq=4", "--no-progress"]
+    for s in [f"data.path={dataset}", *SMALLER]:
+        args += ["--set", s]
+    assert cli(args) == 0
+    rows = [json.loads(line) for line in (work / "metrics.jsonl").read_text().splitlines()]
+    assert rows[-1]["step"] == 2 and "loss" in rows[-1] and "tokens_per_s" in rows[-1]
+    assert any(p.name.startswith("events") for p in (work / "tensorboard").iterdir())
+    out = tmp_path / "sample"
+    assert cli(["sample", "--workdir", str(work), "--frames", "9", "--steps", "2", "--cfg", "2.0",
+                "--out", str(out), "--mesh", "data=1,seq=8"]) == 0
+    assert (out / "sample.mp4").stat().st_size > 0 and (out / "frames.png").stat().st_size > 0
+    latents = np.load(out / "latents.npy")
+    assert latents.shape == (1, 2, 9, 8, 14, 48) and np.all(np.isfinite(latents))
