@@ -63,7 +63,7 @@ def _sample(args, rest) -> int:
     out_dir = Path(args.out or Path(args.workdir) / "samples" / f"sample_{step:07d}")
     t = time.perf_counter()
     write_samples(run, params, out_dir, frames=args.frames, views=views, steps=args.steps,
-                  guidance=args.cfg, clips=1, seed=args.seed)
+                  guidance=args.cfg, seed=args.seed)
     print(f"sampled from checkpoint {step} in {time.perf_counter() - t:.1f} s: {out_dir}")
     return 0
 
@@ -87,6 +87,9 @@ def _demo(args, rest) -> int:
     data = workdir / "data"
     extra = [f"data.path={data}", f"train.steps={args.steps}"]
     config = _config(config_path, None, args.set, extra)
+    if args.scenes < config.data.batch_size + 1:
+        raise ValueError(f"--scenes: expected at least data.batch_size + 1 = {config.data.batch_size + 1} "
+                         f"(a batch of training scenes and one for validation), got {args.scenes}")
     start_jax()
     t0 = time.perf_counter()
     if not data.exists():

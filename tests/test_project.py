@@ -20,8 +20,14 @@ def test_cli_help_lists_the_commands_that_exist():
 
 def test_ci_runs_the_readme_test_command():
     ci = (ROOT / ".ci" / "run").read_text()
-    readme_cmd = re.search(r"```bash\n(?:.*\n)*?(pip install -e .*)\n```", README).group(1)
+    readme_cmd = re.search(r"```bash\n(?:.*\n)*?(pip install -e .*pytest.*)\n```", README).group(1)
     assert readme_cmd in ci.splitlines()
+
+
+def test_readme_starts_with_the_demo_then_the_tests():
+    blocks = re.findall(r"```bash\n(.*?)```", README, flags=re.S)
+    assert blocks[0].strip().endswith("pip install -e . && jaxdrive demo")
+    assert "python -m pytest" in blocks[1]
 
 
 PY_BLOCKS = re.findall(r"```python\n(.*?)```", README, flags=re.S)

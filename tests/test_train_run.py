@@ -172,3 +172,25 @@ def test_cli_train_then_sample_writes_video_and_grid(dataset, tmp_path):
     assert (out / "sample.mp4").stat().st_size > 0 and (out / "frames.png").stat().st_size > 0
     latents = np.load(out / "latents.npy")
     assert latents.shape == (1, 2, 9, 8, 14, 48) and np.all(np.isfinite(latents))
+
+
+@pytest.mark.parametrize("name", ["tiny", "small", "mila", "magicdrive_v2", "longdwm", "stdit3_xl"])
+def test_every_config_loads_and_checks(name):
+    from jaxdrive.config import check_sections
+    config = load_config(ROOT / "configs" / f"{name}.py")
+    check_sections(config)
+    assert config.model.in_channels == (48 if config.latents.source == "space_to_depth" else 16)
+
+
+def test_demo_runs_end_to_end(tmp_path, capsys):
+    sets = [*SMALLER, "train.sample_steps=2", "train.checkpoint_every=100", "mesh.data=2", "mesh.seq=4"]
+    args = ["demo", "--workdir", str(tmp_path / "demo"), "--steps", "2", "--scenes", "3", "--frames", "9",
+            "--no-progress"]
+    for s in sets:
+        args += ["--set", s]
+    assert cli(args) == 0
+    out = capsys.readouterr().out
+    for name in ("sample.mp4", "frames.png", "loss.png"):
+        assert name in out
+    assert (tmp_path / "demo" / "samples" / "demo" / "sample.mp4").stat().st_size > 0
+    assert (tmp_path / "demo" / "loss.png").stat().st_size > 0

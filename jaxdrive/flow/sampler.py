@@ -103,17 +103,26 @@ def _interleave(leaves):
     return stacked.reshape((stacked.shape[0] * stacked.shape[1],) + stacked.shape[2:])
 
 
+def _like(v, x):
+    """``v`` with exactly ``x``'s sharding under an Explicit mesh, where the Euler update cannot
+    add two differently sharded arrays (the network may return its batch sharded otherwise)."""
+    spec = getattr(getattr(jax.typeof(x), "sharding", None), "spec", None)
+    if spec is None or jax.sharding.get_abstract_mesh().empty:
+        return v
+    return jax.reshard(v, spec)
+
+
 def _batched_velocity(velocity_fn, variants, combine):
     """One call of ``velocity_fn`` over all guidance variants stacked along the batch."""
     n = len(variants)
     if n == 1:
-        return lambda x, s: velocity_fn(x, s, variants[0])
+        return lambda x, s: _like(velocity_fn(x, s, variants[0]), x)
     stacked = jax.tree_util.tree_map(lambda *leaves: _interleave(leaves), *variants)
 
     def velocity(x, sigma):
         v = velocity_fn(_interleave([x] * n), _interleave([sigma] * n), stacked)
         v = v.reshape((x.shape[0], n) + v.shape[1:])
-        return combine([v[:, i] for i in range(n)])
+        return _like(combine([v[:, i] for i in range(n)]), x)
     return velocity
 
 

@@ -92,7 +92,7 @@ def rollout(training, params, codec_params, inputs: dict, *, total_frames: int, 
     pixel_window = 1 + codec.temporal * (window - 1)
     first = codec.encode(codec_params, video[:, :, :pixel_window])     # [B, V, window, h, w, C]
     shape = first.shape[:2] + (total_frames,) + first.shape[3:]
-    out = jnp.zeros(shape, jnp.float32)
+    out = jnp.zeros(shape, jnp.float32, device=first.sharding)         # sharded like the windows
     sample = jax.jit(lambda p, xc, m, c, k: sample_window(training, p, xc, m, c, k, steps=steps,
                                                           guidance=guidance, shift=shift))
     done, start = 0, 0

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import jax
 import numpy as np
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
 
 from jaxdrive import flow
 from jaxdrive.generate.rollout import rollout, to_numpy_video
@@ -54,9 +56,16 @@ def dataset_inputs(run, *, frames: int, views=None, clips: int = 1, split: str |
 
 def generate(run, params, *, frames: int | None = None, views=None, steps: int | None = None,
              guidance: float = 1.0, cond_frames: int | None = None, overlap: int | None = None,
-             clips: int = 1, seed: int = 0):
-    """Generated video ``[clips, V, F, H, W, 3]`` in [-1, 1] and its latents."""
+             clips: int | None = None, seed: int = 0):
+    """Generated video ``[clips, V, F, H, W, 3]`` in [-1, 1] and its latents. ``clips`` defaults
+    to the size of the mesh's batch axes (``data x fsdp``), the least a batch-sharded sampler
+    can run."""
     cfg = run.config
+    sizes = dict(zip(run.mesh.axis_names, run.mesh.axis_sizes))
+    shards = sizes.get("data", 1) * sizes.get("fsdp", 1)
+    clips = shards if clips is None else check_positive_int("clips", clips)
+    if clips % shards:
+        raise ValueError(f"clips: expected a multiple of the mesh's data x fsdp size {shards}, got {clips}")
     frames = cfg.data.frames if frames is None else check_positive_int("frames", frames)
     steps = cfg.train.sample_steps if steps is None else check_positive_int("steps", steps)
     codec = run.codec
@@ -67,6 +76,9 @@ def generate(run, params, *, frames: int | None = None, views=None, steps: int |
     inputs = dataset_inputs(run, frames=frames, views=views, clips=clips, seed=seed)
     d = cfg.data
     shift = cfg.flow.shift if cfg.flow.shift > 0 else flow.resolution_shift(d.height, d.width, window)
+    axes = tuple(a for a in ("data", "fsdp") if a in run.mesh.axis_names) or None    # as the DiT shards its batch
+    batch_sharding = NamedSharding(run.mesh, P(axes))          # every process holds the same clips
+    inputs = jax.tree_util.tree_map(lambda x: jax.device_put(np.asarray(x), batch_sharding), inputs)
     with jax.set_mesh(run.mesh):
         latents = rollout(run.training, params, codec.params, inputs, total_frames=total, window=window,
                           overlap=overlap, cond_frames=min(cond, window - 1), steps=steps, guidance=guidance,
