@@ -31,10 +31,12 @@ import numpy as np
 
 from jaxdrive.models.attention import attention
 from jaxdrive.models.dit_config import DiTConfig
+from jaxdrive.models.dit_layers import _explicit_mesh, _spec_of
 from jaxdrive.models.dit_layers import (MLP, TEXT, VIDEO, ZEROS, AttnProj, Dense, LayerNorm, apply_rope,
                                         from_sequence, merge, mesh_axis_size, modulate, normal, param, reshape, rope_1d,
                                         split, to_sequence)
 from jaxdrive.parallel.rules import constrain
+from jax.sharding import PartitionSpec
 
 # Token order of merged video sequences: S (sharded) major, then F, then V.
 SFV = (2, 1, 3)
@@ -159,6 +161,8 @@ def joint_attention(proj: AttnProj, xv, xt, *, impl: str, rope=None, text_mask=N
 
     def join(t, v):
         if n == 1:
+            if _explicit_mesh() is not None:      # one seq device: give the text the video's layout
+                t = jax.reshard(t, PartitionSpec(*_spec_of(v)))
             return jnp.concatenate([t, v], axis=1)
         return merge(jnp.concatenate([split(t, 1, n), split(v, 1, n)], axis=2), 1)
     q, k, v = (join(t, v) for t, v in zip(seqs_t, seqs_v))
