@@ -43,19 +43,12 @@ def _splits(train, validation, n_val):
 
 
 def _data_synth(args, rest) -> int:
-    from jaxdrive.data.synthetic import generate_clip
-    from jaxdrive.data.tfds_io import write_dataset
+    from jaxdrive.data.synthetic import write_synthetic_dataset
 
     n_train, n_val = _split_counts(args.scenes, args.val_fraction)
-
-    def clips(first, count):
-        for i in range(first, first + count):  # one seed per scene: reproducible, disjoint splits
-            yield generate_clip(args.seed + i, views=args.views, frames=args.frames,
-                                height=args.height, width=args.width)
-    path = write_dataset(args.out, _splits(clips(0, n_train), clips(n_train, n_val), n_val),
-                         name="jaxdrive_synthetic", overwrite=args.overwrite,
-                         metadata={"source": "synthetic", "seed": args.seed, "views": args.views,
-                                   "frames": args.frames, "height": args.height, "width": args.width})
+    path = write_synthetic_dataset(args.out, train=n_train, validation=n_val, seed=args.seed,
+                                   overwrite=args.overwrite, views=args.views, frames=args.frames,
+                                   height=args.height, width=args.width)
     print(f"wrote {n_train} train and {n_val} validation clips to {path}")
     return 0
 

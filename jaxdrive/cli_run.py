@@ -93,15 +93,12 @@ def _demo(args, rest) -> int:
     start_jax()
     t0 = time.perf_counter()
     if not data.exists():
-        from jaxdrive.data.synthetic import generate_clip
-        from jaxdrive.data.tfds_io import write_dataset
+        from jaxdrive.data.synthetic import write_synthetic_dataset
         d = config.data
         frames = max(args.frames, d.frames)
         print(f"[1/3] synthesising {args.scenes} driving scenes ({d.views} views x {frames} frames) in {data}")
-        clips = lambda first, n: (generate_clip(first + i, views=6, frames=frames, height=2 * d.height,
-                                                width=2 * d.width) for i in range(n))
-        write_dataset(data, {"train": clips(0, args.scenes - 1), "validation": clips(10_000, 1)},
-                      name="jaxdrive_synthetic", overwrite=True, metadata={"source": "synthetic demo"})
+        write_synthetic_dataset(data, train=args.scenes - 1, validation=1, overwrite=True, views=6, frames=frames,
+                                height=2 * d.height, width=2 * d.width)
     from jaxdrive.media import plot_losses
     from jaxdrive.train.metrics import read_metrics
     from jaxdrive.train.run import train

@@ -248,8 +248,5 @@ def check_sections(config) -> None:
     validate.check_range("optim.min_lr_ratio", o.min_lr_ratio, 0.0, 1.0)
     if f.cond_frames < 0:
         raise ValueError(f"flow.cond_frames: expected >= 0, got {f.cond_frames}")
-    if d.batch_size % o.grad_accum:
-        raise ValueError(f"data.batch_size: expected a multiple of optim.grad_accum ({o.grad_accum}), "
-                         f"got {d.batch_size}")
     if hasattr(config, "model"):
         check_config(config.model)

@@ -55,3 +55,15 @@ def test_sharded_matches_single_device(case):
     assert max_rel(got, want) < 1e-5
     assert max_rel(gx, gx_want) < 1e-4
     assert tree_max_rel(gp, gp_want) < 1e-4
+
+
+def test_full_layout_on_a_one_device_explicit_mesh():
+    """The [text; video] join with a seq axis of size 1 (a single-GPU run) matches no mesh."""
+    cfg = preset("tiny-full")
+    shapes = (("batch", 1), ("views", 1), ("frames", 2), ("height", 8), ("width", 8))
+    params = params_for(cfg, shapes, skip=())
+    lat, sig, text, kw = split_inputs(example_inputs(cfg, **dict(shapes)))
+    want = _loss_fn(cfg)(params, lat, sig, text, kw)[0][1]
+    with jax.set_mesh(make_mesh(devices=jax.devices()[:1])):
+        got = _loss_fn(cfg)(params, lat, sig, text, kw)[0][1]
+    assert max_rel(got, want) < 1e-6

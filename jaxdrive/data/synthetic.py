@@ -202,3 +202,20 @@ def generate_clip(seed, *, views=6, frames=33, height=64, width=112, fps=12.0, n
                                   location=town, season=season, daytime=DAYTIME[look]),
     }
     return clip
+
+
+def write_synthetic_dataset(out, *, train: int, validation: int = 0, seed: int = 0, overwrite: bool = False,
+                            **clip_kwargs):
+    """A TFDS dataset of ``train`` (+ ``validation``) synthetic scenes under ``out``, one seed per
+    scene (``seed + i``: reproducible, disjoint splits); ``clip_kwargs`` go to :func:`generate_clip`.
+    Returns the dataset path."""
+    from jaxdrive.data.tfds_io import write_dataset
+
+    def clips(first, count):
+        for i in range(first, first + count):
+            yield generate_clip(seed + i, **clip_kwargs)
+    splits = {"train": clips(0, train)}
+    if validation:
+        splits["validation"] = clips(train, validation)
+    return write_dataset(out, splits, name="jaxdrive_synthetic", overwrite=overwrite,
+                         metadata={"source": "synthetic", "seed": seed, **clip_kwargs})

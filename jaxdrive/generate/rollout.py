@@ -112,15 +112,6 @@ def rollout(training, params, codec_params, inputs: dict, *, total_frames: int, 
     return out
 
 
-def frames_needed(codec, latent_frames: int) -> int:
-    """Pixel frames of a clip of ``latent_frames`` latent frames."""
-    return 1 + codec.temporal * (int(latent_frames) - 1)
-
-
-def latent_frames_for(codec, pixel_frames: int) -> int:
-    return codec.latent_frames(int(pixel_frames))
-
-
 def to_numpy_video(codec, codec_params, latents) -> np.ndarray:
     """Decoded video ``[B, V, F, H, W, 3]`` in [-1, 1] as NumPy."""
     return np.asarray(jax.jit(codec.decode)(codec_params, latents))

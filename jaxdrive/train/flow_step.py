@@ -31,7 +31,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import NamedSharding
+import optax
 from jax.sharding import PartitionSpec as P
 
 from jaxdrive import flow
@@ -118,11 +118,12 @@ def stack_micro_batches(inputs: list[dict]) -> dict:
     return jax.tree_util.tree_map(lambda *xs: np.stack(xs), *inputs)
 
 
-def batch_sharding(mesh, tree):
-    """``[A, b, ...]`` leaves: ``b`` over the mesh's batch axes, the rest replicated."""
-    axes = tuple(a for a in BATCH_AXES if a in mesh.axis_names and dict(zip(mesh.axis_names, mesh.axis_sizes))[a] > 1)
-    spec = P(None, axes or None)
-    return jax.tree_util.tree_map(lambda _: NamedSharding(mesh, spec), tree)
+def global_micro_batches(inputs: list[dict], mesh) -> dict:
+    """This process's micro-batches (host arrays) -> one global ``[A, b, ...]`` tree with ``b``
+    over the mesh's batch axes (``data``/``fsdp``) and the rest replicated."""
+    from jaxdrive.parallel import host_local_to_global
+    axes = tuple(a for a in BATCH_AXES if a in mesh.axis_names)
+    return host_local_to_global(stack_micro_batches(inputs), mesh, P(None, axes or None))
 
 
 # ------------------------------------------------------------------------------ the loss
@@ -183,11 +184,6 @@ def flow_loss_fn(training: FlowTraining, params, codec_params, inputs: dict, key
     return loss, metrics
 
 
-def _grad_norm(grads):
-    import optax
-    return optax.tree.norm(grads)
-
-
 def train_step(training: FlowTraining, optimizer, ema_decay: float, state: TrainState, codec_params,
                batch: dict):
     """One update from the micro-batches ``batch`` (leaves ``[A, b, ...]``). Returns
@@ -210,14 +206,14 @@ def train_step(training: FlowTraining, optimizer, ema_decay: float, state: Train
     grads = jax.tree_util.tree_map(lambda g: g / n, grads)
     metrics = {k: v / n for k, v in metrics.items()}
     new = apply_gradients(state, grads, metrics["loss"], optimizer, ema_decay, jax.random.key_data(next_key))
-    metrics.update(grad_norm=_grad_norm(grads), skipped=new.skipped, bad_steps=new.bad_steps)
+    metrics.update(grad_norm=optax.tree.norm(grads), skipped=new.skipped, bad_steps=new.bad_steps)
     return new, metrics
 
 
-def make_train_step(training: FlowTraining, optimizer, ema_decay: float, *, state_shardings,
-                    codec_shardings=None, batch_shardings=None):
-    """``train_step`` jitted with explicit shardings (state in = state out) and the state donated.
+def make_train_step(training: FlowTraining, optimizer, ema_decay: float, *, state_shardings):
+    """``train_step`` jitted with the state's shardings in and out and the state donated; the VAE
+    params and the batch keep the shardings they come with (:func:`global_micro_batches`).
     Call it under ``jax.set_mesh(mesh)``."""
     fn = lambda state, codec_params, batch: train_step(training, optimizer, ema_decay, state, codec_params, batch)
-    return jax.jit(fn, in_shardings=(state_shardings, codec_shardings, batch_shardings),
+    return jax.jit(fn, in_shardings=(state_shardings, None, None),
                    out_shardings=(state_shardings, None), donate_argnums=(0,))

@@ -22,13 +22,13 @@ from pathlib import Path
 
 import jax
 import numpy as np
-from jax.sharding import PartitionSpec as P
 
 from jaxdrive.config import Config, check_sections, to_dict
 from jaxdrive.models.latents import LatentCodec
-from jaxdrive.parallel import host_local_to_global, make_mesh, shard_params
+from jaxdrive.parallel import make_mesh, shard_params
 from jaxdrive.train import flow_step
 from jaxdrive.train.checkpoint import Checkpoints
+from jaxdrive.train.metrics import MetricsWriter
 from jaxdrive.train.optim import make_optimizer
 from jaxdrive.train.state import create_state
 
@@ -58,6 +58,17 @@ def check_batch(config: Config, mesh) -> tuple[int, int]:
         raise ValueError(f"data.batch_size: expected a multiple of optim.grad_accum ({a}) x the batch mesh "
                          f"axes data x fsdp ({shards}) and of the process count ({procs}), got {b}")
     return micro // procs, micro
+
+
+def sharded_state(boxed_params, mesh, optim_config, total_steps: int, seed: int):
+    """``(state, optimizer)``: parameters placed by their logical names, the optimizer state and
+    EMA created on the mesh (sharded like the parameters)."""
+    with jax.set_mesh(mesh):
+        params = shard_params(boxed_params, mesh)
+        optimizer = make_optimizer(optim_config, total_steps, params)
+        ema = optim_config.ema_decay > 0
+        state = jax.jit(lambda p: create_state(p, optimizer, seed, ema=ema))(params)
+    return state, optimizer
 
 
 class Run:
@@ -97,11 +108,7 @@ class Run:
         dit = self.training.dit
         boxed = dit.init_params(cfg.train.seed, boxed=True, batch=1, views=d.views, frames=self.latent_frames,
                                 height=d.height // self.codec.spatial, width=d.width // self.codec.spatial)
-        with jax.set_mesh(self.mesh):
-            params = shard_params(boxed, self.mesh)
-            self.optimizer = make_optimizer(cfg.optim, self.total_steps, params)
-            ema = cfg.optim.ema_decay > 0
-            state = jax.jit(lambda p: create_state(p, self.optimizer, cfg.train.seed, ema=ema))(params)
+        state, self.optimizer = sharded_state(boxed, self.mesh, cfg.optim, self.total_steps, cfg.train.seed)
         self.state_shardings = jax.tree_util.tree_map(lambda x: x.sharding, state)
         return state
 
@@ -125,10 +132,8 @@ class Run:
 
     def global_batch(self, micro_batches: list[dict]):
         """Host micro-batches (this process's samples) -> one global ``[A, b, ...]`` tree."""
-        tree = flow_step.stack_micro_batches([flow_step.model_inputs(b, self.training.model, self.text)
-                                              for b in micro_batches])
-        axes = tuple(a for a in flow_step.BATCH_AXES if a in self.mesh.axis_names)
-        return host_local_to_global(tree, self.mesh, P(None, axes))
+        return flow_step.global_micro_batches(
+            [flow_step.model_inputs(b, self.training.model, self.text) for b in micro_batches], self.mesh)
 
 
 class _Stop:
@@ -179,7 +184,8 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
         workdir.mkdir(parents=True, exist_ok=True)
         (workdir / CONFIG_FILE).write_text(json.dumps(to_dict(cfg), indent=1))
     step_fn = run.step_fn()
-    writer = MetricsWriterProxy(workdir, run, start, progress)
+    writer = MetricsWriter(workdir, total_steps=run.total_steps, start_step=start,
+                           tokens_per_step=run.tokens_per_step, progress=progress)
     status, step, row = "done", start, {}
     with _Stop() as stop, jax.set_mesh(run.mesh):
         while step < run.total_steps:
@@ -188,7 +194,7 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
             step += 1
             bad = int(metrics["bad_steps"])
             if step % cfg.train.log_every == 0 or step == run.total_steps or bad:
-                row = writer.write(step, metrics)
+                row = writer.write(step, jax.device_get(metrics))
             if on_step is not None:
                 on_step(step, metrics)
             if bad >= cfg.train.max_bad_steps:
@@ -214,21 +220,6 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
     ckpts.close()
     writer.close()
     return {"step": step, "status": status, "loss": row.get("loss"), "state": state, "run": run}
-
-
-class MetricsWriterProxy:
-    """The run's :class:`MetricsWriter` with the run's token count."""
-
-    def __init__(self, workdir, run: Run, start: int, progress: bool):
-        from jaxdrive.train.metrics import MetricsWriter
-        self.inner = MetricsWriter(workdir, total_steps=run.total_steps, start_step=start,
-                                   tokens_per_step=run.tokens_per_step, progress=progress)
-
-    def write(self, step, metrics):
-        return self.inner.write(step, jax.device_get(metrics))
-
-    def close(self):
-        self.inner.close()
 
 
 def load_run_config(workdir) -> Config:
