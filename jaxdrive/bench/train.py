@@ -1,0 +1,396 @@
+"""The DiT's rectified-flow train step: tokens per second, model FLOPs utilisation, and the
+diffusers PyTorch ``CogVideoXTransformer3DModel`` train step on the same CPU at the same size.
+
+    python -m jaxdrive.bench.train [--presets tiny small] [--batch 1] [--frames 5] [--height 16]
+                                   [--width 16] [--repeats 5] [--no-torch | --compare-only]
+                                   [--torch-threads N] [--peak-tflops T]
+
+For each preset the benchmark jits the library's step (:func:`jaxdrive.train.flow_step.make_train_step`:
+noise levels and condition frames, the DiT forward, the flow loss, the backward, global-norm
+clipping at 1.0 and AdamW; no EMA) on a one-device mesh, with a batch of latents (the codec is the
+identity: ``height``/``width`` are latent sizes, one view) and random text embeddings of the
+preset's text length. It reports the compile time (``lower().compile()``) apart from the step
+time, the median of ``--repeats`` steps after one warm-up step, each blocked on its outputs. The
+mesh is :func:`jaxdrive.parallel.make_mesh`'s (Explicit axes, as in training).
+
+The comparison with PyTorch (diffusers) uses the full-layout partner of a preset (``tiny`` ->
+``tiny-full``, ``small`` -> ``small-full``; a full-layout preset is its own partner): the sizes of
+that preset become a diffusers CogVideoX config (3D sin-cos positions, no RoPE; sample size = the
+benchmark's latent size), diffusers builds its ``CogVideoXTransformer3DModel`` from it and jaxdrive
+its :class:`DiT` with :func:`jaxdrive.convert.diffusers_dit.config_from_diffusers`, so both run
+the same network (the parameter counts are checked equal). The PyTorch step is what a diffusers
+training loop does: draw levels, noise, forward, MSE to the velocity ``noise - x``, backward,
+``clip_grad_norm_(1.0)``, ``AdamW.step()`` with the same hyper-parameters. PyTorch runs with as many
+threads as XLA:CPU uses (the CPUs this process may run on; ``--torch-threads`` to change it).
+``torch_ratio`` = jaxdrive tokens/s / PyTorch tokens/s (above 1: jaxdrive is faster). Run it on
+an otherwise idle machine: when other processes hold the cores, PyTorch's spinning OpenMP threads
+lose far more than XLA's pool (seen: 10-30x slower steps on 2 busy cores). Every timed figure
+carries ``busy_cpus``, the CPUs other processes kept busy in the half second before it was
+measured (Linux), and a note is printed when that exceeds half a CPU.
+
+Model FLOPs of one train step (the backward of a matmul is two matmuls of its size, so forward +
+backward = 3 x forward; with 2 FLOPs per multiply-add)::
+
+    F_step = 6 * sum_W |W| * T_W  +  3 * sum_attentions 4 * S_q * S_k * D
+
+- ``W``: the weight matrices of the transformer blocks (the ``layers_*`` kernels), each applied to
+  ``T_W`` tokens: the video tokens ``B N`` in the factorized layout, text + video ``B (L + N)`` in
+  the full layout (CogVideoX's blocks run over ``[text; video]``), the text tokens ``B L`` for the
+  keys / values of text cross-attention. ``N = V F' / pt * h / ph * w / pw`` video tokens per clip,
+  ``L`` the text length. With every matrix applied to every token this is the usual
+  ``6 N_params tokens``. Not counted: biases, norms, the adaLN modulation matrices (they act on one
+  timestep embedding per frame) and everything outside the blocks (patch embedding, timestep and
+  text embedders, output layer): a few percent at these sizes (``xla_flops_per_step``, XLA's own
+  count of the compiled step, is printed alongside).
+- attention: ``QK^T`` and ``AV``, ``4 S_q S_k D`` per attention forward (``D = heads x head_dim``),
+  per layer and clip: full layout ``4 (L + N)^2 D``; factorized layout, spatial attention over all
+  views of a frame ``4 F' (V S)^2 D``, temporal ``4 V S F'^2 D``, text cross-attention ``4 N L D``
+  (``S = h / ph * w / pw``). Control-token attentions and cross-view attention are not modelled
+  (no FLOPs, hence no MFU, for a cross-view preset).
+
+MFU = ``F_step / step time / peak FLOP/s``: ``--peak-tflops`` (TFLOP/s of the device), else the
+dense bf16 peak of known accelerators by ``device_kind`` (TPU v4 / v5e / v5p / v6e, A100, H100,
+H200; the presets compute in float32, so against a bf16 peak their MFU is a lower bound). A CPU
+has no such figure: MFU is then printed as null with the reason, the achieved TFLOP/s are printed
+regardless. Activation recomputation (``remat``) is not counted: this is MFU, not HFU.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import statistics
+import time
+
+from jaxdrive.models.latents import LatentCodec
+
+BENCH = "train"
+DEFAULTS = dict(batch=1, frames=5, height=16, width=16)
+VIEWS = 1
+SEED = 0
+
+# Dense bf16 peak TFLOP/s per chip / GPU (vendor figures), matched in order against the lower-cased
+# device_kind ("TPU v5 lite" is v5e, "TPU v5" v5p, "TPU v6 lite" v6e).
+PEAK_TFLOPS = (("tpu v6 lite", 918.0), ("tpu v6e", 918.0), ("tpu v5 lite", 197.0), ("tpu v5e", 197.0),
+               ("tpu v5p", 459.0), ("tpu v5", 459.0), ("tpu v4", 275.0), ("h200", 989.0),
+               ("h100 pcie", 756.0), ("h100", 989.0), ("a100", 312.0))
+
+
+@dataclasses.dataclass(frozen=True)
+class LatentBatches(LatentCodec):
+    """A codec whose "video" already is the latents: the benchmark feeds latents of any channel
+    count (space-to-depth only makes ``3 f^2`` channels) and times the DiT step, not a VAE."""
+
+    def encode(self, params, video):
+        import jax.numpy as jnp
+        return jnp.asarray(video, jnp.float32)
+
+
+def peak_tflops(device, given: float | None) -> tuple[float | None, str]:
+    """``(peak TFLOP/s or None, where it comes from / why there is none)``."""
+    if given is not None:
+        return float(given), "--peak-tflops"
+    kind = str(getattr(device, "device_kind", device.platform))
+    for key, value in PEAK_TFLOPS:
+        if key in kind.lower():
+            return value, f"dense bf16 peak of {kind!r}"
+    return None, (f"no peak FLOP/s known for {device.platform} device {kind!r}; pass --peak-tflops "
+                  f"(TFLOP/s of this device) for an MFU")
+
+
+def _count(shape) -> int:
+    n = 1
+    for s in shape:
+        n *= int(s)
+    return n
+
+
+def step_flops(cfg, params, *, batch: int, views: int, frames: int, height: int, width: int) -> dict:
+    """Analytic model FLOPs of one train step (module docstring): ``{"flops", "matmul_flops",
+    "attention_flops", "block_params", "video_tokens", "text_tokens"}``; ``flops`` is None for
+    layouts the formula does not model (cross-view attention)."""
+    import jax
+
+    from jaxdrive.train.optim import param_path
+    pt, ph, pw = cfg.patch
+    ft, s = frames // pt, (height // ph) * (width // pw)
+    n, txt, d = views * ft * s, (cfg.text_len if cfg.controls.text else 0), cfg.width
+    full = cfg.layout == "full"
+    matmul = attn = block_params = 0
+    modelled = full or cfg.multiview == "joint"
+    for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
+        name = param_path(path)
+        if not name.startswith("layers_"):
+            continue
+        size = _count(leaf.shape)
+        block_params += size
+        if not name.endswith("kernel") or "_linear/" in name:      # adaLN modulation: per frame
+            continue
+        cross = "cross_attn/" in name
+        if cross and ("/to_k/" in name or "/to_v/" in name):
+            tokens = txt
+        else:
+            tokens = n + txt if full else n
+        matmul += 2 * size * tokens * batch
+        if name.endswith("/to_q/kernel"):
+            layers = size // (d * d)                                 # > 1 for scanned layers
+            if cross:
+                pairs = n * txt
+            elif full:
+                pairs = (n + txt) ** 2
+            elif "temporal/" in name or "attn_temp/" in name:
+                pairs = views * s * ft ** 2
+            else:
+                pairs = ft * (views * s) ** 2
+            attn += 4 * pairs * d * layers * batch
+    flops = 3 * (matmul + attn) if modelled else None
+    return dict(flops=flops, matmul_flops=3 * matmul, attention_flops=3 * attn, block_params=block_params,
+                video_tokens=batch * n, text_tokens=batch * txt)
+
+
+def diffusers_config(cfg, *, frames: int, height: int, width: int) -> dict:
+    """A diffusers ``CogVideoXTransformer3DModel`` config with the sizes of the full-layout ``cfg``
+    (3D sin-cos positions; the sample size is the benchmark's latent size)."""
+    return dict(num_layers=cfg.depth, num_attention_heads=cfg.heads, attention_head_dim=cfg.head_dim,
+                in_channels=cfg.in_channels, out_channels=cfg.out_dim, time_embed_dim=cfg.t_dim,
+                text_embed_dim=cfg.text_dim, max_text_seq_length=cfg.text_len, patch_size=cfg.patch[1],
+                sample_height=height, sample_width=width, sample_frames=(frames - 1) * 4 + 1,
+                temporal_compression_ratio=4, use_rotary_positional_embeddings=False)
+
+
+def _optim():
+    from jaxdrive.config import OptimConfig
+    return OptimConfig(ema_decay=0.0)
+
+
+def jax_step(cfg, mesh, *, batch: int, frames: int, height: int, width: int, repeats: int) -> dict:
+    """Compile and time the library's train step for ``cfg``."""
+    import flax.linen as nn
+    import jax
+    import numpy as np
+
+    from jaxdrive.bench.report import footprint_bytes
+    from jaxdrive.config import FlowConfig
+    from jaxdrive.models.dit import DiT
+    from jaxdrive.models.dit_inputs import example_inputs
+    from jaxdrive.train import flow_step
+    from jaxdrive.train.run import sharded_state
+
+    shapes = dict(views=VIEWS, frames=frames, height=height, width=width)
+    dit, optim = DiT(cfg), _optim()
+    codec = LatentBatches("space_to_depth", 1)
+    training = flow_step.FlowTraining(cfg, FlowConfig(), codec)
+    boxed = dit.init_params(SEED, boxed=True, batch=1, **shapes)
+    flops = step_flops(cfg, nn.unbox(boxed), batch=batch, **shapes)
+    ex = example_inputs(cfg, batch=batch, text_len=cfg.text_len, seed=SEED, **shapes)
+    for k in ("sigma", "cond_latents", "cond_mask"):                   # the step draws / supplies these
+        ex.pop(k, None)
+    inputs = {"video": ex.pop("latents"), **ex, "drop": {}}
+    state, optimizer = sharded_state(boxed, mesh, optim, 1000, SEED)
+    shardings = jax.tree_util.tree_map(lambda x: x.sharding, state)
+    data = flow_step.global_micro_batches([inputs], mesh)
+    with jax.set_mesh(mesh):
+        step = flow_step.make_train_step(training, optimizer, optim.ema_decay, state_shardings=shardings)
+        t0 = time.perf_counter()
+        compiled = step.lower(state, None, data).compile()
+        compile_s = time.perf_counter() - t0
+        state, metrics = compiled(state, None, data)                    # warm-up
+        jax.block_until_ready((state, metrics))
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            state, metrics = compiled(state, None, data)
+            jax.block_until_ready((state, metrics))
+            times.append(time.perf_counter() - t0)
+    cost = compiled.cost_analysis()
+    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+    xla_flops = (cost or {}).get("flops")
+    params = sum(int(np.prod(x.shape)) for x in jax.tree_util.tree_leaves(state.params))
+    return dict(step_s=statistics.median(times), compile_s=compile_s, params=params,
+                xla_flops=None if xla_flops is None else float(xla_flops), memory=footprint_bytes(compiled),
+                loss=float(metrics["loss"]), skipped=int(metrics["skipped"]), **flops)
+
+
+def torch_step(dcfg: dict, *, batch: int, frames: int, height: int, width: int, repeats: int,
+               threads: int) -> dict:
+    """Time diffusers' CogVideoX train step (module docstring) for the config ``dcfg``."""
+    import diffusers
+    import torch
+
+    torch.set_num_threads(threads)
+    torch.manual_seed(SEED)
+    optim = _optim()
+    model = diffusers.CogVideoXTransformer3DModel(**dcfg).train()
+    params = sum(p.numel() for p in model.parameters())
+    opt = torch.optim.AdamW(model.parameters(), lr=optim.lr, betas=(optim.b1, optim.b2), eps=optim.eps,
+                            weight_decay=optim.weight_decay)
+    x = torch.randn(batch, frames, dcfg["in_channels"], height, width)
+    text = torch.randn(batch, dcfg["max_text_seq_length"], dcfg["text_embed_dim"])
+
+    def step():
+        sigma = torch.sigmoid(torch.randn(batch))                       # logit-normal levels
+        noise = torch.randn_like(x)
+        s = sigma.view(batch, 1, 1, 1, 1)
+        v = model((1 - s) * x + s * noise, text, sigma * 1000, return_dict=False)[0]
+        loss = torch.nn.functional.mse_loss(v, noise - x)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), optim.clip_norm)
+        opt.step()
+        return loss.item()                                              # waits for the step
+
+    step()                                                              # warm-up
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        loss = step()
+        times.append(time.perf_counter() - t0)
+    return dict(step_s=statistics.median(times), params=params, loss=loss, threads=torch.get_num_threads())
+
+
+def busy_cpus(interval: float = 0.5) -> float | None:
+    """CPUs kept busy over ``interval`` seconds while this process waits (``/proc/stat``; None
+    where there is none): what other processes take from the benchmark."""
+    def read():
+        with open("/proc/stat") as f:
+            v = [int(x) for x in f.readline().split()[1:]]
+        return sum(v), v[3] + (v[4] if len(v) > 4 else 0)       # total, idle + iowait
+    try:
+        t0, i0 = read()
+        time.sleep(interval)
+        t1, i1 = read()
+    except (OSError, ValueError, IndexError):
+        return None
+    total = t1 - t0
+    return None if total <= 0 else round((total - (i1 - i0)) / total * (os.cpu_count() or 1), 2)
+
+
+def _cpus() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:                                              # not Linux
+        return os.cpu_count() or 1
+
+
+def run(presets, *, batch: int, frames: int, height: int, width: int, repeats: int, use_torch: bool = True,
+        compare_only: bool = False, peak: float | None = None, torch_threads: int | None = None) -> list[dict]:
+    import jax
+
+    from jaxdrive.bench.report import emit, table
+    from jaxdrive.convert.diffusers_dit import config_from_diffusers
+    from jaxdrive.models.dit_presets import PRESETS, preset
+    from jaxdrive.parallel import make_mesh
+
+    device = jax.devices()[0]
+    mesh = make_mesh(devices=[device])
+    peak_t, peak_note = peak_tflops(device, peak)
+    shapes = dict(batch=batch, frames=frames, height=height, width=width)
+    shape = [batch, VIEWS, frames, height, width]
+    cpus = _cpus()
+    base = dict(shape=shape, backend=jax.default_backend(), device_kind=str(device.device_kind), cpus=cpus)
+    rows = []
+
+    def idle_check(what):
+        busy = busy_cpus()
+        if busy is not None and busy > 0.5:
+            print(f"note: other processes kept {busy} of {os.cpu_count()} CPUs busy just before timing {what}: "
+                  f"its timings (PyTorch's especially) are not those of an idle machine", flush=True)
+        return busy
+
+    def report(r, ctx, impl):
+        tps = r["video_tokens"] / r["step_s"]
+        achieved = None if r["flops"] is None else r["flops"] / r["step_s"] / 1e12
+        ctx = dict(ctx, impl=impl, tokens=r["video_tokens"])
+        emit(BENCH, "params", r["params"], "parameters", **ctx)
+        emit(BENCH, "step_time", round(1e3 * r["step_s"], 2), "ms", **ctx)
+        emit(BENCH, "tokens_per_s", round(tps, 1), "tokens/s", **ctx)
+        emit(BENCH, "achieved_tflops", None if achieved is None else round(achieved, 6), "TFLOP/s", **ctx)
+        row = dict(model=ctx["model"], impl=impl, params=r["params"], tokens=r["video_tokens"],
+                   compile_s=round(r["compile_s"], 1) if "compile_s" in r else "", step_ms=round(1e3 * r["step_s"], 1),
+                   tokens_per_s=round(tps), tflops=None if achieved is None else round(achieved, 4))
+        if impl == "jaxdrive":
+            emit(BENCH, "compile_time", round(r["compile_s"], 2), "s", **ctx)
+            emit(BENCH, "model_flops_per_step", r["flops"], "FLOP", block_params=r["block_params"],
+                 matmul_flops=r["matmul_flops"], attention_flops=r["attention_flops"],
+                 text_tokens=r["text_tokens"], **ctx)
+            emit(BENCH, "xla_flops_per_step", r["xla_flops"], "FLOP", **ctx)
+            emit(BENCH, "step_memory", None if r["memory"] is None else round(r["memory"] / 2**20, 2), "MiB", **ctx)
+            if achieved is None or peak_t is None:
+                why = peak_note if peak_t is None else "no analytic FLOPs for this layout"
+                emit(BENCH, "mfu", None, "fraction", reason=why, **ctx)
+                row["mfu"] = None
+            else:
+                row["mfu"] = round(achieved / peak_t, 4)
+                emit(BENCH, "mfu", row["mfu"], "fraction", peak_tflops=peak_t, peak_source=peak_note, **ctx)
+        rows.append(row)
+        return tps
+
+    def measure(cfg, what):
+        busy = idle_check(what)
+        return jax_step(cfg, mesh, repeats=repeats, **shapes), {"busy_cpus": busy}
+
+    for name in presets:
+        cfg = preset(name)
+        partner = name if cfg.layout == "full" else f"{name}-full"
+        if compare_only and partner not in PRESETS:
+            raise ValueError(f"--presets: expected presets with a full-layout partner for --compare-only, got "
+                             f"{name!r} (no {partner!r})")
+        if not compare_only:
+            r, how = measure(cfg, name)
+            report(r, dict(base, preset=name, model=name, layout=cfg.layout, **how), "jaxdrive")
+        if not use_torch or partner not in PRESETS:
+            continue
+        dcfg = diffusers_config(preset(partner), frames=frames, height=height, width=width)
+        jcfg = config_from_diffusers(dcfg)
+        rj, how = measure(jcfg, f"{partner}/diffusers (jaxdrive)")
+        ctx = dict(base, preset=name, model=f"{partner}/diffusers", layout="full")
+        rj_ctx = dict(ctx, **how)
+        busy = idle_check(f"{partner}/diffusers (torch)")
+        rt = torch_step(dcfg, repeats=repeats, threads=torch_threads or cpus, **shapes)
+        if rt["params"] != rj["params"]:
+            raise RuntimeError(f"{partner}: expected the same parameter count in jaxdrive and diffusers, got "
+                               f"{rj['params']} and {rt['params']}")
+        rt = dict(rt, **{k: rj[k] for k in ("flops", "video_tokens")})
+        jax_tps = report(rj, rj_ctx, "jaxdrive")
+        torch_tps = report(rt, dict(ctx, torch_threads=rt["threads"], busy_cpus=busy), "torch")
+        rows[-1]["torch_ratio"] = rows[-2]["torch_ratio"] = round(jax_tps / torch_tps, 3)
+        emit(BENCH, "torch_ratio", round(jax_tps / torch_tps, 4), "x", preset=name, model=ctx["model"],
+             params=rj["params"], torch_threads=rt["threads"], diffusers_config=dcfg,
+             meaning="jaxdrive tokens/s / diffusers PyTorch tokens/s", **base)
+    print(table(rows, ["model", "impl", "params", "tokens", "compile_s", "step_ms", "tokens_per_s", "tflops", "mfu",
+                       "torch_ratio"]))
+    if peak_t is None:
+        print(f"MFU: {peak_note}")
+    return rows
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(prog="jaxdrive bench train", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--presets", nargs="+", default=["tiny", "small"])
+    parser.add_argument("--batch", type=int, default=DEFAULTS["batch"])
+    parser.add_argument("--frames", type=int, default=DEFAULTS["frames"], help="latent frames")
+    parser.add_argument("--height", type=int, default=DEFAULTS["height"], help="latent height")
+    parser.add_argument("--width", type=int, default=DEFAULTS["width"], help="latent width")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--no-torch", action="store_true", help="skip the diffusers PyTorch comparison")
+    parser.add_argument("--compare-only", action="store_true",
+                        help="only the comparison with PyTorch (the full-layout partners), not the presets")
+    parser.add_argument("--torch-threads", type=int, default=None,
+                        help="PyTorch intra-op threads (default: the CPUs XLA:CPU uses, those of this process)")
+    parser.add_argument("--peak-tflops", type=float, default=None,
+                        help="peak TFLOP/s of the device for the MFU (default: known accelerators only)")
+    args = parser.parse_args(argv)
+    if args.no_torch and args.compare_only:
+        parser.error("--no-torch, --compare-only: expected at most one of them, got both")
+    for name in ("batch", "frames", "height", "width", "repeats", "torch_threads"):
+        value = getattr(args, name)
+        if value is not None and value < 1:
+            parser.error(f"--{name.replace('_', '-')}: expected an integer >= 1, got {value}")
+    return run(args.presets, batch=args.batch, frames=args.frames, height=args.height, width=args.width,
+               repeats=args.repeats, use_torch=not args.no_torch, compare_only=args.compare_only,
+               peak=args.peak_tflops, torch_threads=args.torch_threads)
+
+
+if __name__ == "__main__":
+    main()

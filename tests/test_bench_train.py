@@ -1,0 +1,79 @@
+"""The train-step benchmark: its JSON figures (one compile of the tiny comparison model against
+diffusers' PyTorch step) and its analytic FLOPs against hand-counted ones."""
+
+import json
+
+import flax.linen as nn
+import pytest
+
+from jaxdrive.bench import train as bench
+from jaxdrive.convert.diffusers_dit import config_from_diffusers
+from jaxdrive.models.dit import DiT
+from jaxdrive.models.dit_presets import preset
+
+
+def _rows(out):
+    return [json.loads(line) for line in out.splitlines() if line.startswith("{")]
+
+
+def test_train_benchmark_prints_tokens_per_s_and_the_torch_ratio(capsys):
+    pytest.importorskip("torch")
+    pytest.importorskip("diffusers")
+    from jaxdrive.cli import main
+    main(["bench", "train", "--presets", "tiny", "--compare-only", "--repeats", "1", "--frames", "2",
+          "--height", "4", "--width", "4"])
+    rows = _rows(capsys.readouterr().out)
+    assert all(r["bench"] == "train" for r in rows)
+    tps = {r["impl"]: r["value"] for r in rows if r["figure"] == "tokens_per_s"}
+    assert tps["jaxdrive"] > 0 and tps["torch"] > 0
+    params = {r["impl"]: r["value"] for r in rows if r["figure"] == "params"}
+    assert params["jaxdrive"] == params["torch"] > 0
+    ratio = next(r for r in rows if r["figure"] == "torch_ratio")
+    assert ratio["value"] == pytest.approx(tps["jaxdrive"] / tps["torch"], rel=1e-2)
+    mfu = next(r for r in rows if r["figure"] == "mfu")
+    assert mfu["value"] is None and "--peak-tflops" in mfu["reason"]         # a CPU has no known peak
+    flops = next(r for r in rows if r["figure"] == "model_flops_per_step")
+    assert flops["value"] > 0 and next(r for r in rows if r["figure"] == "compile_time")["value"] > 0
+
+
+def _flops(cfg, **shapes):
+    params = nn.unbox(DiT(cfg).abstract_params(views=1, frames=shapes["frames"]))
+    return bench.step_flops(cfg, params, views=1, **shapes)
+
+
+def test_full_layout_flops_are_6_params_tokens_plus_attention():
+    dcfg = bench.diffusers_config(preset("tiny-full"), frames=3, height=4, width=6)
+    cfg = config_from_diffusers(dcfg)
+    f = _flops(cfg, batch=2, frames=3, height=4, width=6)
+    d, depth, seq = cfg.width, cfg.depth, 3 * 2 * 3 + cfg.text_len            # [text; video] per clip
+    assert f["video_tokens"] == 2 * 18 and f["text_tokens"] == 2 * cfg.text_len
+    assert f["matmul_flops"] == 6 * depth * 12 * d * d * 2 * seq               # qkv + out 4 D^2, MLP 8 D^2
+    assert f["attention_flops"] == 3 * depth * 4 * seq ** 2 * d * 2
+    assert f["flops"] == f["matmul_flops"] + f["attention_flops"]
+
+
+def test_factorized_flops_count_spatial_temporal_and_text_attention():
+    cfg = preset("tiny")
+    f = _flops(cfg, batch=1, frames=3, height=4, width=4)
+    d, depth, s, nf, txt = cfg.width, cfg.depth, 4, 3, cfg.text_len
+    n = nf * s
+    # two blocks a layer (spatial, temporal), each: self-attention 4 D^2, text cross-attention q / out
+    # 2 D^2 on video tokens and k / v 2 D^2 on text tokens, MLP 8 D^2
+    assert f["matmul_flops"] == 6 * depth * 2 * (14 * d * d * n + 2 * d * d * txt)
+    assert f["attention_flops"] == 3 * depth * 4 * d * (nf * s ** 2 + s * nf ** 2 + 2 * n * txt)
+
+
+def test_peak_is_known_for_accelerators_and_given_on_cpu():
+    class Dev:
+        platform, device_kind = "tpu", "TPU v5 lite"
+    assert bench.peak_tflops(Dev(), None) == (197.0, "dense bf16 peak of 'TPU v5 lite'")
+    Dev.platform, Dev.device_kind = "cpu", "cpu"
+    assert bench.peak_tflops(Dev(), None)[0] is None
+    assert bench.peak_tflops(Dev(), 1.5) == (1.5, "--peak-tflops")
+
+
+def test_arguments_are_checked():
+    with pytest.raises(SystemExit):
+        bench.main(["--no-torch", "--compare-only"])
+    with pytest.raises(SystemExit):
+        bench.main(["--repeats", "0"])
