@@ -71,6 +71,13 @@ class FlowConfig:
     jdc_slope: float = 0.5
     jdc_alpha1: float = 0.1
     structure_weight: float = 0.0          # LongDWM's structure-preservation loss weight
+    structure_cutoff: float = 0.25         # its high-pass cutoff, a fraction of Nyquist
+    foreground_k: float = 0.0              # STAGE's W_aux foreground constant k; 0: no weighting
+    foreground_c: float = 0.5              # STAGE's W_aux size exponent c
+    distill_teacher: str = ""              # LongDWM fine-to-coarse distillation: the fine model's run dir
+    distill_weight: float = 1.0            # weight of the distillation loss (eq. 8)
+    distill_segment_len: int = 13          # K: frames per fine segment (eq. 7)
+    distill_boundary: str = "mean"         # which prediction an interior coarse frame takes
 
 
 @dataclasses.dataclass(frozen=True)
@@ -246,6 +253,23 @@ def check_sections(config) -> None:
     validate.check_choice("train.compute_dtype", t.compute_dtype, ("float32", "bfloat16"))
     validate.check_choice("latents.source", config.latents.source, ("vae", "space_to_depth"))
     validate.check_range("optim.min_lr_ratio", o.min_lr_ratio, 0.0, 1.0)
+    validate.check_range("flow.structure_cutoff", f.structure_cutoff, 0.0, 1.0)
+    validate.check_range("flow.foreground_k", f.foreground_k, 0.0, float("inf"))
+    validate.check_range("flow.foreground_c", f.foreground_c, 0.0, float("inf"))
+    if f.distill_teacher:
+        validate.check_positive_int("flow.distill_segment_len", f.distill_segment_len, minimum=2)
+        validate.check_choice("flow.distill_boundary", f.distill_boundary, ("mean", "start", "end"))
+        validate.check_range("flow.distill_weight", f.distill_weight, 0.0, float("inf"))
+        # eq. 7-8 put one level on the whole dense clip: per-frame schedules have no dense reading
+        if f.tpd:
+            raise ValueError("flow.tpd: expected false with flow.distill_teacher (LongDWM's distillation puts "
+                             "one noise level on the whole dense clip), got true")
+        if f.jdc_anchor_rate > 0:
+            raise ValueError(f"flow.jdc_anchor_rate: expected 0 with flow.distill_teacher (one noise level on "
+                             f"the whole dense clip), got {f.jdc_anchor_rate}")
+        if (d.frames - 1) % (f.distill_segment_len - 1):
+            raise ValueError(f"data.frames: expected n * (flow.distill_segment_len - 1) + 1 dense frames for "
+                             f"distillation (segment_len = {f.distill_segment_len}), got {d.frames}")
     if f.cond_frames < 0:
         raise ValueError(f"flow.cond_frames: expected >= 0, got {f.cond_frames}")
     if hasattr(config, "model"):

@@ -40,6 +40,11 @@ def test_coarse_from_segments_round_trip_and_boundaries():
     seg = seg.at[0, 3].set(10.0).at[1, 0].set(20.0)
     pick = lambda b: float(flow.coarse_from_segments(seg, 2, boundary=b)[0, 1, 0, 0, 0])
     assert (pick("mean"), pick("start"), pick("end")) == (15.0, 20.0, 10.0)
+    # the same from each segment's first and last frame ([B, n, ...]), as the train step gets them
+    first, last = seg[:, 0].reshape(2, 2, 2, 3, 1), seg[:, -1].reshape(2, 2, 2, 3, 1)
+    for b in ("mean", "start", "end"):
+        np.testing.assert_array_equal(flow.coarse_from_ends(first, last, boundary=b),
+                                      flow.coarse_from_segments(seg, 2, boundary=b))
 
 
 def test_multiview_layout():

@@ -6,7 +6,7 @@ Convention: ``x_sigma = (1 - sigma) x + sigma noise`` (sigma = 1 noise, 0 data),
 """
 
 from jaxdrive.flow.degrade import dct_lowpass, degrade_frames
-from jaxdrive.flow.distill import (coarse_from_segments, coarse_indices, dense_to_coarse,
+from jaxdrive.flow.distill import (coarse_from_ends, coarse_from_segments, coarse_indices, dense_to_coarse,
                                    distill_loss, split_segments)
 from jaxdrive.flow.jdc import jdc_alpha2, jdc_anchor_sigma, jdc_noise_var, jdc_renoise
 from jaxdrive.flow.losses import (flow_loss, high_pass, high_pass_mask, per_frame_flow_loss,
@@ -28,7 +28,7 @@ __all__ = [
     "jdc_alpha2", "jdc_noise_var", "jdc_renoise", "jdc_anchor_sigma",
     "frame_sigmas", "frame_schedule",
     "flow_loss", "per_frame_flow_loss", "high_pass", "high_pass_mask", "structure_loss",
-    "coarse_indices", "dense_to_coarse", "split_segments", "coarse_from_segments", "distill_loss",
+    "coarse_indices", "dense_to_coarse", "split_segments", "coarse_from_segments", "coarse_from_ends", "distill_loss",
     "foreground_weight_map", "dct_lowpass", "degrade_frames",
     "sample",
 ]

@@ -78,14 +78,22 @@ def coarse_from_segments(seg, batch: int, *, boundary: str = "mean"):
     fa = seg.ndim + FRAME_AXIS
     first = jnp.take(seg, 0, axis=fa)                                     # [B, n, ..., h, w, C]
     last = jnp.take(seg, seg.shape[fa] - 1, axis=fa)
+    return jnp.moveaxis(coarse_from_ends(first, last, boundary=boundary), 1, fa - 1)
+
+
+def coarse_from_ends(first, last, *, boundary: str = "mean"):
+    """The coarse frames from the first and last frame predictions of each segment,
+    ``[B, n, ...]`` each -> ``[B, n + 1, ...]`` (``boundary`` as :func:`coarse_from_segments`).
+    For callers that run the fine model one segment at a time."""
+    check_choice("boundary", boundary, BOUNDARIES)
+    check_same_shape("last", last, "first", first)
     if boundary == "mean":
         interior = 0.5 * (last[:, :-1] + first[:, 1:])
     elif boundary == "start":
         interior = first[:, 1:]
     else:
         interior = last[:, :-1]
-    coarse = jnp.concatenate([first[:, :1], interior, last[:, -1:]], axis=1)  # [B, n+1, ...]
-    return jnp.moveaxis(coarse, 1, fa - 1)
+    return jnp.concatenate([first[:, :1], interior, last[:, -1:]], axis=1)
 
 
 def distill_loss(student, teacher, *, cond_mask=None):

@@ -21,9 +21,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrive import flow
+from jaxdrive.models.dit_inputs import PER_FRAME_INPUTS as PER_FRAME
 from jaxdrive.validate import check_positive_int
-
-PER_FRAME = ("waypoints", "ego_to_world", "boxes", "box_classes", "box_valid", "bev_map")
 
 
 def _velocity_fn(training, params):

@@ -39,11 +39,12 @@ def dataset_inputs(run, *, frames: int, views=None, clips: int = 1, split: str |
     for i in range(clips):
         clip = source[i % len(source)]
         have = int(np.shape(clip["ego_to_world"])[0])
-        need = 1 + (frames - 1) * d.stride
+        stride = run.frame_stride
+        need = 1 + (frames - 1) * stride
         if need > have:
-            raise ValueError(f"frames: expected at most {1 + (have - 1) // d.stride} frames (the dataset's clips have "
-                             f"{have} at stride {d.stride}), got {frames}")
-        samples.append(sample_clip(clip, size=(d.height, d.width), frames=frames, stride=d.stride, views=views,
+            raise ValueError(f"frames: expected at most {1 + (have - 1) // stride} frames (the dataset's clips have "
+                             f"{have} at stride {stride}), got {frames}")
+        samples.append(sample_clip(clip, size=(d.height, d.width), frames=frames, stride=stride, views=views,
                                    rng=rng, where=f"{source.split} clip {i}"))
     batch = collate(samples)
     inputs = model_inputs(batch, run.training.model, run.text)
@@ -66,7 +67,9 @@ def generate(run, params, *, frames: int | None = None, views=None, steps: int |
     clips = shards if clips is None else check_positive_int("clips", clips)
     if clips % shards:
         raise ValueError(f"clips: expected a multiple of the mesh's data x fsdp size {shards}, got {clips}")
-    frames = cfg.data.frames if frames is None else check_positive_int("frames", frames)
+    if frames is None:       # the training clip (a distilled coarse model: its coarse frames)
+        frames = cfg.data.frames if run.training.teacher is None else run.latent_frames
+    frames = check_positive_int("frames", frames)
     steps = cfg.train.sample_steps if steps is None else check_positive_int("steps", steps)
     codec = run.codec
     total = codec.latent_frames(frames)

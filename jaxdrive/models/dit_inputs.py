@@ -20,6 +20,8 @@ from jaxdrive.validate import check_range, check_shape
 CONTROL_OF = {"fps": "fps", "intrinsics": "camera", "cam_to_ego": "camera", "waypoints": "waypoints",
               "ego_to_world": "trajectory", "boxes": "boxes", "box_classes": "boxes",
               "box_valid": "boxes", "bev_map": "map", "warp": "warp"}
+# Inputs with a (pixel or latent) frame axis at 1; the others are per clip or per view.
+PER_FRAME_INPUTS = ("waypoints", "ego_to_world", "boxes", "box_classes", "box_valid", "bev_map")
 
 
 def _shape(x):

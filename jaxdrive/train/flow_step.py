@@ -14,8 +14,11 @@ micro-batches ``[A, b, ...]``, and for each micro-batch (in a ``lax.scan``):
    0, i.e. clean, and the DiT sees level 0 for them (and ``cond_latents`` when it has a
    condition-frame control);
 4. predicts the velocity with the batch's classifier-free-guidance drops (the data pipeline draws
-   them, 15% per condition by default) and takes MiLA eq. 15's loss over the non-condition frames,
-   plus LongDWM's structure-preservation loss when weighted.
+   them, 15% per condition by default) and takes MiLA eq. 15's loss over the non-condition frames
+   (weighted per pixel by STAGE's foreground map W_aux when ``flow.foreground_k > 0``), plus
+   LongDWM's structure-preservation loss when weighted, plus LongDWM's fine-to-coarse distillation
+   from a frozen fine model when ``flow.distill_teacher`` names one
+   (:mod:`jaxdrive.train.distill_step`).
 
 Gradients are averaged over the micro-batches, then :func:`jaxdrive.train.state.apply_gradients`
 updates (or skips a non-finite step). The step is jitted with the state's shardings as in/out
@@ -39,6 +42,7 @@ from jaxdrive.config import FlowConfig
 from jaxdrive.models.dit import DiT
 from jaxdrive.models.dit_config import DiTConfig
 from jaxdrive.models.latents import LatentCodec
+from jaxdrive.train import distill_step
 from jaxdrive.train.state import TrainState, apply_gradients
 
 # pipeline drop names (jaxdrive.data.pipeline.CONDITIONS) -> the DiT conditions they drop
@@ -69,12 +73,29 @@ class TextEmbeddings:
         return self.embeddings[idx], self.mask[idx]
 
 
-def model_inputs(batch: dict, model: DiTConfig, text_embeddings: TextEmbeddings | None = None) -> dict:
+LOSS_FIELDS = ("boxes", "box_valid", "intrinsics", "cam_to_ego")   # what STAGE's W_aux reads
+
+
+def model_inputs(batch: dict, model: DiTConfig, text_embeddings: TextEmbeddings | None = None, *,
+                 flow_config: FlowConfig | None = None, teacher: DiTConfig | None = None) -> dict:
     """The NumPy arrays a step needs from a pipeline batch (:mod:`jaxdrive.data.pipeline`):
     ``video`` and what the DiT's controls read; captions become token ids (built-in caption
-    encoder) or looked-up T5 embeddings; ``drop`` is renamed to the DiT's conditions."""
+    encoder) or looked-up T5 embeddings; ``drop`` is renamed to the DiT's conditions. With
+    ``flow_config.foreground_k > 0``, ``loss`` holds the boxes and cameras of STAGE's W_aux; with
+    a distillation ``teacher``, ``teacher`` holds the fine model's inputs and the ego poses."""
+    out = _controls(batch, model, text_embeddings)
+    out["video"] = np.asarray(batch["video"], np.float32)
+    if flow_config is not None and flow_config.foreground_k > 0:
+        out["loss"] = {k: np.asarray(batch[k]) for k in LOSS_FIELDS}
+    if teacher is not None:
+        out["teacher"] = _controls(batch, teacher, text_embeddings)
+        out["teacher"][distill_step.POSES] = np.asarray(batch["ego_to_world"], np.float32)
+    return out
+
+
+def _controls(batch: dict, model: DiTConfig, text_embeddings) -> dict:
     c = model.controls
-    out = {"video": np.asarray(batch["video"], np.float32)}
+    out = {}
     if c.text == "caption":
         from jaxdrive.data.text import tokenize_captions
         out["text"], out["text_mask"] = tokenize_captions(batch["caption"], vocab=c.caption_vocab,
@@ -134,6 +155,7 @@ class FlowTraining:
     model: DiTConfig
     flow: FlowConfig
     codec: LatentCodec
+    teacher: DiTConfig | None = None     # the frozen fine model of LongDWM's distillation
 
     @property
     def dit(self) -> DiT:
@@ -161,38 +183,75 @@ def draw_levels(key, x, config: FlowConfig, *, height: int, width: int):
     return sigma, cond, levels
 
 
-def flow_loss_fn(training: FlowTraining, params, codec_params, inputs: dict, key):
+def foreground_weights(training: FlowTraining, fields: dict, x, *, height: int, width: int):
+    """STAGE's W_aux ``[B, V, F', h, w]`` for latents ``x``: latent frame j takes the boxes of
+    pixel frame ``temporal * j`` (the newest frame a causal VAE's latent j has seen)."""
+    frames = np.arange(x.shape[-4]) * training.codec.temporal
+    f = training.flow
+    return flow.foreground_weight_map(fields["boxes"][:, frames], fields["box_valid"][:, frames],
+                                      fields["intrinsics"], fields["cam_to_ego"], map_hw=x.shape[-3:-1],
+                                      image_hw=(height, width), k=f.foreground_k, c=f.foreground_c)
+
+
+def flow_loss_fn(training: FlowTraining, params, codec_params, inputs: dict, key, teacher_params=None):
     """The loss of one micro-batch and its metrics (steps 1-4 of the module docstring)."""
     inputs = dict(inputs)
     video = inputs.pop("video")
+    height, width = video.shape[-3], video.shape[-2]
+    loss_fields = inputs.pop("loss", None)
+    teacher_inputs = inputs.pop("teacher", None)
     x = jax.lax.stop_gradient(training.codec.encode(codec_params, video))
     k_levels, k_noise = jax.random.split(key)
-    _, cond, levels = draw_levels(k_levels, x, training.flow, height=video.shape[-3], width=video.shape[-2])
     noise = jax.random.normal(k_noise, x.shape, jnp.float32)
+    distill = training.teacher is not None
+    if distill:                           # the coarse model sees the coarse frames of the dense clip
+        seg = training.flow.distill_segment_len
+        dense, dense_noise = x, noise
+        x, noise = distill_step.coarse_frames(x, seg), distill_step.coarse_frames(noise, seg)
+        inputs = distill_step.coarse_controls(inputs, seg)
+        loss_fields = loss_fields and distill_step.coarse_controls(loss_fields, seg)
+    sigma, cond, levels = draw_levels(k_levels, x, training.flow, height=height, width=width)
     x_t = flow.add_noise(x, noise, levels)
     text = inputs.pop("text", None)
     if training.model.controls.cond_frames is not None:
         inputs["cond_latents"], inputs["cond_mask"] = x, cond
     v = training.dit.forward(params, x_t, levels, text, **inputs)
-    loss = flow.flow_loss(v, x, noise, cond_mask=cond)
+    weight_map = None
+    if loss_fields:
+        weight_map = foreground_weights(training, loss_fields, x, height=height, width=width)
+    loss = flow.flow_loss(v, x, noise, cond_mask=cond, weight_map=weight_map)
     metrics = {"flow_loss": loss}
-    if training.flow.structure_weight > 0:
-        s = flow.structure_loss(flow.data_from_velocity(x_t, v, levels), x, cond_mask=cond)
+    f = training.flow
+    if f.structure_weight > 0:
+        s = flow.structure_loss(flow.data_from_velocity(x_t, v, levels), x, cutoff=f.structure_cutoff,
+                                cond_mask=cond)
         metrics["structure_loss"] = s
-        loss = loss + training.flow.structure_weight * s
+        loss = loss + f.structure_weight * s
+    if distill:
+        d_levels, d_cond = distill_step.dense_levels(sigma, cond, dense.shape[-4], seg)
+        target = distill_step.teacher_coarse_estimate(
+            DiT(training.teacher), teacher_params, dense, flow.add_noise(dense, dense_noise, d_levels),
+            d_levels, d_cond, teacher_inputs, segment_len=seg, boundary=f.distill_boundary)
+        d = flow.distill_loss(flow.data_from_velocity(x_t, v, levels), target, cond_mask=cond)
+        metrics["distill_loss"] = d
+        loss = loss + f.distill_weight * d
     metrics["loss"] = loss
     return loss, metrics
 
 
-def train_step(training: FlowTraining, optimizer, ema_decay: float, state: TrainState, codec_params,
+def train_step(training: FlowTraining, optimizer, ema_decay: float, state: TrainState, frozen,
                batch: dict):
-    """One update from the micro-batches ``batch`` (leaves ``[A, b, ...]``). Returns
-    ``(state, metrics)``; metrics are means over the micro-batches plus ``grad_norm``,
-    ``skipped`` and ``bad_steps``."""
+    """One update from the micro-batches ``batch`` (leaves ``[A, b, ...]``). ``frozen``: the
+    parameters that are not trained, ``{"codec": VAE params, "teacher": fine DiT params}`` (either
+    may be None; None for both). Returns ``(state, metrics)``; metrics are means over the
+    micro-batches plus ``grad_norm``, ``skipped`` and ``bad_steps``."""
+    frozen = frozen or {}
+    codec_params, teacher_params = frozen.get("codec"), frozen.get("teacher")
     key, next_key = jax.random.split(state.key)
     n = jax.tree_util.tree_leaves(batch)[0].shape[0]
     keys = jax.random.split(key, n)
-    grad_fn = jax.value_and_grad(lambda p, inp, k: flow_loss_fn(training, p, codec_params, inp, k), has_aux=True)
+    grad_fn = jax.value_and_grad(lambda p, inp, k: flow_loss_fn(training, p, codec_params, inp, k, teacher_params),
+                             has_aux=True)
 
     def micro(acc, xs):
         inp, k = xs
@@ -211,9 +270,9 @@ def train_step(training: FlowTraining, optimizer, ema_decay: float, state: Train
 
 
 def make_train_step(training: FlowTraining, optimizer, ema_decay: float, *, state_shardings):
-    """``train_step`` jitted with the state's shardings in and out and the state donated; the VAE
-    params and the batch keep the shardings they come with (:func:`global_micro_batches`).
-    Call it under ``jax.set_mesh(mesh)``."""
-    fn = lambda state, codec_params, batch: train_step(training, optimizer, ema_decay, state, codec_params, batch)
+    """``train_step`` jitted with the state's shardings in and out and the state donated; the
+    frozen params (VAE, teacher) and the batch keep the shardings they come with
+    (:func:`global_micro_batches`). Call it under ``jax.set_mesh(mesh)``."""
+    fn = lambda state, frozen, batch: train_step(training, optimizer, ema_decay, state, frozen, batch)
     return jax.jit(fn, in_shardings=(state_shardings, None, None),
                    out_shardings=(state_shardings, None), donate_argnums=(0,))

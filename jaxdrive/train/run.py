@@ -14,6 +14,7 @@ stopped and resumed run ends with the same parameters as one that never stopped.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import signal
@@ -93,13 +94,55 @@ class Run:
         if d.height % grid or d.width % (self.codec.spatial * model.patch[2]):
             raise ValueError(f"data.height, data.width: expected multiples of latent compression x patch "
                              f"({grid}), got {d.height} x {d.width}")
-        self.training = flow_step.FlowTraining(model, config.flow, self.codec)
+        self.teacher_params = None
+        teacher = self._teacher_model(devices) if config.flow.distill_teacher else None
+        self.training = flow_step.FlowTraining(model, config.flow, self.codec, teacher)
+        # frames the trained model sees, and the source-frame stride between them
         self.latent_frames = self.codec.latent_frames(d.frames)
+        self.frame_stride = d.stride
+        if teacher is not None:
+            self.latent_frames = (d.frames - 1) // (config.flow.distill_segment_len - 1) + 1
+            self.frame_stride = d.stride * (config.flow.distill_segment_len - 1)
         self.tokens_per_step = (d.batch_size * d.views * self.latent_frames * (d.height // grid) *
                                 (d.width // (self.codec.spatial * model.patch[2])))
         self.text = None
         if model.controls.text == "embeddings":
             self.text = flow_step.TextEmbeddings(d.text_embeddings) if d.text_embeddings else None
+
+    def _teacher_model(self, devices):
+        """The fine model of LongDWM's distillation, from the config of the run directory
+        ``flow.distill_teacher``; its parameters are restored when the step first needs them."""
+        cfg, path = self.config, self.config.flow.distill_teacher
+        if self.codec.temporal != 1:
+            raise ValueError(f"latents: expected frame-wise latents (temporal compression 1) for distillation "
+                             f"(a segment boundary must be a latent frame; LongDWM encodes frames one by one), "
+                             f"got temporal compression {self.codec.temporal}")
+        try:
+            tcfg = load_run_config(path)
+        except ValueError as e:
+            raise ValueError(f"flow.distill_teacher: expected the run directory of the fine model, got {path!r} "
+                             f"({e})") from e
+        model = tcfg.model.replace(dtype=cfg.train.compute_dtype)
+        try:
+            self.codec.check_model(model)
+        except ValueError as e:
+            raise ValueError(f"flow.distill_teacher: the fine model of {path} does not read this run's latents: "
+                             f"{e}") from e
+        # the teacher's own run, on this run's mesh and data, only to restore its parameters
+        self._teacher_config = dataclasses.replace(
+            tcfg, mesh=cfg.mesh, data=dataclasses.replace(cfg.data, frames=cfg.flow.distill_segment_len),
+            flow=dataclasses.replace(tcfg.flow, distill_teacher=""))
+        self._devices = devices
+        return model
+
+    @property
+    def frozen(self) -> dict:
+        """The parameters the step reads but does not train (see :func:`flow_step.train_step`):
+        the VAE's and, when distilling, the fine model's (EMA) parameters, restored on first use."""
+        if self.training.teacher is not None and self.teacher_params is None:
+            run = Run(self._teacher_config, devices=self._devices)
+            _, self.teacher_params = restore_params(run, self.config.flow.distill_teacher)
+        return {"codec": self.codec.params, "teacher": self.teacher_params}
 
     # ------------------------------------------------------------------ state
     def init_state(self):
@@ -132,8 +175,10 @@ class Run:
 
     def global_batch(self, micro_batches: list[dict]):
         """Host micro-batches (this process's samples) -> one global ``[A, b, ...]`` tree."""
+        t = self.training
         return flow_step.global_micro_batches(
-            [flow_step.model_inputs(b, self.training.model, self.text) for b in micro_batches], self.mesh)
+            [flow_step.model_inputs(b, t.model, self.text, flow_config=t.flow, teacher=t.teacher)
+             for b in micro_batches], self.mesh)
 
 
 class _Stop:
@@ -190,7 +235,7 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
     with _Stop() as stop, jax.set_mesh(run.mesh):
         while step < run.total_steps:
             batch = run.global_batch([next(it) for _ in range(cfg.optim.grad_accum)])
-            state, metrics = step_fn(state, run.codec.params, batch)
+            state, metrics = step_fn(state, run.frozen, batch)
             step += 1
             bad = int(metrics["bad_steps"])
             if step % cfg.train.log_every == 0 or step == run.total_steps or bad:

@@ -1,0 +1,105 @@
+"""LongDWM's fine-to-coarse flow distillation inside the train step (sec. 3.3, eq. 7-8).
+
+The batch holds dense clips of ``F = n (K - 1) + 1`` frames (``data.frames``; K =
+``flow.distill_segment_len``). The model being trained is the coarse one: it sees the ``n + 1``
+coarse frames ``0, K-1, 2(K-1), ...`` with their per-frame controls and ``fps / (K - 1)``. One
+level per clip (condition frames clean) and one noise draw cover the whole dense clip, so the
+coarse model's noisy input is exactly the coarse frames of the dense noisy clip (eq. 7). The
+frozen fine model (the run in ``flow.distill_teacher``) denoises each K-frame segment on its own,
+one segment at a time (a ``lax.map``, so only one segment's activations are live), with the
+segment's controls: per-frame ones sliced, waypoints re-expressed in the ego frame of the
+segment's first frame (as the data pipeline gives them for a clip starting there). Eq. 8 pulls
+the coarse model's data estimates towards the fine model's at the coarse frames
+(:func:`jaxdrive.flow.distill_loss`), next to its own flow loss.
+
+The fine model must read the same latents frame by frame: LongDWM's coarse model encodes frames
+one by one, and a segment boundary is a latent frame only without temporal compression.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from jaxdrive import flow
+from jaxdrive.models.dit_inputs import PER_FRAME_INPUTS as PER_FRAME
+
+POSES = "poses"     # the fine model's inputs carry the clip's ego_to_world under this key
+
+
+def coarse_frames(x, segment_len: int):
+    """The coarse frames ``0, K-1, ...`` of latents ``[B, V, F, h, w, C]`` (frame axis -4)."""
+    return x[..., ::segment_len - 1, :, :, :]
+
+
+def coarse_controls(controls: dict, segment_len: int) -> dict:
+    """The coarse model's controls: per-frame ones at the coarse frames, ``fps / (K - 1)``."""
+    step = segment_len - 1
+    out = {}
+    for k, v in controls.items():
+        if k in PER_FRAME:
+            out[k] = v[:, ::step]
+        elif k == "fps":
+            out[k] = v / step
+        else:
+            out[k] = v
+    return out
+
+
+def relative_waypoints(poses):
+    """Ego positions ``[B, K, 2]`` in the ego frame of each clip's first pose, from
+    ``ego_to_world [B, K, 4, 4]``: ``(R_0^T (t_k - t_0))_xy`` (the pipeline's waypoints)."""
+    r0 = poses[:, 0, :3, :3]
+    d = poses[:, :, :3, 3] - poses[:, :1, :3, 3]
+    return jnp.einsum("bji,bkj->bki", r0, d)[..., :2]
+
+
+def segment_controls(controls: dict, start, segment_len: int) -> dict:
+    """The fine model's controls for the segment of K frames from ``start`` (traced is fine)."""
+    out = {}
+    for k, v in controls.items():
+        if k == POSES:
+            continue
+        if k == "waypoints":
+            poses = jax.lax.dynamic_slice_in_dim(controls[POSES], start, segment_len, axis=1)
+            out[k] = relative_waypoints(poses)
+        elif k in PER_FRAME:
+            out[k] = jax.lax.dynamic_slice_in_dim(v, start, segment_len, axis=1)
+        else:
+            out[k] = v
+    return out
+
+
+def teacher_coarse_estimate(teacher, params, x, x_t, levels, cond, controls: dict, *, segment_len: int,
+                            boundary: str):
+    """The frozen fine model's data estimates at the coarse frames, ``[B, V, n + 1, h, w, C]``.
+
+    ``teacher``: the fine :class:`jaxdrive.models.dit.DiT`; ``x``, ``x_t`` the clean and noisy
+    dense latents; ``levels``, ``cond`` ``[B, F]`` dense levels and condition frames;
+    ``controls`` the fine model's inputs (:func:`jaxdrive.train.flow_step.model_inputs` of its
+    config, ``text`` included, ego poses under :data:`POSES`)."""
+    controls = dict(controls)
+    text = controls.pop("text", None)
+    frames, axis = x.shape[-4], x.ndim - 4
+    n = (frames - 1) // (segment_len - 1)
+
+    def segment(i):
+        start = i * (segment_len - 1)
+        cut = lambda a, ax: jax.lax.dynamic_slice_in_dim(a, start, segment_len, axis=ax)
+        xs, ls = cut(x_t, axis), cut(levels, 1)
+        inputs = segment_controls(controls, start, segment_len)
+        if teacher.config.controls.cond_frames is not None:
+            inputs["cond_latents"], inputs["cond_mask"] = cut(x, axis), cut(cond, 1)
+        d = flow.data_from_velocity(xs, teacher.forward(params, xs, ls, text, **inputs), ls)
+        return jnp.take(d, 0, axis=axis), jnp.take(d, segment_len - 1, axis=axis)
+
+    first, last = jax.lax.map(segment, jnp.arange(n))                 # [n, B, V, h, w, C] each
+    coarse = flow.coarse_from_ends(jnp.moveaxis(first, 0, 1), jnp.moveaxis(last, 0, 1), boundary=boundary)
+    return jax.lax.stop_gradient(jnp.moveaxis(coarse, 1, axis))        # [B, n+1, V, ...] -> frame axis
+
+
+def dense_levels(sigma, cond, frames: int, segment_len: int):
+    """Dense levels and condition frames ``[B, F]`` from the coarse ones: every frame at the
+    clip's level ``sigma [B]``, the coarse condition frames clean (eq. 7: one level per clip)."""
+    cond_dense = jnp.zeros((cond.shape[0], frames), bool).at[:, ::segment_len - 1].set(cond)
+    return jnp.where(cond_dense, 0.0, sigma[:, None]), cond_dense
