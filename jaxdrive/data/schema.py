@@ -51,16 +51,32 @@ CLIP_FIELDS = {
 OPTIONAL_FIELDS = ("instance_ids",)
 SCALAR_FIELDS = {"fps": float, "caption": str}
 
+# A latent window (``jaxdrive data encode``): one training sample of
+# :func:`jaxdrive.data.pipeline.sample_clip` (F frames, already strided, resized and cropped) with
+# ``video`` replaced by its scaled latents (L latent frames of h x w, C channels); ego_to_world is
+# float32 as sample_clip returns it.
+WINDOW_FIELDS = {
+    "latents": (np.float32, ("V", "L", "h", "w", "C")),
+    **{k: v for k, v in CLIP_FIELDS.items() if k not in ("video", "instance_ids")},
+    "ego_to_world": (np.float32, ("F", 4, 4)),
+}
 
-def check_clip(clip: Mapping, *, source: str = "clip") -> dict:
-    """Check a clip record against :data:`CLIP_FIELDS`; return the symbolic sizes it binds.
+# Record kinds a dataset can hold: name -> field table.
+RECORD_FIELDS = {"clips": CLIP_FIELDS, "windows": WINDOW_FIELDS}
+
+
+def check_clip(clip: Mapping, *, source: str = "clip", kind: str = "clips") -> dict:
+    """Check a record against the field table of ``kind`` (:data:`CLIP_FIELDS` or
+    :data:`WINDOW_FIELDS`); return the symbolic sizes it binds.
 
     Raises ``ValueError`` naming ``source``, the field, what was expected and what came.
     ``waypoints[f]`` is the ego position at frame f in the ego frame of frame 0 (x forward,
     y left), so ``waypoints[0] == (0, 0)``.
     """
+    if kind not in RECORD_FIELDS:
+        raise ValueError(f"kind: expected one of {sorted(RECORD_FIELDS)}, got {kind!r}")
     sizes: dict = {}
-    for name, (dtype, spec) in CLIP_FIELDS.items():
+    for name, (dtype, spec) in RECORD_FIELDS[kind].items():
         if name not in clip:
             if name in OPTIONAL_FIELDS:
                 continue

@@ -6,8 +6,10 @@
 
 Layout: ``out_dir`` is one TFDS dataset directory (``dataset_info.json``, ``features.json``,
 ``metadata.json`` and ``<name>-<split>.array_record-NNNNN-of-NNNNN`` shards), readable by
-``tfds.builder_from_directory(out_dir)`` and grain. Every clip record (:mod:`jaxdrive.data.schema`)
-is checked before it is written. Features: one ``tfds.features.Tensor`` per schema array, every
+``tfds.builder_from_directory(out_dir)`` and grain. Every record is checked against the field table
+of its kind (:data:`jaxdrive.data.schema.RECORD_FIELDS`) before it is written: ``"clips"`` (source
+video) or ``"windows"`` (latent windows of ``jaxdrive data encode``); the kind is kept in the
+metadata (:attr:`ClipSource.kind`). Features: one ``tfds.features.Tensor`` per schema array, every
 symbolic size (V, F, H, W, N, Hm, Wm) left as ``None`` so clips of different lengths, view counts
 and resolutions share one dataset; ``caption`` is ``Text``, ``fps`` a float64 ``Scalar``; extra
 string fields of the clips (e.g. ``scene``, ``source``) become ``Text`` features, extra arrays
@@ -48,14 +50,14 @@ from jaxdrive.data import schema
 log = logging.getLogger(__name__)
 
 VERSION = "1.0.0"
-_COMPRESSIBLE = ("video", "bev_map", "instance_ids")
-_RESERVED_METADATA = "jaxdrive"  # metadata key holding the per-split frame counts
+_COMPRESSIBLE = ("video", "latents", "bev_map", "instance_ids")
+_RESERVED_METADATA = "jaxdrive"  # metadata key holding the record kind and per-split frame counts
 
 
-def _features(first: Mapping, compression: str) -> tuple[tfds.features.FeaturesDict, list[str]]:
-    """The FeaturesDict for clips shaped like ``first``; also the names of its Text features."""
+def _features(first: Mapping, compression: str, kind: str) -> tuple[tfds.features.FeaturesDict, list[str]]:
+    """The FeaturesDict for records of ``kind`` shaped like ``first``; also the names of its Text features."""
     feats, texts = {}, []
-    for name, (dtype, spec) in schema.CLIP_FIELDS.items():
+    for name, (dtype, spec) in schema.RECORD_FIELDS[kind].items():
         if name not in first:
             continue
         shape = tuple(s if isinstance(s, int) else None for s in spec)
@@ -82,14 +84,14 @@ def _features(first: Mapping, compression: str) -> tuple[tfds.features.FeaturesD
 
 
 def _write_split(tmp: Path, template, split: str, clips: Iterable[dict], features, keys: set,
-                 shard_bytes: int) -> tuple[tfds.core.SplitInfo, list[int]]:
+                 shard_bytes: int, kind: str) -> tuple[tfds.core.SplitInfo, list[int]]:
     """Stream one split into ArrayRecord shards (TFDS serialisation, written in order)."""
     lengths, frames, parts, total = [], [], [], 0
     writer, size = None, 0
     try:
         for i, clip in enumerate(clips):
             where = f"split {split!r} clip {i}"
-            sizes = schema.check_clip(clip, source=where)
+            sizes = schema.check_clip(clip, source=where, kind=kind)
             if set(clip.keys()) != keys:
                 raise ValueError(f"{where}: expected the fields of the first clip {sorted(keys)}, "
                                  f"got {sorted(clip.keys())}")
@@ -118,18 +120,21 @@ def _write_split(tmp: Path, template, split: str, clips: Iterable[dict], feature
 def write_dataset(out_dir, splits: Mapping[str, Iterable[dict]], *, name: str = "jaxdrive_clips",
                   description: str = "jaxdrive driving clips (see jaxdrive.data.schema).",
                   metadata: Mapping | None = None, compression: str = "bytes",
-                  overwrite: bool = False, shard_bytes: int = 1 << 30) -> Path:
+                  overwrite: bool = False, shard_bytes: int = 1 << 30, kind: str = "clips") -> Path:
     """Write clip iterables as one TFDS ArrayRecord dataset at ``out_dir``; return its path.
 
     ``splits`` maps split names (e.g. ``"train"``, ``"validation"``) to iterables of clip dicts
     (consumed once, streamed: the clips never all sit in memory). All clips must carry the same
-    fields; the first clip decides the features. ``metadata`` is a JSON-serialisable dict saved in
+    fields; the first clip decides the features. ``kind``: ``"clips"`` (:data:`schema.CLIP_FIELDS`)
+    or ``"windows"`` (:data:`schema.WINDOW_FIELDS`). ``metadata`` is a JSON-serialisable dict saved in
     ``metadata.json``. ``out_dir`` must not exist unless ``overwrite`` is set (the old dataset is
     replaced only after the new one is complete).
     """
     out_dir = Path(out_dir)
     if compression not in ("bytes", "zlib"):
         raise ValueError(f"compression: expected 'bytes' or 'zlib', got {compression!r}")
+    if kind not in schema.RECORD_FIELDS:
+        raise ValueError(f"kind: expected one of {sorted(schema.RECORD_FIELDS)}, got {kind!r}")
     if not splits:
         raise ValueError(f"splits: expected at least one split for {out_dir}, got none")
     if out_dir.exists() and not overwrite:
@@ -145,8 +150,8 @@ def write_dataset(out_dir, splits: Mapping[str, Iterable[dict]], *, name: str = 
             raise ValueError(f"splits[{split!r}]: expected at least one clip for {out_dir}, got none")
         first = head if first is None else first
         iters[split] = itertools.chain([head], it)
-    features, _ = _features(first, compression)
-    metadata[_RESERVED_METADATA] = {"frame_counts": {}, "schema_fields": sorted(features.keys())}
+    features, _ = _features(first, compression, kind)
+    metadata[_RESERVED_METADATA] = {"kind": kind, "frame_counts": {}, "schema_fields": sorted(features.keys())}
 
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_dir.parent / f".{out_dir.name}.tmp-{uuid.uuid4().hex[:8]}"
@@ -159,7 +164,7 @@ def write_dataset(out_dir, splits: Mapping[str, Iterable[dict]], *, name: str = 
         infos = []
         for split, clips in iters.items():
             info, counts[split] = _write_split(tmp, template, split, clips, features, set(features.keys()),
-                                               shard_bytes)
+                                               shard_bytes, kind)
             infos.append(info)
         tfds.folder_dataset.write_metadata(
             data_dir=tmp, features=features, split_infos=infos, version=VERSION,
@@ -206,7 +211,8 @@ class ClipSource:
 
     Clips come back as NumPy arrays of the schema dtypes, ``caption`` and other text fields as
     ``str``, ``fps`` as ``float``. ``frame_counts[i]`` is clip i's frame count, read from the
-    metadata without decoding the clip. Picklable (reopens lazily), so grain workers can use it.
+    metadata without decoding the clip; ``kind`` is the record kind (``"clips"`` or ``"windows"``).
+    Picklable (reopens lazily), so grain workers can use it.
     """
 
     def __init__(self, path, split: str):
@@ -216,8 +222,9 @@ class ClipSource:
         if split not in splits:
             raise ValueError(f"split: expected one of {splits} for {self.path}, got {split!r}")
         self._texts = [k for k, f in builder.info.features.items() if isinstance(f, tfds.features.Text)]
-        meta = builder.info.metadata or {}
-        counts = meta.get(_RESERVED_METADATA, {}).get("frame_counts", {}).get(split)
+        ours = (builder.info.metadata or {}).get(_RESERVED_METADATA, {})
+        self.kind = ours.get("kind", "clips")     # datasets written before kinds existed hold clips
+        counts = ours.get("frame_counts", {}).get(split)
         self.frame_counts = None if counts is None else np.asarray(counts, np.int64)
         self._len = int(builder.info.splits[split].num_examples)
         self._builder = builder
@@ -257,7 +264,7 @@ class ClipSource:
         return clip
 
     def __getstate__(self):
-        return {"path": self.path, "split": self.split, "_texts": self._texts,
+        return {"path": self.path, "split": self.split, "kind": self.kind, "_texts": self._texts,
                 "frame_counts": self.frame_counts, "_len": self._len, "_builder": None, "_source": None}
 
     def __repr__(self):
@@ -270,7 +277,8 @@ def open_source(data_dir_or_path, split: str = "train") -> ClipSource:
 
 
 def dataset_info(path) -> dict:
-    """Splits, example counts, feature shapes/dtypes, frame-count ranges and metadata of a dataset."""
+    """Splits, example counts, feature shapes/dtypes, frame-count ranges, the record kind and the
+    metadata of a dataset."""
     d, builder = _builder(path)
     info = builder.info
     meta = dict(info.metadata or {})
@@ -291,5 +299,5 @@ def dataset_info(path) -> dict:
                        total_frames=int(sum(counts)))
         splits[s] = row
     return {"path": str(d), "name": info.name, "version": str(info.version),
-            "description": info.description, "file_format": "array_record",
+            "description": info.description, "file_format": "array_record", "kind": ours.get("kind", "clips"),
             "splits": splits, "features": features, "metadata": meta}
