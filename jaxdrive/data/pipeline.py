@@ -13,6 +13,12 @@ the ego frame of the first sampled frame; ``fps [B]`` = source fps / stride; ``c
 str, as other text fields of the clips); ``drop`` {condition: [B] bool} for classifier-free
 guidance; ``index [B]`` the source indices. ``instance_ids`` is not carried.
 
+A source of latent windows (``jaxdrive data encode``, ``source.kind == "windows"``) gives the same
+batches with ``latents [B, V, F', h, w, C]`` float32 in place of ``video``: each record is one
+training sample, cut, strided and resized when it was encoded, so it is taken whole
+(:func:`take_window`; ``stride`` must be 1), with the same planning, shuffling, sharding, drops and
+iterator state.
+
 Choices:
 - Planning is in index space and global: each epoch, a seeded permutation of all clips, a seeded
   bucket per clip (among the buckets the clip is long enough for, probabilities renormalised),
@@ -194,6 +200,26 @@ def sample_clip(clip: Mapping, *, size: tuple[int, int], frames: int, stride: in
     return out
 
 
+def take_window(record: Mapping, *, frames: int, views=None, where: str = "window") -> dict:
+    """One training sample from a stored latent window (:data:`schema.WINDOW_FIELDS`): a view
+    subset of the whole window, shaped and typed as :func:`sample_clip`'s output with
+    ``latents`` for ``video``."""
+    have = int(np.shape(record["ego_to_world"])[0])
+    if have != frames:
+        raise ValueError(f"{where}: expected a latent window of {frames} frames (the bucket's), got {have}: "
+                         f"encode the dataset with the frame count you train with")
+    v = _view_indices(views, int(np.shape(record["latents"])[0]), where)
+    out = {}
+    for name, (_, spec) in schema.WINDOW_FIELDS.items():
+        value = np.asarray(record[name])
+        out[name] = value[v] if spec[0] == "V" else value
+    out["fps"] = np.float32(record["fps"])          # stored as float64 by TFDS; sample_clip's dtype
+    for name, value in record.items():
+        if isinstance(value, str):
+            out[name] = value
+    return out
+
+
 def _pad_boxes(s: dict, n: int, where: str) -> None:
     """Pad (invalid slots) or cut the box axis to ``n``, keeping valid boxes first; log cuts."""
     valid = s["box_valid"]
@@ -367,9 +393,12 @@ class _LoadBatch:
             clip = self.source[int(idx)]
             T = int(np.shape(clip["ego_to_world"])[0])
             start = int(rng.integers(0, T - bucket.needed(self.plan.stride) + 1))
-            s = sample_clip(clip, size=(bucket.height, bucket.width), frames=bucket.frames,
-                            stride=self.plan.stride, start=start, views=self.views, crop=self.crop,
-                            rng=rng, where=f"source clip {int(idx)}")
+            if "latents" in clip:
+                s = take_window(clip, frames=bucket.frames, views=self.views, where=f"source window {int(idx)}")
+            else:
+                s = sample_clip(clip, size=(bucket.height, bucket.width), frames=bucket.frames,
+                                stride=self.plan.stride, start=start, views=self.views, crop=self.crop,
+                                rng=rng, where=f"source clip {int(idx)}")
             s["drop"] = {n: bool(rng.random() < p) for n, p in sorted(self.drop_probs.items())}
             s["index"] = np.int64(idx)
             samples.append(s)
@@ -391,6 +420,9 @@ def make_pipeline(source, buckets, *, stride: int = 1, views=None, crop: str = "
     """
     parsed = parse_buckets(buckets, compression=compression)
     stride = check_positive_int("stride", stride)
+    if getattr(source, "kind", "clips") == "windows" and stride != 1:
+        raise ValueError(f"stride: expected 1 for a source of latent windows (their frames were strided when "
+                         f"encoded), got {stride}")
     if shard_index is None or shard_count is None:
         import jax
         shard_index, shard_count = jax.process_index(), jax.process_count()
