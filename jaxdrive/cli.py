@@ -107,6 +107,18 @@ def _data_text_embed(args, rest) -> int:
     return 0
 
 
+def _data_encode(args, rest) -> int:
+    from jaxdrive.config import load_config
+    from jaxdrive.train.encode import encode_dataset
+
+    config = load_config(args.config, args.set or [])
+    path = encode_dataset(config, args.out, splits=args.split, every=args.every, batch=args.batch,
+                          overwrite=args.overwrite)
+    print(f"wrote the latent windows of {config.data.path} to {path}; train on them with "
+          f"--set data.path={path} --set latents.precomputed=true")
+    return 0
+
+
 def _add_data_commands(sub) -> None:
     data = sub.add_parser("data", help="build and inspect datasets (TFDS, ArrayRecord)")
     dsub = data.add_subparsers(dest="data_command", metavar="DATA_COMMAND", required=True)
@@ -141,6 +153,18 @@ def _add_data_commands(sub) -> None:
     text.add_argument("--max-length", type=int, default=300)
     text.add_argument("--batch-size", type=int, default=8)
     text.set_defaults(run=_data_text_embed)
+    enc = dsub.add_parser("encode", help="precompute the latents of a config's training windows "
+                                         "(train on them with latents.precomputed=true)")
+    enc.add_argument("--config", required=True, help="the training config: data.path, frames, stride, views, "
+                                                     "height, width and the latents codec")
+    enc.add_argument("--out", required=True, help="dataset directory to create")
+    enc.add_argument("--split", nargs="+", help="splits to encode (default: all of the dataset's)")
+    enc.add_argument("--every", type=int, help="source frames between window starts (default: the window's "
+                                               "span, no overlap)")
+    enc.add_argument("--batch", type=int, default=8, help="windows per encoder call")
+    enc.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config field (repeatable)")
+    enc.add_argument("--overwrite", action="store_true")
+    enc.set_defaults(run=_data_encode)
     info = dsub.add_parser("info", help="print what a dataset holds")
     info.add_argument("path")
     info.set_defaults(run=_data_info)

@@ -46,13 +46,18 @@ class LatentConfig:
     ``"vae"``: a saved jaxdrive VAE (``vae_path``, see ``jaxdrive convert vae``), encoding on the
     fly in ``vae_mode``. ``"space_to_depth"``: frame-wise pixel latents, each ``factor x factor``
     patch folded into channels (exact and parameter-free: the CPU demo uses it so that it needs no
-    VAE training)."""
+    VAE training).
+
+    ``precomputed``: ``data.path`` holds latent windows written by ``jaxdrive data encode`` (the
+    train step encodes nothing); the fields above still describe the codec that made them (it
+    decodes samples) and must match what the dataset's metadata records."""
 
     source: str = "space_to_depth"
     vae_path: str = ""
     vae_mode: str = "chunked"
     factor: int = 4
     scale: float = 1.0                # space_to_depth latents are multiplied by this (a VAE uses its scaling factor)
+    precomputed: bool = False
 
 
 @dataclasses.dataclass(frozen=True)

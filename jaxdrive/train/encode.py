@@ -1,0 +1,147 @@
+"""Precomputed latents: ``jaxdrive data encode`` encodes a clip dataset's training windows once, so
+that the train step reads latents instead of running the VAE on every batch.
+
+    encode_dataset(config, "data/latents")        # the clips of config.data.path -> latent windows
+    # then train with --set latents.precomputed=true --set data.path=data/latents
+
+Each clip is cut into windows of ``data.frames`` frames at ``data.stride``, starting at frames 0,
+``every``, ``2 every``, ... (``every`` defaults to the window's span in source frames: no overlap);
+each window keeps the first ``data.views`` views and is resized and centre-cropped to
+(``data.height``, ``data.width``) by the pipeline's :func:`jaxdrive.data.pipeline.sample_clip`, so
+intrinsics and waypoints are adjusted exactly as in training. The video is encoded in jitted
+batches by :class:`jaxdrive.models.latents.LatentCodec` (scaled latents) and the windows are written
+by :func:`jaxdrive.data.tfds_io.write_dataset` as records of kind ``"windows"``
+(:data:`jaxdrive.data.schema.WINDOW_FIELDS`), in order: clip by clip, window by window. The
+dataset's metadata (``"encoded"``) records what produced the latents; :func:`check_dataset`
+compares it with a run's config before anything compiles.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from jaxdrive.config import check_sections
+from jaxdrive.models.latents import LatentCodec
+from jaxdrive.validate import check_positive_int
+
+log = logging.getLogger(__name__)
+
+METADATA_KEY = "encoded"
+_CODEC_FIELDS = ("source", "factor", "scale", "vae_path", "vae_mode")
+_DATA_FIELDS = ("height", "width", "frames", "stride", "views")
+
+
+def _windows(source, data, every: int):
+    """``sample_clip`` of every window of every clip of ``source``, in order."""
+    from jaxdrive.data.pipeline import sample_clip
+    span = 1 + (data.frames - 1) * data.stride
+    count = longest = 0
+    for i in range(len(source)):
+        clip = source[i]
+        have = int(np.shape(clip["ego_to_world"])[0])
+        longest = max(longest, have)
+        for start in range(0, have - span + 1, every):
+            count += 1
+            yield sample_clip(clip, size=(data.height, data.width), frames=data.frames, stride=data.stride,
+                              start=start, views=list(range(data.views)),
+                              where=f"{source.path} split {source.split!r} clip {i}")
+    if count == 0:
+        raise ValueError(f"data.frames: {data.frames} frames at stride {data.stride} need {span} source frames, "
+                         f"but the longest clip of split {source.split!r} of {source.path} has {longest}")
+
+
+def _encoded(windows, codec: LatentCodec, batch: int):
+    """The windows with ``video`` replaced by its ``latents``, encoded ``batch`` at a time (the
+    last batch is padded so that the encoder compiles once)."""
+    encode = jax.jit(codec.encode)
+    pending = []
+
+    def flush():
+        video = np.stack([w.pop("video") for w in pending])
+        pad = batch - len(pending)
+        if pad:
+            video = np.concatenate([video, np.repeat(video[-1:], pad, axis=0)])
+        latents = np.asarray(encode(codec.params, video), np.float32)
+        for w, z in zip(pending, latents):
+            w["latents"] = z
+        out = list(pending)
+        pending.clear()
+        return out
+
+    for w in windows:
+        pending.append(w)
+        if len(pending) == batch:
+            yield from flush()
+    if pending:
+        yield from flush()
+
+
+def encode_dataset(config, out, *, splits=None, every: int | None = None, batch: int = 8,
+                   overwrite: bool = False) -> Path:
+    """Write the latent windows of the clip dataset ``config.data.path`` to ``out`` (module
+    docstring); returns the dataset path. ``splits``: the splits to encode (default: all of the
+    dataset's); ``every``: source frames between window starts; ``batch``: windows per encoder call."""
+    from jaxdrive.data.tfds_io import dataset_info, open_source, write_dataset
+    check_sections(config)
+    d = config.data
+    span = 1 + (d.frames - 1) * d.stride
+    every = span if every is None else check_positive_int("every", every)
+    batch = check_positive_int("batch", batch)
+    info = dataset_info(d.path)
+    if info["kind"] != "clips":
+        raise ValueError(f"data.path: expected a clip dataset to encode, got {d.path} holding {info['kind']}")
+    splits = list(info["splits"]) if splits is None else list(splits)
+    for split in splits:
+        if split not in info["splits"]:
+            raise ValueError(f"splits: expected splits of {d.path} ({sorted(info['splits'])}), got {split!r}")
+    codec = LatentCodec.from_config(config.latents)
+    metadata = {METADATA_KEY: {
+        "source_path": str(Path(info["path"]).resolve()),
+        "latents": {k: getattr(config.latents, k) for k in _CODEC_FIELDS},
+        "data": {k: getattr(d, k) for k in _DATA_FIELDS},
+        "every": every,
+        "latent_channels": codec.channels,
+        "latent_frames": codec.latent_frames(d.frames),
+    }}
+    sources = {s: open_source(d.path, s) for s in splits}
+    path = write_dataset(out, {s: _encoded(_windows(src, d, every), codec, batch) for s, src in sources.items()},
+                         name="jaxdrive_latents", kind="windows", metadata=metadata, overwrite=overwrite,
+                         description=f"jaxdrive latent windows of {d.path} (jaxdrive data encode).")
+    log.info("encoded %s -> %s", d.path, path)
+    return path
+
+
+def check_dataset(config, codec: LatentCodec) -> None:
+    """``ValueError`` unless ``data.path`` holds what ``latents.precomputed`` says (latent windows
+    or clips) and, for windows, was encoded as the config says: latents source (and factor and
+    scale for space_to_depth, vae_mode for a VAE, which ignores the other two), latent channels,
+    data height, width, frames, views and stride."""
+    from jaxdrive.data.tfds_io import dataset_info
+    d, lat = config.data, config.latents
+    if not lat.precomputed and not Path(d.path).exists():
+        return                                  # the pipeline names a missing clip dataset when it opens it
+    info = dataset_info(d.path)
+    if lat.precomputed and info["kind"] != "windows":
+        raise ValueError(f"data.path: expected latent windows written by 'jaxdrive data encode' (latents.precomputed "
+                         f"is true), got {d.path} holding {info['kind']}: encode it, or set latents.precomputed=false")
+    if not lat.precomputed:
+        if info["kind"] == "windows":
+            raise ValueError(f"latents.precomputed: expected true for {d.path} (latent windows written by "
+                             f"'jaxdrive data encode'), got false")
+        return
+    meta = info["metadata"].get(METADATA_KEY)
+    if not isinstance(meta, dict):
+        raise ValueError(f"data.path: expected the metadata of 'jaxdrive data encode' ({METADATA_KEY!r}) in "
+                         f"{d.path}, got {sorted(info['metadata'])}")
+    codec_fields = ("source",) + (("factor", "scale") if lat.source == "space_to_depth" else ("vae_mode",))
+    pairs = [(f"latents.{k}", meta["latents"].get(k), getattr(lat, k)) for k in codec_fields]
+    pairs += [(f"data.{k}", meta["data"].get(k), getattr(d, k)) for k in _DATA_FIELDS]
+    pairs.append(("latent channels", meta.get("latent_channels"), codec.channels))
+    for name, stored, value in pairs:
+        if stored != value:
+            raise ValueError(f"{name}: expected {stored!r} (what the latent windows at {d.path} were encoded with), "
+                             f"got {value!r}")
