@@ -74,7 +74,8 @@ def rollout(training, params, codec_params, inputs: dict, *, total_frames: int, 
 
     ``inputs``: :func:`jaxdrive.train.flow_step.model_inputs` of clips that cover the whole
     length (per-frame controls for every frame; ``video`` needs only the first ``cond_frames``
-    latent frames' pixels). ``window``: latent frames per window (the training length);
+    latent frames' pixels, or ``latents`` of a precomputed dataset the first ``cond_frames``
+    latent frames). ``window``: latent frames per window (the training length);
     ``overlap``: frames each next window conditions on (``1 <= overlap < window``)."""
     check_positive_int("total_frames", total_frames)
     check_positive_int("window", window)
@@ -86,10 +87,12 @@ def rollout(training, params, codec_params, inputs: dict, *, total_frames: int, 
     window = min(window, total_frames)
     codec = training.codec
     controls = {k: jnp.asarray(v) if not isinstance(v, dict) else {n: jnp.asarray(m) for n, m in v.items()}
-                for k, v in inputs.items() if k != "video"}
-    video = jnp.asarray(inputs["video"])
-    pixel_window = 1 + codec.temporal * (window - 1)
-    first = codec.encode(codec_params, video[:, :, :pixel_window])     # [B, V, window, h, w, C]
+                for k, v in inputs.items() if k not in ("video", "latents")}
+    if "latents" in inputs:                                            # a precomputed dataset's
+        first = jnp.asarray(inputs["latents"])[:, :, :window]
+    else:
+        pixel_window = 1 + codec.temporal * (window - 1)
+        first = codec.encode(codec_params, jnp.asarray(inputs["video"])[:, :, :pixel_window])  # [B, V, window, h, w, C]
     shape = first.shape[:2] + (total_frames,) + first.shape[3:]
     out = jnp.zeros(shape, jnp.float32, device=first.sharding)         # sharded like the windows
     sample = jax.jit(lambda p, xc, m, c, k: sample_window(training, p, xc, m, c, k, steps=steps,

@@ -20,7 +20,10 @@ from jaxdrive.validate import check_positive_int
 
 def dataset_inputs(run, *, frames: int, views=None, clips: int = 1, split: str | None = None, seed: int = 0):
     """Model inputs of ``clips`` dataset clips of ``frames`` pixel frames (no condition dropped):
-    the first frames give the condition latents, every frame its controls."""
+    the first frames give the condition latents, every frame its controls. A precomputed dataset
+    (``latents.precomputed``) gives its stored windows: ``frames`` at most the window's frame count
+    (a prefix of a window; its latents are cut to ``codec.latent_frames(frames)``, which the causal
+    VAE and the frame-wise codecs encode from those frames alone)."""
     from jaxdrive.data.pipeline import collate, sample_clip
     from jaxdrive.data.tfds_io import open_source
     from jaxdrive.train.flow_step import model_inputs
@@ -38,6 +41,9 @@ def dataset_inputs(run, *, frames: int, views=None, clips: int = 1, split: str |
     samples = []
     for i in range(clips):
         clip = source[i % len(source)]
+        if run.config.latents.precomputed:
+            samples.append(_window_prefix(run, clip, frames, views, f"{source.split} window {i}"))
+            continue
         have = int(np.shape(clip["ego_to_world"])[0])
         stride = run.frame_stride
         need = 1 + (frames - 1) * stride
@@ -53,6 +59,22 @@ def dataset_inputs(run, *, frames: int, views=None, clips: int = 1, split: str |
                              ("trajectory", c.trajectory), ("boxes", c.boxes), ("map", c.map)) if on]
     inputs["drop"] = {n: np.zeros((clips,), bool) for n in names}      # nothing dropped; CFG adds the nulls
     return inputs
+
+
+def _window_prefix(run, record, frames: int, views, where: str) -> dict:
+    """The first ``frames`` frames of a stored latent window as a sample (its latents cut to
+    ``codec.latent_frames(frames)``)."""
+    from jaxdrive.data.pipeline import take_window
+    from jaxdrive.data.schema import WINDOW_FIELDS
+    have, temporal = int(np.shape(record["ego_to_world"])[0]), run.codec.temporal
+    if frames > have or (frames - 1) % temporal:
+        form = f"1 + {temporal}k frames, " if temporal > 1 else ""
+        raise ValueError(f"frames: expected {form}at most the {have} frames of the dataset's latent windows "
+                         f"(latents.precomputed fixes the length), got {frames}")
+    s = take_window(record, frames=have, views=views, where=where)
+    s.update({k: s[k][:frames] for k, (_, spec) in WINDOW_FIELDS.items() if spec[0] == "F"},
+             latents=s["latents"][:, :run.codec.latent_frames(frames)])
+    return s
 
 
 def generate(run, params, *, frames: int | None = None, views=None, steps: int | None = None,

@@ -4,7 +4,7 @@ One step (:func:`make_train_step`) takes the train state and a stack of ``grad_a
 micro-batches ``[A, b, ...]``, and for each micro-batch (in a ``lax.scan``):
 
 1. encodes the video to latents ``x`` (:class:`jaxdrive.models.latents.LatentCodec`; a VAE runs
-   on the fly, without gradients);
+   on the fly, without gradients), or takes the batch's precomputed ``latents``;
 2. draws a base level per clip (logit-normal or uniform, then Open-Sora's shift; SD3 eq. 19),
    ``k`` clean condition frames at the start (``0..cond_frames`` per clip, or exactly
    ``cond_frames``), JDC anchors (the last frame at ``g = slope * sigma``, MiLA sec. 3.3) for a
@@ -79,12 +79,13 @@ LOSS_FIELDS = ("boxes", "box_valid", "intrinsics", "cam_to_ego")   # what STAGE'
 def model_inputs(batch: dict, model: DiTConfig, text_embeddings: TextEmbeddings | None = None, *,
                  flow_config: FlowConfig | None = None, teacher: DiTConfig | None = None) -> dict:
     """The NumPy arrays a step needs from a pipeline batch (:mod:`jaxdrive.data.pipeline`):
-    ``video`` and what the DiT's controls read; captions become token ids (built-in caption
-    encoder) or looked-up T5 embeddings; ``drop`` is renamed to the DiT's conditions. With
-    ``flow_config.foreground_k > 0``, ``loss`` holds the boxes and cameras of STAGE's W_aux; with
+    ``video`` (or the precomputed ``latents`` of a batch of latent windows) and what the DiT's
+    controls read; captions become token ids (built-in caption encoder) or looked-up T5
+    embeddings; ``drop`` is renamed to the DiT's conditions. With ``flow_config.foreground_k > 0``, ``loss`` holds the boxes and cameras of STAGE's W_aux; with
     a distillation ``teacher``, ``teacher`` holds the fine model's inputs and the ego poses."""
     out = _controls(batch, model, text_embeddings)
-    out["video"] = np.asarray(batch["video"], np.float32)
+    x = "latents" if "latents" in batch else "video"          # precomputed latent windows or pixels
+    out[x] = np.asarray(batch[x], np.float32)
     if flow_config is not None and flow_config.foreground_k > 0:
         out["loss"] = {k: np.asarray(batch[k]) for k in LOSS_FIELDS}
     if teacher is not None:
@@ -196,11 +197,12 @@ def foreground_weights(training: FlowTraining, fields: dict, x, *, height: int, 
 def flow_loss_fn(training: FlowTraining, params, codec_params, inputs: dict, key, teacher_params=None):
     """The loss of one micro-batch and its metrics (steps 1-4 of the module docstring)."""
     inputs = dict(inputs)
-    video = inputs.pop("video")
-    height, width = video.shape[-3], video.shape[-2]
     loss_fields = inputs.pop("loss", None)
     teacher_inputs = inputs.pop("teacher", None)
-    x = jax.lax.stop_gradient(training.codec.encode(codec_params, video))
+    # precomputed latents (jaxdrive data encode) or the video encoded here
+    x = inputs.pop("latents") if "latents" in inputs else (
+        jax.lax.stop_gradient(training.codec.encode(codec_params, inputs.pop("video"))))
+    height, width = x.shape[-3] * training.codec.spatial, x.shape[-2] * training.codec.spatial
     k_levels, k_noise = jax.random.split(key)
     noise = jax.random.normal(k_noise, x.shape, jnp.float32)
     distill = training.teacher is not None

@@ -29,6 +29,7 @@ from jaxdrive.models.latents import LatentCodec
 from jaxdrive.parallel import make_mesh, shard_params
 from jaxdrive.train import flow_step
 from jaxdrive.train.checkpoint import Checkpoints
+from jaxdrive.train.encode import check_dataset
 from jaxdrive.train.metrics import MetricsWriter
 from jaxdrive.train.optim import make_optimizer
 from jaxdrive.train.state import create_state
@@ -82,6 +83,7 @@ class Run:
         self.mesh = mesh_from_config(config, devices)
         self.local_batch, self.micro_batch = check_batch(config, self.mesh)
         self.codec = LatentCodec.from_config(config.latents)
+        check_dataset(config, self.codec)           # latent windows or clips, as latents.precomputed says
         model = config.model
         if config.train.compute_dtype != model.dtype:
             model = model.replace(dtype=config.train.compute_dtype)
@@ -168,7 +170,8 @@ class Run:
         from jaxdrive.data.tfds_io import open_source
         d = self.config.data
         source = open_source(d.path, split or d.split)
-        return make_pipeline(source, {(d.height, d.width, d.frames): self.local_batch}, stride=d.stride,
+        stride = 1 if self.config.latents.precomputed else d.stride     # latent windows are strided already
+        return make_pipeline(source, {(d.height, d.width, d.frames): self.local_batch}, stride=stride,
                              views=list(range(d.views)), drop_probs={n: d.drop_prob for n in CONDITIONS},
                              seed=d.shuffle_seed, num_threads=d.threads, prefetch=2 if d.threads else 0,
                              compression=max(self.codec.temporal, 1))
