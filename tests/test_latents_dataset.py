@@ -1,0 +1,167 @@
+"""Precomputed latents: ``jaxdrive data encode`` writes the windows' latents exactly as the codec
+encodes ``sample_clip``, latent batches give the video batches' loss, Run rejects a dataset that
+does not match its config, the latent iterator resumes exactly, and a run trains on them."""
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import jax
+import numpy as np
+import pytest
+
+from jaxdrive.cli import main as cli
+from jaxdrive.config import load_config
+from jaxdrive.data.pipeline import collate, sample_clip
+from jaxdrive.data.tfds_io import dataset_info, open_source
+from jaxdrive.generate.rollout import rollout
+from jaxdrive.generate.samples import dataset_inputs
+from jaxdrive.models.latents import LatentCodec
+from jaxdrive.train import flow_step
+from jaxdrive.train.metrics import read_metrics
+from jaxdrive.train.run import Run, train
+
+TINY = Path(__file__).resolve().parents[1] / "configs" / "tiny.py"
+SMALLER = ["data.views=2", "data.frames=5", "data.batch_size=2", "model.depth=1", "optim.warmup_steps=2",
+           "train.log_every=1", "mesh.data=2", "mesh.seq=4"]
+EVERY = 4                       # 9-frame clips, 5-frame windows: starts 0 and 4, two windows a clip
+
+
+@pytest.fixture(scope="module")
+def datasets(tmp_path_factory):
+    """(clip dataset, its latent windows written by the CLI)."""
+    from jaxdrive.data.synthetic import generate_clip
+    from jaxdrive.data.tfds_io import write_dataset
+    root = tmp_path_factory.mktemp("latents")
+    clips = lambda first, n: (generate_clip(first + i, views=6, frames=9, height=32, width=56) for i in range(n))
+    write_dataset(root / "clips", {"train": clips(0, 3), "validation": clips(100, 1)}, name="jaxdrive_synthetic")
+    args = ["data", "encode", "--config", str(TINY), "--out", str(root / "latents"), "--every", str(EVERY),
+            "--batch", "4"]
+    for s in [f"data.path={root / 'clips'}", *SMALLER]:
+        args += ["--set", s]
+    assert cli(args) == 0
+    return root / "clips", root / "latents"
+
+
+def config(path, *sets, precomputed=True):
+    return load_config(TINY, [f"data.path={path}", *SMALLER, f"latents.precomputed={precomputed}", *sets])
+
+
+def window(clips, latents_index, cfg):
+    """sample_clip of the clip window stored at ``latents_index`` of the train split."""
+    d = cfg.data
+    clip = clips[latents_index // 2]
+    return sample_clip(clip, size=(d.height, d.width), frames=d.frames, stride=d.stride,
+                       start=EVERY * (latents_index % 2), views=list(range(d.views)))
+
+
+def test_encoded_windows_are_the_codec_of_sample_clip(datasets):
+    clips_path, latents_path = datasets
+    cfg = config(clips_path, precomputed=False)
+    clips, windows = open_source(clips_path, "train"), open_source(latents_path, "train")
+    assert windows.kind == "windows" and len(windows) == 6 and len(open_source(latents_path, "validation")) == 2
+    codec = LatentCodec.from_config(cfg.latents)
+    for j in range(len(windows)):                             # 6 windows in batches of 4: one padded batch
+        want, got = window(clips, j, cfg), windows[j]
+        ref = np.asarray(codec.encode(None, want.pop("video")[None]))[0]
+        assert got["latents"].shape == (2, 5, 8, 14, 48) and got["latents"].dtype == np.float32
+        np.testing.assert_allclose(got["latents"], ref, atol=1e-6)
+        for k, v in want.items():
+            if isinstance(v, str):
+                assert got[k] == v
+            else:
+                np.testing.assert_array_equal(got[k], v, err_msg=k)
+    meta = dataset_info(latents_path)["metadata"]["encoded"]
+    assert meta["latents"] == {"source": "space_to_depth", "factor": 4, "scale": 1.0, "vae_path": "",
+                               "vae_mode": "chunked"}
+    assert meta["data"] == {"height": 32, "width": 56, "frames": 5, "stride": 1, "views": 2}
+    assert meta["latent_channels"] == 48 and meta["every"] == EVERY
+    assert meta["source_path"] == str(clips_path.resolve())
+
+
+def test_latent_batch_gives_the_video_batch_loss(datasets):
+    clips_path, latents_path = datasets
+    run = Run(config(latents_path))
+    batch = next(iter(run.dataset()))
+    video_run = Run(config(clips_path, precomputed=False))
+    video_keys = set(next(iter(video_run.dataset())))
+    assert set(batch) - {"latents"} == video_keys - {"video"} and "video" not in batch
+    assert batch["latents"].shape == (2, 2, 5, 8, 14, 48) and batch["latents"].dtype == np.float32
+
+    clips = open_source(clips_path, "train")
+    video = collate([window(clips, int(i), run.config) for i in batch["index"]])
+    video["drop"], video["index"] = batch["drop"], batch["index"]
+    for k in set(batch) - {"latents", "drop"}:
+        if isinstance(batch[k], list):
+            assert batch[k] == video[k]
+        else:
+            np.testing.assert_array_equal(batch[k], video[k], err_msg=k)
+
+    model = run.training.model
+    params = run.training.dit.init_params(0, batch=1, views=2, frames=5, height=8, width=14)
+    loss = jax.jit(lambda p, inp, k: flow_step.flow_loss_fn(run.training, p, None, inp, k)[0])
+    key = jax.random.key(3)
+    from_latents = loss(params, flow_step.model_inputs(batch, model), key)
+    from_video = loss(params, flow_step.model_inputs(video, model), key)
+    assert np.isfinite(float(from_latents))
+    np.testing.assert_allclose(float(from_latents), float(from_video), rtol=1e-6)
+
+
+@pytest.mark.parametrize("which, sets, match", [
+    ("clips", [], r"data.path: expected latent windows written by 'jaxdrive data encode'"),
+    ("latents", ["latents.precomputed=false"], r"latents.precomputed: expected true"),
+    ("latents", ["latents.scale=0.5"], r"latents.scale: expected 1.0 .* got 0.5"),
+    ("latents", ["latents.factor=8", "model.in_channels=192", "data.height=64", "data.width=64"],
+     r"latents.factor: expected 4 .* got 8"),
+    ("latents", ["data.height=64"], r"data.height: expected 32 .* got 64"),
+    ("latents", ["data.frames=9"], r"data.frames: expected 5 .* got 9"),
+    ("latents", ["data.views=1"], r"data.views: expected 2 .* got 1"),
+    ("latents", ["data.stride=2"], r"data.stride: expected 1 .* got 2"),
+])
+def test_run_rejects_a_dataset_that_does_not_match(datasets, which, sets, match):
+    path = dict(zip(("clips", "latents"), datasets))[which]
+    with pytest.raises(ValueError, match=match):
+        Run(config(path, *sets))
+
+
+def test_latent_iterator_resumes_exactly(datasets):
+    run = Run(config(datasets[1]))
+    it = iter(run.dataset())
+    next(it)
+    state = it.get_state()
+    want = next(it)
+    again = iter(run.dataset())
+    again.set_state(state)
+    got = next(again)
+    np.testing.assert_array_equal(got["index"], want["index"])
+    np.testing.assert_array_equal(got["latents"], want["latents"])
+    assert {k: v.tolist() for k, v in got["drop"].items()} == {k: v.tolist() for k, v in want["drop"].items()}
+
+
+def test_sampling_conditions_on_the_stored_windows(datasets):
+    clips_path, latents_path = datasets
+    run = Run(config(latents_path))
+    inputs = dataset_inputs(run, frames=3)                     # a prefix of the 5-frame windows
+    assert inputs["latents"].shape == (1, 2, 3, 8, 14, 48) and inputs["waypoints"].shape == (1, 3, 2)
+    np.testing.assert_array_equal(inputs["latents"][0], open_source(latents_path, "validation")[0]["latents"][:, :3])
+    with pytest.raises(ValueError, match=r"frames: expected at most the 5 frames of the dataset's latent windows"):
+        dataset_inputs(run, frames=9)
+
+    # the rollout pins the stored condition latents (a stand-in velocity keeps the compile cheap)
+    stand_in = SimpleNamespace(dit=SimpleNamespace(forward=lambda params, x, sigma, text, **cond: -0.5 * x),
+                               model=SimpleNamespace(controls=SimpleNamespace(cond_frames=None)),
+                               flow=run.training.flow, codec=run.codec)
+    full = dataset_inputs(run, frames=5)
+    out = np.asarray(rollout(stand_in, None, None, full, total_frames=5, window=5, overlap=1, cond_frames=2,
+                             steps=2, guidance=1.0, key=jax.random.key(0)))
+    assert out.shape == full["latents"].shape
+    np.testing.assert_array_equal(out[:, :, :2], full["latents"][:, :, :2])
+    assert not np.allclose(out[:, :, 2:], full["latents"][:, :, 2:])     # the rest was generated
+
+
+def test_train_on_precomputed_latents(datasets, tmp_path):
+    cfg = config(datasets[1], "train.steps=2", "train.checkpoint_every=2")
+    out = train(cfg, tmp_path / "run", progress=False, log=lambda *a: None)
+    assert out["status"] == "done" and out["step"] == 2
+    assert (tmp_path / "run" / "checkpoints" / "2").is_dir()
+    rows = read_metrics(tmp_path / "run")
+    assert [r["step"] for r in rows] == [1, 2] and all(np.isfinite(r["loss"]) for r in rows)
