@@ -74,8 +74,8 @@ def rollout(training, params, codec_params, inputs: dict, *, total_frames: int, 
 
     ``inputs``: :func:`jaxdrive.train.flow_step.model_inputs` of clips that cover the whole
     length (per-frame controls for every frame; ``video`` needs only the first ``cond_frames``
-    latent frames' pixels, or ``latents`` of a precomputed dataset the first ``cond_frames``
-    latent frames). ``window``: latent frames per window (the training length);
+    latent frames' pixels; a precomputed dataset gives ``latents`` instead, of at least ``window``
+    frames). ``window``: latent frames per window (the training length);
     ``overlap``: frames each next window conditions on (``1 <= overlap < window``)."""
     check_positive_int("total_frames", total_frames)
     check_positive_int("window", window)
@@ -88,7 +88,7 @@ def rollout(training, params, codec_params, inputs: dict, *, total_frames: int, 
     codec = training.codec
     controls = {k: jnp.asarray(v) if not isinstance(v, dict) else {n: jnp.asarray(m) for n, m in v.items()}
                 for k, v in inputs.items() if k not in ("video", "latents")}
-    if "latents" in inputs:                                            # a precomputed dataset's
+    if "latents" in inputs:                                            # stored (latents.precomputed)
         first = jnp.asarray(inputs["latents"])[:, :, :window]
     else:
         pixel_window = 1 + codec.temporal * (window - 1)
