@@ -22,8 +22,9 @@ def dataset_inputs(run, *, frames: int, views=None, clips: int = 1, split: str |
     """Model inputs of ``clips`` dataset clips of ``frames`` pixel frames (no condition dropped):
     the first frames give the condition latents, every frame its controls. A precomputed dataset
     (``latents.precomputed``) gives its stored windows: ``frames`` at most the window's frame count
-    (a prefix of a window; its latents are cut to ``codec.latent_frames(frames)``, which the causal
-    VAE and the frame-wise codecs encode from those frames alone)."""
+    (a prefix of a window; its latents are cut to ``codec.latent_frames(frames)``: exact for
+    frame-wise codecs, for the causal VAE the window's encoding, which may differ slightly from
+    encoding the prefix alone where the VAE normalises over a chunk of frames)."""
     from jaxdrive.data.pipeline import collate, sample_clip
     from jaxdrive.data.tfds_io import open_source
     from jaxdrive.train.flow_step import model_inputs
