@@ -81,8 +81,9 @@ def model_inputs(batch: dict, model: DiTConfig, text_embeddings: TextEmbeddings 
     """The NumPy arrays a step needs from a pipeline batch (:mod:`jaxdrive.data.pipeline`):
     ``video`` (or the precomputed ``latents`` of a batch of latent windows) and what the DiT's
     controls read; captions become token ids (built-in caption encoder) or looked-up T5
-    embeddings; ``drop`` is renamed to the DiT's conditions. With ``flow_config.foreground_k > 0``, ``loss`` holds the boxes and cameras of STAGE's W_aux; with
-    a distillation ``teacher``, ``teacher`` holds the fine model's inputs and the ego poses."""
+    embeddings; ``drop`` is renamed to the DiT's conditions. With
+    ``flow_config.foreground_k > 0``, ``loss`` holds the boxes and cameras of STAGE's W_aux; with a
+    distillation ``teacher``, ``teacher`` holds the fine model's inputs and the ego poses."""
     out = _controls(batch, model, text_embeddings)
     x = "latents" if "latents" in batch else "video"          # precomputed latent windows or pixels
     out[x] = np.asarray(batch[x], np.float32)
