@@ -116,6 +116,8 @@ def test_latent_batch_gives_the_video_batch_loss(datasets):
     ("latents", ["data.frames=9"], r"data.frames: expected 5 .* got 9"),
     ("latents", ["data.views=1"], r"data.views: expected 2 .* got 1"),
     ("latents", ["data.stride=2"], r"data.stride: expected 1 .* got 2"),
+    ("latents", ["flow.distill_teacher=runs/fine", "flow.distill_segment_len=3", "flow.tpd=false"],
+     r"flow.distill_teacher: expected '' with latents.precomputed"),
 ])
 def test_run_rejects_a_dataset_that_does_not_match(datasets, which, sets, match):
     path = dict(zip(("clips", "latents"), datasets))[which]

@@ -128,6 +128,10 @@ def check_dataset(config, codec: LatentCodec) -> None:
     if lat.precomputed and info["kind"] != "windows":
         raise ValueError(f"data.path: expected latent windows written by 'jaxdrive data encode' (latents.precomputed "
                          f"is true), got {d.path} holding {info['kind']}: encode it, or set latents.precomputed=false")
+    if lat.precomputed and config.flow.distill_teacher:
+        # the teacher's own Run and the coarse sampling stride read clips, not stored windows
+        raise ValueError(f"flow.distill_teacher: expected '' with latents.precomputed=true (distillation reads "
+                         f"clip datasets), got {config.flow.distill_teacher!r}")
     if not lat.precomputed:
         if info["kind"] == "windows":
             raise ValueError(f"latents.precomputed: expected true for {d.path} (latent windows written by "
