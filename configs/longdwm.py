@@ -2,6 +2,11 @@
 latents, with the structure-preservation loss (sec. 3.3). Start from imported weights
 (``jaxdrive.convert.load_diffusers_transformer``). Set ``data.path``, ``latents.vae_path`` and
 ``data.text_embeddings`` (T5, 226 tokens).
+
+Fine-to-coarse distillation (sec. 3.3, eq. 7-8) trains this coarse model against a trained fine
+run: ``--set flow.distill_teacher=runs/longdwm_fine --set flow.distill_segment_len=13 --set
+data.frames=145 --set latents.vae_mode=frame_wise --set model.vae_temporal=1`` (LongDWM encodes
+the coarse model's frames one by one, so segment ends are latent frames).
 """
 
 from jaxdrive.config import Config, DataConfig, FlowConfig, LatentConfig, MeshConfig, OptimConfig, TrainConfig
