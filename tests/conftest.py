@@ -20,3 +20,12 @@ from hypothesis import settings  # noqa: E402
 # jit dispatch makes single examples slow to start; deadlines would flake, not find bugs.
 settings.register_profile("jaxdrive", deadline=None, max_examples=60, derandomize=True)
 settings.load_profile("jaxdrive")
+
+# A persistent compilation cache per test process: tests that build the same jitted step more
+# than once (a run stopped and resumed, train then sample) compile it once. Numbers are the same
+# either way; the cache only skips XLA's work.
+import tempfile  # noqa: E402
+
+jax.config.update("jax_compilation_cache_dir", tempfile.mkdtemp(prefix="jaxdrive-xla-cache-"))
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 2.0)
+jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)

@@ -2,7 +2,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from jaxdrive import flow
@@ -77,6 +77,7 @@ def test_bad_inputs():
 
 
 
+@settings(max_examples=20)       # every geometry is a new shape, i.e. new compilations
 @given(st.integers(2, 6), st.integers(1, 5), st.sampled_from(["mean", "start", "end"]))
 def test_segments_round_trip_for_any_geometry(segment_len, num_segments, boundary):
     frames = num_segments * (segment_len - 1) + 1

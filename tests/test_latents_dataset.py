@@ -20,6 +20,8 @@ from jaxdrive.train import flow_step
 from jaxdrive.train.metrics import read_metrics
 from jaxdrive.train.run import Run, train
 
+from train_fixtures import write_synthetic
+
 TINY = Path(__file__).resolve().parents[1] / "configs" / "tiny.py"
 SMALLER = ["data.views=2", "data.frames=5", "data.batch_size=2", "model.depth=1", "optim.warmup_steps=2",
            "train.log_every=1", "mesh.data=2", "mesh.seq=4"]
@@ -29,11 +31,8 @@ EVERY = 4                       # 9-frame clips, 5-frame windows: starts 0 and 4
 @pytest.fixture(scope="module")
 def datasets(tmp_path_factory):
     """(clip dataset, its latent windows written by the CLI)."""
-    from jaxdrive.data.synthetic import generate_clip
-    from jaxdrive.data.tfds_io import write_dataset
     root = tmp_path_factory.mktemp("latents")
-    clips = lambda first, n: (generate_clip(first + i, views=6, frames=9, height=32, width=56) for i in range(n))
-    write_dataset(root / "clips", {"train": clips(0, 3), "validation": clips(100, 1)}, name="jaxdrive_synthetic")
+    write_synthetic(root / "clips")
     args = ["data", "encode", "--config", str(TINY), "--out", str(root / "latents"), "--every", str(EVERY),
             "--batch", "4"]
     for s in [f"data.path={root / 'clips'}", *SMALLER]:

@@ -17,6 +17,8 @@ from jaxdrive.train import distill_step, flow_step
 from jaxdrive.train.checkpoint import Checkpoints
 from jaxdrive.train.run import CONFIG_FILE, Run
 
+from train_fixtures import write_synthetic
+
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "configs" / "tiny.py"
 SMALL = ["data.views=2", "data.batch_size=2", "model.depth=1", "optim.warmup_steps=2", "train.log_every=1"]
@@ -24,13 +26,8 @@ SMALL = ["data.views=2", "data.batch_size=2", "model.depth=1", "optim.warmup_ste
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
-    from jaxdrive.data.synthetic import generate_clip
-    from jaxdrive.data.tfds_io import write_dataset
-    out = tmp_path_factory.mktemp("synth") / "data"
-    clips = lambda first, n: (generate_clip(first + i, views=6, frames=11, height=32, width=56) for i in range(n))
     # scenes 2 and 3: scene 2 has objects in front of the first two cameras
-    write_dataset(out, {"train": clips(2, 2), "validation": clips(100, 1)}, name="jaxdrive_synthetic")
-    return out
+    return write_synthetic(tmp_path_factory.mktemp("synth") / "data", first=2, train=2, frames=11)
 
 
 def config(dataset, *sets):

@@ -19,18 +19,15 @@ from jaxdrive.train import flow_step
 from jaxdrive.train.metrics import read_metrics
 from jaxdrive.train.run import Run, train
 
+from train_fixtures import write_synthetic
+
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "configs" / "tiny.py"
 
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
-    from jaxdrive.data.synthetic import generate_clip
-    from jaxdrive.data.tfds_io import write_dataset
-    out = tmp_path_factory.mktemp("synth") / "data"
-    clips = lambda first, n: (generate_clip(first + i, views=6, frames=9, height=32, width=56) for i in range(n))
-    write_dataset(out, {"train": clips(0, 3), "validation": clips(100, 1)}, name="jaxdrive_synthetic")
-    return out
+    return write_synthetic(tmp_path_factory.mktemp("synth") / "data")
 
 
 SMALLER = ["data.views=2", "data.frames=5", "data.batch_size=2", "model.depth=1", "optim.warmup_steps=2",
