@@ -27,11 +27,6 @@ from jaxdrive.models.dit_inputs import PER_FRAME_INPUTS as PER_FRAME
 POSES = "poses"     # the fine model's inputs carry the clip's ego_to_world under this key
 
 
-def coarse_frames(x, segment_len: int):
-    """The coarse frames ``0, K-1, ...`` of latents ``[B, V, F, h, w, C]`` (frame axis -4)."""
-    return x[..., ::segment_len - 1, :, :, :]
-
-
 def coarse_controls(controls: dict, segment_len: int) -> dict:
     """The coarse model's controls: per-frame ones at the coarse frames, ``fps / (K - 1)``."""
     step = segment_len - 1

@@ -210,7 +210,7 @@ def flow_loss_fn(training: FlowTraining, params, codec_params, inputs: dict, key
     if distill:                           # the coarse model sees the coarse frames of the dense clip
         seg = training.flow.distill_segment_len
         dense, dense_noise = x, noise
-        x, noise = distill_step.coarse_frames(x, seg), distill_step.coarse_frames(noise, seg)
+        x, noise = flow.dense_to_coarse(x, seg), flow.dense_to_coarse(noise, seg)
         inputs = distill_step.coarse_controls(inputs, seg)
         loss_fields = loss_fields and distill_step.coarse_controls(loss_fields, seg)
     sigma, cond, levels = draw_levels(k_levels, x, training.flow, height=height, width=width)
