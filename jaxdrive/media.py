@@ -59,14 +59,25 @@ def write_mp4(path, video, fps: float = 12.0) -> Path:
     return path
 
 
-def write_frame_grid(path, video, num_frames: int = 4) -> Path:
-    """A PNG with ``num_frames`` evenly spaced frames of ``video``, one mosaic per row."""
+def write_frame_grid(path, video, num_frames: int = 4, *, reference=None, min_width: int = 480) -> Path:
+    """A PNG with ``num_frames`` evenly spaced frames of ``video``, one mosaic per row. With
+    ``reference`` (a video of the same shape, e.g. the recorded clip) each row shows the
+    reference's mosaic on the left and ``video``'s on the right. Small frames are enlarged by an
+    integer factor (nearest neighbour) until a row is at least ``min_width`` pixels wide."""
     from PIL import Image
 
     frames = view_mosaic(video)
+    if reference is not None:
+        if np.shape(reference) != np.shape(video):
+            raise ValueError(f"reference: expected the shape of video {list(np.shape(video))}, "
+                             f"got {list(np.shape(reference))}")
+        sep = np.full(frames.shape[:2] + (4, 3), 255, np.uint8)
+        frames = np.concatenate([view_mosaic(reference), sep, frames], axis=2)
     picks = np.unique(np.linspace(0, frames.shape[0] - 1, min(num_frames, frames.shape[0])).round().astype(int))
+    up = max(1, -(-min_width // frames.shape[2]))
+    frames = frames[picks].repeat(up, axis=1).repeat(up, axis=2)
     gap = np.full((2, frames.shape[2], 3), 255, np.uint8)
-    rows = [r for i in picks for r in (frames[i], gap)][:-1]
+    rows = [r for f in frames for r in (f, gap)][:-1]
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(np.concatenate(rows, axis=0)).save(path)
