@@ -314,3 +314,72 @@ def test_dit_benchmark_prints_json_figures(capsys):
     assert {"fwd_bwd_time", "tokens_per_s", "per_device_temp_memory", "compile_time"} <= figures
     assert all(r["bench"] == "dit" for r in rows)
     assert next(r for r in rows if r["figure"] == "per_device_temp_memory")["value"] > 0
+
+
+def test_a_token_wider_than_the_model_needs_data_prediction():
+    # 48 channels x a 2x2 patch = 192 numbers per token against a width of 4 x 16 = 64: velocity
+    # prediction cannot pass the token's noise through, so it is refused with both numbers named
+    with pytest.raises(ValueError, match=r"patch x in_channels = 192 numbers .*heads x head_dim = 64.*"
+                                         r"got prediction='velocity'"):
+        preset("tiny", in_channels=48)
+    assert preset("tiny", in_channels=48, prediction="data").patch_dim == 192
+    assert preset("tiny", in_channels=16).prediction == "velocity"      # 64 numbers: fits the width
+    with pytest.raises(ValueError, match=r"prediction: expected one of \['velocity', 'data'\], got 'eps'"):
+        preset("tiny", prediction="eps")
+    with pytest.raises(ValueError, match=r"prediction_min_sigma: expected a level in \(0, 1\], got 0.0"):
+        preset("tiny", prediction_min_sigma=0.0)
+
+
+def test_reference_input_is_the_newest_given_frame_on_every_frame():
+    from jaxdrive.models.dit import reference_input
+    x = np.zeros((3, 2, 4, 2, 2, 3), np.float32)
+    cond = np.arange(x.size, dtype=np.float32).reshape(x.shape)
+    mask = np.array([[True, True, False, False], [True, False, False, False], [False] * 4])
+    r = np.asarray(reference_input(x, cond, mask))
+    assert r.shape == (3, 2, 4, 2, 2, 4)
+    for f in range(4):
+        np.testing.assert_array_equal(r[0, :, f, ..., :3], cond[0, :, 1])      # the newer of two given frames
+        np.testing.assert_array_equal(r[1, :, f, ..., :3], cond[1, :, 0])
+    np.testing.assert_array_equal(r[..., 3], np.broadcast_to(np.array([1, 1, 0])[:, None, None, None, None], r.shape[:-1]))
+    np.testing.assert_array_equal(r[2], 0)                                      # nothing given: zeros
+    np.testing.assert_array_equal(reference_input(x, None, None), 0)
+
+
+def test_reference_frame_control_reaches_every_frame_through_a_zero_initialised_embedding():
+    cfg = preset("tiny", controls=dict(cond_frames="replace", reference_frame="input"))
+    params = params_for(cfg, TINY_SHAPES)
+    lat, sig, text, kw = split_inputs(example_inputs(cfg, **dict(TINY_SHAPES)))
+    kw["cond_mask"] = np.array([[True, True, False, False], [True, False, False, False]])
+    fwd = forward_fn(cfg)
+    out = fwd(params, lat, sig, text, kw)
+    assert not np.any(np.asarray(params["reference_embed"]["kernel"]))
+    # the newest given frame's latents change every generated frame once the embedding is trained
+    trained = dict(params, reference_embed=jax.tree_util.tree_map(lambda a: a + 0.1, params["reference_embed"]))
+    moved = np.asarray(kw["cond_latents"]).copy()
+    moved[0, :, 1] += 1.0
+    a = fwd(trained, lat, sig, text, kw)
+    b = fwd(trained, lat, sig, text, dict(kw, cond_latents=moved))
+    assert min(max_rel(np.asarray(b)[0, :, f], np.asarray(a)[0, :, f]) for f in (2, 3)) > 1e-3
+    np.testing.assert_allclose(np.asarray(b)[1], np.asarray(a)[1], atol=1e-6)    # the other clip is untouched
+    assert max_rel(fwd(trained, lat, sig, text, kw), out) > 1e-3
+    with pytest.raises(ValueError, match=r"controls.reference_frame: expected condition frames"):
+        preset("tiny", controls=dict(reference_frame="input"))
+    with pytest.raises(ValueError, match=r"controls.reference_frame: expected one of \['input', 'residual', None\]"):
+        preset("tiny", controls=dict(cond_frames="replace", reference_frame="copy"))
+    with pytest.raises(ValueError, match=r"'residual' .* needs prediction='data', got prediction='velocity'"):
+        preset("tiny", controls=dict(cond_frames="replace", reference_frame="residual"))
+    with pytest.raises(ValueError, match=r"out_channels: a residual to the given frame needs in_channels = 4 outputs, got 8"):
+        preset("tiny", prediction="data", out_channels=8, controls=dict(cond_frames="replace", reference_frame="residual"))
+
+
+def test_residual_reference_frame_starts_by_repeating_the_newest_given_frame():
+    """Freshly initialised (zero output projection) a residual model's data estimate is exactly
+    the newest given frame on every frame; a clip with no given frame gets zeros."""
+    cfg = preset("tiny", prediction="data", controls=dict(cond_frames="replace", reference_frame="residual"))
+    params = jax.tree_util.tree_map(jnp.asarray, nn.unbox(boxed_params(cfg, TINY_SHAPES)))
+    lat, sig, text, kw = split_inputs(example_inputs(cfg, **dict(TINY_SHAPES)))
+    kw["cond_mask"] = np.array([[True, True, False, False], [False] * 4])
+    out = np.asarray(forward_fn(cfg)(params, lat, sig, text, kw))
+    for f in range(4):
+        np.testing.assert_array_equal(out[0, :, f], np.asarray(kw["cond_latents"])[0, :, 1])
+    np.testing.assert_array_equal(out[1], 0.0)

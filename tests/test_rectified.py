@@ -101,3 +101,34 @@ def test_traced_sigma_is_not_inspected():
     # error); the call traces and gives the eager result.
     sigma = jnp.array([0.2, 0.3])
     np.testing.assert_allclose(jax.jit(flow.add_noise)(x, n, sigma), flow.add_noise(x, n, sigma), atol=1e-7)
+
+
+@given(st.floats(0.06, 0.99), st.integers(0, 2**16))
+def test_data_prediction_gives_the_velocity_of_its_data_estimate(s, seed):
+    x, n = _data(seed)
+    sigma = jnp.array([s, 1 - s if 1 - s > 0.05 else 0.5])
+    xt = flow.add_noise(x, n, sigma)
+    # a perfect data prediction is the true velocity; a velocity output passes through untouched
+    np.testing.assert_allclose(flow.velocity_from_output(x, xt, sigma, "data"), flow.velocity_target(x, n),
+                               rtol=1e-3, atol=2e-3)
+    np.testing.assert_array_equal(flow.velocity_from_output(n, xt, sigma, "velocity"), n)
+
+
+def test_data_prediction_worked_number_and_clamp():
+    xt = jnp.full((2, 1, 1, 1, 1), 1.0)
+    out = jnp.full((2, 1, 1, 1, 1), 0.5)
+    # (1 - 0.5) / 0.25 = 2; below min_sigma the level is clamped: (1 - 0.5) / 0.05 = 10, finite at 0
+    v = flow.velocity_from_output(out, xt, jnp.array([0.25, 0.0]), "data", min_sigma=0.05)
+    np.testing.assert_allclose(v.ravel(), [2.0, 10.0], rtol=1e-6)
+    # an Euler step from s >= min_sigma to 0 lands on the data estimate
+    s = jnp.array([0.3, 0.05])
+    v = flow.velocity_from_output(out, xt, s, "data")
+    np.testing.assert_allclose(flow.euler_step(xt, v, s, jnp.zeros(2)), out, atol=1e-6)
+
+
+@pytest.mark.parametrize("kw, match", [(dict(prediction="noise"), "prediction: expected one of"),
+                                       (dict(prediction="data", min_sigma=0.0), "min_sigma")])
+def test_velocity_from_output_rejects_bad_arguments(kw, match):
+    x = jnp.ones((1, 1, 1, 1, 1))
+    with pytest.raises(ValueError, match=match):
+        flow.velocity_from_output(x, x, jnp.ones(1) * 0.5, **kw)

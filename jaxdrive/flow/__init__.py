@@ -13,7 +13,7 @@ from jaxdrive.flow.losses import (flow_loss, high_pass, high_pass_mask, per_fram
                                   structure_loss)
 from jaxdrive.flow.rectified import (add_noise, data_from_velocity, euler_step, expand_per_frame,
                                      noise_from_velocity, velocity_from_data, velocity_from_noise,
-                                     velocity_target)
+                                     velocity_from_output, velocity_target)
 from jaxdrive.flow.sampler import sample
 from jaxdrive.flow.schedule import frame_schedule, frame_sigmas
 from jaxdrive.flow.timesteps import resolution_shift, sample_sigmas, sampling_sigmas, shift_sigmas
@@ -22,7 +22,7 @@ from jaxdrive.flow.weights import foreground_weight_map
 
 __all__ = [
     "add_noise", "velocity_target", "data_from_velocity", "noise_from_velocity",
-    "velocity_from_data", "velocity_from_noise", "euler_step", "expand_per_frame",
+    "velocity_from_data", "velocity_from_noise", "velocity_from_output", "euler_step", "expand_per_frame",
     "sample_sigmas", "shift_sigmas", "resolution_shift", "sampling_sigmas",
     "tpd_level", "tpd_sigmas", "tpd_frame_sigmas",
     "jdc_alpha2", "jdc_noise_var", "jdc_renoise", "jdc_anchor_sigma",

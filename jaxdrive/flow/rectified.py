@@ -16,6 +16,7 @@ import jax.numpy as jnp
 from jaxdrive.validate import check_range, check_same_shape
 
 FRAME_AXIS = -4  # [B, ..., F, h, w, C]
+PREDICTIONS = ("velocity", "data")   # what a network's output is (DiTConfig.prediction)
 
 
 def expand_per_frame(values, x, name: str = "sigma"):
@@ -92,3 +93,24 @@ def euler_step(x_t, v, sigma, sigma_next):
     check_same_shape("v", v, "x_t", x_t)
     ds = _levels(sigma_next, x_t) - _levels(sigma, x_t)
     return (x_t + ds * v).astype(x_t.dtype)
+
+
+def velocity_from_output(out, x_t, sigma, prediction: str = "velocity", min_sigma: float = 0.05):
+    """The velocity a network's output stands for: the output itself (``"velocity"``), or, for a
+    network that predicts the clean data (``"data"``), ``(x_t - out) / max(sigma, min_sigma)``.
+
+    Data prediction is Li & He 2025 ("Back to Basics: Let Denoising Generative Models Denoise",
+    JiT, eq. 6 and its clamp of ``1 - t`` at 0.05): clean data lies on a low-dimensional manifold,
+    so a network narrower than its token (a 64-wide DiT on 192-number tokens) can still predict
+    it, where predicting ``noise - x`` means passing the token's full-dimensional noise through.
+    Training keeps the velocity loss on the converted output (JiT's v-loss). ``min_sigma`` keeps
+    frames at level 0 (condition frames) finite; the sampler's last step from ``s >= min_sigma``
+    to 0 lands exactly on ``out``."""
+    if prediction not in PREDICTIONS:
+        raise ValueError(f"prediction: expected one of {list(PREDICTIONS)}, got {prediction!r}")
+    check_same_shape("out", out, "x_t", x_t)
+    if prediction == "velocity":
+        return out
+    check_range("min_sigma", min_sigma, 0.0, 1.0, lo_open=True)
+    s = jnp.maximum(_levels(sigma, x_t), min_sigma)
+    return ((x_t - out) / s).astype(x_t.dtype)

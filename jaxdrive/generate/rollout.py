@@ -26,10 +26,13 @@ from jaxdrive.validate import check_positive_int
 
 
 def _velocity_fn(training, params):
+    m = training.model
+
     def velocity(x, sigma, cond):
         cond = dict(cond)
         text = cond.pop("text", None)
-        return training.dit.forward(params, x, sigma, text, **cond)
+        out = training.dit.forward(params, x, sigma, text, **cond)
+        return flow.velocity_from_output(out, x, sigma, m.prediction, m.prediction_min_sigma)
     return velocity
 
 

@@ -198,8 +198,9 @@ class DiT(nn.Module):
             pos = sincos_3d(nf // pt, *grid, cfg.width, cfg.spatial_interpolation_scale,
                             cfg.temporal_interpolation_scale)
             hid = hid + jnp.asarray(pos, dt)[None, :, :, None]
+        ref = reference_input(x, cond_latents, cond_mask) if cfg.controls.reference_frame else None
         hid = hid + self._additive(cfg, x, cond_latents, cond_mask, intrinsics, cam_to_ego, waypoints,
-                                   drop, (h, w), grid)
+                                   drop, (h, w), grid, ref)
         hid = constrain(hid, VIDEO)
         self.sow("intermediates", "tokens", hid)
 
@@ -248,11 +249,13 @@ class DiT(nn.Module):
         out = self._final(cfg, _video(cfg, carry), t)
         out = constrain(out, ("batch", "frames", None, "views", None))
         out = unpatchify(out, cfg.patch, grid, cfg.out_dim).astype(jnp.float32)
+        if cfg.controls.reference_frame == "residual":
+            out = out + ref[..., :-1]                       # the change from the newest given frame
         return (out, feats) if return_features else out
 
     # ------------------------------------------------------------------ pieces
 
-    def _additive(self, cfg, x, cond_latents, cond_mask, intrinsics, cam_to_ego, waypoints, drop, hw, grid):
+    def _additive(self, cfg, x, cond_latents, cond_mask, intrinsics, cam_to_ego, waypoints, drop, hw, grid, ref):
         """Conditions added to the tokens (MiLA eq. 2, ``h_fuse = h_f + h_c``) and the concat-mode
         condition frames.
 
@@ -283,6 +286,9 @@ class DiT(nn.Module):
                                      name="waypoints_embed")(jnp.asarray(waypoints, jnp.float32), nf)
                 wp = use_null(drop.get("waypoints"), pool_frames(wp, pt), null)
             add = add + wp[:, :, None, None]                                # [B, Ft, 1, 1, D]
+        if ref is not None:
+            add = add + Dense(width, ("channels", "embed"), dtype=dt, kernel_init=ZEROS, name="reference_embed")(
+                constrain(patchify(ref, cfg.patch), VIDEO[:-1] + ("channels",)))
         if c.cond_frames == "concat":
             if cond_latents is None:
                 cl, cm = jnp.zeros_like(x), jnp.zeros((b, nf), bool)
@@ -449,6 +455,24 @@ class DiT(nn.Module):
             h = modulate(LayerNorm(cfg.norm_eps, name="norm_out")(h), shift, scale)
         p = cfg.patch[0] * cfg.patch[1] * cfg.patch[2] * cfg.out_dim
         return Dense(p, ("embed", "channels"), dtype=dt, kernel_init=ZEROS, name="proj_out")(h)
+
+
+def reference_input(x, cond_latents, cond_mask):
+    """``[ref * given, given]`` for every frame of ``x [B, V, F', h, w, C]``: ``ref`` the latents of
+    the newest frame in ``cond_mask [B, F']`` (``controls.reference_frame``), ``given`` 1 where a
+    clip has a condition frame (0 and zeros for a clip without, or with no ``cond_latents``).
+    The out-dimension of the DiT equals ``C``, so ``[..., :-1]`` is the residual's base."""
+    b, nv, nf, h, w, c = x.shape
+    if cond_latents is None:
+        return jnp.zeros((b, nv, nf, h, w, c + 1), jnp.float32)
+    m = jnp.asarray(cond_mask, bool)
+    last = jnp.max(jnp.where(m, jnp.arange(nf)[None], -1), axis=1)                # [B]; -1: none given
+    # a one-hot sum over frames, not a gather: it keeps the batch sharding of an Explicit mesh
+    pick = (jnp.arange(nf)[None] == last[:, None]).astype(jnp.float32)[:, None, :, None, None, None]
+    ref = jnp.sum(jnp.asarray(cond_latents, jnp.float32) * pick, axis=2, keepdims=True)
+    like_x = jnp.zeros_like(x[..., :1])               # both halves take x's sharding before the concatenate
+    given = like_x + jnp.sum(pick, axis=2, keepdims=True)
+    return jnp.concatenate([like_x + ref, given], axis=-1)
 
 
 def param_count(cfg: DiTConfig) -> int:

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import jax.numpy as jnp
 
+from jaxdrive.flow.rectified import PREDICTIONS    # the one list of output kinds (pure math, no jaxdrive deps)
 from jaxdrive.models.attention import IMPLS
 from jaxdrive.validate import check_choice, check_positive_int
 
@@ -26,6 +27,7 @@ LOCAL_IMPLS = ("xla", "blockwise", "cudnn", "splash")
 DTYPES = ("float32", "bfloat16", "float16")
 TEXT_KINDS = ("embeddings", "caption", None)
 COND_FRAMES = ("replace", "concat", None)
+REFERENCE_FRAME = ("input", "residual", None)
 
 # Condition names accepted in ``drop`` (classifier-free guidance), as in the data pipeline where
 # they overlap ("text", "boxes", "map", "trajectory", "camera").
@@ -53,6 +55,16 @@ class Controls:
     - ``cond_frames``: clean condition frames: ``"replace"`` (Open-Sora / MiLA: the given latents
       replace those frames, whose noise level becomes 0) or ``"concat"`` (CogVideoX-I2V / LongDWM:
       ``[cond * mask, mask]`` through a zero-initialised patch embedding added to the tokens).
+    - ``reference_frame`` (with ``cond_frames``): ``"input"``: the newest given frame's latents
+      are also concatenated to every frame's input (``[ref * given, given]``, through a
+      zero-initialised patch embedding), as Stable Video Diffusion (Blattmann et al. 2023, sec.
+      4.4) feeds its conditioning frame to every frame. Each token then sees the clean content at
+      its own position, so continuing the scene is a local map, where finding the condition frames
+      through temporal attention alone takes thousands of steps. ``"residual"``: the same input,
+      and the output (``prediction="data"``) is the change from that frame, ``x = ref + out``, as
+      GenCast (Price et al. 2024) predicts the residual to the current state: a freshly
+      initialised model repeats the last given frame, with all of its detail, and training
+      learns the motion. A clip with no given frame gets ``ref = 0``.
     - ``warp``: LongDWM's warp-guided frames: warped latents through a trainable patch embedding,
       injected into every layer through zero-initialised projections.
     """
@@ -71,6 +83,7 @@ class Controls:
     map_blocks: int = 2
     map_hidden: int = 64
     cond_frames: str | None = None
+    reference_frame: str | None = None
     warp: bool = False
     fourier_freqs: int = 8
     fourier_temperature: float = 100.0
@@ -96,6 +109,13 @@ class DiTConfig:
     width) and ``time_freq_dim`` size the timestep embedding; ``timestep_scale`` maps sigma to the
     embedded timestep (1000: Open-Sora's t and imported CogVideoX models). ``text_len`` is the
     longest text (the learned null text has that many tokens).
+
+    Output: ``prediction`` ``"velocity"`` (the network predicts ``noise - x``) or ``"data"`` (it
+    predicts the clean latents, turned into the velocity by
+    :func:`jaxdrive.flow.velocity_from_output` with ``max(sigma, prediction_min_sigma)``; Li & He
+    2025, JiT). A token of more numbers than the width (``patch_dim > width``) can only learn with
+    data prediction: the velocity at high noise is mostly the token's own noise, which a narrower
+    network cannot pass through, so that pairing is refused.
 
     Execution: ``dtype`` (compute; params are float32), ``remat`` (``"none"``, ``"full"``,
     ``"dots"``, ``"dots_no_batch"``: which activations a layer keeps for the backward),
@@ -136,6 +156,8 @@ class DiTConfig:
     text_len: int = 300
     ofs_embed_dim: int | None = None
     controls: Controls = field(default_factory=Controls)
+    prediction: str = "velocity"
+    prediction_min_sigma: float = 0.05
     vae_temporal: int = 4
     vae_spatial: int = 8
     dtype: str = "float32"
@@ -188,6 +210,9 @@ def check_config(cfg: DiTConfig) -> DiTConfig:
     check_choice("local_attn_impl", cfg.local_attn_impl, LOCAL_IMPLS)
     check_choice("controls.text", cfg.controls.text, TEXT_KINDS)
     check_choice("controls.cond_frames", cfg.controls.cond_frames, COND_FRAMES)
+    check_choice("prediction", cfg.prediction, PREDICTIONS)
+    if not 0.0 < cfg.prediction_min_sigma <= 1.0:
+        raise ValueError(f"prediction_min_sigma: expected a level in (0, 1], got {cfg.prediction_min_sigma}")
     for name in ("depth", "heads", "head_dim", "in_channels", "text_dim", "text_len", "time_freq_dim",
                  "vae_temporal", "vae_spatial", "htft_groups"):
         check_positive_int(name, getattr(cfg, name))
@@ -199,6 +224,11 @@ def check_config(cfg: DiTConfig) -> DiTConfig:
         raise ValueError(f"patch: expected (pt, ph, pw), got {cfg.patch!r}")
     for p in cfg.patch:
         check_positive_int("patch", p)
+    if cfg.prediction == "velocity" and cfg.patch_dim > cfg.width:
+        raise ValueError(f"prediction: a token of patch x in_channels = {cfg.patch_dim} numbers is wider than the "
+                         f"model (heads x head_dim = {cfg.width}), which cannot pass the token's noise through to "
+                         f"predict the velocity; expected prediction='data', a width of at least {cfg.patch_dim} "
+                         f"or a smaller patch, got prediction='velocity'")
     if cfg.layout == "full" and cfg.positions == "rope" and cfg.head_dim % 8:
         raise ValueError(f"head_dim: 3D RoPE needs a multiple of 8, got {cfg.head_dim}")
     if cfg.layout == "factorized" and cfg.head_dim % 2:
@@ -209,6 +239,16 @@ def check_config(cfg: DiTConfig) -> DiTConfig:
     if cfg.layout == "factorized" and cfg.width % 4:
         raise ValueError(f"heads * head_dim: 2D sin-cos positions need a width divisible by 4, "
                          f"got {cfg.width}")
+    check_choice("controls.reference_frame", cfg.controls.reference_frame, REFERENCE_FRAME)
+    if cfg.controls.reference_frame and cfg.controls.cond_frames is None:
+        raise ValueError("controls.reference_frame: expected condition frames (controls.cond_frames 'replace' or "
+                         "'concat') to take the reference from, got cond_frames=None")
+    if cfg.controls.reference_frame == "residual" and cfg.prediction != "data":
+        raise ValueError(f"controls.reference_frame: 'residual' makes the output the change from the given frame's "
+                         f"latents, which needs prediction='data', got prediction={cfg.prediction!r}")
+    if cfg.controls.reference_frame == "residual" and cfg.out_dim != cfg.in_channels:
+        raise ValueError(f"out_channels: a residual to the given frame needs in_channels = {cfg.in_channels} outputs, "
+                         f"got {cfg.out_dim}")
     if cfg.layout == "full" and cfg.controls.text is None:
         raise ValueError("controls.text: the full layout attends over [text; video] and needs a text "
                          "control, got None")

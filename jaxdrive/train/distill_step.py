@@ -85,7 +85,10 @@ def teacher_coarse_estimate(teacher, params, x, x_t, levels, cond, controls: dic
         inputs = segment_controls(controls, start, segment_len)
         if teacher.config.controls.cond_frames is not None:
             inputs["cond_latents"], inputs["cond_mask"] = cut(x, axis), cut(cond, 1)
-        d = flow.data_from_velocity(xs, teacher.forward(params, xs, ls, text, **inputs), ls)
+        c = teacher.config
+        v = flow.velocity_from_output(teacher.forward(params, xs, ls, text, **inputs), xs, ls, c.prediction,
+                                      c.prediction_min_sigma)
+        d = flow.data_from_velocity(xs, v, ls)
         return jnp.take(d, 0, axis=axis), jnp.take(d, segment_len - 1, axis=axis)
 
     first, last = jax.lax.map(segment, jnp.arange(n))                 # [n, B, V, h, w, C] each

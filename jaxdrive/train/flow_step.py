@@ -218,7 +218,9 @@ def flow_loss_fn(training: FlowTraining, params, codec_params, inputs: dict, key
     text = inputs.pop("text", None)
     if training.model.controls.cond_frames is not None:
         inputs["cond_latents"], inputs["cond_mask"] = x, cond
-    v = training.dit.forward(params, x_t, levels, text, **inputs)
+    m = training.model
+    v = flow.velocity_from_output(training.dit.forward(params, x_t, levels, text, **inputs), x_t, levels,
+                                  m.prediction, m.prediction_min_sigma)
     weight_map = None
     if loss_fields:
         weight_map = foreground_weights(training, loss_fields, x, height=height, width=width)
