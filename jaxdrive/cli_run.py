@@ -62,8 +62,10 @@ def _sample(args, rest) -> int:
     views = None if args.views is None else [int(v) for v in args.views]
     out_dir = Path(args.out or Path(args.workdir) / "samples" / f"sample_{step:07d}")
     t = time.perf_counter()
-    write_samples(run, params, out_dir, frames=args.frames, views=views, steps=args.steps,
-                  guidance=args.cfg, seed=args.seed)
+    paths = write_samples(run, params, out_dir, frames=args.frames, views=views, steps=args.steps,
+                          guidance=args.cfg, seed=args.seed)
+    if "quality" in paths:
+        print(quality_lines(paths["quality"]))
     print(f"sampled from checkpoint {step} in {time.perf_counter() - t:.1f} s: {out_dir}")
     return 0
 
@@ -114,9 +116,24 @@ def _demo(args, rest) -> int:
           f"({args.frames // config.data.frames + 1} windows of {config.data.frames})")
     paths = write_samples(out["run"], out["state"], workdir / "samples" / "demo", frames=args.frames,
                           steps=config.train.sample_steps, guidance=args.cfg)
+    print(quality_lines(paths["quality"]))
     print(f"done in {time.perf_counter() - t0:.0f} s:\n  video      {paths.get('video')}\n"
-          f"  frame grid {paths.get('grid')}\n  loss plot  {plot}\n  metrics    {workdir / 'metrics.jsonl'}")
+          f"  frame grid {paths.get('grid')} (recorded | generated)\n  quality    {paths.get('quality_json')}\n"
+          f"  loss plot  {plot}\n  metrics    {workdir / 'metrics.jsonl'}")
     return 0
+
+
+def quality_lines(q: dict) -> str:
+    """The quality report's summaries as a small table (``quality.json`` of a sample)."""
+    lines = [f"quality against the recorded clip ({q['views']} views; {q['cond_frames']} given frames):",
+             f"  {'':24s} {'PSNR dB':>8s} {'SSIM':>6s}"]
+    for key, title in (("first_window", "first window"), ("all_generated", "all generated")):
+        s = q[key]
+        span = f"{title} ({s['frames'][0]}-{s['frames'][-1]})"
+        lines += [f"  {span:24s} {s['psnr']:8.2f} {s['ssim']:6.3f}",
+                  f"  {'  repeat last given':24s} {s['repeat_psnr']:8.2f} {s['repeat_ssim']:6.3f}",
+                  f"  {'  noise':24s} {s['noise_psnr']:8.2f} {s['noise_ssim']:6.3f}"]
+    return "\n".join(lines)
 
 
 def add_commands(sub) -> None:
@@ -146,10 +163,11 @@ def add_commands(sub) -> None:
     demo = sub.add_parser("demo", help="synthesise data, train a tiny DiT, sample a long multi-view clip")
     demo.add_argument("--workdir", default="jaxdrive-demo")
     demo.add_argument("--config", help="default: configs/tiny.py of this checkout")
-    demo.add_argument("--steps", type=int, default=300)
-    demo.add_argument("--scenes", type=int, default=8)
+    demo.add_argument("--steps", type=int, default=800)
+    demo.add_argument("--scenes", type=int, default=24, help="synthetic scenes (one kept for validation)")
     demo.add_argument("--frames", type=int, default=33, help="frames of the sampled clip")
-    demo.add_argument("--cfg", type=float, default=2.0)
+    demo.add_argument("--cfg", type=float, default=1.0, help="classifier-free guidance (1: none; the tiny "
+                                                             "model scores best without)")
     demo.add_argument("--set", action="append", metavar="KEY=VALUE")
     demo.add_argument("--no-progress", action="store_true")
     demo.set_defaults(run=_demo)

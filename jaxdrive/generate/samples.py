@@ -6,6 +6,8 @@ Used by the training loop (periodic samples) and by ``jaxdrive sample``.
 
 from __future__ import annotations
 
+import dataclasses
+import json
 from pathlib import Path
 
 import jax
@@ -78,12 +80,26 @@ def _window_prefix(run, record, frames: int, views, where: str) -> dict:
     return s
 
 
+@dataclasses.dataclass(frozen=True)
+class Generated:
+    """What :func:`generate` returns: ``video [clips, V, F, H, W, 3]`` in [-1, 1] and its
+    ``latents``; ``recorded``, the dataset clips' own frames at the same positions (decoded stored
+    latents for a precomputed dataset); ``cond_frames`` and ``window``: the given frames and the
+    first sampler window's frames, in pixel frames."""
+
+    video: np.ndarray
+    latents: np.ndarray
+    recorded: np.ndarray
+    cond_frames: int
+    window: int
+
+
 def generate(run, params, *, frames: int | None = None, views=None, steps: int | None = None,
              guidance: float = 1.0, cond_frames: int | None = None, overlap: int | None = None,
-             clips: int | None = None, seed: int = 0):
-    """Generated video ``[clips, V, F, H, W, 3]`` in [-1, 1] and its latents. ``clips`` defaults
-    to the size of the mesh's batch axes (``data x fsdp``), the least a batch-sharded sampler
-    can run."""
+             clips: int | None = None, seed: int = 0) -> Generated:
+    """Generate ``clips`` clips conditioned on dataset clips (see :class:`Generated`). ``clips``
+    defaults to the size of the mesh's batch axes (``data x fsdp``), the least a batch-sharded
+    sampler can run."""
     cfg = run.config
     sizes = dict(zip(run.mesh.axis_names, run.mesh.axis_sizes))
     shards = sizes.get("data", 1) * sizes.get("fsdp", 1)
@@ -105,31 +121,45 @@ def generate(run, params, *, frames: int | None = None, views=None, steps: int |
     axes = tuple(a for a in ("data", "fsdp") if a in run.mesh.axis_names) or None    # as the DiT shards its batch
     batch_sharding = NamedSharding(run.mesh, P(axes))          # every process holds the same clips
     inputs = jax.tree_util.tree_map(lambda x: jax.device_put(np.asarray(x), batch_sharding), inputs)
+    cond = min(cond, window - 1)
     with jax.set_mesh(run.mesh):
         latents = rollout(run.training, params, codec.params, inputs, total_frames=total, window=window,
-                          overlap=overlap, cond_frames=min(cond, window - 1), steps=steps, guidance=guidance,
+                          overlap=overlap, cond_frames=cond, steps=steps, guidance=guidance,
                           key=jax.random.key(seed), shift=shift)
         video = to_numpy_video(codec, codec.params, latents)
-    return video, np.asarray(latents)
+        recorded = (np.asarray(inputs["video"]) if "video" in inputs else
+                    to_numpy_video(codec, codec.params, inputs["latents"][:, :, :total]))
+    pixel = lambda n: 1 + codec.temporal * (n - 1) if n else 0          # latent frames -> pixel frames
+    return Generated(video, np.asarray(latents), recorded, pixel(cond), min(pixel(window), video.shape[2]))
 
 
 def write_samples(run, state_or_params, outdir, *, log=print, fps: float | None = None, **kwargs) -> dict:
-    """Generate (``kwargs`` as :func:`generate`) and write ``sample.mp4``, ``frames.png`` and
-    ``latents.npy`` under ``outdir``; returns their paths. EMA parameters are used when the
-    state keeps them."""
+    """Generate (``kwargs`` as :func:`generate`) and write under ``outdir``: ``sample.mp4``,
+    ``frames.png`` (recorded frames above, generated below), ``latents.npy`` and ``quality.json``
+    (PSNR / SSIM of the first clip against its recorded frames, beside the repeat-the-last-frame
+    and noise baselines: :func:`jaxdrive.eval.frames.clip_quality`). Returns the paths and the
+    quality summary (``"quality"``). EMA parameters are used when the state keeps them."""
+    from jaxdrive.eval.frames import clip_quality
     from jaxdrive.media import write_frame_grid, write_mp4
     params = state_or_params
     if hasattr(state_or_params, "params"):
         params = state_or_params.ema if state_or_params.ema is not None else state_or_params.params
-    video, latents = generate(run, params, **kwargs)
+    g = generate(run, params, **kwargs)
+    video = g.video
     out = {}
     if jax.process_index() == 0:
         outdir = Path(outdir)
         outdir.mkdir(parents=True, exist_ok=True)
         rate = fps or 12.0
         out["video"] = write_mp4(outdir / "sample.mp4", video[0], fps=rate)
-        out["grid"] = write_frame_grid(outdir / "frames.png", video[0], num_frames=min(6, video.shape[2]))
-        np.save(outdir / "latents.npy", latents)
+        out["grid"] = write_frame_grid(outdir / "frames.png", video[0], num_frames=min(6, video.shape[2]),
+                                       reference=g.recorded[0])
+        np.save(outdir / "latents.npy", g.latents)
         out["latents"] = outdir / "latents.npy"
+        if g.cond_frames:           # quality is measured against what the given frames continue
+            q = clip_quality(video[0], g.recorded[0], cond_frames=g.cond_frames, window=g.window)
+            out["quality"] = q
+            out["quality_json"] = outdir / "quality.json"
+            out["quality_json"].write_text(json.dumps(q, indent=1))
         log(f"wrote {video.shape[2]} frames x {video.shape[1]} views: {out['video']}, {out['grid']}")
     return out
