@@ -13,7 +13,8 @@ The baselines, each scored against the same recorded frames:
 - ``repeat``: every generated frame replaced by the last condition frame (a world model that
   learned nothing about motion; for short horizons a strong baseline on PSNR);
 - ``noise``: uniform noise frames with the recorded frames' per-channel mean and standard
-  deviation (what the untrained model's saturated output scores; seeded, so reproducible).
+  deviation (seeded, so reproducible): a generator that only matches the clip's colours scores
+  this; saturated colour noise scores lower.
 """
 
 from __future__ import annotations

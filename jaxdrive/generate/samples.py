@@ -135,7 +135,7 @@ def generate(run, params, *, frames: int | None = None, views=None, steps: int |
 
 def write_samples(run, state_or_params, outdir, *, log=print, fps: float | None = None, **kwargs) -> dict:
     """Generate (``kwargs`` as :func:`generate`) and write under ``outdir``: ``sample.mp4``,
-    ``frames.png`` (recorded frames above, generated below), ``latents.npy`` and ``quality.json``
+    ``frames.png`` (each row: the recorded frame left, the generated one right), ``latents.npy`` and ``quality.json``
     (PSNR / SSIM of the first clip against its recorded frames, beside the repeat-the-last-frame
     and noise baselines: :func:`jaxdrive.eval.frames.clip_quality`). Returns the paths and the
     quality summary (``"quality"``). EMA parameters are used when the state keeps them."""
