@@ -149,7 +149,8 @@ def test_sampling_conditions_on_the_stored_windows(datasets):
 
     # the rollout pins the stored condition latents (a stand-in velocity keeps the compile cheap)
     stand_in = SimpleNamespace(dit=SimpleNamespace(forward=lambda params, x, sigma, text, **cond: -0.5 * x),
-                               model=SimpleNamespace(controls=SimpleNamespace(cond_frames=None)),
+                               model=SimpleNamespace(controls=SimpleNamespace(cond_frames=None), prediction="velocity",
+                                                     prediction_min_sigma=0.05),
                                flow=run.training.flow, codec=run.codec)
     full = dataset_inputs(run, frames=5)
     out = np.asarray(rollout(stand_in, None, None, full, total_frames=5, window=5, overlap=1, cond_frames=2,

@@ -65,8 +65,9 @@ def test_foreground_weighting_is_eq15_times_w_aux(dataset):
         noise = jax.random.normal(k_noise, x.shape)
         _, cond, levels = flow_step.draw_levels(k_levels, x, t.flow, height=32, width=56)
         text = without.pop("text")
-        v = t.dit.forward(params, flow.add_noise(x, noise, levels), levels, text, cond_latents=x, cond_mask=cond,
-                          **without)
+        x_t = flow.add_noise(x, noise, levels)
+        out = t.dit.forward(params, x_t, levels, text, cond_latents=x, cond_mask=cond, **without)
+        v = flow.velocity_from_output(out, x_t, levels, t.model.prediction, t.model.prediction_min_sigma)
         f = inputs["loss"]
         w = flow.foreground_weight_map(f["boxes"], f["box_valid"], f["intrinsics"], f["cam_to_ego"],
                                        map_hw=(8, 14), image_hw=(32, 56), k=4.0, c=0.5)
@@ -128,9 +129,10 @@ def test_teacher_segments_one_at_a_time_match_the_folded_batch():
         n = 2
         rep = {name: jnp.repeat(a, n, axis=0) for name, a in controls.items() if name != "text"}
         xs, ls = flow.split_segments(x_t, k), flow.split_segments(levels, k)
-        vs = teacher.forward(params, xs, ls, jnp.repeat(controls["text"], n, axis=0),
-                             cond_latents=flow.split_segments(x, k), cond_mask=flow.split_segments(cond_dense, k),
-                             **rep)
+        out = teacher.forward(params, xs, ls, jnp.repeat(controls["text"], n, axis=0),
+                              cond_latents=flow.split_segments(x, k), cond_mask=flow.split_segments(cond_dense, k),
+                              **rep)
+        vs = flow.velocity_from_output(out, xs, ls, cfg.prediction, cfg.prediction_min_sigma)
         return got, flow.coarse_from_segments(flow.data_from_velocity(xs, vs, ls), b)
 
     got, want = both(x, x_t)
