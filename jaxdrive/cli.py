@@ -211,6 +211,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    from jaxdrive.xla_flags import deterministic_cpu
+    deterministic_cpu()                 # before JAX starts its backend (jaxdrive.xla_flags says why)
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser()
     args, rest = parser.parse_known_args(argv)

@@ -6,12 +6,15 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # 8 fake devices; and collective rendezvous timeouts far above XLA:CPU's defaults, because the 8
 # device threads of a sharded test share 2 cores with other test workers: on a busy machine a
 # thread can miss the default deadline, and XLA then aborts the process instead of waiting.
-for _flag in ("--xla_force_host_platform_device_count=8", "--xla_cpu_collective_timeout_seconds=900",
-              "--xla_cpu_collective_call_terminate_timeout_seconds=900"):
-    if _flag.split("=")[0] not in os.environ.get("XLA_FLAGS", ""):
-        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + _flag).strip()
+# And XLA:CPU's YNNPACK fusions off: with them a program sometimes gives other numbers on a second
+# call with the same inputs (jaxdrive.xla_flags), which made exact-equality tests flaky.
+from jaxdrive.xla_flags import add_xla_flags, deterministic_cpu  # noqa: E402  (imports jax; no backend yet)
 
-import jax  # noqa: E402  (must come after the flags above)
+add_xla_flags("--xla_force_host_platform_device_count=8", "--xla_cpu_collective_timeout_seconds=900",
+              "--xla_cpu_collective_call_terminate_timeout_seconds=900")
+deterministic_cpu()
+
+import jax  # noqa: E402  (its backend starts after the flags above)
 
 jax.config.update("jax_num_cpu_devices", 8)
 

@@ -3,18 +3,18 @@
 from __future__ import annotations
 
 import json
-import os
 import time
 
 import jax
+
+from jaxdrive.xla_flags import add_xla_flags, deterministic_cpu
 
 
 def ensure_devices(n: int) -> None:
     """Ask for ``n`` fake CPU devices (for sharded figures on a CPU host); it only works before JAX
     initialises its backend, so call it first thing in a benchmark's ``main``."""
-    flag = f"--xla_force_host_platform_device_count={n}"
-    if flag not in os.environ.get("XLA_FLAGS", ""):
-        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()
+    add_xla_flags(f"--xla_force_host_platform_device_count={n}")
+    deterministic_cpu()
 
 
 def emit(bench: str, figure: str, value, unit: str, **context) -> dict:

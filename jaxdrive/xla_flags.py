@@ -1,0 +1,47 @@
+"""XLA flags that jaxdrive sets before JAX starts its backend (``XLA_FLAGS`` is read once, when
+the first client is created, so these calls must come before the first computation).
+
+- :func:`add_xla_flags`: append flags to ``XLA_FLAGS``, keeping any the user already set.
+- :func:`deterministic_cpu`: turn off XLA:CPU's YNNPACK fusions. With them on (jaxlib 0.10), one
+  compiled program called again and again on the same inputs sometimes returns a different result
+  when the process has more than one core. The tiny config's train loss was wrong by up to 40% on
+  about 1 call in 30 on a 2-core machine, and right every time pinned to one core or with these
+  fusions off. jax-ml/jax#39741 (open) reports the same symptom. Bit-exact resume and every
+  sharded-versus-single-device test rely on a program giving the same numbers on every call.
+  ``jaxdrive`` commands, the benchmarks and the tests call it. Library users on CPU call it first
+  thing, or set the flag in ``XLA_FLAGS`` themselves.
+"""
+
+from __future__ import annotations
+
+import os
+from importlib import metadata
+
+# Empty: no op kind is fused into a YNNPACK call (the flag exists from jaxlib 0.10 on).
+CPU_DETERMINISTIC = "--xla_cpu_experimental_ynn_fusion_type="
+
+
+def add_xla_flags(*flags: str) -> None:
+    """Append each ``--name=value`` flag to ``XLA_FLAGS`` unless a flag of that name is there."""
+    for flag in flags:
+        if not flag.startswith("--") or "=" not in flag:
+            raise ValueError(f"flags: expected '--name=value', got {flag!r}")
+        current = os.environ.get("XLA_FLAGS", "")
+        if flag.split("=")[0] + "=" not in current:
+            os.environ["XLA_FLAGS"] = (current + " " + flag).strip()
+
+
+def _jaxlib_version() -> tuple[int, ...]:
+    try:
+        return tuple(int(p) for p in metadata.version("jaxlib").split(".")[:2])
+    except (metadata.PackageNotFoundError, ValueError):
+        return (0,)
+
+
+def deterministic_cpu() -> bool:
+    """Add :data:`CPU_DETERMINISTIC` where the installed jaxlib knows the flag (XLA aborts on an
+    unknown one). Returns whether the flag was added or already set."""
+    if _jaxlib_version() < (0, 10):
+        return False
+    add_xla_flags(CPU_DETERMINISTIC)
+    return True
