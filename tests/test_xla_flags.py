@@ -2,12 +2,20 @@
 compiled train loss gives the same number on every call (XLA:CPU's YNNPACK fusions did not)."""
 
 import os
+from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
 
+from jaxdrive.config import load_config
+from jaxdrive.train import flow_step
+from jaxdrive.train.run import Run
 from jaxdrive.xla_flags import CPU_DETERMINISTIC, add_xla_flags, deterministic_cpu
+
+from train_fixtures import write_synthetic
+
+TINY = Path(__file__).resolve().parents[1] / "configs" / "tiny.py"
 
 
 def test_flags_are_appended_once_and_the_users_value_kept(monkeypatch):
@@ -28,14 +36,8 @@ def test_the_tests_run_with_the_cpu_flags():
 def test_a_compiled_train_loss_is_the_same_on_every_call(tmp_path):
     """The tiny config's loss, one jitted program called 24 times on the same inputs: with the
     YNNPACK fusions on, about 1 call in 30 came out different (up to 40%) on 2 cores."""
-    from train_fixtures import write_synthetic
-    from jaxdrive.config import load_config
-    from jaxdrive.train import flow_step
-    from jaxdrive.train.run import Run
-    from pathlib import Path
     write_synthetic(tmp_path / "clips")
-    tiny = Path(__file__).resolve().parents[1] / "configs" / "tiny.py"
-    run = Run(load_config(tiny, [f"data.path={tmp_path / 'clips'}", "data.views=2", "data.frames=5",
+    run = Run(load_config(TINY, [f"data.path={tmp_path / 'clips'}", "data.views=2", "data.frames=5",
                                  "model.depth=1", "mesh.data=1", "mesh.seq=1"]), devices=jax.devices()[:1])
     inputs = flow_step.model_inputs(next(iter(run.dataset())), run.training.model)
     params = run.training.dit.init_params(0, batch=1, views=2, frames=5, height=8, width=14)
