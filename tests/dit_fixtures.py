@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax.traverse_util import flatten_dict, unflatten_dict
 
+from jaxdrive.models.conditions import Conditions
 from jaxdrive.models.dit import DiT
 
 # Zero-initialised projections of the control branches (they must leave the output unchanged).
@@ -22,8 +23,14 @@ BRANCH_ZERO = ("warp_proj", "map_in", "cond_embed", "reference_embed", "linear_o
 
 
 def split_inputs(ex: dict):
-    ex = dict(ex)
-    return ex.pop("latents"), ex.pop("sigma"), ex.pop("text", None), ex
+    """``(latents, sigma, text, kw)`` of :func:`example_inputs`: ``kw`` the other given conditions
+    as a dict (tests swap and drop fields by name); :func:`conditions` puts them back together."""
+    kw = ex["cond"].given()
+    return ex["latents"], ex["sigma"], kw.pop("text", None), kw
+
+
+def conditions(text, kw) -> Conditions:
+    return Conditions(text=text, **kw)
 
 
 @functools.lru_cache(maxsize=None)
@@ -55,7 +62,7 @@ def params_for(cfg, shapes: tuple, *, skip=BRANCH_ZERO, scale=0.05):
 @functools.lru_cache(maxsize=None)
 def forward_fn(cfg, **static):
     dit = DiT(cfg)
-    return jax.jit(lambda p, lat, sig, text, kw: dit.forward(p, lat, sig, text, **kw, **static))
+    return jax.jit(lambda p, lat, sig, text, kw: dit.forward(p, lat, sig, conditions(text, kw), **static))
 
 
 def max_rel(a, b):

@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from dit_fixtures import BRANCH_ZERO, boxed_params, forward_fn, max_rel, params_for, perturb, split_inputs
+from dit_fixtures import BRANCH_ZERO, boxed_params, conditions, forward_fn, max_rel, params_for, perturb, split_inputs
 
 from jaxdrive.models.dit import DiT, param_count
 from jaxdrive.models.dit_blocks import CrossView
@@ -127,7 +127,7 @@ TINY_SHAPES = (("batch", 2), ("views", 2), ("frames", 4), ("height", 4), ("width
 @functools.lru_cache(maxsize=None)
 def _apply_with_intermediates(cfg):
     dit = DiT(cfg)
-    return jax.jit(lambda p, lat, sig, text, kw: dit.apply({"params": p}, lat, sig, text, **kw,
+    return jax.jit(lambda p, lat, sig, text, kw: dit.apply({"params": p}, lat, sig, conditions(text, kw),
                                                             mutable=["intermediates"]))
 
 
@@ -228,7 +228,7 @@ def test_scan_and_remat_match_the_python_loop():
 
     def loss(cfg):
         dit = DiT(cfg)
-        return jax.jit(jax.value_and_grad(lambda p, x: jnp.sum(dit.forward(p, x, sig, text, **kw) * jnp.sin(x)),
+        return jax.jit(jax.value_and_grad(lambda p, x: jnp.sum(dit.forward(p, x, sig, conditions(text, kw)) * jnp.sin(x)),
                                           argnums=1))
     (v1, g1), (v2, g2) = loss(base)(params, lat), loss(scanned)(stacked, lat)
     np.testing.assert_allclose(v2, v1, rtol=1e-5)
@@ -245,8 +245,8 @@ def test_frame_alignment_with_the_vae():
 
 def _init_error(cfg, **changes):
     ex = example_inputs(cfg, **dict(MV_SHAPES))
-    ex.update(changes)
-    DiT(cfg).init(jax.random.PRNGKey(0), **ex)
+    sigma = changes.pop("sigma", ex["sigma"])
+    DiT(cfg).init(jax.random.PRNGKey(0), ex["latents"], sigma, ex["cond"].replace(**changes))
 
 
 @pytest.mark.parametrize("changes,pattern", [
@@ -273,7 +273,7 @@ def test_bad_config_and_presets():
     with pytest.raises(ValueError, match="boxes: this DiT takes no boxes"):
         cfg = preset("tiny")
         ex = example_inputs(cfg)
-        ex["boxes"] = np.zeros((1, 1, 2, 7), np.float32)
+        ex["cond"] = ex["cond"].replace(boxes=np.zeros((1, 1, 2, 7), np.float32))
         DiT(cfg).init(jax.random.PRNGKey(0), **ex)
     with pytest.raises(ValueError, match=r"layout: expected one of \['factorized', 'full'\], got 'mixed'"):
         preset("tiny", layout="mixed")

@@ -15,6 +15,7 @@ torch = pytest.importorskip("torch")
 diffusers = pytest.importorskip("diffusers")
 
 from jaxdrive.convert import load_diffusers_transformer  # noqa: E402
+from jaxdrive.models.conditions import Conditions  # noqa: E402
 
 BASE = dict(num_attention_heads=2, attention_head_dim=16, in_channels=4, out_channels=4, time_embed_dim=24,
             text_embed_dim=12, num_layers=2, sample_width=8, sample_height=6, sample_frames=9, patch_size=2,
@@ -78,7 +79,8 @@ def test_parity_with_diffusers(case, tmp_path):
     dit, params = load_diffusers_transformer(tmp_path)
     assert dit.config.layout == "full" and dit.config.timestep_scale == 1000.0
     lat = x.numpy().transpose(0, 1, 3, 4, 2)[:, None]   # [B, V = 1, F', h, w, C]
-    got = jax.jit(lambda p, l, s, e: dit.forward(p, l, s, e))(params, lat, t.numpy() / 1000.0, text.numpy())
+    got = jax.jit(lambda p, l, s, e: dit.forward(p, l, s, Conditions(text=e)))(params, lat, t.numpy() / 1000.0,
+                                                                               text.numpy())
     got = np.asarray(got)[:, 0].transpose(0, 1, 4, 2, 3)
     assert got.shape == want.shape
     assert np.abs(got - want).max() <= 1e-4, np.abs(got - want).max()
@@ -123,6 +125,6 @@ def test_scanned_import_matches(tmp_path):
     rng = np.random.default_rng(0)
     lat = rng.standard_normal((1, 1, 2, 4, 4, 4)).astype(np.float32)
     text = rng.standard_normal((1, 5, 12)).astype(np.float32)
-    a = jax.jit(lambda p: dit.forward(p, lat, np.float32([0.3]), text))(params)
-    b = jax.jit(lambda p: sdit.forward(p, lat, np.float32([0.3]), text))(sparams)
+    a = jax.jit(lambda p: dit.forward(p, lat, np.float32([0.3]), Conditions(text=text)))(params)
+    b = jax.jit(lambda p: sdit.forward(p, lat, np.float32([0.3]), Conditions(text=text)))(sparams)
     np.testing.assert_allclose(np.asarray(b), np.asarray(a), atol=1e-5)

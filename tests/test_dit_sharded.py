@@ -9,7 +9,7 @@ rematerialised layers. Parameters are sharded by their logical names
 import jax
 import jax.numpy as jnp
 import pytest
-from dit_fixtures import boxed_params, max_rel, params_for, split_inputs, tree_max_rel
+from dit_fixtures import boxed_params, conditions, max_rel, params_for, split_inputs, tree_max_rel
 
 from jaxdrive.models.dit import DiT
 from jaxdrive.models.dit_inputs import example_inputs
@@ -30,7 +30,7 @@ def _loss_fn(cfg):
     dit = DiT(cfg)
 
     def loss(params, lat, sig, text, kw):
-        out = dit.forward(params, lat, sig, text, **kw)
+        out = dit.forward(params, lat, sig, conditions(text, kw))
         return jnp.sum(out * jnp.cos(lat)), out
     return jax.jit(jax.value_and_grad(loss, argnums=(0, 1), has_aux=True))
 

@@ -16,6 +16,7 @@ from jaxdrive.data.tfds_io import dataset_info, open_source
 from jaxdrive.generate.rollout import rollout
 from jaxdrive.generate.samples import dataset_inputs
 from jaxdrive.models.latents import LatentCodec
+from jaxdrive.data.batches import model_inputs
 from jaxdrive.train import flow_step
 from jaxdrive.train.metrics import read_metrics
 from jaxdrive.train.run import Run, train
@@ -99,8 +100,8 @@ def test_latent_batch_gives_the_video_batch_loss(datasets):
     params = run.training.dit.init_params(0, batch=1, views=2, frames=5, height=8, width=14)
     loss = jax.jit(lambda p, inp, k: flow_step.flow_loss_fn(run.training, p, None, inp, k)[0])
     key = jax.random.key(3)
-    from_latents = loss(params, flow_step.model_inputs(batch, model), key)
-    from_video = loss(params, flow_step.model_inputs(video, model), key)
+    from_latents = loss(params, model_inputs(batch, model), key)
+    from_video = loss(params, model_inputs(video, model), key)
     assert np.isfinite(float(from_latents))
     np.testing.assert_allclose(float(from_latents), float(from_video), rtol=1e-6)
 
@@ -142,7 +143,7 @@ def test_sampling_conditions_on_the_stored_windows(datasets):
     clips_path, latents_path = datasets
     run = Run(config(latents_path))
     inputs = dataset_inputs(run, frames=3)                     # a prefix of the 5-frame windows
-    assert inputs["latents"].shape == (1, 2, 3, 8, 14, 48) and inputs["waypoints"].shape == (1, 3, 2)
+    assert inputs["latents"].shape == (1, 2, 3, 8, 14, 48) and inputs["cond"].waypoints.shape == (1, 3, 2)
     np.testing.assert_array_equal(inputs["latents"][0], open_source(latents_path, "validation")[0]["latents"][:, :3])
     with pytest.raises(ValueError, match=r"frames: expected at most the 5 frames of the dataset's latent windows"):
         dataset_inputs(run, frames=9)

@@ -12,6 +12,7 @@ import pytest
 
 from jaxdrive import flow
 from jaxdrive.config import load_config, to_dict
+from jaxdrive.models.conditions import Conditions
 from jaxdrive.models.dit import DiT
 from jaxdrive.train import distill_step, flow_step
 from jaxdrive.train.checkpoint import Checkpoints
@@ -59,14 +60,13 @@ def test_foreground_weighting_is_eq15_times_w_aux(dataset):
         loss_plain = flow_step.flow_loss_fn(plain.training, params, None, without, key)[0]
         # the same loss by hand: the step's draws, the map of each frame's boxes, eq. 15 weighted
         t = weighted.training
-        video = without.pop("video")
+        video = without["video"]
         x = t.codec.encode(None, video)
         k_levels, k_noise = jax.random.split(key)
         noise = jax.random.normal(k_noise, x.shape)
         _, cond, levels = flow_step.draw_levels(k_levels, x, t.flow, height=32, width=56)
-        text = without.pop("text")
         x_t = flow.add_noise(x, noise, levels)
-        out = t.dit.forward(params, x_t, levels, text, cond_latents=x, cond_mask=cond, **without)
+        out = t.dit.forward(params, x_t, levels, without["cond"].replace(cond_latents=x, cond_mask=cond))
         v = flow.velocity_from_output(out, x_t, levels, t.model.prediction, t.model.prediction_min_sigma)
         f = inputs["loss"]
         w = flow.foreground_weight_map(f["boxes"], f["box_valid"], f["intrinsics"], f["cam_to_ego"],
@@ -91,16 +91,15 @@ def test_segment_waypoints_match_the_pipeline_from_that_frame(dataset):
     clip = open_source(dataset, "train")[0]
     whole = sample_clip(clip, size=(32, 56), frames=9, stride=1)
     poses = jnp.asarray(whole["ego_to_world"])[None]
-    controls = {"waypoints": jnp.asarray(whole["waypoints"])[None], distill_step.POSES: poses,
-                "fps": jnp.ones((1,)), "boxes": jnp.asarray(whole["boxes"])[None]}
-    seg = distill_step.segment_controls(controls, 4, 5)
+    controls = Conditions(waypoints=jnp.asarray(whole["waypoints"])[None], fps=jnp.ones((1,)),
+                          boxes=jnp.asarray(whole["boxes"])[None])
+    seg = distill_step.segment_conditions(controls, poses, 4, 5)
     want = sample_clip(clip, size=(32, 56), frames=5, stride=1, start=4)
-    np.testing.assert_allclose(seg["waypoints"][0], want["waypoints"], atol=1e-4)
-    np.testing.assert_array_equal(seg["boxes"][0], want["boxes"])
-    assert distill_step.POSES not in seg
-    coarse = distill_step.coarse_controls({"waypoints": controls["waypoints"], "fps": jnp.full((1,), 12.0)}, 5)
-    np.testing.assert_array_equal(coarse["waypoints"][0], whole["waypoints"][::4])
-    assert float(coarse["fps"][0]) == 3.0
+    np.testing.assert_allclose(seg.waypoints[0], want["waypoints"], atol=1e-4)
+    np.testing.assert_array_equal(seg.boxes[0], want["boxes"])
+    coarse = distill_step.coarse_conditions(Conditions(waypoints=controls.waypoints, fps=jnp.full((1,), 12.0)), 5)
+    np.testing.assert_array_equal(coarse.waypoints[0], whole["waypoints"][::4])
+    assert float(coarse.fps[0]) == 3.0
 
 
 def test_teacher_segments_one_at_a_time_match_the_folded_batch():
@@ -117,21 +116,22 @@ def test_teacher_segments_one_at_a_time_match_the_folded_batch():
     levels, cond_dense = distill_step.dense_levels(sigma, cond, f, k)
     assert levels.shape == (b, f) and bool(jnp.all(levels[:, 0] == 0)) and bool(jnp.all(levels[:, 1:] == sigma[:, None]))
     x_t = flow.add_noise(x, jax.random.normal(keys[1], x.shape), levels)
-    controls = {"text": jax.random.randint(keys[2], (b, cfg.text_len), 0, 512),
-                "text_mask": jnp.ones((b, cfg.text_len), bool), "fps": jnp.array([12.0, 6.0]),
-                "intrinsics": jnp.tile(jnp.array([[40.0, 0, 28], [0, 40, 16], [0, 0, 1]]), (b, v, 1, 1)),
-                "cam_to_ego": jnp.tile(jnp.eye(4), (b, v, 1, 1))}
+    controls = Conditions(text=jax.random.randint(keys[2], (b, cfg.text_len), 0, 512),
+                          text_mask=jnp.ones((b, cfg.text_len), bool), fps=jnp.array([12.0, 6.0]),
+                          intrinsics=jnp.tile(jnp.array([[40.0, 0, 28], [0, 40, 16], [0, 0, 1]]), (b, v, 1, 1)),
+                          cam_to_ego=jnp.tile(jnp.eye(4), (b, v, 1, 1)))
+    poses = jnp.tile(jnp.eye(4), (b, f, 1, 1))
 
     @jax.jit
     def both(x, x_t):                 # the boundary rules themselves: tests/test_distill.py
-        got = distill_step.teacher_coarse_estimate(teacher, params, x, x_t, levels, cond_dense, controls,
+        got = distill_step.teacher_coarse_estimate(teacher, params, x, x_t, levels, cond_dense,
+                                                   {"cond": controls, distill_step.POSES: poses},
                                                    segment_len=k, boundary="mean")
         n = 2
-        rep = {name: jnp.repeat(a, n, axis=0) for name, a in controls.items() if name != "text"}
+        rep = jax.tree_util.tree_map(lambda a: jnp.repeat(a, n, axis=0), controls)
         xs, ls = flow.split_segments(x_t, k), flow.split_segments(levels, k)
-        out = teacher.forward(params, xs, ls, jnp.repeat(controls["text"], n, axis=0),
-                              cond_latents=flow.split_segments(x, k), cond_mask=flow.split_segments(cond_dense, k),
-                              **rep)
+        out = teacher.forward(params, xs, ls, rep.replace(cond_latents=flow.split_segments(x, k),
+                                                          cond_mask=flow.split_segments(cond_dense, k)))
         vs = flow.velocity_from_output(out, xs, ls, cfg.prediction, cfg.prediction_min_sigma)
         return got, flow.coarse_from_segments(flow.data_from_velocity(xs, vs, ls), b)
 
@@ -167,8 +167,8 @@ def test_distillation_trains_the_coarse_model_against_the_fine_one(dataset, tmp_
     # sampling reads coarse frames: every 4th source frame, at a quarter of the frame rate
     from jaxdrive.generate.samples import dataset_inputs
     inputs = dataset_inputs(run, frames=run.latent_frames)
-    fine_fps = float(np.asarray(jax.device_get(batch["teacher"]["fps"]))[0, 0])
-    assert inputs["video"].shape[2] == 3 and float(inputs["fps"][0]) == pytest.approx(fine_fps / 4)
+    fine_fps = float(np.asarray(jax.device_get(batch["teacher"]["cond"].fps))[0, 0])
+    assert inputs["video"].shape[2] == 3 and float(inputs["cond"].fps[0]) == pytest.approx(fine_fps / 4)
     state = run.init_state()
     with jax.set_mesh(run.mesh):
         _, m = run.step_fn()(state, run.frozen, batch)

@@ -15,6 +15,7 @@ import pytest
 from jaxdrive.cli import main as cli
 from jaxdrive.config import FlowConfig, load_config
 from jaxdrive.models.latents import depth_to_space, space_to_depth
+from jaxdrive.data.batches import model_inputs
 from jaxdrive.train import flow_step
 from jaxdrive.train.metrics import read_metrics
 from jaxdrive.train.run import Run, train
@@ -68,9 +69,9 @@ def test_model_inputs_map_the_pipeline_drops(dataset):
     run = Run(cfg)
     batch = next(iter(run.dataset()))
     batch["drop"] = {n: np.array([True, False]) for n in ("text", "camera", "trajectory", "boxes", "map")}
-    inputs = flow_step.model_inputs(batch, run.training.model)
-    assert sorted(inputs["drop"]) == ["camera", "text", "waypoints"]          # the tiny model's conditions
-    assert inputs["text"].dtype == np.int32 and inputs["text"].shape == (2, cfg.model.text_len)
+    inputs = model_inputs(batch, run.training.model)
+    assert sorted(inputs["cond"].drop) == ["camera", "text", "waypoints"]     # the tiny model's conditions
+    assert inputs["cond"].text.dtype == np.int32 and inputs["cond"].text.shape == (2, cfg.model.text_len)
     assert inputs["video"].shape == (2, 2, 5, 32, 56, 3)
 
 

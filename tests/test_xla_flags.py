@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from jaxdrive.config import load_config
+from jaxdrive.data.batches import model_inputs
 from jaxdrive.train import flow_step
 from jaxdrive.train.run import Run
 from jaxdrive.xla_flags import CPU_DETERMINISTIC, add_xla_flags, deterministic_cpu
@@ -39,7 +40,7 @@ def test_a_compiled_train_loss_is_the_same_on_every_call(tmp_path):
     write_synthetic(tmp_path / "clips")
     run = Run(load_config(TINY, [f"data.path={tmp_path / 'clips'}", "data.views=2", "data.frames=5",
                                  "model.depth=1", "mesh.data=1", "mesh.seq=1"]), devices=jax.devices()[:1])
-    inputs = flow_step.model_inputs(next(iter(run.dataset())), run.training.model)
+    inputs = model_inputs(next(iter(run.dataset())), run.training.model)
     params = run.training.dit.init_params(0, batch=1, views=2, frames=5, height=8, width=14)
     loss = jax.jit(lambda p, inp, k: flow_step.flow_loss_fn(run.training, p, None, inp, k)[0])
     values = [np.asarray(loss(params, inputs, jax.random.key(3))) for _ in range(24)]

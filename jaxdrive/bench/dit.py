@@ -43,11 +43,11 @@ def run(presets, seq_sizes, repeats):
         shapes = dict(batch=b, views=v, frames=f, height=h, width=w)
         boxed = dit.init_params(0, boxed=True, **shapes)
         ex = example_inputs(cfg, **shapes)
-        lat, sig, text = ex.pop("latents"), ex.pop("sigma"), ex.pop("text", None)
+        lat, sig, cond = ex["latents"], ex["sigma"], ex["cond"]
         tokens = f // cfg.patch[0] * (h // cfg.patch[1]) * (w // cfg.patch[2]) * v * b
 
-        def loss(params, lat, sig, text, kw):
-            return jnp.mean(jnp.square(dit.forward(params, lat, sig, text, **kw) - lat))
+        def loss(params, lat, sig, cond):
+            return jnp.mean(jnp.square(dit.forward(params, lat, sig, cond) - lat))
         grad = jax.jit(jax.grad(loss))
         n_params = param_count(cfg)
         for n in seq_sizes:
@@ -57,9 +57,9 @@ def run(presets, seq_sizes, repeats):
             with jax.set_mesh(mesh):
                 params = shard_params(boxed, mesh)
                 t0 = time.perf_counter()
-                compiled = grad.lower(params, lat, sig, text, ex).compile()
+                compiled = grad.lower(params, lat, sig, cond).compile()
                 compile_s = time.perf_counter() - t0
-                step = best_time(lambda: compiled(params, lat, sig, text, ex), repeats=repeats)
+                step = best_time(lambda: compiled(params, lat, sig, cond), repeats=repeats)
             mem = compiled.memory_analysis()
             row = dict(preset=pname, params=n_params, tokens=tokens, seq=n, compile_s=round(compile_s, 1),
                        fwd_bwd_ms=round(1e3 * step, 1), tokens_per_s=round(tokens / step),

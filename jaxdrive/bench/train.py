@@ -175,7 +175,7 @@ def jax_step(cfg, mesh, *, batch: int, frames: int, height: int, width: int, rep
     from jaxdrive.models.dit import DiT
     from jaxdrive.models.dit_inputs import example_inputs
     from jaxdrive.train import flow_step
-    from jaxdrive.train.run import sharded_state
+    from jaxdrive.train.run import global_micro_batches, sharded_state
 
     shapes = dict(views=VIEWS, frames=frames, height=height, width=width)
     dit, optim = DiT(cfg), _optim()
@@ -184,12 +184,11 @@ def jax_step(cfg, mesh, *, batch: int, frames: int, height: int, width: int, rep
     boxed = dit.init_params(SEED, boxed=True, batch=1, **shapes)
     flops = step_flops(cfg, nn.unbox(boxed), batch=batch, **shapes)
     ex = example_inputs(cfg, batch=batch, text_len=cfg.text_len, seed=SEED, **shapes)
-    for k in ("sigma", "cond_latents", "cond_mask"):                   # the step draws / supplies these
-        ex.pop(k, None)
-    inputs = {"video": ex.pop("latents"), **ex, "drop": {}}
+    # the step draws the levels and supplies the condition frames
+    inputs = {"video": ex["latents"], "cond": ex["cond"].replace(cond_latents=None, cond_mask=None, drop={})}
     state, optimizer = sharded_state(boxed, mesh, optim, 1000, SEED)
     shardings = jax.tree_util.tree_map(lambda x: x.sharding, state)
-    data = flow_step.global_micro_batches([inputs], mesh)
+    data = global_micro_batches([inputs], mesh)
     with jax.set_mesh(mesh):
         step = flow_step.make_train_step(training, optimizer, optim.ema_decay, state_shardings=shardings)
         t0 = time.perf_counter()

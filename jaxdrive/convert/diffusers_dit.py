@@ -1,7 +1,7 @@
 """diffusers ``CogVideoXTransformer3DModel`` folders -> a ``"full"``-layout :class:`DiT` and its params.
 
     dit, params = load_diffusers_transformer("CogVideoX-2b/transformer")
-    out = dit.forward(params, latents, sigma, text)   # latents [B, 1, F', h, w, C], sigma [B], text [B, L, D]
+    out = dit.forward(params, latents, sigma, Conditions(text=text))   # latents [B, 1, F', h, w, C], sigma [B], text [B, L, D]
 
 The imported model embeds ``sigma * 1000`` as its timestep (CogVideoX's DDPM timesteps are
 ``t = 1000 sigma`` in jaxdrive's noise-level convention) and returns what the original network

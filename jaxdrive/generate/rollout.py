@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrive import flow
-from jaxdrive.models.dit_inputs import PER_FRAME_INPUTS as PER_FRAME
+from jaxdrive.models.conditions import Conditions
 from jaxdrive.validate import check_positive_int
 
 
@@ -29,26 +29,25 @@ def _velocity_fn(training, params):
     m = training.model
 
     def velocity(x, sigma, cond):
-        cond = dict(cond)
-        text = cond.pop("text", None)
-        out = training.dit.forward(params, x, sigma, text, **cond)
+        out = training.dit.forward(params, x, sigma, cond)
         return flow.velocity_from_output(out, x, sigma, m.prediction, m.prediction_min_sigma)
     return velocity
 
 
-def sample_window(training, params, x_cond, cond_mask, controls: dict, key, *, steps: int, guidance: float,
-                  shift: float = 1.0, method: str = "euler"):
+def sample_window(training, params, x_cond, cond_mask, controls: Conditions, key, *, steps: int,
+                  guidance: float, shift: float = 1.0, method: str = "euler"):
     """Latents ``[B, V, F', h, w, C]`` of one window: ``x_cond`` holds the clean condition frames
-    where ``cond_mask [B, F']`` is set; ``controls`` are the DiT's keyword inputs (``text`` too)."""
-    cond = {k: v for k, v in controls.items() if k != "drop"}
+    where ``cond_mask [B, F']`` is set; ``controls`` are the window's conditions, whose ``drop``
+    names the conditions guidance drops (all of them at once, against their learned nulls)."""
+    names = list(controls.drop or {})
+    cond = controls.replace(drop=None)
     if training.model.controls.cond_frames is not None:
-        cond["cond_latents"], cond["cond_mask"] = x_cond, cond_mask
-    names = list(controls.get("drop", {}))
+        cond = cond.replace(cond_latents=x_cond, cond_mask=cond_mask)
     b = x_cond.shape[0]
     null = None
     if names and guidance != 1.0:
-        cond["drop"] = {n: jnp.zeros((b,), bool) for n in names}
-        null = dict(cond, drop={n: jnp.ones((b,), bool) for n in names})
+        cond = cond.with_drops(names, False, b)
+        null = cond.with_drops(names, True, b)
     schedule = flow.frame_schedule(flow.sampling_sigmas(steps, shift=shift), cond_mask,
                                    tpd=training.flow.tpd, omega=training.flow.tpd_omega)
     noise = jax.random.normal(key, x_cond.shape, jnp.float32)
@@ -58,25 +57,19 @@ def sample_window(training, params, x_cond, cond_mask, controls: dict, key, *, s
                        guidance_scale=None if null is None else guidance, cond_mask=cond_mask, method=method)
 
 
-def _window_controls(controls: dict, start: int, window: int, temporal: int) -> dict:
-    """The controls of latent frames ``[start, start + window)``; per-frame ones are per pixel
+def _window_controls(controls: Conditions, start: int, window: int, temporal: int) -> Conditions:
+    """The conditions of latent frames ``[start, start + window)``; per-frame ones are per pixel
     frame when ``temporal > 1`` (``1 + temporal (F' - 1)`` frames)."""
-    out = {}
-    for k, v in controls.items():
-        if k in PER_FRAME:
-            lo = start * temporal
-            out[k] = v[:, lo: lo + 1 + temporal * (window - 1)]
-        else:
-            out[k] = v
-    return out
+    lo = start * temporal
+    return controls.per_frame(lambda _, v: v[:, lo: lo + 1 + temporal * (window - 1)])
 
 
 def rollout(training, params, codec_params, inputs: dict, *, total_frames: int, window: int, overlap: int,
             cond_frames: int, steps: int, guidance: float, key, shift: float = 1.0):
     """Latents ``[B, V, total_frames, h, w, C]`` generated window by window (module docstring).
 
-    ``inputs``: :func:`jaxdrive.train.flow_step.model_inputs` of clips that cover the whole
-    length (per-frame controls for every frame; ``video`` needs only the first ``cond_frames``
+    ``inputs``: :func:`jaxdrive.data.batches.model_inputs` of clips that cover the whole
+    length (per-frame controls in ``cond`` for every frame; ``video`` needs only the first ``cond_frames``
     latent frames' pixels; a precomputed dataset gives ``latents`` instead, of at least ``window``
     frames). ``window``: latent frames per window (the training length);
     ``overlap``: frames each next window conditions on (``1 <= overlap < window``)."""
@@ -89,8 +82,7 @@ def rollout(training, params, codec_params, inputs: dict, *, total_frames: int, 
         raise ValueError(f"cond_frames: expected in [0, {min(window, total_frames)}), got {cond_frames}")
     window = min(window, total_frames)
     codec = training.codec
-    controls = {k: jnp.asarray(v) if not isinstance(v, dict) else {n: jnp.asarray(m) for n, m in v.items()}
-                for k, v in inputs.items() if k not in ("video", "latents")}
+    controls = jax.tree_util.tree_map(jnp.asarray, inputs["cond"])
     if "latents" in inputs:                                            # stored (latents.precomputed)
         first = jnp.asarray(inputs["latents"])[:, :, :window]
     else:

@@ -27,9 +27,9 @@ def dataset_inputs(run, *, frames: int, views=None, clips: int = 1, split: str |
     (a prefix of a window; its latents are cut to ``codec.latent_frames(frames)``: exact for
     frame-wise codecs, for the causal VAE the window's encoding, which may differ slightly from
     encoding the prefix alone where the VAE normalises over a chunk of frames)."""
-    from jaxdrive.data.pipeline import collate, sample_clip
+    from jaxdrive.data.batches import model_inputs
+    from jaxdrive.data.pipeline import CONDITIONS, collate, sample_clip
     from jaxdrive.data.tfds_io import open_source
-    from jaxdrive.train.flow_step import model_inputs
     d = run.config.data
     source = None
     for name in ([split] if split else ["validation", d.split]):
@@ -56,12 +56,8 @@ def dataset_inputs(run, *, frames: int, views=None, clips: int = 1, split: str |
         samples.append(sample_clip(clip, size=(d.height, d.width), frames=frames, stride=stride, views=views,
                                    rng=rng, where=f"{source.split} clip {i}"))
     batch = collate(samples)
-    inputs = model_inputs(batch, run.training.model, run.text)
-    c = run.training.model.controls
-    names = [n for n, on in (("text", c.text is not None), ("camera", c.camera), ("waypoints", c.waypoints),
-                             ("trajectory", c.trajectory), ("boxes", c.boxes), ("map", c.map)) if on]
-    inputs["drop"] = {n: np.zeros((clips,), bool) for n in names}      # nothing dropped; CFG adds the nulls
-    return inputs
+    batch["drop"] = {n: np.zeros((clips,), bool) for n in CONDITIONS}   # nothing dropped; CFG adds the nulls
+    return model_inputs(batch, run.training.model, run.text)
 
 
 def _window_prefix(run, record, frames: int, views, where: str) -> dict:

@@ -6,7 +6,7 @@ MagicDrive-V2, with per-frame noise levels, multi-view attention and the driving
 
     dit = DiT(preset("tiny"))
     params = dit.init_params(seed=0)                  # on the host; or dit.init(key, ...) on devices
-    v = dit.forward(params, latents, sigma, text, text_mask=mask)     # latents [B, V, F', h, w, C]
+    v = dit.forward(params, latents, sigma, Conditions(text=ids, text_mask=mask))  # latents [B, V, F', h, w, C]
 
 Layouts (``DiTConfig.layout``): ``"factorized"`` (STDiT-3 / STDiT-2 layers with spatial attention
 over all views, MiLA eq. 3, or per view plus MagicDrive-V2's cross-view attention; temporal
@@ -24,8 +24,9 @@ level per clip).
 **Sequence parallelism** shards the spatial patches S of the activations ``[B, F, S, V, D]`` over
 ``seq``; :mod:`jaxdrive.models.dit_blocks` lists which attentions communicate.
 
-**Controls** (``DiTConfig.controls``, :class:`jaxdrive.models.dit_config.Controls`), each
-droppable for classifier-free guidance by ``drop={name: [B] bool}``:
+**Conditions** come as one :class:`jaxdrive.models.conditions.Conditions` (``cond``), each field
+for a control of ``DiTConfig.controls`` (:class:`jaxdrive.models.dit_config.Controls`), each
+droppable for classifier-free guidance by ``cond.drop={name: [B] bool}``:
 
 - learned nulls replace the embedding of a dropped ``text``, ``fps``, ``camera``, ``waypoints``,
   ``trajectory``, ``boxes`` or ``warp``; leaving the input out (None) is the same as dropping it
@@ -36,8 +37,8 @@ droppable for classifier-free guidance by ``drop={name: [B] bool}``:
   in the mask, LongDWM's fine DiT dropping the last frame = leaving it out of the mask).
 
 **STAGE hook.** ``return_features=True`` also returns ``{layer: [B, F, S, V, D]}``, the outputs of
-the ``htft_layers`` before fusion; ``features={layer: [B, K, S, V, D]}`` (past frames' features at
-the same layer and denoising step) with ``features_mask [B, K]`` are fused after those layers by
+the ``htft_layers`` before fusion; ``cond.features={layer: [B, K, S, V, D]}`` (past frames' features
+at the same layer and denoising step) with ``cond.features_mask [B, K]`` are fused after those layers by
 :class:`jaxdrive.models.htft.HTFT` (STAGE sec. 4B).
 """
 
@@ -50,12 +51,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdrive.models.dit_blocks import layer_class
+from jaxdrive.models.conditions import Conditions
+from jaxdrive.models.dit_blocks import LayerContext, layer_class
 from jaxdrive.models.dit_config import DiTConfig, check_config
 from jaxdrive.models.dit_controls import (BoxEncoder, CameraEncoder, CaptionEncoder, MapEncoder,
                                           TimestepMLP, TrajectoryEncoder, WaypointEncoder, null_param,
                                           use_null)
-from jaxdrive.models.dit_inputs import check_inputs, example_inputs
+from jaxdrive.models.dit_inputs import example_inputs
 from jaxdrive.models.dit_layers import (MLP, TEXT, VIDEO, ZEROS, Dense, LayerNorm, abstract_params, host_params,
                                         modulate, normal, param, pool_frames, reshape, rope_3d, sincos_2d,
                                         sincos_3d)
@@ -130,10 +132,12 @@ class DiT(nn.Module):
 
     # ------------------------------------------------------------------ public API
 
-    def forward(self, params, latents, sigma, text=None, *, rngs=None, **kw):
-        """``self.apply({"params": params}, latents, sigma, text, **kw)``: the network output
-        (the velocity ``noise - x`` for jaxdrive-trained models) ``[B, V, F', h, w, C_out]``."""
-        return self.apply({"params": params}, latents, sigma, text, rngs=rngs, **kw)
+    def forward(self, params, latents, sigma, cond: Conditions | None = None, *, rngs=None, **kw):
+        """``self.apply({"params": params}, latents, sigma, cond, **kw)``: the network output
+        ``[B, V, F', h, w, C_out]`` (the velocity ``noise - x``, or the clean latents with
+        ``prediction="data"``: :func:`jaxdrive.flow.velocity_from_output` turns either into the
+        velocity)."""
+        return self.apply({"params": params}, latents, sigma, cond, rngs=rngs, **kw)
 
     def init_params(self, seed: int = 0, *, boxed: bool = False, **shapes):
         """Float32 parameters drawn on the host with NumPy (seeded by ``seed``), each from the
@@ -151,31 +155,18 @@ class DiT(nn.Module):
     # ------------------------------------------------------------------ the network
 
     @nn.compact
-    def __call__(self, latents, sigma, text=None, *, text_mask=None, fps=None, intrinsics=None,
-                 cam_to_ego=None, waypoints=None, ego_to_world=None, boxes=None, box_classes=None,
-                 box_valid=None, bev_map=None, cond_latents=None, cond_mask=None, warp=None,
-                 features=None, features_mask=None, drop=None, ofs=None, return_features=False,
+    def __call__(self, latents, sigma, cond: Conditions | None = None, *, return_features=False,
                  deterministic=True):
         """Network output ``[B, V, F', h, w, C_out]`` (and ``{layer: features}`` with
-        ``return_features``) for ``latents [B, V, F', h, w, C]`` at levels ``sigma [B]``/``[B, F']``.
-
-        Conditions (each only when its control is on; per-frame ones per latent frame ``F'`` or per
-        pixel frame ``1 + vae_temporal (F' - 1)``): ``text [B, L, text_dim]`` (or token ids
-        ``[B, L]`` for the caption encoder) with ``text_mask [B, L]``; ``fps [B]``;
-        ``intrinsics [B, V, 3, 3]`` + ``cam_to_ego [B, V, 4, 4]``; ``waypoints [B, F, 2]``;
-        ``ego_to_world [B, F, 4, 4]`` (trajectory); ``boxes [B, F, N, 7]``, ``box_classes``,
-        ``box_valid [B, F, N]``; ``bev_map [B, F, Hm, Wm, C_map]``; ``cond_latents`` (like
-        latents) + ``cond_mask [B, F']``; ``warp`` (warped-frame latents, like latents);
-        ``features``/``features_mask`` (HTFT); ``drop`` ``{condition: [B] bool}``; ``ofs [B]``
-        (CogVideoX 1.5 I2V). ``deterministic=False`` enables HTFT's dropout (rng ``"dropout"``).
+        ``return_features``) for ``latents [B, V, F', h, w, C]`` at levels ``sigma [B]``/``[B, F']``
+        under the conditions ``cond`` (:class:`~jaxdrive.models.conditions.Conditions`; None: none
+        given). ``deterministic=False`` enables HTFT's dropout (rng ``"dropout"``).
         """
         cfg = check_config(self.config)
-        kw = dict(text_mask=text_mask, fps=fps, intrinsics=intrinsics, cam_to_ego=cam_to_ego,
-                  waypoints=waypoints, ego_to_world=ego_to_world, boxes=boxes, box_classes=box_classes,
-                  box_valid=box_valid, bev_map=bev_map, cond_latents=cond_latents, cond_mask=cond_mask,
-                  warp=warp, features=features, features_mask=features_mask, drop=drop, ofs=ofs)
-        check_inputs(cfg, latents, sigma, text, kw)
-        drop = {k: jnp.asarray(v, bool) for k, v in (drop or {}).items()}
+        cond = (Conditions() if cond is None else cond).check(cfg, latents, sigma)
+        c = cond
+        text, text_mask, cond_latents, cond_mask, warp = c.text, c.text_mask, c.cond_latents, c.cond_mask, c.warp
+        drop = {k: jnp.asarray(v, bool) for k, v in (c.drop or {}).items()}
         dt = cfg.compute_dtype
         x = constrain(jnp.asarray(latents, jnp.float32), ("batch", "views", "frames", None, None, None))
         b, nv, nf, h, w, _ = x.shape
@@ -199,8 +190,7 @@ class DiT(nn.Module):
                             cfg.temporal_interpolation_scale)
             hid = hid + jnp.asarray(pos, dt)[None, :, :, None]
         ref = reference_input(x, cond_latents, cond_mask) if cfg.controls.reference_frame else None
-        hid = hid + self._additive(cfg, x, cond_latents, cond_mask, intrinsics, cam_to_ego, waypoints,
-                                   drop, (h, w), grid, ref)
+        hid = hid + self._additive(cfg, x, c, drop, (h, w), grid, ref)
         hid = constrain(hid, VIDEO)
         self.sow("intermediates", "tokens", hid)
 
@@ -208,44 +198,43 @@ class DiT(nn.Module):
         temb = TimestepMLP(cfg.time_freq_dim, cfg.t_dim, cfg.flip_sin_to_cos, cfg.freq_shift, dt,
                            name="t_embedder")
         t = temb(sig_tok * cfg.timestep_scale)                             # [B, Ft, Dt]
-        extra = self._clip_embeddings(cfg, b, fps, ofs, drop)
+        extra = self._clip_embeddings(cfg, b, c.fps, c.ofs, drop)
         t = t + extra[:, None]
-        ctx = {}
+        ctx = LayerContext()
         if cfg.layout == "full":
-            ctx["t"] = t
-            ctx["t_text"] = temb(jnp.max(sig_tok, axis=1) * cfg.timestep_scale) + extra
+            ctx = ctx.replace(t=t, t_text=temb(jnp.max(sig_tok, axis=1) * cfg.timestep_scale) + extra)
             if cfg.positions == "rope":
-                ctx["rope"] = rope_3d(nf // pt, *grid, cfg.head_dim, theta=cfg.rope_theta, base=cfg.rope_base)
+                ctx = ctx.replace(rope=rope_3d(nf // pt, *grid, cfg.head_dim, theta=cfg.rope_theta,
+                                               base=cfg.rope_base))
         else:
             k = 6 if cfg.block == "stdit3" else 9
-            ctx["t0"] = Dense(k * cfg.width, ("embed", None), dtype=dt, kernel_init=normal(0.02),
-                              name="t_block")(jax.nn.silu(t))
-        self.sow("intermediates", "modulation", ctx.get("t0", t))
+            ctx = ctx.replace(t0=Dense(k * cfg.width, ("embed", None), dtype=dt, kernel_init=normal(0.02),
+                                       name="t_block")(jax.nn.silu(t)))
+        self.sow("intermediates", "modulation", t if ctx.t0 is None else ctx.t0)
 
         # context: text and control tokens; warp tokens
         text_ctx, tmask = self._text(cfg, b, text, text_mask, drop)
-        if text_ctx is not None:
-            ctx["text"], ctx["text_mask"] = text_ctx, tmask
-        tok, tok_mask = self._control_tokens(cfg, b, nv, nf, (h, w), intrinsics, cam_to_ego, ego_to_world,
-                                             boxes, box_classes, box_valid, drop)
-        if tok is not None:
-            ctx["tokens"], ctx["tokens_mask"] = tok, tok_mask
+        tok, tok_mask = self._control_tokens(cfg, b, nv, nf, (h, w), c, drop)
+        ctx = ctx.replace(tokens=tok, tokens_mask=tok_mask)
         if warp is not None:
             wt = Dense(cfg.width, ("channels", "embed"), dtype=dt, name="warp_embed")(
                 constrain(patchify(jnp.asarray(warp, jnp.float32), cfg.patch), VIDEO[:-1] + ("channels",)))
-            ctx["warp"] = use_null(drop.get("warp"), wt, null_param(self, "warp_null", (cfg.width,), ("embed",)))
+            ctx = ctx.replace(warp=use_null(drop.get("warp"), wt,
+                                            null_param(self, "warp_null", (cfg.width,), ("embed",))))
 
         carry = hid
         if cfg.layout == "full":
             carry = (hid, constrain(Dense(cfg.width, ("text_embed", "embed"), dtype=dt, name="text_proj")(
-                ctx.pop("text")), TEXT))
-        elif "text" in ctx:
-            ctx["text"] = MLP(cfg.width, cfg.width, dtype=dt, in_name="text_embed", name="text_proj")(ctx["text"])
+                text_ctx), TEXT))
+            ctx = ctx.replace(text_mask=tmask)
+        elif text_ctx is not None:
+            ctx = ctx.replace(text=MLP(cfg.width, cfg.width, dtype=dt, in_name="text_embed", name="text_proj")(
+                text_ctx), text_mask=tmask)
 
         residuals = None
-        if cfg.controls.map and bev_map is not None:
-            residuals = self._map_branch(cfg, carry, ctx, bev_map, drop, nf, grid)
-        carry, feats = self._stack(cfg, carry, ctx, residuals, features, features_mask, deterministic)
+        if cfg.controls.map and c.bev_map is not None:
+            residuals = self._map_branch(cfg, carry, ctx, c.bev_map, drop, nf, grid)
+        carry, feats = self._stack(cfg, carry, ctx, residuals, c.features, c.features_mask, deterministic)
         out = self._final(cfg, _video(cfg, carry), t)
         out = constrain(out, ("batch", "frames", None, "views", None))
         out = unpatchify(out, cfg.patch, grid, cfg.out_dim).astype(jnp.float32)
@@ -255,7 +244,7 @@ class DiT(nn.Module):
 
     # ------------------------------------------------------------------ pieces
 
-    def _additive(self, cfg, x, cond_latents, cond_mask, intrinsics, cam_to_ego, waypoints, drop, hw, grid, ref):
+    def _additive(self, cfg, x, cond: Conditions, drop, hw, grid, ref):
         """Conditions added to the tokens (MiLA eq. 2, ``h_fuse = h_f + h_c``) and the concat-mode
         condition frames.
 
@@ -264,6 +253,8 @@ class DiT(nn.Module):
         This keeps each condition droppable on its own with its own learned null (MiLA appendix B
         drops conditions independently), which one MLP over the concatenation would not allow."""
         c, dt, width = cfg.controls, cfg.compute_dtype, cfg.width
+        intrinsics, cam_to_ego, waypoints = cond.intrinsics, cond.cam_to_ego, cond.waypoints
+        cond_latents, cond_mask = cond.cond_latents, cond.cond_mask
         b, nv, nf = x.shape[:3]
         pt = cfg.patch[0]
         add = jnp.zeros((), dt)
@@ -340,10 +331,11 @@ class DiT(nn.Module):
         mask = jnp.pad(mask, ((0, 0), (0, pad)))
         return use_null(drop.get("text"), y, null), use_null(drop.get("text"), mask, jnp.ones((), bool))
 
-    def _control_tokens(self, cfg, b, nv, nf, hw, intrinsics, cam_to_ego, ego_to_world, boxes, box_classes,
-                        box_valid, drop):
+    def _control_tokens(self, cfg, b, nv, nf, hw, cond: Conditions, drop):
         """Cross-attention tokens per (token frame, view): trajectory (1) and boxes (N)."""
         c, dt, width, pt = cfg.controls, cfg.compute_dtype, cfg.width, cfg.patch[0]
+        intrinsics, cam_to_ego, ego_to_world = cond.intrinsics, cond.cam_to_ego, cond.ego_to_world
+        boxes, box_classes, box_valid = cond.boxes, cond.box_classes, cond.box_valid
         ft = nf // pt
         toks, masks = [], []
         if c.trajectory:

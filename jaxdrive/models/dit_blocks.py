@@ -36,7 +36,27 @@ from jaxdrive.models.dit_layers import (MLP, TEXT, VIDEO, ZEROS, AttnProj, Dense
                                         from_sequence, merge, mesh_axis_size, modulate, normal, param, reshape, rope_1d,
                                         split, to_sequence)
 from jaxdrive.parallel.rules import constrain
+from flax import struct
 from jax.sharding import PartitionSpec
+
+
+@struct.dataclass
+class LayerContext:
+    """What every layer reads besides the video tokens, built once by the DiT: timestep embeddings
+    (``t0``: the adaLN-single vectors of the factorized layout; ``t``/``t_text``: CogVideoX's per-frame
+    and text-stream embeddings), ``rope`` (the full layout's 3D RoPE tables), the projected ``text``
+    tokens with ``text_mask``, control ``tokens [B, F, V, N, D]`` with ``tokens_mask`` and ``warp``
+    tokens. A pytree, so ``nn.scan`` broadcasts it to every layer."""
+
+    t0: object = None
+    t: object = None
+    t_text: object = None
+    rope: object = None
+    text: object = None
+    text_mask: object = None
+    tokens: object = None
+    tokens_mask: object = None
+    warp: object = None
 
 # Token order of merged video sequences: S (sharded) major, then F, then V.
 SFV = (2, 1, 3)
@@ -100,29 +120,29 @@ def temporal_attention(proj: AttnProj, x, impl: str, theta: float):
     return _out(proj, o)
 
 
-def context_attention(proj: AttnProj, x, ctx: dict, impl: str):
-    """Cross-attention of the video tokens to the context: text tokens ``ctx["text"] [B, L, D]``
-    (with ``text_mask``) and per-(frame, view) control tokens ``ctx["tokens"] [B, F, V, N, D]``
+def context_attention(proj: AttnProj, x, ctx: "LayerContext", impl: str):
+    """Cross-attention of the video tokens to the context: text tokens ``ctx.text [B, L, D]``
+    (with ``text_mask``) and per-(frame, view) control tokens ``ctx.tokens [B, F, V, N, D]``
     (with ``tokens_mask``): the tokens of frame f, view v see the text and their own controls
     (MagicDrive-V2: cross-attention for text, boxes, cameras and trajectory). Local: the
     context is replicated over ``seq``. Returns 0 when there is no context."""
-    text, tokens = ctx.get("text"), ctx.get("tokens")
+    text, tokens = ctx.text, ctx.tokens
     if text is None and tokens is None:
         return jnp.zeros_like(x)
     q = proj.q(x)                                            # [B, F, S, V, H, Dh]
     shape = q.shape
     if tokens is None:
         k, v = proj.kv(text)
-        o = attention(to_sequence(q, SFV), k, v, impl=impl, kv_mask=ctx.get("text_mask"))
+        o = attention(to_sequence(q, SFV), k, v, impl=impl, kv_mask=ctx.text_mask)
         return _out(proj, from_sequence(o, shape, SFV))
     b, f, _, nv = shape[:4]
     kc, vc = proj.kv(tokens)                                 # [B, F, V, N, H, Dh]
-    mc = ctx["tokens_mask"]
+    mc = ctx.tokens_mask
     if text is not None:
         kt, vt = proj.kv(text)                               # [B, L, H, Dh]
         grow = lambda a: jnp.broadcast_to(a[:, None, None], (b, f, nv) + a.shape[1:])
         kc, vc = jnp.concatenate([grow(kt), kc], 3), jnp.concatenate([grow(vt), vc], 3)
-        tm = ctx.get("text_mask")
+        tm = ctx.text_mask
         tm = jnp.ones(text.shape[:2], bool) if tm is None else tm
         mc = jnp.concatenate([grow(tm), mc], 3)
     groups = lambda a: merge(merge(a, 0), 0)                 # [B F V, ...]
@@ -214,7 +234,7 @@ class STBlock(nn.Module):
     @nn.compact
     def __call__(self, x, ctx):
         cfg = self.cfg
-        shift, scale, gate, shift_m, scale_m, gate_m = _chunks(_table(self, 6, cfg.width), ctx["t0"], 6)
+        shift, scale, gate, shift_m, scale_m, gate_m = _chunks(_table(self, 6, cfg.width), ctx.t0, 6)
         h = modulate(LayerNorm(cfg.norm_eps, affine=False, name="norm1")(x), shift, scale)
         proj = _proj(cfg, "attn")
         if self.temporal:
@@ -244,14 +264,14 @@ class FactorizedLayer(nn.Module):
     def __call__(self, x, ctx):
         cfg = self.cfg
         x = constrain(x, VIDEO)
-        if "warp" in ctx:
+        if ctx.warp is not None:
             x = x + Dense(cfg.width, ("embed", None), dtype=cfg.compute_dtype,
-                          kernel_init=ZEROS, name="warp_proj")(ctx["warp"])
+                          kernel_init=ZEROS, name="warp_proj")(ctx.warp)
         if cfg.block == "stdit3":
             x = STBlock(cfg, False, name="spatial")(x, ctx)
             x = STBlock(cfg, True, name="temporal")(x, ctx)
             return constrain(x, VIDEO)
-        chunks = _chunks(_table(self, 9, cfg.width), ctx["t0"], 9)
+        chunks = _chunks(_table(self, 9, cfg.width), ctx.t0, 9)
         shift, scale, gate, shift_m, scale_m, gate_m, shift_t, scale_t, gate_t = chunks
         h = modulate(LayerNorm(cfg.norm_eps, affine=False, name="norm1")(x), shift, scale)
         x = x + gate * spatial_attention(_proj(cfg, "attn"), h, cfg.attn_impl,
@@ -272,7 +292,7 @@ class FullBlock(nn.Module):
     """One CogVideoX block: expert adaLN (one LayerNorm, separate shift/scale/gate for the video and
     the text tokens from one linear map of the timestep embedding), full attention over
     ``[text; video]``, shared MLP. Per-frame noise levels give each video frame its own
-    modulation; the text stream takes the embedding ``ctx["t_text"]``. Optional: warp injection at
+    modulation; the text stream takes the embedding ``ctx.t_text``. Optional: warp injection at
     the input and a zero-initialised cross-attention to per-(frame, view) control tokens (boxes,
     trajectory), the same context attention the factorized layout uses."""
 
@@ -283,15 +303,15 @@ class FullBlock(nn.Module):
         cfg = self.cfg
         xv, xt = carry
         xv = constrain(xv, VIDEO)
-        if "warp" in ctx:
+        if ctx.warp is not None:
             xv = xv + Dense(cfg.width, ("embed", None), dtype=cfg.compute_dtype,
-                            kernel_init=ZEROS, name="warp_proj")(ctx["warp"])
-        rope = ctx.get("rope")
+                            kernel_init=ZEROS, name="warp_proj")(ctx.warp)
+        rope = ctx.rope
         for i, sub in enumerate(("attn", "ff")):
             lin = Dense(6 * cfg.width, ("embed", None), dtype=cfg.compute_dtype, name=f"norm{i + 1}_linear")
             norm = LayerNorm(cfg.norm_eps, name=f"norm{i + 1}")
-            mv = lin(jax.nn.silu(ctx["t"]))                  # [B, F, 6D]: video shift, scale, gate
-            mt = lin(jax.nn.silu(ctx["t_text"]))             # [B, 6D]: text (last three)
+            mv = lin(jax.nn.silu(ctx.t))                     # [B, F, 6D]: video shift, scale, gate
+            mt = lin(jax.nn.silu(ctx.t_text))                # [B, 6D]: text (last three)
             b, f = mv.shape[:2]
             mv = reshape(mv, (b, f, 6, 1, 1, cfg.width))
             mt = reshape(mt, (b, 6, 1, cfg.width))
@@ -299,16 +319,16 @@ class FullBlock(nn.Module):
             ht = modulate(norm(xt), mt[:, 3], mt[:, 4])
             if sub == "attn":
                 ov, ot = joint_attention(_proj(cfg, "attn", eps=1e-6), hv, ht, impl=cfg.attn_impl,
-                                         rope=rope, text_mask=ctx.get("text_mask"))
+                                         rope=rope, text_mask=ctx.text_mask)
             else:
                 mlp = MLP(int(cfg.width * cfg.mlp_ratio), cfg.width, dtype=cfg.compute_dtype, name="ff")
                 ov, ot = mlp(hv), mlp(ht)
             xv = xv + mv[:, :, 2] * ov
             xt = xt + mt[:, 5] * ot
-        if "tokens" in ctx:
+        if ctx.tokens is not None:
             h = LayerNorm(cfg.norm_eps, name="ctx_norm")(xv)
             xv = xv + context_attention(_proj(cfg, "ctx_attn", qk_norm="none", zero_out=True), h,
-                                        {"tokens": ctx["tokens"], "tokens_mask": ctx["tokens_mask"]},
+                                        LayerContext(tokens=ctx.tokens, tokens_mask=ctx.tokens_mask),
                                         cfg.local_attn_impl)
         return constrain(xv, VIDEO), constrain(xt, TEXT)
 

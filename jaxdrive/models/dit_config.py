@@ -91,6 +91,13 @@ class Controls:
     caption_vocab: int = 4096
     caption_layers: int = 2
 
+    def enabled(self) -> tuple[str, ...]:
+        """The conditions this DiT takes, by their names in :data:`CONDITIONS` (the one list
+        of which controls are on: checks, batch preparation and guidance read it)."""
+        on = {"text": self.text is not None, "fps": self.fps, "camera": self.camera, "waypoints": self.waypoints,
+              "trajectory": self.trajectory, "boxes": self.boxes, "map": self.map, "warp": self.warp}
+        return tuple(name for name in CONDITIONS if on[name])
+
 
 @dataclass(frozen=True)
 class DiTConfig:

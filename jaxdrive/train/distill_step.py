@@ -22,23 +22,21 @@ import jax
 import jax.numpy as jnp
 
 from jaxdrive import flow
-from jaxdrive.models.dit_inputs import PER_FRAME_INPUTS as PER_FRAME
+from jaxdrive.data.batches import POSES
+from jaxdrive.models.conditions import Conditions
 
-POSES = "poses"     # the fine model's inputs carry the clip's ego_to_world under this key
 
-
-def coarse_controls(controls: dict, segment_len: int) -> dict:
-    """The coarse model's controls: per-frame ones at the coarse frames, ``fps / (K - 1)``."""
+def coarse_conditions(cond: Conditions, segment_len: int) -> Conditions:
+    """The coarse model's conditions: per-frame ones at the coarse frames, ``fps / (K - 1)``."""
     step = segment_len - 1
-    out = {}
-    for k, v in controls.items():
-        if k in PER_FRAME:
-            out[k] = v[:, ::step]
-        elif k == "fps":
-            out[k] = v / step
-        else:
-            out[k] = v
-    return out
+    cond = cond.per_frame(lambda _, v: v[:, ::step])
+    return cond if cond.fps is None else cond.replace(fps=cond.fps / step)
+
+
+def coarse_fields(fields: dict, segment_len: int) -> dict:
+    """Per-frame arrays of a dict (the W_aux loss's boxes) at the coarse frames; the rest as is."""
+    return {k: v[:, ::segment_len - 1] if k in ("boxes", "box_classes", "box_valid") else v
+            for k, v in fields.items()}
 
 
 def relative_waypoints(poses):
@@ -49,32 +47,23 @@ def relative_waypoints(poses):
     return jnp.einsum("bji,bkj->bki", r0, d)[..., :2]
 
 
-def segment_controls(controls: dict, start, segment_len: int) -> dict:
-    """The fine model's controls for the segment of K frames from ``start`` (traced is fine)."""
-    out = {}
-    for k, v in controls.items():
-        if k == POSES:
-            continue
-        if k == "waypoints":
-            poses = jax.lax.dynamic_slice_in_dim(controls[POSES], start, segment_len, axis=1)
-            out[k] = relative_waypoints(poses)
-        elif k in PER_FRAME:
-            out[k] = jax.lax.dynamic_slice_in_dim(v, start, segment_len, axis=1)
-        else:
-            out[k] = v
-    return out
+def segment_conditions(cond: Conditions, poses, start, segment_len: int) -> Conditions:
+    """The fine model's conditions for the segment of K frames from ``start`` (traced is fine):
+    per-frame ones sliced, waypoints re-expressed in the ego frame of the segment's first pose
+    (``poses``: the clip's ``ego_to_world [B, F, 4, 4]``)."""
+    cut = lambda v: jax.lax.dynamic_slice_in_dim(v, start, segment_len, axis=1)
+    out = cond.per_frame(lambda _, v: cut(v))
+    return out if cond.waypoints is None else out.replace(waypoints=relative_waypoints(cut(poses)))
 
 
-def teacher_coarse_estimate(teacher, params, x, x_t, levels, cond, controls: dict, *, segment_len: int,
+def teacher_coarse_estimate(teacher, params, x, x_t, levels, cond, inputs: dict, *, segment_len: int,
                             boundary: str):
     """The frozen fine model's data estimates at the coarse frames, ``[B, V, n + 1, h, w, C]``.
 
     ``teacher``: the fine :class:`jaxdrive.models.dit.DiT`; ``x``, ``x_t`` the clean and noisy
     dense latents; ``levels``, ``cond`` ``[B, F]`` dense levels and condition frames;
-    ``controls`` the fine model's inputs (:func:`jaxdrive.train.flow_step.model_inputs` of its
-    config, ``text`` included, ego poses under :data:`POSES`)."""
-    controls = dict(controls)
-    text = controls.pop("text", None)
+    ``inputs`` the fine model's ``{"cond": Conditions, POSES: ego poses}``
+    (:func:`jaxdrive.data.batches.model_inputs` with ``teacher``)."""
     frames, axis = x.shape[-4], x.ndim - 4
     n = (frames - 1) // (segment_len - 1)
 
@@ -82,11 +71,11 @@ def teacher_coarse_estimate(teacher, params, x, x_t, levels, cond, controls: dic
         start = i * (segment_len - 1)
         cut = lambda a, ax: jax.lax.dynamic_slice_in_dim(a, start, segment_len, axis=ax)
         xs, ls = cut(x_t, axis), cut(levels, 1)
-        inputs = segment_controls(controls, start, segment_len)
+        seg_cond = segment_conditions(inputs["cond"], inputs[POSES], start, segment_len)
         if teacher.config.controls.cond_frames is not None:
-            inputs["cond_latents"], inputs["cond_mask"] = cut(x, axis), cut(cond, 1)
+            seg_cond = seg_cond.replace(cond_latents=cut(x, axis), cond_mask=cut(cond, 1))
         c = teacher.config
-        v = flow.velocity_from_output(teacher.forward(params, xs, ls, text, **inputs), xs, ls, c.prediction,
+        v = flow.velocity_from_output(teacher.forward(params, xs, ls, seg_cond), xs, ls, c.prediction,
                                       c.prediction_min_sigma)
         d = flow.data_from_velocity(xs, v, ls)
         return jnp.take(d, 0, axis=axis), jnp.take(d, segment_len - 1, axis=axis)

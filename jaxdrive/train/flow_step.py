@@ -1,7 +1,9 @@
-"""The rectified-flow train step of the DiT, and the host-side preparation of its batches.
+"""The rectified-flow train step of the DiT: the loss and the jitted update.
 
 One step (:func:`make_train_step`) takes the train state and a stack of ``grad_accum``
-micro-batches ``[A, b, ...]``, and for each micro-batch (in a ``lax.scan``):
+micro-batches ``[A, b, ...]`` (each made on the host by :func:`jaxdrive.data.batches.model_inputs`:
+the video or latents and the model's :class:`~jaxdrive.models.conditions.Conditions`), and for
+each micro-batch (in a ``lax.scan``):
 
 1. encodes the video to latents ``x`` (:class:`jaxdrive.models.latents.LatentCodec`; a VAE runs
    on the fly, without gradients), or takes the batch's precomputed ``latents``;
@@ -29,13 +31,11 @@ axis 1, activations shard their tokens over ``seq`` inside the DiT.
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from jax.sharding import PartitionSpec as P
 
 from jaxdrive import flow
 from jaxdrive.config import FlowConfig
@@ -44,110 +44,6 @@ from jaxdrive.models.dit_config import DiTConfig
 from jaxdrive.models.latents import LatentCodec
 from jaxdrive.train import distill_step
 from jaxdrive.train.state import TrainState, apply_gradients
-
-# pipeline drop names (jaxdrive.data.pipeline.CONDITIONS) -> the DiT conditions they drop
-DROPS = {"text": ("text",), "camera": ("camera",), "trajectory": ("trajectory", "waypoints"),
-         "boxes": ("boxes",), "map": ("map",)}
-BATCH_AXES = ("data", "fsdp")
-
-
-# ------------------------------------------------------------------------------ host side
-class TextEmbeddings:
-    """Precomputed T5 embeddings by caption (the ``.npz`` of ``jaxdrive data text-embed``)."""
-
-    def __init__(self, path):
-        path = Path(path)
-        if not path.is_file():
-            raise ValueError(f"data.text_embeddings: expected the .npz of 'jaxdrive data text-embed', "
-                             f"got {str(path)!r} (not found)")
-        with np.load(path) as f:
-            self.index = {str(c): i for i, c in enumerate(f["captions"])}
-            self.embeddings, self.mask = f["embeddings"], f["mask"]
-
-    def __call__(self, captions):
-        missing = [c for c in captions if c not in self.index]
-        if missing:
-            raise ValueError(f"data.text_embeddings: no embedding for captions {missing[:3]}; run "
-                             f"'jaxdrive data text-embed' on this dataset")
-        idx = [self.index[c] for c in captions]
-        return self.embeddings[idx], self.mask[idx]
-
-
-LOSS_FIELDS = ("boxes", "box_valid", "intrinsics", "cam_to_ego")   # what STAGE's W_aux reads
-
-
-def model_inputs(batch: dict, model: DiTConfig, text_embeddings: TextEmbeddings | None = None, *,
-                 flow_config: FlowConfig | None = None, teacher: DiTConfig | None = None) -> dict:
-    """The NumPy arrays a step needs from a pipeline batch (:mod:`jaxdrive.data.pipeline`):
-    ``video`` (or the precomputed ``latents`` of a batch of latent windows) and what the DiT's
-    controls read; captions become token ids (built-in caption encoder) or looked-up T5
-    embeddings; ``drop`` is renamed to the DiT's conditions. With
-    ``flow_config.foreground_k > 0``, ``loss`` holds the boxes and cameras of STAGE's W_aux; with a
-    distillation ``teacher``, ``teacher`` holds the fine model's inputs and the ego poses."""
-    out = _controls(batch, model, text_embeddings)
-    x = "latents" if "latents" in batch else "video"          # precomputed latent windows or pixels
-    out[x] = np.asarray(batch[x], np.float32)
-    if flow_config is not None and flow_config.foreground_k > 0:
-        out["loss"] = {k: np.asarray(batch[k]) for k in LOSS_FIELDS}
-    if teacher is not None:
-        out["teacher"] = _controls(batch, teacher, text_embeddings)
-        out["teacher"][distill_step.POSES] = np.asarray(batch["ego_to_world"], np.float32)
-    return out
-
-
-def _controls(batch: dict, model: DiTConfig, text_embeddings) -> dict:
-    c = model.controls
-    out = {}
-    if c.text == "caption":
-        from jaxdrive.data.text import tokenize_captions
-        out["text"], out["text_mask"] = tokenize_captions(batch["caption"], vocab=c.caption_vocab,
-                                                          max_len=model.text_len)
-    elif c.text == "embeddings":
-        if text_embeddings is None:
-            raise ValueError("data.text_embeddings: expected the .npz of 'jaxdrive data text-embed' for a model "
-                             "with text='embeddings', got none (or set model.controls.text=caption)")
-        out["text"], out["text_mask"] = text_embeddings(list(batch["caption"]))
-    if c.fps:
-        out["fps"] = np.asarray(batch["fps"], np.float32)
-    if c.camera:
-        out["intrinsics"] = np.asarray(batch["intrinsics"], np.float32)
-        out["cam_to_ego"] = np.asarray(batch["cam_to_ego"], np.float32)
-    if c.waypoints:
-        out["waypoints"] = np.asarray(batch["waypoints"], np.float32)
-    if c.trajectory:
-        out["ego_to_world"] = np.asarray(batch["ego_to_world"], np.float32)
-    if c.boxes:
-        for k in ("boxes", "box_classes", "box_valid"):
-            out[k] = np.asarray(batch[k])
-        if c.box_per_view and not c.camera:
-            out["intrinsics"] = np.asarray(batch["intrinsics"], np.float32)
-            out["cam_to_ego"] = np.asarray(batch["cam_to_ego"], np.float32)
-    if c.map:
-        out["bev_map"] = np.asarray(batch["bev_map"], np.float32) / 255.0
-    used = {"text": c.text is not None, "camera": c.camera, "waypoints": c.waypoints,
-            "trajectory": c.trajectory, "boxes": c.boxes, "map": c.map}
-    drop = {}
-    for name, targets in DROPS.items():
-        if name in batch.get("drop", {}):
-            for t in targets:
-                if used.get(t):
-                    drop[t] = np.asarray(batch["drop"][name], bool)
-    out["drop"] = drop
-    return out
-
-
-def stack_micro_batches(inputs: list[dict]) -> dict:
-    """``grad_accum`` micro-batches -> one tree with a leading ``[A]`` axis."""
-    return jax.tree_util.tree_map(lambda *xs: np.stack(xs), *inputs)
-
-
-def global_micro_batches(inputs: list[dict], mesh) -> dict:
-    """This process's micro-batches (host arrays) -> one global ``[A, b, ...]`` tree with ``b``
-    over the mesh's batch axes (``data``/``fsdp``) and the rest replicated."""
-    from jaxdrive.parallel import host_local_to_global
-    axes = tuple(a for a in BATCH_AXES if a in mesh.axis_names)
-    return host_local_to_global(stack_micro_batches(inputs), mesh, P(None, axes or None))
-
 
 # ------------------------------------------------------------------------------ the loss
 @dataclasses.dataclass(frozen=True)
@@ -197,12 +93,10 @@ def foreground_weights(training: FlowTraining, fields: dict, x, *, height: int, 
 
 def flow_loss_fn(training: FlowTraining, params, codec_params, inputs: dict, key, teacher_params=None):
     """The loss of one micro-batch and its metrics (steps 1-4 of the module docstring)."""
-    inputs = dict(inputs)
-    loss_fields = inputs.pop("loss", None)
-    teacher_inputs = inputs.pop("teacher", None)
+    cond, loss_fields, teacher_inputs = inputs["cond"], inputs.get("loss"), inputs.get("teacher")
     # precomputed latents (jaxdrive data encode) or the video encoded here
-    x = inputs.pop("latents") if "latents" in inputs else (
-        jax.lax.stop_gradient(training.codec.encode(codec_params, inputs.pop("video"))))
+    x = inputs["latents"] if "latents" in inputs else (
+        jax.lax.stop_gradient(training.codec.encode(codec_params, inputs["video"])))
     height, width = x.shape[-3] * training.codec.spatial, x.shape[-2] * training.codec.spatial
     k_levels, k_noise = jax.random.split(key)
     noise = jax.random.normal(k_noise, x.shape, jnp.float32)
@@ -211,33 +105,32 @@ def flow_loss_fn(training: FlowTraining, params, codec_params, inputs: dict, key
         seg = training.flow.distill_segment_len
         dense, dense_noise = x, noise
         x, noise = flow.dense_to_coarse(x, seg), flow.dense_to_coarse(noise, seg)
-        inputs = distill_step.coarse_controls(inputs, seg)
-        loss_fields = loss_fields and distill_step.coarse_controls(loss_fields, seg)
-    sigma, cond, levels = draw_levels(k_levels, x, training.flow, height=height, width=width)
+        cond = distill_step.coarse_conditions(cond, seg)
+        loss_fields = loss_fields and distill_step.coarse_fields(loss_fields, seg)
+    sigma, given, levels = draw_levels(k_levels, x, training.flow, height=height, width=width)
     x_t = flow.add_noise(x, noise, levels)
-    text = inputs.pop("text", None)
     if training.model.controls.cond_frames is not None:
-        inputs["cond_latents"], inputs["cond_mask"] = x, cond
+        cond = cond.replace(cond_latents=x, cond_mask=given)
     m = training.model
-    v = flow.velocity_from_output(training.dit.forward(params, x_t, levels, text, **inputs), x_t, levels,
+    v = flow.velocity_from_output(training.dit.forward(params, x_t, levels, cond), x_t, levels,
                                   m.prediction, m.prediction_min_sigma)
     weight_map = None
     if loss_fields:
         weight_map = foreground_weights(training, loss_fields, x, height=height, width=width)
-    loss = flow.flow_loss(v, x, noise, cond_mask=cond, weight_map=weight_map)
+    loss = flow.flow_loss(v, x, noise, cond_mask=given, weight_map=weight_map)
     metrics = {"flow_loss": loss}
     f = training.flow
     if f.structure_weight > 0:
         s = flow.structure_loss(flow.data_from_velocity(x_t, v, levels), x, cutoff=f.structure_cutoff,
-                                cond_mask=cond)
+                                cond_mask=given)
         metrics["structure_loss"] = s
         loss = loss + f.structure_weight * s
     if distill:
-        d_levels, d_cond = distill_step.dense_levels(sigma, cond, dense.shape[-4], seg)
+        d_levels, d_cond = distill_step.dense_levels(sigma, given, dense.shape[-4], seg)
         target = distill_step.teacher_coarse_estimate(
             DiT(training.teacher), teacher_params, dense, flow.add_noise(dense, dense_noise, d_levels),
             d_levels, d_cond, teacher_inputs, segment_len=seg, boundary=f.distill_boundary)
-        d = flow.distill_loss(flow.data_from_velocity(x_t, v, levels), target, cond_mask=cond)
+        d = flow.distill_loss(flow.data_from_velocity(x_t, v, levels), target, cond_mask=given)
         metrics["distill_loss"] = d
         loss = loss + f.distill_weight * d
     metrics["loss"] = loss
@@ -277,7 +170,7 @@ def train_step(training: FlowTraining, optimizer, ema_decay: float, state: Train
 def make_train_step(training: FlowTraining, optimizer, ema_decay: float, *, state_shardings):
     """``train_step`` jitted with the state's shardings in and out and the state donated; the
     frozen params (VAE, teacher) and the batch keep the shardings they come with
-    (:func:`global_micro_batches`). Call it under ``jax.set_mesh(mesh)``."""
+    (:meth:`jaxdrive.train.run.Run.global_batch`). Call it under ``jax.set_mesh(mesh)``."""
     fn = lambda state, frozen, batch: train_step(training, optimizer, ema_decay, state, frozen, batch)
     return jax.jit(fn, in_shardings=(state_shardings, None, None),
                    out_shardings=(state_shardings, None), donate_argnums=(0,))

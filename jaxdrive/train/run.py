@@ -24,9 +24,12 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from jax.sharding import PartitionSpec as P
+
 from jaxdrive.config import Config, check_sections, to_dict
+from jaxdrive.data.batches import TextEmbeddings, model_inputs, stack_micro_batches
 from jaxdrive.models.latents import LatentCodec
-from jaxdrive.parallel import make_mesh, shard_params
+from jaxdrive.parallel import host_local_to_global, make_mesh, shard_params
 from jaxdrive.train import flow_step
 from jaxdrive.train.checkpoint import Checkpoints
 from jaxdrive.train.encode import check_dataset
@@ -73,6 +76,13 @@ def sharded_state(boxed_params, mesh, optim_config, total_steps: int, seed: int)
     return state, optimizer
 
 
+def global_micro_batches(inputs: list[dict], mesh):
+    """This process's micro-batches (host model inputs) -> one global ``[A, b, ...]`` tree with
+    ``b`` over the mesh's batch axes (``data``/``fsdp``) and the rest replicated."""
+    axes = tuple(a for a in ("data", "fsdp") if a in mesh.axis_names)
+    return host_local_to_global(stack_micro_batches(inputs), mesh, P(None, axes or None))
+
+
 class Run:
     """Everything a run builds from its config (see the module docstring)."""
 
@@ -109,7 +119,7 @@ class Run:
                                 (d.width // (self.codec.spatial * model.patch[2])))
         self.text = None
         if model.controls.text == "embeddings":
-            self.text = flow_step.TextEmbeddings(d.text_embeddings) if d.text_embeddings else None
+            self.text = TextEmbeddings(d.text_embeddings) if d.text_embeddings else None
 
     def _teacher_model(self, devices):
         """The fine model of LongDWM's distillation, from the config of the run directory
@@ -179,9 +189,8 @@ class Run:
     def global_batch(self, micro_batches: list[dict]):
         """Host micro-batches (this process's samples) -> one global ``[A, b, ...]`` tree."""
         t = self.training
-        return flow_step.global_micro_batches(
-            [flow_step.model_inputs(b, t.model, self.text, flow_config=t.flow, teacher=t.teacher)
-             for b in micro_batches], self.mesh)
+        return global_micro_batches([model_inputs(b, t.model, self.text, foreground=t.flow.foreground_k > 0,
+                                                  teacher=t.teacher) for b in micro_batches], self.mesh)
 
 
 class _Stop:
