@@ -62,7 +62,7 @@ def _sample(args, rest) -> int:
     views = None if args.views is None else [int(v) for v in args.views]
     out_dir = Path(args.out or Path(args.workdir) / "samples" / f"sample_{step:07d}")
     t = time.perf_counter()
-    paths = write_samples(run, params, out_dir, frames=args.frames, views=views, steps=args.steps,
+    paths = write_samples(run.sampling(), params, out_dir, frames=args.frames, views=views, steps=args.steps,
                           guidance=args.cfg, seed=args.seed)
     if "quality" in paths:
         print(quality_lines(paths["quality"]))
@@ -114,7 +114,7 @@ def _demo(args, rest) -> int:
     from jaxdrive.generate.samples import write_samples
     print(f"[3/3] sampling a {args.frames}-frame, {config.data.views}-view clip "
           f"({args.frames // config.data.frames + 1} windows of {config.data.frames})")
-    paths = write_samples(out["run"], out["state"], workdir / "samples" / "demo", frames=args.frames,
+    paths = write_samples(out["run"].sampling(), out["state"], workdir / "samples" / "demo", frames=args.frames,
                           steps=config.train.sample_steps, guidance=args.cfg)
     print(quality_lines(paths["quality"]))
     print(f"done in {time.perf_counter() - t0:.0f} s:\n  video      {paths.get('video')}\n"

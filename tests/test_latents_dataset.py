@@ -142,19 +142,18 @@ def test_latent_iterator_resumes_exactly(datasets):
 def test_sampling_conditions_on_the_stored_windows(datasets):
     clips_path, latents_path = datasets
     run = Run(config(latents_path))
-    inputs = dataset_inputs(run, frames=3)                     # a prefix of the 5-frame windows
+    inputs = dataset_inputs(run.sampling(), frames=3)                     # a prefix of the 5-frame windows
     assert inputs["latents"].shape == (1, 2, 3, 8, 14, 48) and inputs["cond"].waypoints.shape == (1, 3, 2)
     np.testing.assert_array_equal(inputs["latents"][0], open_source(latents_path, "validation")[0]["latents"][:, :3])
     with pytest.raises(ValueError, match=r"frames: expected at most the 5 frames of the dataset's latent windows"):
-        dataset_inputs(run, frames=9)
+        dataset_inputs(run.sampling(), frames=9)
 
     # the rollout pins the stored condition latents (a stand-in velocity keeps the compile cheap)
-    stand_in = SimpleNamespace(dit=SimpleNamespace(forward=lambda params, x, sigma, text, **cond: -0.5 * x),
-                               model=SimpleNamespace(controls=SimpleNamespace(cond_frames=None), prediction="velocity",
-                                                     prediction_min_sigma=0.05),
-                               flow=run.training.flow, codec=run.codec)
-    full = dataset_inputs(run, frames=5)
-    out = np.asarray(rollout(stand_in, None, None, full, total_frames=5, window=5, overlap=1, cond_frames=2,
+    stand_in = SimpleNamespace(forward=lambda params, x, sigma, cond: -0.5 * x,
+                               config=SimpleNamespace(controls=SimpleNamespace(cond_frames=None), prediction="velocity",
+                                                      prediction_min_sigma=0.05))
+    full = dataset_inputs(run.sampling(), frames=5)
+    out = np.asarray(rollout(stand_in, run.codec, None, None, full, total_frames=5, window=5, overlap=1, cond_frames=2,
                              steps=2, guidance=1.0, key=jax.random.key(0)))
     assert out.shape == full["latents"].shape
     np.testing.assert_array_equal(out[:, :, :2], full["latents"][:, :, :2])

@@ -144,7 +144,7 @@ def write_teacher(dataset, workdir):
     """A fine model's run directory: its config and one checkpoint (no training needed)."""
     cfg = config(dataset, "data.frames=5", "train.seed=7")
     run = Run(cfg)
-    state = run.init_state()
+    state = run.init_state()[0]
     ckpts = Checkpoints(workdir, asynchronous=False)
     ckpts.save(0, state, {}, {"step": 0})
     ckpts.close()
@@ -159,19 +159,19 @@ def test_distillation_trains_the_coarse_model_against_the_fine_one(dataset, tmp_
     run = Run(cfg)
     assert run.latent_frames == 3 and run.frame_stride == 4              # coarse frames 0, 4, 8
     assert run.tokens_per_step == 2 * 2 * 3 * 4 * 7
-    restored = run.frozen["teacher"]
+    restored = run.frozen_params()["teacher"]
     for a, b in zip(jax.tree_util.tree_leaves(restored), jax.tree_util.tree_leaves(saved.ema)):
         np.testing.assert_array_equal(a, b)
     batch = one_batch(run)
     assert batch["video"].shape[3] == 9 and batch["teacher"][distill_step.POSES].shape[2:] == (9, 4, 4)
     # sampling reads coarse frames: every 4th source frame, at a quarter of the frame rate
     from jaxdrive.generate.samples import dataset_inputs
-    inputs = dataset_inputs(run, frames=run.latent_frames)
+    inputs = dataset_inputs(run.sampling(), frames=run.latent_frames)
     fine_fps = float(np.asarray(jax.device_get(batch["teacher"]["cond"].fps))[0, 0])
     assert inputs["video"].shape[2] == 3 and float(inputs["cond"].fps[0]) == pytest.approx(fine_fps / 4)
-    state = run.init_state()
+    state, optimizer, shardings = run.init_state()
     with jax.set_mesh(run.mesh):
-        _, m = run.step_fn()(state, run.frozen, batch)
+        _, m = run.step_fn(optimizer, shardings)(state, run.frozen_params(), batch)
     m = jax.device_get(m)
     assert np.isfinite(m["distill_loss"]) and m["distill_loss"] > 0
     assert m["loss"] == pytest.approx(m["flow_loss"] + 0.5 * m["distill_loss"], rel=1e-5)

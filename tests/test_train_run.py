@@ -81,10 +81,10 @@ def test_sharded_step_matches_single_device(dataset):
     for name, devices in (("mesh", None), ("single", jax.devices()[:1])):
         c = cfg if devices is None else tiny(dataset, "train.steps=1", "mesh.data=1", "mesh.seq=1")
         run = Run(c, devices=devices)
-        state = run.init_state()
+        state, optimizer, shardings = run.init_state()
         batch = run.global_batch([next(iter(run.dataset()))])
         with jax.set_mesh(run.mesh):
-            new, metrics = run.step_fn()(state, None, batch)
+            new, metrics = run.step_fn(optimizer, shardings)(state, None, batch)
         losses[name], grads[name] = float(metrics["loss"]), float(metrics["grad_norm"])
     assert losses["mesh"] == pytest.approx(losses["single"], rel=1e-5)
     assert grads["mesh"] == pytest.approx(grads["single"], rel=1e-4)
@@ -207,7 +207,7 @@ def test_demo_recipe_learns_a_continuation_not_noise(dataset, tmp_path):
                                 "train.checkpoint_every=0", "train.log_every=50", "optim.warmup_steps=10",
                                 "mesh.data=2", "mesh.seq=4"])
     out = train(config, tmp_path / "run", progress=False, log=lambda *a: None)
-    g = generate(out["run"], out["state"].ema, frames=5, guidance=1.0, steps=10)
+    g = generate(out["run"].sampling(), out["state"].ema, frames=5, guidance=1.0, steps=10)
     data = out["run"].codec.encode(None, g.recorded)
     ratio = float(np.std(g.latents[:, :, g.cond_frames:]) / np.std(np.asarray(data)[:, :, g.cond_frames:]))
     assert 0.75 < ratio < 1.25, ratio

@@ -22,26 +22,28 @@ import numpy as np
 
 from jaxdrive import flow
 from jaxdrive.models.conditions import Conditions
+from jaxdrive.models.dit import DiT
 from jaxdrive.validate import check_positive_int
 
 
-def _velocity_fn(training, params):
-    m = training.model
+def _velocity_fn(dit: DiT, params):
+    m = dit.config
 
     def velocity(x, sigma, cond):
-        out = training.dit.forward(params, x, sigma, cond)
+        out = dit.forward(params, x, sigma, cond)
         return flow.velocity_from_output(out, x, sigma, m.prediction, m.prediction_min_sigma)
     return velocity
 
 
-def sample_window(training, params, x_cond, cond_mask, controls: Conditions, key, *, steps: int,
-                  guidance: float, shift: float = 1.0, method: str = "euler"):
+def sample_window(dit: DiT, params, x_cond, cond_mask, controls: Conditions, key, *, steps: int,
+                  guidance: float, shift: float = 1.0, tpd: bool = False, tpd_omega: float = np.pi / 2,
+                  method: str = "euler"):
     """Latents ``[B, V, F', h, w, C]`` of one window: ``x_cond`` holds the clean condition frames
     where ``cond_mask [B, F']`` is set; ``controls`` are the window's conditions, whose ``drop``
     names the conditions guidance drops (all of them at once, against their learned nulls)."""
     names = list(controls.drop or {})
     cond = controls.replace(drop=None)
-    if training.model.controls.cond_frames is not None:
+    if dit.config.controls.cond_frames is not None:
         cond = cond.replace(cond_latents=x_cond, cond_mask=cond_mask)
     b = x_cond.shape[0]
     null = None
@@ -49,11 +51,11 @@ def sample_window(training, params, x_cond, cond_mask, controls: Conditions, key
         cond = cond.with_drops(names, False, b)
         null = cond.with_drops(names, True, b)
     schedule = flow.frame_schedule(flow.sampling_sigmas(steps, shift=shift), cond_mask,
-                                   tpd=training.flow.tpd, omega=training.flow.tpd_omega)
+                                   tpd=tpd, omega=tpd_omega)
     noise = jax.random.normal(key, x_cond.shape, jnp.float32)
     keep = cond_mask[:, None, :, None, None, None]
     x0 = jnp.where(keep, x_cond, noise)
-    return flow.sample(_velocity_fn(training, params), x0, schedule, cond=cond, null_cond=null,
+    return flow.sample(_velocity_fn(dit, params), x0, schedule, cond=cond, null_cond=null,
                        guidance_scale=None if null is None else guidance, cond_mask=cond_mask, method=method)
 
 
@@ -64,8 +66,9 @@ def _window_controls(controls: Conditions, start: int, window: int, temporal: in
     return controls.per_frame(lambda _, v: v[:, lo: lo + 1 + temporal * (window - 1)])
 
 
-def rollout(training, params, codec_params, inputs: dict, *, total_frames: int, window: int, overlap: int,
-            cond_frames: int, steps: int, guidance: float, key, shift: float = 1.0):
+def rollout(dit: DiT, codec, params, codec_params, inputs: dict, *, total_frames: int, window: int,
+            overlap: int, cond_frames: int, steps: int, guidance: float, key, shift: float = 1.0,
+            tpd: bool = False, tpd_omega: float = np.pi / 2):
     """Latents ``[B, V, total_frames, h, w, C]`` generated window by window (module docstring).
 
     ``inputs``: :func:`jaxdrive.data.batches.model_inputs` of clips that cover the whole
@@ -81,7 +84,6 @@ def rollout(training, params, codec_params, inputs: dict, *, total_frames: int, 
     if not 0 <= cond_frames < min(window, total_frames):
         raise ValueError(f"cond_frames: expected in [0, {min(window, total_frames)}), got {cond_frames}")
     window = min(window, total_frames)
-    codec = training.codec
     controls = jax.tree_util.tree_map(jnp.asarray, inputs["cond"])
     if "latents" in inputs:                                            # stored (latents.precomputed)
         first = jnp.asarray(inputs["latents"])[:, :, :window]
@@ -90,8 +92,8 @@ def rollout(training, params, codec_params, inputs: dict, *, total_frames: int, 
         first = codec.encode(codec_params, jnp.asarray(inputs["video"])[:, :, :pixel_window])  # [B, V, window, h, w, C]
     shape = first.shape[:2] + (total_frames,) + first.shape[3:]
     out = jnp.zeros(shape, jnp.float32, device=first.sharding)         # sharded like the windows
-    sample = jax.jit(lambda p, xc, m, c, k: sample_window(training, p, xc, m, c, k, steps=steps,
-                                                          guidance=guidance, shift=shift))
+    sample = jax.jit(lambda p, xc, m, c, k: sample_window(dit, p, xc, m, c, k, steps=steps, guidance=guidance,
+                                                          shift=shift, tpd=tpd, tpd_omega=tpd_omega))
     done, start = 0, 0
     b = first.shape[0]
     while done < total_frames:

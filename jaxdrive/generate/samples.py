@@ -1,7 +1,10 @@
-"""Sample videos of a run: condition frames and controls from dataset clips, the jitted sampler,
+"""Sample videos of a model: condition frames and controls from dataset clips, the jitted sampler,
 and the outputs (an mp4 with the views tiled, a frame-grid PNG, the latents as ``.npy``).
 
-Used by the training loop (periodic samples) and by ``jaxdrive sample``.
+    g = generate(Sampling(model, codec, mesh, data, flow), params, frames=33, guidance=1.0)
+
+Used by the training loop (periodic samples) and by ``jaxdrive sample``; a training run gives its
+:class:`Sampling` by :meth:`jaxdrive.train.run.Run.sampling`.
 """
 
 from __future__ import annotations
@@ -15,12 +18,48 @@ import numpy as np
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from jax.sharding import Mesh
+
 from jaxdrive import flow
+from jaxdrive.config import DataConfig, FlowConfig
 from jaxdrive.generate.rollout import rollout, to_numpy_video
+from jaxdrive.models.dit import DiT
+from jaxdrive.models.dit_config import DiTConfig
+from jaxdrive.models.latents import LatentCodec
 from jaxdrive.validate import check_positive_int
 
 
-def dataset_inputs(run, *, frames: int, views=None, clips: int = 1, split: str | None = None, seed: int = 0):
+@dataclasses.dataclass(frozen=True)
+class Sampling:
+    """What sampling a model needs besides its parameters: the DiT's config, the latent codec, the
+    mesh, the dataset the condition clips come from (``data``), the flow settings it was trained with
+    (TPD, shift, condition frames), T5 embeddings for ``text="embeddings"`` models, the window
+    (latent frames per sampler call; default: the latent frames of ``data.frames``) and the
+    source-frame stride between its frames (default ``data.stride``); ``precomputed``: ``data.path``
+    holds latent windows (``jaxdrive data encode``)."""
+
+    model: DiTConfig
+    codec: LatentCodec
+    mesh: Mesh
+    data: DataConfig
+    flow: FlowConfig = FlowConfig()
+    text_embeddings: object = None
+    window: int | None = None
+    stride: int | None = None
+    precomputed: bool = False
+    steps: int = 20
+
+    @property
+    def latent_window(self) -> int:
+        return self.codec.latent_frames(self.data.frames) if self.window is None else self.window
+
+    @property
+    def frame_stride(self) -> int:
+        return self.data.stride if self.stride is None else self.stride
+
+
+def dataset_inputs(spec: Sampling, *, frames: int, views=None, clips: int = 1, split: str | None = None,
+                   seed: int = 0):
     """Model inputs of ``clips`` dataset clips of ``frames`` pixel frames (no condition dropped):
     the first frames give the condition latents, every frame its controls. A precomputed dataset
     (``latents.precomputed``) gives its stored windows: ``frames`` at most the window's frame count
@@ -30,7 +69,7 @@ def dataset_inputs(run, *, frames: int, views=None, clips: int = 1, split: str |
     from jaxdrive.data.batches import model_inputs
     from jaxdrive.data.pipeline import CONDITIONS, collate, sample_clip
     from jaxdrive.data.tfds_io import open_source
-    d = run.config.data
+    d = spec.data
     source = None
     for name in ([split] if split else ["validation", d.split]):
         try:
@@ -44,11 +83,11 @@ def dataset_inputs(run, *, frames: int, views=None, clips: int = 1, split: str |
     samples = []
     for i in range(clips):
         clip = source[i % len(source)]
-        if run.config.latents.precomputed:
-            samples.append(_window_prefix(run, clip, frames, views, f"{source.split} window {i}"))
+        if spec.precomputed:
+            samples.append(_window_prefix(spec.codec, clip, frames, views, f"{source.split} window {i}"))
             continue
         have = int(np.shape(clip["ego_to_world"])[0])
-        stride = run.frame_stride
+        stride = spec.frame_stride
         need = 1 + (frames - 1) * stride
         if need > have:
             raise ValueError(f"frames: expected at most {1 + (have - 1) // stride} frames (the dataset's clips have "
@@ -57,22 +96,22 @@ def dataset_inputs(run, *, frames: int, views=None, clips: int = 1, split: str |
                                    rng=rng, where=f"{source.split} clip {i}"))
     batch = collate(samples)
     batch["drop"] = {n: np.zeros((clips,), bool) for n in CONDITIONS}   # nothing dropped; CFG adds the nulls
-    return model_inputs(batch, run.training.model, run.text)
+    return model_inputs(batch, spec.model, spec.text_embeddings)
 
 
-def _window_prefix(run, record, frames: int, views, where: str) -> dict:
+def _window_prefix(codec, record, frames: int, views, where: str) -> dict:
     """The first ``frames`` frames of a stored latent window as a sample (its latents cut to
     ``codec.latent_frames(frames)``)."""
     from jaxdrive.data.pipeline import take_window
     from jaxdrive.data.schema import WINDOW_FIELDS
-    have, temporal = int(np.shape(record["ego_to_world"])[0]), run.codec.temporal
+    have, temporal = int(np.shape(record["ego_to_world"])[0]), codec.temporal
     if frames > have or (frames - 1) % temporal:
         form = f"1 + {temporal}k frames, " if temporal > 1 else ""
         raise ValueError(f"frames: expected {form}at most the {have} frames of the dataset's latent windows "
                          f"(latents.precomputed fixes the length), got {frames}")
     s = take_window(record, frames=have, views=views, where=where)
     s.update({k: s[k][:frames] for k, (_, spec) in WINDOW_FIELDS.items() if spec[0] == "F"},
-             latents=s["latents"][:, :run.codec.latent_frames(frames)])
+             latents=s["latents"][:, :codec.latent_frames(frames)])
     return s
 
 
@@ -90,38 +129,37 @@ class Generated:
     window: int
 
 
-def generate(run, params, *, frames: int | None = None, views=None, steps: int | None = None,
+def generate(spec: Sampling, params, *, frames: int | None = None, views=None, steps: int | None = None,
              guidance: float = 1.0, cond_frames: int | None = None, overlap: int | None = None,
              clips: int | None = None, seed: int = 0) -> Generated:
-    """Generate ``clips`` clips conditioned on dataset clips (see :class:`Generated`). ``clips``
-    defaults to the size of the mesh's batch axes (``data x fsdp``), the least a batch-sharded
-    sampler can run."""
-    cfg = run.config
-    sizes = dict(zip(run.mesh.axis_names, run.mesh.axis_sizes))
+    """Generate ``clips`` clips conditioned on dataset clips (see :class:`Generated`). ``frames``
+    defaults to the training clip (``data.frames``; the window's frames for a model whose window is
+    not the data clip, a distilled coarse model); ``clips`` to the size of the mesh's batch axes
+    (``data x fsdp``), the least a batch-sharded sampler can run."""
+    mesh, codec, window = spec.mesh, spec.codec, spec.latent_window
+    sizes = dict(zip(mesh.axis_names, mesh.axis_sizes))
     shards = sizes.get("data", 1) * sizes.get("fsdp", 1)
     clips = shards if clips is None else check_positive_int("clips", clips)
     if clips % shards:
         raise ValueError(f"clips: expected a multiple of the mesh's data x fsdp size {shards}, got {clips}")
-    if frames is None:       # the training clip (a distilled coarse model: its coarse frames)
-        frames = cfg.data.frames if run.training.teacher is None else run.latent_frames
+    if frames is None:
+        frames = spec.data.frames if codec.latent_frames(spec.data.frames) == window else window
     frames = check_positive_int("frames", frames)
-    steps = cfg.train.sample_steps if steps is None else check_positive_int("steps", steps)
-    codec = run.codec
+    steps = spec.steps if steps is None else check_positive_int("steps", steps)
     total = codec.latent_frames(frames)
-    window = run.latent_frames
-    cond = max(1, cfg.flow.cond_frames) if cond_frames is None else cond_frames
+    cond = max(1, spec.flow.cond_frames) if cond_frames is None else cond_frames
     overlap = max(1, cond) if overlap is None else overlap
-    inputs = dataset_inputs(run, frames=frames, views=views, clips=clips, seed=seed)
-    d = cfg.data
-    shift = cfg.flow.shift if cfg.flow.shift > 0 else flow.resolution_shift(d.height, d.width, window)
-    axes = tuple(a for a in ("data", "fsdp") if a in run.mesh.axis_names) or None    # as the DiT shards its batch
-    batch_sharding = NamedSharding(run.mesh, P(axes))          # every process holds the same clips
+    inputs = dataset_inputs(spec, frames=frames, views=views, clips=clips, seed=seed)
+    d, f = spec.data, spec.flow
+    shift = f.shift if f.shift > 0 else flow.resolution_shift(d.height, d.width, window)
+    axes = tuple(a for a in ("data", "fsdp") if a in mesh.axis_names) or None    # as the DiT shards its batch
+    batch_sharding = NamedSharding(mesh, P(axes))              # every process holds the same clips
     inputs = jax.tree_util.tree_map(lambda x: jax.device_put(np.asarray(x), batch_sharding), inputs)
     cond = min(cond, window - 1)
-    with jax.set_mesh(run.mesh):
-        latents = rollout(run.training, params, codec.params, inputs, total_frames=total, window=window,
+    with jax.set_mesh(mesh):
+        latents = rollout(DiT(spec.model), codec, params, codec.params, inputs, total_frames=total, window=window,
                           overlap=overlap, cond_frames=cond, steps=steps, guidance=guidance,
-                          key=jax.random.key(seed), shift=shift)
+                          key=jax.random.key(seed), shift=shift, tpd=f.tpd, tpd_omega=f.tpd_omega)
         video = to_numpy_video(codec, codec.params, latents)
         recorded = (np.asarray(inputs["video"]) if "video" in inputs else
                     to_numpy_video(codec, codec.params, inputs["latents"][:, :, :total]))
@@ -129,7 +167,8 @@ def generate(run, params, *, frames: int | None = None, views=None, steps: int |
     return Generated(video, np.asarray(latents), recorded, pixel(cond), min(pixel(window), video.shape[2]))
 
 
-def write_samples(run, state_or_params, outdir, *, log=print, fps: float | None = None, **kwargs) -> dict:
+def write_samples(spec: Sampling, state_or_params, outdir, *, log=print, fps: float | None = None,
+                  **kwargs) -> dict:
     """Generate (``kwargs`` as :func:`generate`) and write under ``outdir``: ``sample.mp4``,
     ``frames.png`` (each row: the recorded frame left, the generated one right), ``latents.npy`` and ``quality.json``
     (PSNR / SSIM of the first clip against its recorded frames, beside the repeat-the-last-frame
@@ -140,7 +179,7 @@ def write_samples(run, state_or_params, outdir, *, log=print, fps: float | None 
     params = state_or_params
     if hasattr(state_or_params, "params"):
         params = state_or_params.ema if state_or_params.ema is not None else state_or_params.params
-    g = generate(run, params, **kwargs)
+    g = generate(spec, params, **kwargs)
     video = g.video
     out = {}
     if jax.process_index() == 0:

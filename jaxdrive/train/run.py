@@ -1,7 +1,14 @@
 """A training run from a :class:`jaxdrive.config.Config`: mesh, model, state, data, the loop.
 
     run = Run(config)                       # checks everything before compiling anything
+    state, optimizer, shardings = run.init_state()
+    step = run.step_fn(optimizer, shardings)
     summary = train(config, "runs/tiny")    # resumes from runs/tiny/checkpoints when present
+
+``Run`` is what a config determines (mesh, codec, model, shapes, data); it holds no state: its
+methods return what they make. Restores (resume, a distillation teacher, ``jaxdrive sample``) read
+into the target of :meth:`Run.abstract_state` (``jax.eval_shape`` with shardings), never into a
+freshly initialised state.
 
 The loop (:func:`train`): one jitted step per update (:mod:`jaxdrive.train.flow_step`), metrics
 every ``train.log_every`` steps (``metrics.jsonl``, TensorBoard, a progress bar), checkpoints
@@ -21,15 +28,16 @@ import signal
 import time
 from pathlib import Path
 
+import flax.linen as nn
 import jax
 import numpy as np
-
+from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from jaxdrive.config import Config, check_sections, to_dict
 from jaxdrive.data.batches import TextEmbeddings, model_inputs, stack_micro_batches
 from jaxdrive.models.latents import LatentCodec
-from jaxdrive.parallel import host_local_to_global, make_mesh, shard_params
+from jaxdrive.parallel import host_local_to_global, make_mesh, param_shardings, shard_params
 from jaxdrive.train import flow_step
 from jaxdrive.train.checkpoint import Checkpoints
 from jaxdrive.train.encode import check_dataset
@@ -106,7 +114,6 @@ class Run:
         if d.height % grid or d.width % (self.codec.spatial * model.patch[2]):
             raise ValueError(f"data.height, data.width: expected multiples of latent compression x patch "
                              f"({grid}), got {d.height} x {d.width}")
-        self.teacher_params = None
         teacher = self._teacher_model(devices) if config.flow.distill_teacher else None
         self.training = flow_step.FlowTraining(model, config.flow, self.codec, teacher)
         # frames the trained model sees, and the source-frame stride between them
@@ -123,7 +130,7 @@ class Run:
 
     def _teacher_model(self, devices):
         """The fine model of LongDWM's distillation, from the config of the run directory
-        ``flow.distill_teacher``; its parameters are restored when the step first needs them."""
+        ``flow.distill_teacher`` (its parameters: :meth:`frozen_params`)."""
         cfg, path = self.config, self.config.flow.distill_teacher
         if self.codec.temporal != 1:
             raise ValueError(f"latents: expected frame-wise latents (temporal compression 1) for distillation "
@@ -147,32 +154,69 @@ class Run:
         self._devices = devices
         return model
 
-    @property
-    def frozen(self) -> dict:
+    def frozen_params(self) -> dict:
         """The parameters the step reads but does not train (see :func:`flow_step.train_step`):
-        the VAE's and, when distilling, the fine model's (EMA) parameters, restored on first use."""
-        if self.training.teacher is not None and self.teacher_params is None:
+        the VAE's and, when distilling, the fine model's (EMA) parameters, restored from its run
+        directory (call once per run; nothing is cached here)."""
+        teacher = None
+        if self.training.teacher is not None:
             run = Run(self._teacher_config, devices=self._devices)
-            _, self.teacher_params = restore_params(run, self.config.flow.distill_teacher)
-        return {"codec": self.codec.params, "teacher": self.teacher_params}
+            _, teacher = restore_params(run, self.config.flow.distill_teacher)
+        return {"codec": self.codec.params, "teacher": teacher}
+
+    def sampling(self):
+        """The :class:`jaxdrive.generate.samples.Sampling` of this run's model (its window and
+        frame stride, a distilled coarse model's included)."""
+        from jaxdrive.generate.samples import Sampling
+        c = self.config
+        return Sampling(self.training.model, self.codec, self.mesh, c.data, c.flow, text_embeddings=self.text,
+                        window=self.latent_frames, stride=self.frame_stride, precomputed=c.latents.precomputed,
+                        steps=c.train.sample_steps)
 
     # ------------------------------------------------------------------ state
+    def boxed_params(self, *, abstract: bool = False):
+        """The model's initial parameters in ``nn.LogicallyPartitioned`` boxes, drawn on the host
+        (``train.seed``), or their ``jax.ShapeDtypeStruct`` shapes with ``abstract`` (nothing is
+        allocated)."""
+        d, dit = self.config.data, self.training.dit
+        shapes = dict(batch=1, views=d.views, frames=self.latent_frames, height=d.height // self.codec.spatial,
+                      width=d.width // self.codec.spatial)
+        return dit.abstract_params(**shapes) if abstract else dit.init_params(self.config.train.seed, boxed=True,
+                                                                              **shapes)
+
+    def optimizer(self):
+        """The optimizer of the config (built from the parameter shapes alone)."""
+        return make_optimizer(self.config.optim, self.total_steps, nn.unbox(self.boxed_params(abstract=True)))
+
     def init_state(self):
-        """A fresh state on the mesh (params FSDP / tensor sharded by their logical names)."""
-        cfg, d = self.config, self.config.data
-        dit = self.training.dit
-        boxed = dit.init_params(cfg.train.seed, boxed=True, batch=1, views=d.views, frames=self.latent_frames,
-                                height=d.height // self.codec.spatial, width=d.width // self.codec.spatial)
-        state, self.optimizer = sharded_state(boxed, self.mesh, cfg.optim, self.total_steps, cfg.train.seed)
-        self.state_shardings = jax.tree_util.tree_map(lambda x: x.sharding, state)
-        return state
+        """``(state, optimizer, shardings)``: a fresh state on the mesh (params FSDP / tensor
+        sharded by their logical names), its optimizer and the state's shardings."""
+        cfg = self.config
+        state, optimizer = sharded_state(self.boxed_params(), self.mesh, cfg.optim, self.total_steps, cfg.train.seed)
+        return state, optimizer, jax.tree_util.tree_map(lambda x: x.sharding, state)
 
-    def abstract_state(self, state):
-        return jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding), state)
+    def abstract_state(self):
+        """``(abstract state, optimizer)``: the state's ``jax.ShapeDtypeStruct`` leaves with their
+        shardings on the mesh, from ``jax.eval_shape`` (the restore target of a checkpoint: no
+        parameter is allocated, which at 1B+ parameters would double host and device memory)."""
+        cfg = self.config
+        boxed = self.boxed_params(abstract=True)
+        optimizer = self.optimizer()
+        shardings = param_shardings(boxed, self.mesh)
+        params = jax.tree_util.tree_map(lambda x, sh: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sh),
+                                        nn.unbox(boxed), shardings)
+        ema = cfg.optim.ema_decay > 0
+        with jax.set_mesh(self.mesh):
+            shapes = jax.eval_shape(jax.jit(lambda p: create_state(p, optimizer, cfg.train.seed, ema=ema)), params)
+        # eval_shape gives abstract-mesh shardings (None for scalars): place them on this mesh
+        on_mesh = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=NamedSharding(
+            self.mesh, x.sharding.spec if x.sharding is not None else P()))
+        return jax.tree_util.tree_map(on_mesh, shapes), optimizer
 
-    def step_fn(self):
-        return flow_step.make_train_step(self.training, self.optimizer, self.config.optim.ema_decay,
-                                         state_shardings=self.state_shardings)
+    def step_fn(self, optimizer, shardings):
+        """The jitted train step for the state's ``optimizer`` and ``shardings``."""
+        return flow_step.make_train_step(self.training, optimizer, self.config.optim.ema_decay,
+                                         state_shardings=shardings)
 
     # ------------------------------------------------------------------ data
     def dataset(self, split: str | None = None):
@@ -228,26 +272,29 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
     workdir = Path(workdir)
     run = Run(config)
     cfg = config
-    state = run.init_state()
     it = iter(run.dataset())
     ckpts = Checkpoints(workdir, keep=cfg.train.keep_checkpoints)
     start = 0
-    restored = ckpts.restore_latest(run.abstract_state(state), log=log)
+    abstract, optimizer = run.abstract_state()
+    restored = ckpts.restore_latest(abstract, log=log)
     if restored is not None:
         start, state, data_state, _ = restored
         it.set_state(data_state)
+        shardings = jax.tree_util.tree_map(lambda x: x.sharding, abstract)
         log(f"resuming from checkpoint {ckpts.directory / str(start)} (step {start})")
+    else:
+        state, optimizer, shardings = run.init_state()
     if jax.process_index() == 0:
         workdir.mkdir(parents=True, exist_ok=True)
         (workdir / CONFIG_FILE).write_text(json.dumps(to_dict(cfg), indent=1))
-    step_fn = run.step_fn()
+    step_fn, frozen = run.step_fn(optimizer, shardings), run.frozen_params()
     writer = MetricsWriter(workdir, total_steps=run.total_steps, start_step=start,
                            tokens_per_step=run.tokens_per_step, progress=progress)
     status, step, row = "done", start, {}
     with _Stop() as stop, jax.set_mesh(run.mesh):
         while step < run.total_steps:
             batch = run.global_batch([next(it) for _ in range(cfg.optim.grad_accum)])
-            state, metrics = step_fn(state, run.frozen, batch)
+            state, metrics = step_fn(state, frozen, batch)
             step += 1
             bad = int(metrics["bad_steps"])
             if step % cfg.train.log_every == 0 or step == run.total_steps or bad:
@@ -265,7 +312,7 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
                 _save(ckpts, step, state, it, cfg)
             if cfg.train.sample_every and step % cfg.train.sample_every == 0:
                 from jaxdrive.generate.samples import write_samples
-                write_samples(run, state, workdir / "samples" / f"step_{step:07d}", log=log)
+                write_samples(run.sampling(), state, workdir / "samples" / f"step_{step:07d}", log=log)
             if stop.signum is not None:
                 status = "interrupted"
                 _save(ckpts, step, state, it, cfg, status=status)
@@ -290,9 +337,8 @@ def load_run_config(workdir) -> Config:
 
 def restore_params(run: Run, workdir, *, ema: bool = True, log=print):
     """``(step, params)`` of the newest readable checkpoint of ``workdir`` (EMA when kept)."""
-    state = run.init_state()
     ckpts = Checkpoints(workdir, keep=run.config.train.keep_checkpoints, asynchronous=False)
-    restored = ckpts.restore_latest(run.abstract_state(state), log=log)
+    restored = ckpts.restore_latest(run.abstract_state()[0], log=log)
     ckpts.close()
     if restored is None:
         raise ValueError(f"workdir: expected checkpoints under {Path(workdir) / 'checkpoints'}, found none")
