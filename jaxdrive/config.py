@@ -114,6 +114,9 @@ class TrainConfig:
     sample_steps: int = 20
     max_bad_steps: int = 5                 # NaN/Inf losses in a row that stop the run
     compute_dtype: str = "float32"         # bfloat16 on accelerators
+    init_from: str = ""                    # a run directory or diffusers folder to start from (train/init_from.py)
+    init_from_ema: bool = True             # its EMA parameters (False: the raw ones)
+    init_map: tuple[str, ...] = ()         # "regex=replacement" renames of the source's parameter paths
 
 
 @dataclasses.dataclass(frozen=True)

@@ -78,10 +78,37 @@ def sharded_state(boxed_params, mesh, optim_config, total_steps: int, seed: int)
     EMA created on the mesh (sharded like the parameters)."""
     with jax.set_mesh(mesh):
         params = shard_params(boxed_params, mesh)
+    return state_from_params(params, mesh, optim_config, total_steps, seed)
+
+
+def state_from_params(params, mesh, optim_config, total_steps: int, seed: int):
+    """``(state, optimizer)`` at step 0 for placed ``params``: optimizer state and EMA created on
+    the mesh, sharded like the parameters."""
+    with jax.set_mesh(mesh):
         optimizer = make_optimizer(optim_config, total_steps, params)
         ema = optim_config.ema_decay > 0
         state = jax.jit(lambda p: create_state(p, optimizer, seed, ema=ema))(params)
     return state, optimizer
+
+
+def abstract_train_state(model, optim_config, total_steps: int, mesh, *, seed: int = 0):
+    """``(abstract state, optimizer)`` of a :class:`jaxdrive.models.dit.DiT` config ``model``:
+    the state's ``jax.ShapeDtypeStruct`` leaves with their shardings on ``mesh``, from
+    ``jax.eval_shape``: the target a checkpoint restores into, with no parameter allocated (at 1B+
+    parameters a fresh state would double host and device memory)."""
+    from jaxdrive.models.dit import DiT
+    # parameter shapes do not depend on the input shapes (cross-view attention needs two views)
+    boxed = DiT(model).abstract_params(views=2 if model.multiview == "cross_view" else 1)
+    params = jax.tree_util.tree_map(lambda x, sh: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sh),
+                                    nn.unbox(boxed), param_shardings(boxed, mesh))
+    optimizer = make_optimizer(optim_config, total_steps, params)
+    ema = optim_config.ema_decay > 0
+    with jax.set_mesh(mesh):
+        shapes = jax.eval_shape(jax.jit(lambda p: create_state(p, optimizer, seed, ema=ema)), params)
+    # eval_shape gives abstract-mesh shardings (None for scalars): place them on this mesh
+    on_mesh = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=NamedSharding(
+        mesh, x.sharding.spec if x.sharding is not None else P()))
+    return jax.tree_util.tree_map(on_mesh, shapes), optimizer
 
 
 def global_micro_batches(inputs: list[dict], mesh):
@@ -114,6 +141,12 @@ class Run:
         if d.height % grid or d.width % (self.codec.spatial * model.patch[2]):
             raise ValueError(f"data.height, data.width: expected multiples of latent compression x patch "
                              f"({grid}), got {d.height} x {d.width}")
+        if config.train.init_from and not Path(config.train.init_from).is_dir():
+            raise ValueError(f"train.init_from: expected a run directory or a diffusers transformer folder, got "
+                             f"{config.train.init_from!r} (not a directory)")
+        if config.train.init_map:
+            from jaxdrive.train.init_from import parse_name_map
+            parse_name_map(config.train.init_map)
         teacher = self._teacher_model(devices) if config.flow.distill_teacher else None
         self.training = flow_step.FlowTraining(model, config.flow, self.codec, teacher)
         # frames the trained model sees, and the source-frame stride between them
@@ -174,44 +207,35 @@ class Run:
                         steps=c.train.sample_steps)
 
     # ------------------------------------------------------------------ state
-    def boxed_params(self, *, abstract: bool = False):
+    def boxed_params(self):
         """The model's initial parameters in ``nn.LogicallyPartitioned`` boxes, drawn on the host
-        (``train.seed``), or their ``jax.ShapeDtypeStruct`` shapes with ``abstract`` (nothing is
-        allocated)."""
+        (``train.seed``)."""
         d, dit = self.config.data, self.training.dit
         shapes = dict(batch=1, views=d.views, frames=self.latent_frames, height=d.height // self.codec.spatial,
                       width=d.width // self.codec.spatial)
-        return dit.abstract_params(**shapes) if abstract else dit.init_params(self.config.train.seed, boxed=True,
-                                                                              **shapes)
+        return dit.init_params(self.config.train.seed, boxed=True, **shapes)
 
-    def optimizer(self):
-        """The optimizer of the config (built from the parameter shapes alone)."""
-        return make_optimizer(self.config.optim, self.total_steps, nn.unbox(self.boxed_params(abstract=True)))
-
-    def init_state(self):
+    def init_state(self, *, log=print):
         """``(state, optimizer, shardings)``: a fresh state on the mesh (params FSDP / tensor
-        sharded by their logical names), its optimizer and the state's shardings."""
-        cfg = self.config
-        state, optimizer = sharded_state(self.boxed_params(), self.mesh, cfg.optim, self.total_steps, cfg.train.seed)
+        sharded by their logical names; with ``train.init_from``, the parameters another run or a
+        diffusers folder has, :mod:`jaxdrive.train.init_from`), its optimizer and the state's
+        shardings."""
+        cfg, t = self.config, self.config.train
+        with jax.set_mesh(self.mesh):
+            params = shard_params(self.boxed_params(), self.mesh)
+        if t.init_from:
+            from jaxdrive.train.init_from import init_from
+            params, report = init_from(params, t.init_from, mesh=self.mesh, ema=t.init_from_ema, name_map=t.init_map,
+                                       target_model=self.training.model)
+            log(report.summary())
+        state, optimizer = state_from_params(params, self.mesh, cfg.optim, self.total_steps, cfg.train.seed)
         return state, optimizer, jax.tree_util.tree_map(lambda x: x.sharding, state)
 
     def abstract_state(self):
         """``(abstract state, optimizer)``: the state's ``jax.ShapeDtypeStruct`` leaves with their
-        shardings on the mesh, from ``jax.eval_shape`` (the restore target of a checkpoint: no
-        parameter is allocated, which at 1B+ parameters would double host and device memory)."""
+        shardings on the mesh (:func:`abstract_train_state`; the restore target of a checkpoint)."""
         cfg = self.config
-        boxed = self.boxed_params(abstract=True)
-        optimizer = self.optimizer()
-        shardings = param_shardings(boxed, self.mesh)
-        params = jax.tree_util.tree_map(lambda x, sh: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sh),
-                                        nn.unbox(boxed), shardings)
-        ema = cfg.optim.ema_decay > 0
-        with jax.set_mesh(self.mesh):
-            shapes = jax.eval_shape(jax.jit(lambda p: create_state(p, optimizer, cfg.train.seed, ema=ema)), params)
-        # eval_shape gives abstract-mesh shardings (None for scalars): place them on this mesh
-        on_mesh = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=NamedSharding(
-            self.mesh, x.sharding.spec if x.sharding is not None else P()))
-        return jax.tree_util.tree_map(on_mesh, shapes), optimizer
+        return abstract_train_state(self.training.model, cfg.optim, self.total_steps, self.mesh, seed=cfg.train.seed)
 
     def step_fn(self, optimizer, shardings):
         """The jitted train step for the state's ``optimizer`` and ``shardings``."""
@@ -283,7 +307,7 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
         shardings = jax.tree_util.tree_map(lambda x: x.sharding, abstract)
         log(f"resuming from checkpoint {ckpts.directory / str(start)} (step {start})")
     else:
-        state, optimizer, shardings = run.init_state()
+        state, optimizer, shardings = run.init_state(log=log)
     if jax.process_index() == 0:
         workdir.mkdir(parents=True, exist_ok=True)
         (workdir / CONFIG_FILE).write_text(json.dumps(to_dict(cfg), indent=1))
