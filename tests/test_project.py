@@ -40,6 +40,8 @@ def test_readme_python_examples_run(index, tmp_path, monkeypatch):
     if "data/synth" in block:  # the data example reads the dataset the README's command writes
         from jaxdrive.cli import main
         assert main(["data", "synth", "--out", "data/synth", "--scenes", "16", "--frames", "33"]) == 0
+    if "configs/" in block:  # examples run from a checkout, where configs/ is at hand
+        (tmp_path / "configs").symlink_to(ROOT / "configs")
     if "CogVideoX-2b/vae" in block:  # the import example reads a diffusers VAE: a tiny random one
         diffusers = pytest.importorskip("diffusers")
         diffusers.AutoencoderKLCogVideoX(
