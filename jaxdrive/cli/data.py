@@ -3,6 +3,8 @@ nuScenes, T5 caption embeddings, precomputed latent windows."""
 
 from __future__ import annotations
 
+from jaxdrive.cli.options import add_config
+
 
 def _split_counts(scenes: int, val_fraction: float) -> tuple[int, int]:
     if scenes < 1:
@@ -131,8 +133,7 @@ def add_commands(sub) -> None:
     text.set_defaults(run=_data_text_embed)
     enc = dsub.add_parser("encode", help="precompute the latents of a config's training windows "
                                          "(train on them with latents.precomputed=true)")
-    enc.add_argument("--config", required=True, help="the training config: data.path, frames, stride, views, "
-                                                     "height, width and the latents codec")
+    add_config(enc, "the training config: data.path, frames, stride, views, height, width and the latents codec")
     enc.add_argument("--out", required=True, help="dataset directory to create")
     enc.add_argument("--split", nargs="+", help="splits to encode (default: all of the dataset's)")
     enc.add_argument("--every", type=int, help="source frames between window starts (default: the window's "

@@ -12,6 +12,8 @@ import os
 import time
 from pathlib import Path
 
+from jaxdrive.cli.options import add_config
+
 REPO_CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
 
@@ -82,9 +84,10 @@ def _config_mesh(config, mesh: str):
 def _demo(args, rest) -> int:
     """Synthesise a dataset, train the tiny DiT on frame-wise latents, sample a long clip."""
     workdir = Path(args.workdir)
-    config_path = Path(args.config) if args.config else REPO_CONFIGS / "tiny.py"
-    if not config_path.is_file():
-        raise ValueError(f"config: expected the tiny config at {str(config_path)!r} (run from a checkout, or "
+    from jaxdrive.config import split_config_path
+    config_path = args.config or str(REPO_CONFIGS / "tiny.py")
+    if not split_config_path(config_path)[0].is_file():
+        raise ValueError(f"config: expected the tiny config at {config_path!r} (run from a checkout, or "
                          f"pass --config), got a missing file")
     data = workdir / "data"
     extra = [f"data.path={data}", f"train.steps={args.steps}"]
@@ -138,7 +141,7 @@ def quality_lines(q: dict) -> str:
 
 def add_commands(sub) -> None:
     train = sub.add_parser("train", help="train the DiT (resumes from the last checkpoint in --workdir)")
-    train.add_argument("--config", required=True, help="a config file, e.g. configs/tiny.py")
+    add_config(train, "a config file, e.g. configs/tiny.py")
     train.add_argument("--workdir", required=True, help="run directory: checkpoints, metrics, samples")
     train.add_argument("--steps", type=int, help="total steps (train.steps)")
     train.add_argument("--checkpoint-every", type=int, help="steps between checkpoints (train.checkpoint_every)")
@@ -162,7 +165,7 @@ def add_commands(sub) -> None:
 
     demo = sub.add_parser("demo", help="synthesise data, train a tiny DiT, sample a long multi-view clip")
     demo.add_argument("--workdir", default="jaxdrive-demo")
-    demo.add_argument("--config", help="default: configs/tiny.py of this checkout")
+    add_config(demo, "default: configs/tiny.py of this checkout", required=False)
     demo.add_argument("--steps", type=int, default=800)
     demo.add_argument("--scenes", type=int, default=24, help="synthetic scenes (one kept for validation)")
     demo.add_argument("--frames", type=int, default=33, help="frames of the sampled clip")
