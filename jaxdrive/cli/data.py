@@ -123,7 +123,7 @@ def add_commands(sub) -> None:
     nus.add_argument("--overwrite", action="store_true")
     nus.set_defaults(run=_data_nuscenes)
     text = dsub.add_parser("text-embed", help="precompute T5 embeddings of a dataset's captions "
-                                              "(needs transformers + torch and local T5 weights)")
+                                              "(needs the t5 extra, pip install \"jaxdrive[t5]\", and local T5 weights)")
     text.add_argument("--dataset", required=True, help="TFDS dataset directory")
     text.add_argument("--encoder", required=True, help="folder of a T5 encoder (safetensors) and tokenizer")
     text.add_argument("--out", required=True, help="output .npz: captions, embeddings [N, L, D], mask [N, L]")
