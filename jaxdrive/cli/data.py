@@ -3,7 +3,7 @@ nuScenes, T5 caption embeddings, precomputed latent windows."""
 
 from __future__ import annotations
 
-from jaxdrive.cli.options import add_config
+from jaxdrive.cli.options import add_config, add_progress
 
 
 def _split_counts(scenes: int, val_fraction: float) -> tuple[int, int]:
@@ -91,7 +91,7 @@ def _data_encode(args, rest) -> int:
 
     config = load_config(args.config, args.set or [])
     path = encode_dataset(config, args.out, splits=args.split, every=args.every, batch=args.batch,
-                          overwrite=args.overwrite)
+                          overwrite=args.overwrite, progress=not args.no_progress)
     print(f"wrote the latent windows of {config.data.path} to {path}; train on them with "
           f"--set data.path={path} --set latents.precomputed=true")
     return 0
@@ -141,6 +141,7 @@ def add_commands(sub) -> None:
     enc.add_argument("--batch", type=int, default=8, help="windows per encoder call")
     enc.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config field (repeatable)")
     enc.add_argument("--overwrite", action="store_true")
+    add_progress(enc, "the encoded windows")
     enc.set_defaults(run=_data_encode)
     info = dsub.add_parser("info", help="print what a dataset holds")
     info.add_argument("path")

@@ -12,7 +12,7 @@ import os
 import time
 from pathlib import Path
 
-from jaxdrive.cli.options import add_config
+from jaxdrive.cli.options import add_config, add_progress
 
 REPO_CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -65,7 +65,7 @@ def _sample(args, rest) -> int:
     out_dir = Path(args.out or Path(args.workdir) / "samples" / f"sample_{step:07d}")
     t = time.perf_counter()
     paths = write_samples(run, params, out_dir, frames=args.frames, views=views, steps=args.steps,
-                          guidance=args.cfg, seed=args.seed)
+                          guidance=args.cfg, seed=args.seed, progress=not args.no_progress)
     if "quality" in paths:
         print(quality_lines(paths["quality"]))
     print(f"sampled from checkpoint {step} in {time.perf_counter() - t:.1f} s: {out_dir}")
@@ -118,7 +118,7 @@ def _demo(args, rest) -> int:
     print(f"[3/3] sampling a {args.frames}-frame, {config.data.views}-view clip "
           f"({args.frames // config.data.frames + 1} windows of {config.data.frames})")
     paths = write_samples(out["run"], out["state"], workdir / "samples" / "demo", frames=args.frames,
-                          steps=config.train.sample_steps, guidance=args.cfg)
+                          steps=config.train.sample_steps, guidance=args.cfg, progress=not args.no_progress)
     print(quality_lines(paths["quality"]))
     print(f"done in {time.perf_counter() - t0:.0f} s:\n  video      {paths.get('video')}\n"
           f"  frame grid {paths.get('grid')} (recorded | generated)\n  quality    {paths.get('quality_json')}\n"
@@ -147,7 +147,7 @@ def add_commands(sub) -> None:
     train.add_argument("--checkpoint-every", type=int, help="steps between checkpoints (train.checkpoint_every)")
     train.add_argument("--mesh", help="mesh axis sizes, e.g. data=2,seq=4 (product = device count)")
     train.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config field (repeatable)")
-    train.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_progress(train, "the steps")
     train.set_defaults(run=_train)
 
     sample = sub.add_parser("sample", help="generate a clip from a run's latest checkpoint (mp4 + frame grid)")
@@ -161,6 +161,7 @@ def add_commands(sub) -> None:
     sample.add_argument("--mesh", help="mesh axis sizes for sampling")
     sample.add_argument("--no-ema", action="store_true", help="sample with the raw parameters, not the EMA")
     sample.add_argument("--set", action="append", metavar="KEY=VALUE")
+    add_progress(sample, "the sampled windows")
     sample.set_defaults(run=_sample)
 
     demo = sub.add_parser("demo", help="synthesise data, train a tiny DiT, sample a long multi-view clip")
@@ -172,5 +173,5 @@ def add_commands(sub) -> None:
     demo.add_argument("--cfg", type=float, default=1.0, help="classifier-free guidance (1: none; the tiny "
                                                              "model scores best without)")
     demo.add_argument("--set", action="append", metavar="KEY=VALUE")
-    demo.add_argument("--no-progress", action="store_true")
+    add_progress(demo, "the training steps and the sampled windows")
     demo.set_defaults(run=_demo)

@@ -96,10 +96,10 @@ class Generated:
 
 def generate(run, params, *, frames: int | None = None, views=None, steps: int | None = None,
              guidance: float = 1.0, cond_frames: int | None = None, overlap: int | None = None,
-             clips: int | None = None, seed: int = 0) -> Generated:
+             clips: int | None = None, seed: int = 0, progress: bool = False) -> Generated:
     """Generate ``clips`` clips conditioned on dataset clips (see :class:`Generated`). ``clips``
     defaults to the size of the mesh's batch axes (``data x fsdp``), the least a batch-sharded
-    sampler can run."""
+    sampler can run; ``progress``: a progress bar over the rollout's windows."""
     cfg = run.config
     sizes = dict(zip(run.mesh.axis_names, run.mesh.axis_sizes))
     shards = sizes.get("data", 1) * sizes.get("fsdp", 1)
@@ -125,7 +125,7 @@ def generate(run, params, *, frames: int | None = None, views=None, steps: int |
     with jax.set_mesh(run.mesh):
         latents = rollout(run.training, params, codec.params, inputs, total_frames=total, window=window,
                           overlap=overlap, cond_frames=cond, steps=steps, guidance=guidance,
-                          key=jax.random.key(seed), shift=shift)
+                          key=jax.random.key(seed), shift=shift, progress=progress)
         video = to_numpy_video(codec, codec.params, latents)
         recorded = (np.asarray(inputs["video"]) if "video" in inputs else
                     to_numpy_video(codec, codec.params, inputs["latents"][:, :, :total]))
