@@ -251,6 +251,8 @@ def split_config_path(spec) -> tuple[Path, str | None]:
     """``"configs/x.py:a=1,b=2"`` -> ``(Path("configs/x.py"), "a=1,b=2")``; a path without an
     argument gives ``(path, None)``. The argument starts at the first colon after ``.py``, so its
     values may hold colons (``data=gs://...``)."""
+    if not isinstance(spec, (str, os.PathLike)):
+        raise ValueError(f"config: expected a path FILE.py[:key=value,...], got {type(spec).__name__}")
     text = os.fspath(spec)
     cut = text.find(".py:")
     return (Path(text), None) if cut < 0 else (Path(text[:cut + 3]), text[cut + 4:])

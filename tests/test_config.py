@@ -66,6 +66,8 @@ def test_split_config_path_keeps_colons_in_values():
     assert split_config_path("configs/x.py:data=gs://b/c,n=1") == (Path("configs/x.py"), "data=gs://b/c,n=1")
     assert split_config_path(Path("configs/x.py")) == (Path("configs/x.py"), None)
     assert split_config_path("configs/x.py:") == (Path("configs/x.py"), "")
+    with pytest.raises(ValueError, match=r"config: expected a path FILE.py\[:key=value,...\], got int"):
+        split_config_path(3)
 
 
 def test_an_argument_to_a_config_without_one_is_refused(tmp_path):

@@ -178,6 +178,11 @@ def test_window_starts_overlap_and_end_at_the_last_frame():
     assert window_starts(9, 5, 1) == [0, 4]
     assert window_starts(10, 5, 1) == [0, 4, 5]              # the last window starts earlier, not past the end
     assert window_starts(11, 5, 2) == [0, 3, 6]
+    assert window_starts(3, 3, 4) == [0]                      # one window: the overlap is never used
+    with pytest.raises(ValueError, match=r"overlap: expected fewer than window = 5 frames, got 5"):
+        window_starts(9, 5, 5)
+    with pytest.raises(ValueError, match=r"window: expected"):
+        window_starts(9, 0, 1)
 
 
 def test_rollout_progress_counts_windows(datasets, capsys):

@@ -75,6 +75,10 @@ def _window_controls(controls: dict, start: int, window: int, temporal: int) -> 
 def window_starts(total_frames: int, window: int, overlap: int) -> list[int]:
     """The first latent frame of each window of a rollout: 0, then each next window overlaps the
     last ``overlap`` generated frames, and the last one ends at ``total_frames``."""
+    for name, value in (("total_frames", total_frames), ("window", window), ("overlap", overlap)):
+        check_positive_int(name, value)
+    if total_frames > window and overlap >= window:       # the windows would not advance
+        raise ValueError(f"overlap: expected fewer than window = {window} frames, got {overlap}")
     starts, done = [0], window
     while done < total_frames:
         starts.append(min(done - overlap, total_frames - window))
