@@ -5,6 +5,11 @@ A config file defines ``get_config() -> Config``. :func:`load_config` runs it an
 overrides; every override is checked against the schema before anything compiles: an unknown key
 names the section and lists the keys it has, and a value that does not parse as the field's type
 names the field, the type and the value.
+
+The config argument (big_vision's convention): ``--config configs/x.py:size=tiny,stage=2`` passes
+the text after the colon to ``get_config(arg)``; the file reads it with :func:`parse_arg`, which
+checks the keys and converts the values to the types of its defaults. Files that take no argument
+keep ``get_config()``.
 """
 
 from __future__ import annotations
@@ -12,6 +17,8 @@ from __future__ import annotations
 import ast
 import dataclasses
 import importlib.util
+import inspect
+import os
 import types
 import typing
 from pathlib import Path
@@ -98,7 +105,7 @@ class OptimConfig:
     b2: float = 0.999
     eps: float = 1e-8
     clip_norm: float = 1.0                 # 0: no clipping
-    grad_accum: int = 1                    # micro-batches per update (optax.MultiSteps)
+    grad_accum: int = 1                    # micro-batches per update (data.batch_size split; a lax.scan in the step)
     ema_decay: float = 0.9999              # 0: no EMA
     trainable: tuple[str, ...] = ()        # regexes over "a/b/kernel" paths; empty: all
 
@@ -207,9 +214,57 @@ def override(config, assignment: str):
     return apply(config, [], path)
 
 
+def parse_arg(arg: str | None, **defaults) -> types.SimpleNamespace:
+    """The config argument ``"key=value,..."`` as a namespace of ``defaults`` updated by it.
+
+    Each value is parsed as the type of its default: ``bool`` (true/false; a bare ``key`` is
+    true), ``int``, ``float``, ``str``, or a string or None where the default is None. Values
+    cannot hold commas. ``arg`` None or empty gives the defaults. An unknown key, a repeated key
+    or a value of the wrong type raises ``ValueError`` naming the key::
+
+        def get_config(arg=None):
+            a = parse_arg(arg, size="small", stage=1)      # "size=tiny,stage=2"
+    """
+    for key, default in defaults.items():
+        if default is not None and type(default) not in (bool, int, float, str):
+            raise ValueError(f"parse_arg: default of {key!r}: expected a bool, int, float, str or None, "
+                             f"got {type(default).__name__}")
+    if arg is not None and not isinstance(arg, str):
+        raise ValueError(f"config argument: expected a string key=value,..., got {type(arg).__name__}")
+    values, given = dict(defaults), set()
+    for item in (arg or "").split(","):
+        if not item.strip():
+            continue
+        key, eq, text = (part.strip() for part in item.partition("="))
+        if key not in defaults:
+            raise ValueError(f"config argument: unknown key {key!r}; expected one of {sorted(defaults)}, "
+                             f"got {arg!r}")
+        if key in given:
+            raise ValueError(f"config argument: key {key!r} given twice in {arg!r}")
+        given.add(key)
+        default = defaults[key]
+        if not eq and type(default) is not bool:
+            raise ValueError(f"config argument {key}: expected {key}=value, got {item.strip()!r}")
+        tp = str | None if default is None else type(default)
+        values[key] = _parse(f"config argument {key}", text, tp) if eq else True
+    return types.SimpleNamespace(**values)
+
+
+def split_config_path(spec) -> tuple[Path, str | None]:
+    """``"configs/x.py:a=1,b=2"`` -> ``(Path("configs/x.py"), "a=1,b=2")``; a path without an
+    argument gives ``(path, None)``. The argument starts at the first colon after ``.py``, so its
+    values may hold colons (``data=gs://...``)."""
+    if not isinstance(spec, (str, os.PathLike)):
+        raise ValueError(f"config: expected a path FILE.py[:key=value,...], got {type(spec).__name__}")
+    text = os.fspath(spec)
+    cut = text.find(".py:")
+    return (Path(text), None) if cut < 0 else (Path(text[:cut + 3]), text[cut + 4:])
+
+
 def load_config(path, overrides=()):
-    """Run the config file ``path`` (``get_config()``) and apply ``overrides`` (``"a.b=v"``)."""
-    path = Path(path)
+    """Run the config file ``path`` and apply ``overrides`` (``"a.b=v"``). ``path`` is
+    ``FILE.py`` (``get_config()``) or ``FILE.py:ARG`` (``get_config(ARG)``, module docstring)."""
+    path, arg = split_config_path(path)
     if not path.is_file():
         raise ValueError(f"config: expected a python config file, got {str(path)!r} (not found)")
     spec = importlib.util.spec_from_file_location(f"jaxdrive_config_{path.stem}", path)
@@ -217,7 +272,17 @@ def load_config(path, overrides=()):
     spec.loader.exec_module(module)
     if not hasattr(module, "get_config"):
         raise ValueError(f"{path}: expected a function get_config() returning the config")
-    config = module.get_config()
+    params = list(inspect.signature(module.get_config).parameters.values())
+    if arg is None:
+        if params and params[0].default is inspect.Parameter.empty:
+            raise ValueError(f"config: expected {path}:key=value,... (its get_config takes an argument), "
+                             f"got {str(path)!r}")
+        config = module.get_config()
+    else:
+        if not params:
+            raise ValueError(f"config: expected {str(path)!r} without ':...' (its get_config() takes no "
+                             f"argument), got the argument {arg!r}")
+        config = module.get_config(arg)
     for assignment in overrides:
         config = override(config, assignment)
     return config

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import einops
 import numpy as np
 
 from jaxdrive import validate
@@ -36,8 +37,8 @@ def view_mosaic(video) -> np.ndarray:
     """``[V, F, H, W, 3] -> [F, rows * H, cols * W, 3]`` uint8 (the layout in the module docstring)."""
     video = _with_views(video)
     layout = SIX_VIEW_LAYOUT if video.shape[0] == 6 else (tuple(range(video.shape[0])),)
-    rows = [np.concatenate([video[v] for v in row], axis=2) for row in layout]
-    return np.concatenate(rows, axis=1)
+    tiles = video[[v for row in layout for v in row]]                 # views in reading order
+    return einops.rearrange(tiles, "(rows cols) f h w c -> f (rows h) (cols w) c", rows=len(layout))
 
 
 def write_mp4(path, video, fps: float = 12.0) -> Path:
@@ -75,12 +76,11 @@ def write_frame_grid(path, video, num_frames: int = 4, *, reference=None, min_wi
         frames = np.concatenate([view_mosaic(reference), sep, frames], axis=2)
     picks = np.unique(np.linspace(0, frames.shape[0] - 1, min(num_frames, frames.shape[0])).round().astype(int))
     up = max(1, -(-min_width // frames.shape[2]))
-    frames = frames[picks].repeat(up, axis=1).repeat(up, axis=2)
-    gap = np.full((2, frames.shape[2], 3), 255, np.uint8)
-    rows = [r for f in frames for r in (f, gap)][:-1]
+    frames = einops.repeat(frames[picks], "n h w c -> n (h sy) (w sx) c", sy=up, sx=up)   # nearest neighbour
+    frames = np.pad(frames, ((0, 0), (0, 2), (0, 0), (0, 0)), constant_values=255)   # a white gap below each
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(np.concatenate(rows, axis=0)).save(path)
+    Image.fromarray(einops.rearrange(frames, "n h w c -> (n h) w c")[:-2]).save(path)
     return path
 
 

@@ -59,3 +59,15 @@ def test_bad_input_is_one_line_naming_the_argument(argv, match, capsys):
 def test_height_without_width_is_rejected():
     with pytest.raises(SystemExit, match="--height/--width: expected both or neither"):
         main(["data", "nuscenes", "--dataroot", "x", "--out", "y", "--height", "32"])
+
+
+def test_info_messages_reach_stderr_unless_quiet(tmp_path, capsys):
+    small = ["--scenes", "2", "--frames", "5", "--height", "16", "--width", "28"]
+    assert main(["data", "synth", "--out", str(tmp_path / "a"), *small]) == 0
+    assert "INFO jaxdrive.data.tfds_io: wrote dataset" in capsys.readouterr().err
+    assert main(["--quiet", "data", "synth", "--out", str(tmp_path / "b"), *small]) == 0
+    out = capsys.readouterr()
+    assert "wrote 1 train and 1 validation clips" in out.out and "wrote dataset" not in out.err
+    # the level and handler are the CLI's only while it runs
+    import logging
+    assert logging.getLogger("jaxdrive").level == logging.NOTSET and not logging.getLogger("jaxdrive").handlers

@@ -13,7 +13,7 @@ from jaxdrive.cli import main as cli
 from jaxdrive.config import load_config
 from jaxdrive.data.pipeline import collate, sample_clip
 from jaxdrive.data.tfds_io import dataset_info, open_source
-from jaxdrive.generate.rollout import rollout
+from jaxdrive.generate.rollout import rollout, window_starts
 from jaxdrive.generate.samples import dataset_inputs
 from jaxdrive.models.latents import LatentCodec
 from jaxdrive.data.batches import model_inputs
@@ -158,6 +158,45 @@ def test_sampling_conditions_on_the_stored_windows(datasets):
     assert out.shape == full["latents"].shape
     np.testing.assert_array_equal(out[:, :, :2], full["latents"][:, :, :2])
     assert not np.allclose(out[:, :, 2:], full["latents"][:, :, 2:])     # the rest was generated
+
+
+def test_encode_shows_progress_unless_turned_off(datasets, tmp_path, capsys):
+    args = ["data", "encode", "--config", str(TINY), "--every", str(EVERY), "--batch", "4"]
+    for s in [f"data.path={datasets[0]}", *SMALLER]:
+        args += ["--set", s]
+    assert cli([*args, "--out", str(tmp_path / "a")]) == 0
+    err = capsys.readouterr().err
+    assert "encode: 100%" in err and "8/8" in err                 # 6 train + 2 validation windows, counted ahead
+    assert "INFO jaxdrive.train.encode: encoded" in err
+    assert cli([*args, "--out", str(tmp_path / "b"), "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert "window/s" not in err and "8/8" not in err and "INFO jaxdrive.train.encode: encoded" in err
+
+
+def test_window_starts_overlap_and_end_at_the_last_frame():
+    assert window_starts(5, 5, 1) == [0]
+    assert window_starts(9, 5, 1) == [0, 4]
+    assert window_starts(10, 5, 1) == [0, 4, 5]              # the last window starts earlier, not past the end
+    assert window_starts(11, 5, 2) == [0, 3, 6]
+    assert window_starts(3, 3, 4) == [0]                      # one window: the overlap is never used
+    with pytest.raises(ValueError, match=r"overlap: expected fewer than window = 5 frames, got 5"):
+        window_starts(9, 5, 5)
+    with pytest.raises(ValueError, match=r"window: expected"):
+        window_starts(9, 0, 1)
+
+
+def test_rollout_progress_counts_windows(datasets, capsys):
+    run = Run(config(datasets[0], precomputed=False))
+    stand_in = SimpleNamespace(forward=lambda params, x, sigma, cond: -0.5 * x,
+                               config=SimpleNamespace(controls=SimpleNamespace(cond_frames=None), prediction="velocity",
+                                                      prediction_min_sigma=0.05))
+    inputs = dataset_inputs(run.sampling(), frames=9)
+    kw = dict(total_frames=9, window=5, overlap=1, cond_frames=1, steps=1, guidance=1.0, key=jax.random.key(0))
+    quiet = rollout(stand_in, run.codec, None, None, inputs, **kw)
+    assert "window/s" not in capsys.readouterr().err
+    shown = rollout(stand_in, run.codec, None, None, inputs, progress=True, **kw)
+    assert "2/2" in capsys.readouterr().err
+    np.testing.assert_array_equal(quiet, shown)                 # the bar changes nothing else
 
 
 def test_train_on_precomputed_latents(datasets, tmp_path):

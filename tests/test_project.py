@@ -18,6 +18,28 @@ def test_cli_help_lists_the_commands_that_exist():
     assert "usage: jaxdrive" in out and "bench" in out
 
 
+def test_importing_the_library_loads_neither_matplotlib_nor_transformers():
+    """matplotlib draws only the demo's loss plot and transformers serves only the T5 text path:
+    both are imported inside the functions that use them."""
+    code = ("import importlib, pkgutil, sys\n"
+            "import jaxdrive, jaxdrive.train, jaxdrive.generate, jaxdrive.cli, jaxdrive.media\n"
+            "for pkg in (jaxdrive.train, jaxdrive.generate, jaxdrive.cli):\n"
+            "    for m in pkgutil.walk_packages(pkg.__path__, pkg.__name__ + '.'):\n"
+            "        if not m.name.endswith('__main__'):\n"
+            "            importlib.import_module(m.name)\n"
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('matplotlib', 'transformers')))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
+def test_the_t5_path_names_its_extra(monkeypatch, tmp_path):
+    from jaxdrive.data.text import precompute_t5
+    assert re.search(r'^t5 = \[.*"transformers>=', (ROOT / "pyproject.toml").read_text(), flags=re.M)
+    monkeypatch.setitem(sys.modules, "transformers", None)           # as if it were not installed
+    with pytest.raises(ImportError, match=re.escape('pip install "jaxdrive[t5]"')):
+        precompute_t5(["a caption"], tmp_path)
+
+
 def test_ci_runs_the_readme_test_command():
     ci = (ROOT / ".ci" / "run").read_text()
     readme_cmd = re.search(r"```bash\n(?:.*\n)*?(pip install -e .*pytest.*)\n```", README).group(1)

@@ -112,7 +112,6 @@ def step_flops(cfg, params, *, batch: int, views: int, frames: int, height: int,
     layouts the formula does not model (cross-view attention)."""
     import jax
 
-    from jaxdrive.train.optim import param_path
     pt, ph, pw = cfg.patch
     ft, s = frames // pt, (height // ph) * (width // pw)
     n, txt, d = views * ft * s, (cfg.text_len if cfg.controls.text else 0), cfg.width
@@ -120,7 +119,7 @@ def step_flops(cfg, params, *, batch: int, views: int, frames: int, height: int,
     matmul = attn = block_params = 0
     modelled = full or cfg.multiview == "joint"
     for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
-        name = param_path(path)
+        name = jax.tree_util.keystr(path, simple=True, separator="/")
         if not name.startswith("layers_"):
             continue
         size = _count(leaf.shape)

@@ -19,6 +19,7 @@ activations, LayerNorms without affine parameters.
 
 from __future__ import annotations
 
+import einops
 import numpy as np
 
 from jaxdrive.convert.safetensors_io import read_config, read_weights
@@ -96,9 +97,9 @@ def convert_state_dict(sd: dict, cfg: DiTConfig, source: str = "state dict") -> 
     w = take("patch_embed.proj.weight")
     if w is not None:
         if w.ndim == 4:            # Conv2d [D, C, p, p] -> rows ordered (ph, pw, C)
-            kernel = w.transpose(2, 3, 1, 0).reshape(p * p * cin, d)
+            kernel = einops.rearrange(w, "d c ph pw -> (ph pw c) d")
         else:                      # Linear [D, C pt p p] -> rows ordered (pt, ph, pw, C)
-            kernel = w.reshape(d, cin, pt, p, p).transpose(2, 3, 4, 1, 0).reshape(pt * p * p * cin, d)
+            kernel = einops.rearrange(w, "d (c pt ph pw) -> (pt ph pw c) d", c=cin, pt=pt, ph=p, pw=p)
         params["patch_embed"] = {"kernel": kernel, "bias": take("patch_embed.proj.bias", np.zeros(d, np.float32))}
     params["text_proj"] = _lin(take("patch_embed.text_proj.weight"), take("patch_embed.text_proj.bias"))
 
@@ -111,9 +112,9 @@ def convert_state_dict(sd: dict, cfg: DiTConfig, source: str = "state dict") -> 
 
     def heads_in(prefix):
         w, b = take(f"{prefix}.weight"), take(f"{prefix}.bias")
-        out = {"kernel": None if w is None else w.T.reshape(d, h, dh)}
+        out = {"kernel": None if w is None else einops.rearrange(w, "(h k) d -> d h k", h=h)}
         if cfg.qkv_bias:
-            out["bias"] = None if b is None else b.reshape(h, dh)
+            out["bias"] = None if b is None else einops.rearrange(b, "(h k) -> h k", h=h)
         return out
 
     for i in range(cfg.depth):
@@ -128,7 +129,7 @@ def convert_state_dict(sd: dict, cfg: DiTConfig, source: str = "state dict") -> 
             "to_v": heads_in(f"{pre}.attn1.to_v"),
             "norm_q": {"scale": take(f"{pre}.attn1.norm_q.weight"), "bias": take(f"{pre}.attn1.norm_q.bias")},
             "norm_k": {"scale": take(f"{pre}.attn1.norm_k.weight"), "bias": take(f"{pre}.attn1.norm_k.bias")},
-            "to_out": {"kernel": None if wo is None else wo.T.reshape(h, dh, d),
+            "to_out": {"kernel": None if wo is None else einops.rearrange(wo, "d (h k) -> h k d", h=h),
                        "bias": take(f"{pre}.attn1.to_out.0.bias")}}
         layer["ff"] = {"fc1": _lin(take(f"{pre}.ff.net.0.proj.weight"), take(f"{pre}.ff.net.0.proj.bias")),
                        "fc2": _lin(take(f"{pre}.ff.net.2.weight"), take(f"{pre}.ff.net.2.bias"))}
@@ -138,9 +139,10 @@ def convert_state_dict(sd: dict, cfg: DiTConfig, source: str = "state dict") -> 
     params["norm_out"] = {"scale": take("norm_out.norm.weight"), "bias": take("norm_out.norm.bias")}
     wp, bp = take("proj_out.weight"), take("proj_out.bias")
     if wp is not None:             # rows ordered (C, [pt,] ph, pw) -> (pt, ph, pw, C)
-        wp = wp.reshape(cout, pt, p, p, d).transpose(1, 2, 3, 0, 4).reshape(-1, d)
-        bp = bp.reshape(cout, pt, p, p).transpose(1, 2, 3, 0).reshape(-1)
-        params["proj_out"] = {"kernel": np.ascontiguousarray(wp.T), "bias": bp}
+        sizes = dict(c=cout, pt=pt, ph=p, pw=p)
+        wp = einops.rearrange(wp, "(c pt ph pw) d -> d (pt ph pw c)", **sizes)
+        bp = einops.rearrange(bp, "(c pt ph pw) -> (pt ph pw c)", **sizes)
+        params["proj_out"] = {"kernel": np.ascontiguousarray(wp), "bias": bp}
     unused = sorted(set(sd) - used - {"patch_embed.pos_embedding"})
     if missing or unused:
         raise ValueError(f"{source}: expected the tensors of a {CLASS_NAME} with {cfg.depth} layers; "

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import re
 
+import einops
 import jax
 import numpy as np
 
@@ -60,10 +61,10 @@ def vae_param_path(name: str) -> tuple[str, ...]:
 def _convert(name: str, value: np.ndarray) -> tuple[tuple[str, ...], np.ndarray]:
     path = vae_param_path(name)
     if path[-1] == "weight":
-        if value.ndim == 5:
-            return path[:-1] + ("kernel",), value.transpose(2, 3, 4, 1, 0)
+        if value.ndim == 5:        # PyTorch Conv3d [out, in, t, h, w] -> flax's taps first
+            return path[:-1] + ("kernel",), einops.rearrange(value, "o i t h w -> t h w i o")
         if value.ndim == 4:
-            return path[:-1] + ("kernel",), value.transpose(2, 3, 1, 0)
+            return path[:-1] + ("kernel",), einops.rearrange(value, "o i h w -> h w i o")
         return path[:-1] + ("scale",), value
     return path, value
 

@@ -181,12 +181,6 @@ class _Index:
             self.scene_tracks[scene].append(inst)
 
 
-def scene_frames(tables: dict, scene: str, views: Sequence[str] = CAMERAS, *,
-                 trim_to_keyframes: bool = True) -> list[list[str]]:
-    """Time-aligned sample_data tokens ``[F][V]`` of a scene (by name), CAM_FRONT as reference."""
-    return _scene_grid(tables, _Index(tables), scene, views, trim_to_keyframes)[1]
-
-
 def _scene_grid(tables, idx, scene, views, trim_to_keyframes):
     """(CAM_FRONT tokens [F], tokens [F][V])."""
     by_name = {s["name"]: s for s in tables["scene"].values()}

@@ -13,7 +13,8 @@ external model.
 
 **T5.** :func:`precompute_t5` runs a T5 encoder (e.g. T5-v1.1-XXL as Open-Sora, MagicDrive-V2 and
 CogVideoX use) from a local folder with ``transformers`` and ``torch``, which jaxdrive does not
-depend on: they are imported when called, and their absence is a clear error. Only safetensors
+depend on (the ``t5`` extra installs them: ``pip install "jaxdrive[t5]"``): they are imported when
+called, and their absence is a clear error. Only safetensors
 weights are loaded. ``jaxdrive data text-embed`` applies it to the captions of a dataset.
 """
 
@@ -74,7 +75,7 @@ def precompute_t5(captions: Sequence[str], encoder_dir, *, max_length: int = 300
 
     ``encoder_dir`` holds a Hugging Face T5 encoder and its tokenizer (e.g. a CogVideoX
     checkpoint's ``text_encoder`` with its ``tokenizer`` folder beside it, or one folder with
-    both). Needs ``transformers`` and ``torch`` (not jaxdrive dependencies) and safetensors
+    both). Needs ``transformers`` and ``torch`` (the ``t5`` extra) and safetensors
     weights; runs on the CPU unless torch sees a GPU."""
     import pathlib
 
@@ -85,7 +86,7 @@ def precompute_t5(captions: Sequence[str], encoder_dir, *, max_length: int = 300
         from transformers import AutoTokenizer, T5EncoderModel
     except ImportError as e:
         raise ImportError(f"precompute_t5 needs the packages 'transformers' and 'torch', which jaxdrive does "
-                          f"not depend on: pip install transformers torch ({e})") from None
+                          f"not depend on: pip install \"jaxdrive[t5]\" ({e})") from None
     folder = pathlib.Path(encoder_dir)
     if not folder.is_dir():
         raise ValueError(f"encoder_dir: expected a folder with a T5 encoder, got {str(folder)!r}")

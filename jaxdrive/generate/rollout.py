@@ -19,6 +19,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+from tqdm import tqdm
 
 from jaxdrive import flow
 from jaxdrive.models.conditions import Conditions
@@ -66,10 +67,26 @@ def _window_controls(controls: Conditions, start: int, window: int, temporal: in
     return controls.per_frame(lambda _, v: v[:, lo: lo + 1 + temporal * (window - 1)])
 
 
+def window_starts(total_frames: int, window: int, overlap: int) -> list[int]:
+    """The first latent frame of each window of a rollout: 0, then each next window overlaps the
+    last ``overlap`` generated frames, and the last one ends at ``total_frames``."""
+    for name, value in (("total_frames", total_frames), ("window", window), ("overlap", overlap)):
+        check_positive_int(name, value)
+    if total_frames > window and overlap >= window:       # the windows would not advance
+        raise ValueError(f"overlap: expected fewer than window = {window} frames, got {overlap}")
+    starts, done = [0], window
+    while done < total_frames:
+        starts.append(min(done - overlap, total_frames - window))
+        done = starts[-1] + window
+    return starts
+
+
 def rollout(dit: DiT, codec, params, codec_params, inputs: dict, *, total_frames: int, window: int,
             overlap: int, cond_frames: int, steps: int, guidance: float, key, shift: float = 1.0,
-            tpd: bool = False, tpd_omega: float = np.pi / 2):
-    """Latents ``[B, V, total_frames, h, w, C]`` generated window by window (module docstring).
+            tpd: bool = False, tpd_omega: float = np.pi / 2, progress: bool = False):
+    """Latents ``[B, V, total_frames, h, w, C]`` generated window by window (module docstring);
+    ``progress``: a progress bar over the windows (on process 0).
+
 
     ``inputs``: :func:`jaxdrive.data.batches.model_inputs` of clips that cover the whole
     length (per-frame controls in ``cond`` for every frame; ``video`` needs only the first ``cond_frames``
@@ -94,13 +111,13 @@ def rollout(dit: DiT, codec, params, codec_params, inputs: dict, *, total_frames
     out = jnp.zeros(shape, jnp.float32, device=first.sharding)         # sharded like the windows
     sample = jax.jit(lambda p, xc, m, c, k: sample_window(dit, p, xc, m, c, k, steps=steps, guidance=guidance,
                                                           shift=shift, tpd=tpd, tpd_omega=tpd_omega))
-    done, start = 0, 0
+    done = 0
     b = first.shape[0]
-    while done < total_frames:
+    starts = window_starts(total_frames, window, overlap)
+    for start in tqdm(starts, unit="window", disable=not progress or jax.process_index() != 0):
         if done == 0:
             x_cond, n_cond = first, cond_frames
         else:
-            start = min(done - overlap, total_frames - window)
             x_cond = jax.lax.dynamic_slice_in_dim(out, start, window, axis=2)
             n_cond = done - start
         mask = jnp.broadcast_to(jnp.arange(window)[None] < n_cond, (b, window))
@@ -108,6 +125,8 @@ def rollout(dit: DiT, codec, params, codec_params, inputs: dict, *, total_frames
         z = sample(params, x_cond, mask, _window_controls(controls, start, window, codec.temporal), sub)
         out = jax.lax.dynamic_update_slice_in_dim(out, z, start, axis=2)
         done = start + window
+        if progress:            # dispatch is asynchronous: wait, so that the bar counts finished windows
+            out.block_until_ready()
     return out
 
 

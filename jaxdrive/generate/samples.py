@@ -131,11 +131,12 @@ class Generated:
 
 def generate(spec: Sampling, params, *, frames: int | None = None, views=None, steps: int | None = None,
              guidance: float = 1.0, cond_frames: int | None = None, overlap: int | None = None,
-             clips: int | None = None, seed: int = 0) -> Generated:
+             clips: int | None = None, seed: int = 0, progress: bool = False) -> Generated:
     """Generate ``clips`` clips conditioned on dataset clips (see :class:`Generated`). ``frames``
     defaults to the training clip (``data.frames``; the window's frames for a model whose window is
     not the data clip, a distilled coarse model); ``clips`` to the size of the mesh's batch axes
-    (``data x fsdp``), the least a batch-sharded sampler can run."""
+    (``data x fsdp``), the least a batch-sharded sampler can run; ``progress``: a progress bar over
+    the rollout's windows."""
     mesh, codec, window = spec.mesh, spec.codec, spec.latent_window
     sizes = dict(zip(mesh.axis_names, mesh.axis_sizes))
     shards = sizes.get("data", 1) * sizes.get("fsdp", 1)
@@ -159,7 +160,8 @@ def generate(spec: Sampling, params, *, frames: int | None = None, views=None, s
     with jax.set_mesh(mesh):
         latents = rollout(DiT(spec.model), codec, params, codec.params, inputs, total_frames=total, window=window,
                           overlap=overlap, cond_frames=cond, steps=steps, guidance=guidance,
-                          key=jax.random.key(seed), shift=shift, tpd=f.tpd, tpd_omega=f.tpd_omega)
+                          key=jax.random.key(seed), shift=shift, tpd=f.tpd, tpd_omega=f.tpd_omega,
+                          progress=progress)
         video = to_numpy_video(codec, codec.params, latents)
         recorded = (np.asarray(inputs["video"]) if "video" in inputs else
                     to_numpy_video(codec, codec.params, inputs["latents"][:, :, :total]))

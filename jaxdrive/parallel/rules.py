@@ -75,11 +75,6 @@ PARAM_RULES: dict[str, Axes] = {k: v[1] for k, v in LOGICAL_AXIS_RULES.items()}
 _warned: set = set()
 
 
-def as_flax_rules(rules: Mapping[str, Axes] = ACTIVATION_RULES) -> tuple[tuple[str, Axes], ...]:
-    """The rules as flax's ``((name, axes), ...)`` for ``nn.logical_axis_rules``."""
-    return tuple(rules.items())
-
-
 def _as_tuple(axes: Axes) -> tuple[str, ...]:
     return () if axes is None else (axes,) if isinstance(axes, str) else tuple(axes)
 

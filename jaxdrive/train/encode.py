@@ -23,6 +23,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
+from tqdm import tqdm
 
 from jaxdrive.config import check_sections
 from jaxdrive.models.latents import LatentCodec
@@ -35,16 +36,32 @@ _CODEC_FIELDS = ("source", "factor", "scale", "vae_path", "vae_mode")
 _DATA_FIELDS = ("height", "width", "frames", "stride", "views")
 
 
+def _span(data) -> int:
+    """Source frames a window covers."""
+    return 1 + (data.frames - 1) * data.stride
+
+
+def _starts(have: int, data, every: int) -> range:
+    """Window starts in a clip of ``have`` frames."""
+    return range(0, have - _span(data) + 1, every)
+
+
+def _window_count(source, data, every: int) -> int | None:
+    """How many windows ``source`` gives, from its stored frame counts (None without them)."""
+    counts = source.frame_counts
+    return None if counts is None else sum(len(_starts(int(n), data, every)) for n in counts)
+
+
 def _windows(source, data, every: int):
     """``sample_clip`` of every window of every clip of ``source``, in order."""
     from jaxdrive.data.pipeline import sample_clip
-    span = 1 + (data.frames - 1) * data.stride
+    span = _span(data)
     count = longest = 0
     for i in range(len(source)):
         clip = source[i]
         have = int(np.shape(clip["ego_to_world"])[0])
         longest = max(longest, have)
-        for start in range(0, have - span + 1, every):
+        for start in _starts(have, data, every):
             count += 1
             yield sample_clip(clip, size=(data.height, data.width), frames=data.frames, stride=data.stride,
                               start=start, views=list(range(data.views)),
@@ -54,9 +71,9 @@ def _windows(source, data, every: int):
                          f"but the longest clip of split {source.split!r} of {source.path} has {longest}")
 
 
-def _encoded(windows, codec: LatentCodec, batch: int):
+def _encoded(windows, codec: LatentCodec, batch: int, bar):
     """The windows with ``video`` replaced by its ``latents``, encoded ``batch`` at a time (the
-    last batch is padded so that the encoder compiles once)."""
+    last batch is padded so that the encoder compiles once); ``bar`` counts them."""
     encode = jax.jit(codec.encode)
     pending = []
 
@@ -68,6 +85,7 @@ def _encoded(windows, codec: LatentCodec, batch: int):
         latents = np.asarray(encode(codec.params, video), np.float32)
         for w, z in zip(pending, latents):
             w["latents"] = z
+        bar.update(len(pending))
         out = list(pending)
         pending.clear()
         return out
@@ -81,15 +99,16 @@ def _encoded(windows, codec: LatentCodec, batch: int):
 
 
 def encode_dataset(config, out, *, splits=None, every: int | None = None, batch: int = 8,
-                   overwrite: bool = False) -> Path:
+                   overwrite: bool = False, progress: bool = False) -> Path:
     """Write the latent windows of the clip dataset ``config.data.path`` to ``out`` (module
     docstring); returns the dataset path. ``splits``: the splits to encode (default: all of the
-    dataset's); ``every``: source frames between window starts; ``batch``: windows per encoder call."""
+    dataset's); ``every``: source frames between window starts; ``batch``: windows per encoder call;
+    ``progress``: a progress bar over the windows (with a total and an ETA when the dataset
+    records its clips' frame counts)."""
     from jaxdrive.data.tfds_io import dataset_info, open_source, write_dataset
     check_sections(config)
     d = config.data
-    span = 1 + (d.frames - 1) * d.stride
-    every = span if every is None else check_positive_int("every", every)
+    every = _span(d) if every is None else check_positive_int("every", every)
     batch = check_positive_int("batch", batch)
     info = dataset_info(d.path)
     if info["kind"] != "clips":
@@ -108,9 +127,13 @@ def encode_dataset(config, out, *, splits=None, every: int | None = None, batch:
         "latent_frames": codec.latent_frames(d.frames),
     }}
     sources = {s: open_source(d.path, s) for s in splits}
-    path = write_dataset(out, {s: _encoded(_windows(src, d, every), codec, batch) for s, src in sources.items()},
-                         name="jaxdrive_latents", kind="windows", metadata=metadata, overwrite=overwrite,
-                         description=f"jaxdrive latent windows of {d.path} (jaxdrive data encode).")
+    counts = [_window_count(src, d, every) for src in sources.values()]
+    total = None if None in counts else sum(counts)
+    with tqdm(total=total, unit="window", desc="encode", disable=not progress) as bar:
+        path = write_dataset(out, {s: _encoded(_windows(src, d, every), codec, batch, bar)
+                                   for s, src in sources.items()},
+                             name="jaxdrive_latents", kind="windows", metadata=metadata, overwrite=overwrite,
+                             description=f"jaxdrive latent windows of {d.path} (jaxdrive data encode).")
     log.info("encoded %s -> %s", d.path, path)
     return path
 

@@ -20,11 +20,6 @@ import optax
 from jaxdrive.config import OptimConfig
 
 
-def param_path(path) -> str:
-    """``"a/b/kernel"`` for a key path of a params tree."""
-    return "/".join(str(getattr(k, "key", getattr(k, "idx", k))) for k in path)
-
-
 def learning_rate(config: OptimConfig, total_steps: int) -> optax.Schedule:
     """Linear warmup to ``lr`` over ``warmup_steps``, then cosine / linear decay to
     ``lr * min_lr_ratio`` at ``total_steps``, or constant."""
@@ -48,13 +43,14 @@ def trainable_labels(params, patterns) -> object:
     if not patterns:
         return jax.tree_util.tree_map(lambda _: "train", params)
     compiled = [re.compile(p) for p in patterns]
-    paths = [param_path(p) for p, _ in jax.tree_util.tree_flatten_with_path(params)[0]]
+    name = lambda path: jax.tree_util.keystr(path, simple=True, separator="/")    # "a/b/kernel"
+    paths = [name(p) for p, _ in jax.tree_util.tree_flatten_with_path(params)[0]]
     for pattern, rx in zip(patterns, compiled):
         if not any(rx.search(path) for path in paths):
             raise ValueError(f"optim.trainable: expected patterns that match parameter paths, got {pattern!r} "
                              f"(no match among {len(paths)} paths such as {paths[:3]})")
     return jax.tree_util.tree_map_with_path(
-        lambda path, _: "train" if any(rx.search(param_path(path)) for rx in compiled) else "freeze", params)
+        lambda path, _: "train" if any(rx.search(name(path)) for rx in compiled) else "freeze", params)
 
 
 def make_optimizer(config: OptimConfig, total_steps: int, params) -> optax.GradientTransformation:

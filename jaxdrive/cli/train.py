@@ -12,7 +12,9 @@ import os
 import time
 from pathlib import Path
 
-REPO_CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+from jaxdrive.cli.options import add_config, add_progress
+
+REPO_CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
 
 def start_jax() -> str:
@@ -63,7 +65,7 @@ def _sample(args, rest) -> int:
     out_dir = Path(args.out or Path(args.workdir) / "samples" / f"sample_{step:07d}")
     t = time.perf_counter()
     paths = write_samples(run.sampling(), params, out_dir, frames=args.frames, views=views, steps=args.steps,
-                          guidance=args.cfg, seed=args.seed)
+                          guidance=args.cfg, seed=args.seed, progress=not args.no_progress)
     if "quality" in paths:
         print(quality_lines(paths["quality"]))
     print(f"sampled from checkpoint {step} in {time.perf_counter() - t:.1f} s: {out_dir}")
@@ -82,9 +84,10 @@ def _config_mesh(config, mesh: str):
 def _demo(args, rest) -> int:
     """Synthesise a dataset, train the tiny DiT on frame-wise latents, sample a long clip."""
     workdir = Path(args.workdir)
-    config_path = Path(args.config) if args.config else REPO_CONFIGS / "tiny.py"
-    if not config_path.is_file():
-        raise ValueError(f"config: expected the tiny config at {str(config_path)!r} (run from a checkout, or "
+    from jaxdrive.config import split_config_path
+    config_path = args.config or str(REPO_CONFIGS / "tiny.py")
+    if not split_config_path(config_path)[0].is_file():
+        raise ValueError(f"config: expected the tiny config at {config_path!r} (run from a checkout, or "
                          f"pass --config), got a missing file")
     data = workdir / "data"
     extra = [f"data.path={data}", f"train.steps={args.steps}"]
@@ -115,7 +118,7 @@ def _demo(args, rest) -> int:
     print(f"[3/3] sampling a {args.frames}-frame, {config.data.views}-view clip "
           f"({args.frames // config.data.frames + 1} windows of {config.data.frames})")
     paths = write_samples(out["run"].sampling(), out["state"], workdir / "samples" / "demo", frames=args.frames,
-                          steps=config.train.sample_steps, guidance=args.cfg)
+                          steps=config.train.sample_steps, guidance=args.cfg, progress=not args.no_progress)
     print(quality_lines(paths["quality"]))
     print(f"done in {time.perf_counter() - t0:.0f} s:\n  video      {paths.get('video')}\n"
           f"  frame grid {paths.get('grid')} (recorded | generated)\n  quality    {paths.get('quality_json')}\n"
@@ -138,13 +141,13 @@ def quality_lines(q: dict) -> str:
 
 def add_commands(sub) -> None:
     train = sub.add_parser("train", help="train the DiT (resumes from the last checkpoint in --workdir)")
-    train.add_argument("--config", required=True, help="a config file, e.g. configs/tiny.py")
+    add_config(train, "a config file, e.g. configs/tiny.py")
     train.add_argument("--workdir", required=True, help="run directory: checkpoints, metrics, samples")
     train.add_argument("--steps", type=int, help="total steps (train.steps)")
     train.add_argument("--checkpoint-every", type=int, help="steps between checkpoints (train.checkpoint_every)")
     train.add_argument("--mesh", help="mesh axis sizes, e.g. data=2,seq=4 (product = device count)")
     train.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config field (repeatable)")
-    train.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_progress(train, "the steps")
     train.set_defaults(run=_train)
 
     sample = sub.add_parser("sample", help="generate a clip from a run's latest checkpoint (mp4 + frame grid)")
@@ -158,16 +161,17 @@ def add_commands(sub) -> None:
     sample.add_argument("--mesh", help="mesh axis sizes for sampling")
     sample.add_argument("--no-ema", action="store_true", help="sample with the raw parameters, not the EMA")
     sample.add_argument("--set", action="append", metavar="KEY=VALUE")
+    add_progress(sample, "the sampled windows")
     sample.set_defaults(run=_sample)
 
     demo = sub.add_parser("demo", help="synthesise data, train a tiny DiT, sample a long multi-view clip")
     demo.add_argument("--workdir", default="jaxdrive-demo")
-    demo.add_argument("--config", help="default: configs/tiny.py of this checkout")
+    add_config(demo, "default: configs/tiny.py of this checkout", required=False)
     demo.add_argument("--steps", type=int, default=800)
     demo.add_argument("--scenes", type=int, default=24, help="synthetic scenes (one kept for validation)")
     demo.add_argument("--frames", type=int, default=33, help="frames of the sampled clip")
     demo.add_argument("--cfg", type=float, default=1.0, help="classifier-free guidance (1: none; the tiny "
                                                              "model scores best without)")
     demo.add_argument("--set", action="append", metavar="KEY=VALUE")
-    demo.add_argument("--no-progress", action="store_true")
+    add_progress(demo, "the training steps and the sampled windows")
     demo.set_defaults(run=_demo)

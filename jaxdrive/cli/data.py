@@ -1,31 +1,9 @@
-"""The ``jaxdrive`` command. Subcommands appear here as the parts behind them land."""
+"""``jaxdrive data``: build and inspect datasets (TFDS in ArrayRecord format): synthetic scenes,
+nuScenes, T5 caption embeddings, precomputed latent windows."""
 
 from __future__ import annotations
 
-import argparse
-import importlib
-import pkgutil
-import sys
-
-import jaxdrive
-
-
-def _benchmarks() -> list[str]:
-    import jaxdrive.bench as bench
-    return sorted(m.name for m in pkgutil.iter_modules(bench.__path__)
-                  if not m.name.startswith("_") and m.name != "report")
-
-
-def _bench(args, rest) -> int:
-    names = _benchmarks()
-    if args.name is None or args.name in ("-h", "--help"):
-        print("usage: jaxdrive bench NAME [ARGS...]   (jaxdrive bench NAME --help for its options)")
-        print("benchmarks: " + ", ".join(names))
-        return 0
-    if args.name not in names:
-        raise SystemExit(f"jaxdrive bench: name: expected one of {names}, got {args.name!r}")
-    importlib.import_module(f"jaxdrive.bench.{args.name}").main(rest)
-    return 0
+from jaxdrive.cli.options import add_config, add_progress
 
 
 def _split_counts(scenes: int, val_fraction: float) -> tuple[int, int]:
@@ -113,13 +91,13 @@ def _data_encode(args, rest) -> int:
 
     config = load_config(args.config, args.set or [])
     path = encode_dataset(config, args.out, splits=args.split, every=args.every, batch=args.batch,
-                          overwrite=args.overwrite)
+                          overwrite=args.overwrite, progress=not args.no_progress)
     print(f"wrote the latent windows of {config.data.path} to {path}; train on them with "
           f"--set data.path={path} --set latents.precomputed=true")
     return 0
 
 
-def _add_data_commands(sub) -> None:
+def add_commands(sub) -> None:
     data = sub.add_parser("data", help="build and inspect datasets (TFDS, ArrayRecord)")
     dsub = data.add_subparsers(dest="data_command", metavar="DATA_COMMAND", required=True)
     synth = dsub.add_parser("synth", help="write a synthetic multi-view driving dataset")
@@ -145,7 +123,7 @@ def _add_data_commands(sub) -> None:
     nus.add_argument("--overwrite", action="store_true")
     nus.set_defaults(run=_data_nuscenes)
     text = dsub.add_parser("text-embed", help="precompute T5 embeddings of a dataset's captions "
-                                              "(needs transformers + torch and local T5 weights)")
+                                              "(needs the t5 extra, pip install \"jaxdrive[t5]\", and local T5 weights)")
     text.add_argument("--dataset", required=True, help="TFDS dataset directory")
     text.add_argument("--encoder", required=True, help="folder of a T5 encoder (safetensors) and tokenizer")
     text.add_argument("--out", required=True, help="output .npz: captions, embeddings [N, L, D], mask [N, L]")
@@ -155,8 +133,7 @@ def _add_data_commands(sub) -> None:
     text.set_defaults(run=_data_text_embed)
     enc = dsub.add_parser("encode", help="precompute the latents of a config's training windows "
                                          "(train on them with latents.precomputed=true)")
-    enc.add_argument("--config", required=True, help="the training config: data.path, frames, stride, views, "
-                                                     "height, width and the latents codec")
+    add_config(enc, "the training config: data.path, frames, stride, views, height, width and the latents codec")
     enc.add_argument("--out", required=True, help="dataset directory to create")
     enc.add_argument("--split", nargs="+", help="splits to encode (default: all of the dataset's)")
     enc.add_argument("--every", type=int, help="source frames between window starts (default: the window's "
@@ -164,69 +141,8 @@ def _add_data_commands(sub) -> None:
     enc.add_argument("--batch", type=int, default=8, help="windows per encoder call")
     enc.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config field (repeatable)")
     enc.add_argument("--overwrite", action="store_true")
+    add_progress(enc, "the encoded windows")
     enc.set_defaults(run=_data_encode)
     info = dsub.add_parser("info", help="print what a dataset holds")
     info.add_argument("path")
     info.set_defaults(run=_data_info)
-
-
-def _convert_vae(args, rest) -> int:
-    from jaxdrive.convert.diffusers_vae import load_diffusers_vae
-    from jaxdrive.models.pretrained import save_pretrained
-    from jaxdrive.models.vae import vae_param_count
-
-    vae, params = load_diffusers_vae(args.src)
-    path = save_pretrained(args.dst, vae, params, overwrite=args.overwrite)
-    print(f"wrote the VAE ({vae_param_count(params):,} parameters, {len(vae.config.block_out_channels)} "
-          f"blocks, {vae.config.latent_channels} latent channels) to {path}")
-    return 0
-
-
-def _add_convert_commands(sub) -> None:
-    convert = sub.add_parser("convert", help="import diffusers weights (safetensors) as jaxdrive models")
-    csub = convert.add_subparsers(dest="convert_command", metavar="CONVERT_COMMAND", required=True)
-    vae = csub.add_parser("vae", help="diffusers AutoencoderKLCogVideoX directory -> jaxdrive model")
-    vae.add_argument("src", help="diffusers directory (config.json + diffusion_pytorch_model.safetensors)")
-    vae.add_argument("dst", help="directory to write (load with jaxdrive.models.pretrained.load_pretrained)")
-    vae.add_argument("--overwrite", action="store_true")
-    vae.set_defaults(run=_convert_vae)
-
-
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="jaxdrive",
-        description="Long-horizon multi-view driving world models in JAX/Flax.")
-    parser.add_argument("--version", action="version", version=f"jaxdrive {jaxdrive.__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    bench = sub.add_parser("bench", help="run a benchmark (no name: list them); "
-                                         "arguments after the name go to the benchmark",
-                           add_help=False)  # so `jaxdrive bench NAME --help` reaches the benchmark
-    bench.add_argument("name", nargs="?", help="benchmark name, e.g. sampler")
-    bench.set_defaults(run=_bench)
-    _add_data_commands(sub)
-    _add_convert_commands(sub)
-    from jaxdrive.cli_run import add_commands
-    add_commands(sub)
-    return parser
-
-
-def main(argv=None) -> int:
-    from jaxdrive.xla_flags import deterministic_cpu
-    deterministic_cpu()                 # before JAX starts its backend (jaxdrive.xla_flags says why)
-    argv = sys.argv[1:] if argv is None else list(argv)
-    parser = build_parser()
-    args, rest = parser.parse_known_args(argv)
-    if args.command is None:
-        parser.print_help()
-        return 0
-    if rest and args.command != "bench":
-        parser.error(f"unrecognized arguments: {' '.join(rest)}")
-    try:
-        return args.run(args, rest)
-    except ValueError as e:  # bad input: one line that names the argument, not a traceback
-        print(f"jaxdrive {args.command}: error: {e}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())

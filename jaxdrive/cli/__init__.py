@@ -1,0 +1,68 @@
+"""The ``jaxdrive`` command: the parser and :func:`main`; one module per command group
+(:mod:`.train` for train / sample / demo, :mod:`.data`, :mod:`.convert`, :mod:`.bench`).
+Subcommands appear here as the parts behind them land."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import sys
+
+import jaxdrive
+from jaxdrive.cli import bench, convert, data, train
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="jaxdrive",
+        description="Long-horizon multi-view driving world models in JAX/Flax.")
+    parser.add_argument("--version", action="version", version=f"jaxdrive {jaxdrive.__version__}")
+    parser.add_argument("-q", "--quiet", action="store_true",
+                        help="log warnings and errors only (default: jaxdrive's INFO messages too, on stderr)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    bench.add_commands(sub)
+    data.add_commands(sub)
+    convert.add_commands(sub)
+    train.add_commands(sub)
+    return parser
+
+
+@contextlib.contextmanager
+def stderr_logging(*, quiet: bool = False):
+    """jaxdrive's loggers to stderr at INFO (WARNING when ``quiet``) while the block runs, so that
+    library messages such as ``encode_dataset``'s are seen. Only the ``jaxdrive`` logger: other
+    libraries keep their own levels; the handler goes again afterwards (``main`` may run many
+    times in one process, e.g. in tests, with ``sys.stderr`` replaced in between)."""
+    logger = logging.getLogger("jaxdrive")
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    level, propagate = logger.level, logger.propagate
+    logger.addHandler(handler)
+    logger.setLevel(logging.WARNING if quiet else logging.INFO)
+    logger.propagate = False        # a dependency may configure the root logger: print each message once
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+        logger.propagate = propagate
+
+
+def main(argv=None) -> int:
+    from jaxdrive.xla_flags import deterministic_cpu
+    deterministic_cpu()                 # before JAX starts its backend (jaxdrive.xla_flags says why)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser()
+    args, rest = parser.parse_known_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 0
+    if rest and args.command != "bench":
+        parser.error(f"unrecognized arguments: {' '.join(rest)}")
+    with stderr_logging(quiet=args.quiet):
+        try:
+            return args.run(args, rest)
+        except ValueError as e:  # bad input: one line that names the argument, not a traceback
+            print(f"jaxdrive {args.command}: error: {e}", file=sys.stderr)
+            return 2
