@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxdrive.models.attention import attention
+from jaxdrive.attention import attention
 
 
 def _qkvd(b=2, lq=40, lk=40, h=3, d=8, seed=0):
@@ -153,7 +153,7 @@ def test_ring_tiles_chunks_longer_than_its_block(causal_block):
     # chunks of 38 tokens with block = 16: padded to 4 x 48 and attended tile by tile
     from jax.sharding import AxisType
 
-    from jaxdrive.parallel.ring import ring_attention
+    from jaxdrive.attention.ring import ring_attention
     mesh = jax.make_mesh((1, 1, 4, 1), ("data", "fsdp", "seq", "tensor"),
                          axis_types=(AxisType.Explicit,) * 4, devices=jax.devices()[:4])
     q, k, v, do = _qkvd(b=2, lq=150, lk=150, h=2)
@@ -171,7 +171,7 @@ def test_ring_tiles_chunks_longer_than_its_block(causal_block):
 def test_splash_kernel_matches_dense_in_the_pallas_interpreter(kw):
     # the TPU kernel itself, run by the Pallas interpreter on CPU: padded lengths, segment-id
     # masking, the block-causal mask computed in the kernel, its own backward kernels
-    from jaxdrive.parallel.splash import splash_attention
+    from jaxdrive.attention.splash import splash_attention
     q, k, v, do = _qkvd(b=2, lq=200, lk=200, h=2, d=64)
     mask = jnp.ones((2, 200), bool).at[1].set(False) if kw.get("mask") else None  # sample 1: no key
     causal_block = kw.get("causal_block")

@@ -43,7 +43,7 @@ DEFINITIONS = {"per_device_memory": "footprint_bytes", "per_device_temp_memory":
 def _grad_fn(impl, mesh=None, **kw):
     import jax
 
-    from jaxdrive.models.attention import attention
+    from jaxdrive.attention import attention
 
     def loss(q, k, v):
         return attention(q, k, v, impl=impl, mesh=mesh, **kw).astype("float32").sum()

@@ -15,7 +15,7 @@ attentions communicate:
   tokens: **no communication** (every device holds all frames of its patches and all context
   tokens); they run a local kernel (``local_attn_impl``).
 
-Every attention goes through :func:`jaxdrive.models.attention.attention`. Sequences are built so
+Every attention goes through :func:`jaxdrive.attention.attention`. Sequences are built so
 that the sharded axis S is the major part of the merged sequence (see
 :func:`jaxdrive.models.dit_layers.to_sequence`): each device then holds one contiguous chunk, which
 is what the ring and all-to-all kernels expect. Attention without positions inside the sequence
@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdrive.models.attention import attention
+from jaxdrive.attention import attention
 from jaxdrive.models.dit_config import DiTConfig
 from jaxdrive.models.dit_layers import _explicit_mesh, _spec_of
 from jaxdrive.models.dit_layers import (MLP, TEXT, VIDEO, ZEROS, AttnProj, Dense, LayerNorm, apply_rope,

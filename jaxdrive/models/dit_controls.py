@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrive import geometry
-from jaxdrive.models.attention import attention
+from jaxdrive.attention import attention
 from jaxdrive.parallel.rules import constrain
 from jaxdrive.models.dit_layers import (MLP, ZEROS, AttnProj, Dense, Init, LayerNorm, apply_rope,
                                         fourier_features, lookup, merge, normal, param, rope_1d, split,

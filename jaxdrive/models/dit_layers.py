@@ -397,7 +397,7 @@ def fourier_features(x, num_freqs: int, temperature: float = 100.0, include_inpu
 class AttnProj(nn.Module):
     """q/k/v projections (with optional qk-norm) and the output projection of one attention layer.
 
-    The caller arranges tokens into sequences and calls :func:`jaxdrive.models.attention.attention`
+    The caller arranges tokens into sequences and calls :func:`jaxdrive.attention.attention`
     between :meth:`q`/:meth:`kv` and :meth:`out`. ``qk_norm``: ``"rms"`` (Open-Sora 1.2),
     ``"layer"`` (CogVideoX, affine LayerNorm over the head features) or ``"none"``.
     ``zero_out`` zero-initialises the output projection (branches that must start as a no-op).

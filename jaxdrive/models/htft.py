@@ -27,7 +27,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from jaxdrive.models.attention import attention
+from jaxdrive.attention import attention
 from jaxdrive.models.dit_layers import ONES, ZEROS, AttnProj, Dense, from_sequence, merge, param, to_sequence
 from jaxdrive.parallel.rules import constrain
 from jaxdrive.validate import check_positive_int, check_shape

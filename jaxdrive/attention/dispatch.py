@@ -4,13 +4,13 @@ Implementations (``impl``):
 
 - ``"xla"``: dense softmax attention, the reference (fp32 scores and softmax).
 - ``"blockwise"``: O(L) memory on one device, forward and backward
-  (:mod:`jaxdrive.parallel.blockwise`).
+  (:mod:`jaxdrive.attention.blockwise`).
 - ``"ring"``: the sequence sharded over the mesh axis ``seq``; key/value chunks travel around the
-  ring (:mod:`jaxdrive.parallel.ring`).
+  ring (:mod:`jaxdrive.attention.ring`).
 - ``"ulysses"``: all-to-all from sequence- to head-sharding over ``seq``, a local blockwise kernel,
-  and back (:mod:`jaxdrive.parallel.ulysses`).
+  and back (:mod:`jaxdrive.attention.ulysses`).
 - ``"cudnn"``: ``jax.nn.dot_product_attention(..., implementation="cudnn")`` on GPUs (fp16/bf16).
-- ``"splash"``: JAX's Pallas splash kernel on TPUs (:mod:`jaxdrive.parallel.splash`).
+- ``"splash"``: JAX's Pallas splash kernel on TPUs (:mod:`jaxdrive.attention.splash`).
 - ``"auto"``: ``"ring"`` when the mesh shards ``seq``; else ``"splash"`` on TPU or ``"cudnn"``
   where it applies; else ``"blockwise"`` for long sequences and ``"xla"`` for short ones. It
   never fails where ``"xla"`` works.
@@ -28,8 +28,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdrive.parallel import softmax_blocks, splash
-from jaxdrive.parallel.blockwise import blockwise_attention
+from jaxdrive.attention import softmax_blocks, splash
+from jaxdrive.attention.blockwise import blockwise_attention
+from jaxdrive.attention.ring import ring_attention
+from jaxdrive.attention.seq_shard import layout
+from jaxdrive.attention.ulysses import ulysses_attention
 from jaxdrive.validate import check_choice, check_positive_int
 
 IMPLS = ("auto", "xla", "blockwise", "ring", "ulysses", "cudnn", "splash")
@@ -78,7 +81,6 @@ def _cudnn_applies(q, kv_mask, causal_block) -> bool:
 
 
 def _ring_applies(q, k, v, mesh, kv_mask, causal_block) -> bool:
-    from jaxdrive.parallel.seq_shard import layout
     try:  # batch divisible by data x fsdp, heads by tensor: otherwise "auto" must not fail
         layout(q, k, v, kv_mask, causal_block, mesh, "seq")
     except ValueError:
@@ -173,7 +175,5 @@ def attention(q, k, v, *, impl: str = "auto", kv_mask=None, causal_block=None, m
         raise ValueError(f"mesh: impl {impl!r} needs a mesh with a 'seq' axis, got "
                          f"{None if mesh is None else tuple(mesh.axis_names)}")
     if impl == "ring":
-        from jaxdrive.parallel.ring import ring_attention
         return ring_attention(q, k, v, mesh=mesh, scale=scale, kv_mask=kv_mask, causal_block=causal_block)
-    from jaxdrive.parallel.ulysses import ulysses_attention
     return ulysses_attention(q, k, v, mesh=mesh, scale=scale, kv_mask=kv_mask, causal_block=causal_block)
