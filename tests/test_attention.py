@@ -218,3 +218,25 @@ def test_one_device_kernels_take_sequence_sharded_inputs():
                 out = jax.jit(fn)(put(q), put(k), put(v))
                 assert out.sharding.spec == P(None, "seq", None, None)
             assert _rel(out, ref) <= 1e-5
+
+
+@pytest.mark.parametrize("impl", ["ring", "ulysses", "auto"])
+def test_a_mesh_given_outside_its_context_asks_to_enter_it(impl):
+    # outside jax.set_mesh the sharded output's type names a mesh that later ops cannot place:
+    # the forward ran, and jax.grad failed in JAX with a bare error about device assignment
+    from jax.sharding import AxisType
+    q, k, v, _ = _qkvd(b=2, lq=32, lk=32, h=4)
+    names = ("data", "fsdp", "seq", "tensor")
+    mesh = jax.make_mesh((1, 1, 4, 1), names, axis_types=(AxisType.Explicit,) * 4, devices=jax.devices()[:4])
+    other = jax.make_mesh((2, 1, 2, 1), names, axis_types=(AxisType.Explicit,) * 4, devices=jax.devices()[:4])
+    loss = lambda q: jnp.sum(jnp.sin(attention(q, k, v, impl=impl, mesh=mesh, causal_block=8)))
+    enter = r"^mesh: impl '(ring|ulysses)' runs on the mesh it is given only inside it: call attention within `with jax.set_mesh\(mesh\):`"
+    with pytest.raises(ValueError, match=enter):
+        attention(q, k, v, impl=impl, mesh=mesh, causal_block=8)
+    with pytest.raises(ValueError, match=enter):
+        jax.grad(loss)(q)
+    with jax.set_mesh(other), pytest.raises(ValueError, match=enter):   # another mesh's context
+        jax.grad(loss)(q)
+    ref = jax.grad(lambda q: jnp.sum(jnp.sin(attention(q, k, v, impl="xla", causal_block=8))))(q)
+    with jax.set_mesh(mesh):
+        assert _rel(jax.grad(loss)(q), ref) <= 1e-5

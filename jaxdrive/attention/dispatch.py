@@ -13,7 +13,7 @@ Implementations (``impl``):
 - ``"splash"``: JAX's Pallas splash kernel on TPUs (:mod:`jaxdrive.attention.splash`).
 - ``"auto"``: ``"ring"`` when the mesh shards ``seq``; else ``"splash"`` on TPU or ``"cudnn"``
   where it applies; else ``"blockwise"`` for long sequences and ``"xla"`` for short ones. It
-  never fails where ``"xla"`` works.
+  never fails where ``"xla"`` works, given that a ``mesh`` passed in is the context mesh.
 
 Masks: ``kv_mask [B, Lk]`` (True = attend; e.g. padded text tokens) and ``causal_block = n``:
 token block i (n tokens, e.g. one latent frame) attends to blocks <= i. A query row with no
@@ -69,6 +69,17 @@ def _mesh_or_context(mesh):
         return mesh
     context = jax.sharding.get_abstract_mesh()
     return None if context.empty else context
+
+
+def _check_entered(mesh, impl):
+    """The sharded kernels type their output with ``mesh``: outside that mesh's context whatever
+    follows them cannot place it (``jax.grad`` seeding the loss's cotangent fails with a bare
+    error about device assignment), so ask for the context up front."""
+    context = jax.sharding.get_abstract_mesh()
+    if context.empty or context != getattr(mesh, "abstract_mesh", mesh):
+        raise ValueError(f"mesh: impl {impl!r} runs on the mesh it is given only inside it: call "
+                         f"attention within `with jax.set_mesh(mesh):`; got mesh {dict(mesh.shape)} "
+                         f"under context mesh {None if context.empty else dict(context.shape)}")
 
 
 def _seq_size(mesh) -> int:
@@ -145,10 +156,11 @@ def attention(q, k, v, *, impl: str = "auto", kv_mask=None, causal_block=None, m
 
     ``scale`` defaults to ``1 / sqrt(D)``. ``mesh`` (or the mesh set with ``jax.set_mesh``) is
     needed by ``"ring"`` and ``"ulysses"``, which shard the sequence over its ``seq`` axis, the
-    batch over ``data``/``fsdp`` and the heads over ``tensor``. ``block_q``/``block_k`` are the
+    batch over ``data``/``fsdp`` and the heads over ``tensor``; a ``mesh`` given must also be the
+    context mesh (``with jax.set_mesh(mesh):``). ``block_q``/``block_k`` are the
     tile sizes of ``"blockwise"``. Raises ``ValueError`` naming the argument for mismatched
     shapes or dtypes, a mask of the wrong length, an unknown impl, a mesh without ``seq`` for
-    ring/ulysses, or an impl this backend lacks.
+    ring/ulysses or one given outside its context, or an impl this backend lacks.
     """
     check_choice("impl", impl, IMPLS)
     _check_inputs(q, k, v, kv_mask, causal_block)
@@ -174,6 +186,7 @@ def attention(q, k, v, *, impl: str = "auto", kv_mask=None, causal_block=None, m
     if mesh is None or "seq" not in mesh.axis_names:
         raise ValueError(f"mesh: impl {impl!r} needs a mesh with a 'seq' axis, got "
                          f"{None if mesh is None else tuple(mesh.axis_names)}")
+    _check_entered(mesh, impl)
     if impl == "ring":
         return ring_attention(q, k, v, mesh=mesh, scale=scale, kv_mask=kv_mask, causal_block=causal_block)
     return ulysses_attention(q, k, v, mesh=mesh, scale=scale, kv_mask=kv_mask, causal_block=causal_block)

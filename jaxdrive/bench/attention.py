@@ -89,7 +89,8 @@ def run(lengths, seq_sizes, time_max, heads, dim, block):
                                      axis_types=(AxisType.Explicit,) * 4, devices=jax.devices()[:n])
                 sharded = jax.ShapeDtypeStruct(shape.shape, jnp.float32,
                                                sharding=NamedSharding(mesh, P(None, "seq", None, None)))
-                compiled = _grad_fn(impl, mesh=mesh).lower(sharded, sharded, sharded).compile()
+                with jax.set_mesh(mesh):   # attention() runs a mesh it is given only inside it
+                    compiled = _grad_fn(impl, mesh=mesh).lower(sharded, sharded, sharded).compile()
                 for figure, measure in DEFINITIONS.items():
                     value = mib(getattr(report, measure)(compiled))
                     figures[figure][f"seq{n}_mib"] = value
