@@ -33,6 +33,7 @@ from jaxdrive.attention.blockwise import blockwise_attention
 from jaxdrive.attention.ring import ring_attention
 from jaxdrive.attention.seq_shard import layout
 from jaxdrive.attention.ulysses import ulysses_attention
+from jaxdrive.parallel.mesh import context_mesh, spec_of
 from jaxdrive.validate import check_choice, check_positive_int
 
 IMPLS = ("auto", "xla", "blockwise", "ring", "ulysses", "cudnn", "splash")
@@ -64,22 +65,15 @@ def _check_inputs(q, k, v, kv_mask, causal_block):
                              f"Lk = {k.shape[1]}")
 
 
-def _mesh_or_context(mesh):
-    if mesh is not None:
-        return mesh
-    context = jax.sharding.get_abstract_mesh()
-    return None if context.empty else context
-
-
 def _check_entered(mesh, impl):
     """The sharded kernels type their output with ``mesh``: outside that mesh's context whatever
     follows them cannot place it (``jax.grad`` seeding the loss's cotangent fails with a bare
     error about device assignment), so ask for the context up front."""
-    context = jax.sharding.get_abstract_mesh()
-    if context.empty or context != getattr(mesh, "abstract_mesh", mesh):
+    context = context_mesh()
+    if context is None or context != getattr(mesh, "abstract_mesh", mesh):
         raise ValueError(f"mesh: impl {impl!r} runs on the mesh it is given only inside it: call "
                          f"attention within `with jax.set_mesh(mesh):`; got mesh {dict(mesh.shape)} "
-                         f"under context mesh {None if context.empty else dict(context.shape)}")
+                         f"under context mesh {None if context is None else dict(context.shape)}")
 
 
 def _seq_size(mesh) -> int:
@@ -115,8 +109,7 @@ def _gather_sequence(x):
     the same mesh axis is an illegal sharding."""
     if x is None:
         return x
-    sharding = getattr(jax.typeof(x), "sharding", None)
-    spec = tuple(getattr(sharding, "spec", ()) or ())
+    spec = spec_of(x)
     if len(spec) < 2 or spec[1] is None:
         return x
     return jax.sharding.reshard(x, jax.sharding.PartitionSpec(spec[0], None, *spec[2:]))
@@ -131,10 +124,10 @@ def _gather_kv(k, v, kv_mask):
 def _blockwise(q, k, v, *, kv_mask, **kw):
     """The O(L) kernel slices q in tiles: it runs on gathered sequences, and the output takes q's
     sequence sharding back."""
-    spec = tuple(getattr(getattr(jax.typeof(q), "sharding", None), "spec", ()) or ())
+    spec = spec_of(q)
     k, v, kv_mask = _gather_kv(k, v, kv_mask)
     o = blockwise_attention(_gather_sequence(q), k, v, kv_mask=kv_mask, **kw)
-    if len(spec) > 1 and spec[1] is not None:
+    if spec[1] is not None:
         o = jax.sharding.reshard(o, jax.sharding.PartitionSpec(*spec))
     return o
 
@@ -165,7 +158,7 @@ def attention(q, k, v, *, impl: str = "auto", kv_mask=None, causal_block=None, m
     check_choice("impl", impl, IMPLS)
     _check_inputs(q, k, v, kv_mask, causal_block)
     scale = 1.0 / math.sqrt(q.shape[-1]) if scale is None else float(scale)
-    mesh = _mesh_or_context(mesh)
+    mesh = context_mesh() if mesh is None else mesh
     if impl == "auto":
         impl = _auto(q, k, v, mesh, kv_mask, causal_block)
     if impl == "xla":
