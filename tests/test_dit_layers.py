@@ -8,8 +8,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxdrive.models.dit_layers import (Init, apply_rope, fourier_features, from_sequence, host_init, rope_3d,
-                                        sincos_3d, timestep_embedding, to_sequence)
+from jaxdrive.models.embeddings import apply_rope, fourier_features, rope_3d, sincos_3d, timestep_embedding
+from jaxdrive.models.params import Init, host_init
+from jaxdrive.models.tokens import from_sequence, to_sequence
 from jaxdrive.models.htft import HTFT, buffer_init, buffer_push, buffer_select
 
 

@@ -56,9 +56,10 @@ from jaxdrive.models.dit_controls import (BoxEncoder, CameraEncoder, CaptionEnco
                                           TimestepMLP, TrajectoryEncoder, WaypointEncoder, null_param,
                                           use_null)
 from jaxdrive.models.dit_inputs import check_inputs, example_inputs
-from jaxdrive.models.dit_layers import (MLP, TEXT, VIDEO, ZEROS, Dense, LayerNorm, abstract_params, host_params,
-                                        modulate, normal, param, pool_frames, reshape, rope_3d, sincos_2d,
-                                        sincos_3d)
+from jaxdrive.models.embeddings import rope_3d, sincos_2d, sincos_3d
+from jaxdrive.models.layers import MLP, Dense, LayerNorm, modulate
+from jaxdrive.models.params import ZEROS, abstract_params, host_params, normal, param
+from jaxdrive.models.tokens import TEXT, VIDEO, pool_frames, reshape
 from jaxdrive.models.htft import HTFT
 from jaxdrive.parallel.rules import constrain
 

@@ -28,7 +28,9 @@ import jax
 import jax.numpy as jnp
 
 from jaxdrive.attention import attention
-from jaxdrive.models.dit_layers import ONES, ZEROS, AttnProj, Dense, from_sequence, merge, param, to_sequence
+from jaxdrive.models.layers import AttnProj, Dense
+from jaxdrive.models.params import ONES, ZEROS, param
+from jaxdrive.models.tokens import from_sequence, merge, to_sequence
 from jaxdrive.parallel.rules import constrain
 from jaxdrive.validate import check_positive_int, check_shape
 
