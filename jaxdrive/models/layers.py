@@ -1,4 +1,4 @@
-"""Shared layers of jaxdrive's models: sharded dense layers, norms, the MLP, adaLN modulation,
+"""Shared layers of jaxdrive's models: sharded dense layers, norms (layer, RMS, group), the MLP, adaLN modulation,
 embedding lookups and the attention projections.
 
 Every parameter carries logical axis names (``nn.with_logical_partitioning``; the names are those
@@ -99,6 +99,29 @@ class RMSNorm(nn.Module):
         x = x.astype(jnp.float32)
         y = x * jax.lax.rsqrt(jnp.square(x).mean(-1, keepdims=True) + self.eps)
         return (y * param(self, "scale", ONES, (x.shape[-1],), (self.name_,))).astype(dtype)
+
+
+class GroupNorm(nn.Module):
+    """Group normalisation in float32 with a learned per-channel scale and bias: statistics over the
+    ``D / groups`` channels of a group and every axis after the first ``keep``, which keep their
+    own statistics. ``keep=1``: per example (the VAE's ``[N, T, H, W, C]``: CogVideoX's statistics
+    span time); ``keep=2``: per example and frame (HTFT's ``[B, F, S, V, D]``, STAGE sec. 4B)."""
+
+    groups: int
+    eps: float = 1e-6
+    keep: int = 1
+    name_: str = "channels"
+
+    @nn.compact
+    def __call__(self, x):
+        c = x.shape[-1]
+        xf = x.astype(jnp.float32).reshape(*x.shape[:-1], self.groups, c // self.groups)
+        axes = tuple(range(self.keep, x.ndim - 1)) + (x.ndim,)
+        mean = jnp.mean(xf, axis=axes, keepdims=True)
+        var = jnp.mean(jnp.square(xf - mean), axis=axes, keepdims=True)
+        y = ((xf - mean) * jax.lax.rsqrt(var + self.eps)).reshape(x.shape)
+        names = (self.name_,)
+        return (y * param(self, "scale", ONES, (c,), names) + param(self, "bias", ZEROS, (c,), names)).astype(x.dtype)
 
 
 def modulate(x, shift, scale):

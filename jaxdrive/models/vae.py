@@ -41,6 +41,7 @@ import numpy as np
 from jaxdrive import validate
 from jaxdrive.models import vae_layers as L
 from jaxdrive.models.initializers import init_key
+from jaxdrive.models.layers import GroupNorm
 from jaxdrive.parallel.rules import constrain
 
 MODES = ("chunked", "whole", "frame_wise")
@@ -145,7 +146,7 @@ class Encoder3D(nn.Module):
             key = f"mid_block/resnets_{j}"
             h, new[key] = L.ResnetBlock3D(c.block_out_channels[-1], c.norm_num_groups, c.norm_eps,
                                           dtype=dtype, name=key.replace("/", "_"))(h, cache=cache.get(key))
-        h = nn.silu(L.GroupNorm(c.norm_num_groups, 1e-6, name="norm_out")(h))
+        h = nn.silu(GroupNorm(c.norm_num_groups, 1e-6, name="norm_out")(h))
         h, new["conv_out"] = L.CausalConv3d(2 * c.latent_channels, dtype=dtype, name="conv_out")(
             h, cache.get("conv_out"))
         return h, new

@@ -9,8 +9,9 @@ numbers.
   with ``kt - 1`` copies of the first frame, or with the ``kt - 1`` last input frames of the
   previous chunk (the *cache*) when a long video is processed chunk by chunk; space is
   zero-padded. Every call returns ``(y, new_cache)``.
-- :class:`GroupNorm`: statistics over (time, height, width, channels of the group) per example, in
-  float32. Because the statistics span time, a chunked pass differs from a whole-clip pass.
+- GroupNorm (:class:`jaxdrive.models.layers.GroupNorm`, shared with HTFT): statistics over (time,
+  height, width, channels of the group) per example, in float32. Because the statistics span
+  time, a chunked pass differs from a whole-clip pass.
 - :class:`SpatialNorm3D`: the decoder's normalisation conditioned on the latent ``zq`` (Zheng et
   al. 2022, MoVQ): ``GroupNorm(f) * conv_y(zq) + conv_b(zq)`` with ``zq`` resized by nearest
   neighbour to ``f``, the first frame separately from the rest.
@@ -29,6 +30,8 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from jaxdrive.models.layers import GroupNorm
 
 # Logical names (jaxdrive.parallel.rules): convolution weights are small and replicated.
 CONV3D_AXES = ("kernel", "kernel", "kernel", "channels", "channels")
@@ -71,25 +74,6 @@ class CausalConv3d(nn.Module):
             new_cache = x[:, x.shape[1] - (kt - 1):]
         pad = ((0, 0), ((kh - 1) // 2,) * 2, ((kw - 1) // 2,) * 2)
         return conv(x, kernel, bias, padding=pad, dtype=self.dtype), new_cache
-
-
-class GroupNorm(nn.Module):
-    """Group normalisation over everything but the batch axis, statistics in float32."""
-
-    groups: int
-    eps: float = 1e-6
-
-    @nn.compact
-    def __call__(self, x):
-        c = x.shape[-1]
-        scale = _param(self, "scale", nn.initializers.ones, (c,), VECTOR_AXES)
-        bias = _param(self, "bias", nn.initializers.zeros, (c,), VECTOR_AXES)
-        xf = x.astype(jnp.float32).reshape(*x.shape[:-1], self.groups, c // self.groups)
-        axes = tuple(range(1, x.ndim - 1)) + (x.ndim,)
-        mean = jnp.mean(xf, axis=axes, keepdims=True)
-        var = jnp.mean(jnp.square(xf - mean), axis=axes, keepdims=True)
-        y = ((xf - mean) * jax.lax.rsqrt(var + self.eps)).reshape(x.shape)
-        return (y * scale + bias).astype(x.dtype)
 
 
 def nearest_resize(x, size):
