@@ -1,10 +1,14 @@
-"""Parameters of jaxdrive's models: how a layer declares one and how they are initialised.
+"""Parameters of jaxdrive's models (the DiT, the VAE, HTFT): how a layer declares one and how
+they are initialised.
 
 A layer creates each parameter with :func:`param`: float32, boxed with logical axis names
 (:mod:`jaxdrive.parallel.rules`) and drawn by an :class:`Init`. An ``Init`` draws either in JAX
-(flax's ``init``, e.g. jitted with sharded outputs) or on the host with NumPy
-(:func:`host_params`): compiling one random draw per parameter takes minutes on a CPU for a
-model with hundreds of parameters, and the host draw compiles nothing.
+(flax's ``init``, e.g. jitted with sharded outputs) or on the host with NumPy. The host draw is
+the fast initialisation of every model (``DiT.init_params``, ``CausalVAE.init``,
+:func:`host_init`): in JAX, XLA compiles one random draw per parameter, which for a model with
+hundreds of parameters takes minutes on a CPU (CogVideoX's VAE: 64 s to compile with threefry
+keys, about 10 s with ``unsafe_rbg`` ones); the host draw compiles nothing (that VAE's 216 M
+values take about 8 s on 2 CPU cores), and a seed gives the same values on every backend.
 """
 
 from __future__ import annotations
@@ -24,12 +28,12 @@ from jaxdrive.parallel.rules import constrain
 @dataclasses.dataclass(frozen=True)
 class Init:
     """A parameter initialiser that runs in JAX (``flax`` init, e.g. jitted and sharded) or on the
-    host with NumPy (:func:`host_params`, which needs no compilation: compiling one random draw per
-    parameter takes minutes on a CPU for a model with hundreds of parameters).
+    host with NumPy (:func:`host_params`), from the same distribution.
 
     ``kind``: ``"zeros"``, ``"ones"``, ``"normal"`` (``std``), ``"xavier"`` (Glorot-uniform,
-    ``fan_in_axes`` leading dims are the fan-in, the rest the fan-out) or ``"lecun"`` (normal with
-    std ``1 / sqrt(fan in)``)."""
+    ``fan_in_axes`` leading dims are the fan-in, the rest the fan-out), ``"lecun"`` (normal with
+    std ``1 / sqrt(fan in)``) or ``"lecun_truncated"`` (flax's ``lecun_normal``: a normal
+    truncated at 2 standard deviations, scaled to std ``1 / sqrt(fan in)``; the VAE's kernels)."""
 
     kind: str = "xavier"
     std: float = 0.02
@@ -48,6 +52,11 @@ class Init:
         if self.kind == "xavier":
             lim = math.sqrt(6.0 / (fan_in + fan_out))
             return jax.random.uniform(key, shape, dtype, -lim, lim)
+        if self.kind == "lecun_truncated":   # flax's lecun_normal itself, fans as declared here
+            axes = tuple(range(len(shape)))
+            return jax.nn.initializers.variance_scaling(
+                1.0, "fan_in", "truncated_normal", in_axis=axes[:self.fan_in_axes],
+                out_axis=axes[self.fan_in_axes:])(key, shape, dtype)
         std = self.std if self.kind == "normal" else 1.0 / math.sqrt(fan_in)
         return std * jax.random.normal(key, shape, dtype)
 
@@ -63,11 +72,20 @@ class Init:
         if self.kind == "xavier":
             lim = math.sqrt(6.0 / (fan_in + fan_out))
             return rng.uniform(-lim, lim, shape).astype(np.float32)
+        if self.kind == "lecun_truncated":
+            z = rng.standard_normal(shape)
+            tails = np.abs(z) > 2.0
+            while tails.any():   # redrawn until none is left: a normal truncated at +-2
+                z[tails] = rng.standard_normal(int(tails.sum()))
+                tails = np.abs(z) > 2.0
+            return (z * (1.0 / math.sqrt(fan_in) / TRUNCATED_STD)).astype(np.float32)
         std = self.std if self.kind == "normal" else 1.0 / math.sqrt(fan_in)
         return (std * rng.standard_normal(shape)).astype(np.float32)
 
 
 ZEROS, ONES = Init("zeros"), Init("ones")
+# Standard deviation of a standard normal truncated to (-2, 2) (flax's constant).
+TRUNCATED_STD = .87962566103423978
 
 
 def normal(std: float) -> Init:
@@ -109,11 +127,12 @@ def host_init(module: nn.Module, *args, seed: int = 0, boxed: bool = False, **kw
     return {"params": host_params(*abstract_params(module, *args, **kwargs), seed, boxed=boxed)}
 
 
-def host_params(abstract, recorded: dict, seed: int = 0, *, boxed: bool = False):
+def host_params(abstract, recorded: dict, seed=0, *, boxed: bool = False):
     """Fill an abstract boxed params tree (``jax.eval_shape`` of ``init`` under
-    :func:`record_inits`) with NumPy values drawn per each parameter's :class:`Init`."""
+    :func:`record_inits`) with NumPy values drawn per each parameter's :class:`Init`, in path
+    order, from ``np.random.default_rng(seed)``."""
     from flax.traverse_util import flatten_dict, unflatten_dict
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(seed)   # a Generator passes through: parts can share one stream
     out = {}
     for path, leaf in sorted(flatten_dict(abstract).items()):
         key = path[1:] if path[0] == "params" else path
@@ -125,3 +144,27 @@ def host_params(abstract, recorded: dict, seed: int = 0, *, boxed: bool = False)
         out[path] = leaf.replace_boxed(arr) if boxed and isinstance(leaf, nn.LogicallyPartitioned) else arr
     return unflatten_dict(out)
 
+
+def host_params_for_key(key, parts: dict, *, boxed: bool = False) -> dict:
+    """``{name: params}`` for ``parts = {name: abstract_params(module, ...)}``, drawn as
+    :func:`host_params` does from one NumPy stream seeded by the data of the JAX ``key`` (the
+    parts one after the other). The draw runs in a ``jax.pure_callback``, so the values are the
+    same eagerly and under ``jax.jit``, and ``jax.eval_shape`` gives their shapes."""
+    def draw(data):
+        rng = np.random.default_rng(np.asarray(data, np.uint32).reshape(-1))
+        return {name: host_params(abstract, recorded, rng) for name, (abstract, recorded) in parts.items()}
+
+    shapes = {name: nn.unbox(abstract) for name, (abstract, _) in parts.items()}
+    values = jax.pure_callback(draw, shapes, _key_data(key))
+    if not boxed:
+        return values
+    is_box = lambda x: isinstance(x, nn.LogicallyPartitioned)
+    return {name: jax.tree_util.tree_map(lambda box, v: box.replace_boxed(v), parts[name][0], values[name],
+                                         is_leaf=is_box) for name in parts}
+
+
+def _key_data(key):
+    """``uint32`` data of a typed key or of a raw ``PRNGKey`` array."""
+    if jnp.issubdtype(jnp.asarray(key).dtype, jax.dtypes.prng_key):
+        return jax.random.key_data(key)
+    return jnp.asarray(key, jnp.uint32)

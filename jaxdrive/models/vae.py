@@ -40,8 +40,8 @@ import numpy as np
 
 from jaxdrive import validate
 from jaxdrive.models import vae_layers as L
-from jaxdrive.models.initializers import init_key
 from jaxdrive.models.layers import GroupNorm
+from jaxdrive.models.params import abstract_params, host_params_for_key
 from jaxdrive.parallel.rules import constrain
 
 MODES = ("chunked", "whole", "frame_wise")
@@ -266,10 +266,16 @@ class CausalVAE:
 
     # ---------------------------------------------------------------- parameters
     def init(self, key, *, boxed: bool = False):
-        """Fresh parameters ``{"encoder": ..., "decoder": ...}``. ``boxed=True`` keeps flax's
-        logical-axis metadata, for :func:`jaxdrive.parallel.param_shardings`."""
-        params = _init(self, key)
-        return params if boxed else nn.unbox(params)
+        """Fresh parameters ``{"encoder": ..., "decoder": ...}``, drawn on the host seeded by
+        ``key`` (:func:`jaxdrive.models.params.host_params_for_key`: nothing random is compiled).
+        ``boxed=True`` keeps flax's logical-axis metadata, for
+        :func:`jaxdrive.parallel.param_shardings`."""
+        c = self.config
+        s = c.spatial_compression
+        video = jnp.zeros((1, 1, s, s, c.in_channels), jnp.float32)
+        latent = jnp.zeros((1, 1, 1, 1, c.latent_channels), jnp.float32)
+        parts = {"encoder": abstract_params(Encoder3D(c), video), "decoder": abstract_params(Decoder3D(c), latent)}
+        return host_params_for_key(key, parts, boxed=boxed)
 
     # ---------------------------------------------------------------- shapes
     def latent_frames(self, frames: int) -> int:
@@ -353,16 +359,6 @@ class CausalVAE:
             if x.shape[2] > geo_h[tile_key] or x.shape[3] > geo_w[tile_key]:
                 return _tiled(run, x, geo_h, geo_w, kind)
         return run(x)
-
-
-@functools.partial(jax.jit, static_argnums=0)
-def _init(vae: CausalVAE, key):
-    c = vae.config
-    s = c.spatial_compression
-    k1, k2 = jax.random.split(init_key(key))   # fast-compiling keys, see jaxdrive.models.initializers
-    video = jnp.zeros((1, 1, s, s, c.in_channels), jnp.float32)
-    latent = jnp.zeros((1, 1, 1, 1, c.latent_channels), jnp.float32)
-    return {"encoder": Encoder3D(c).init(k1, video)["params"], "decoder": Decoder3D(c).init(k2, latent)["params"]}
 
 
 def _fold_views(x):

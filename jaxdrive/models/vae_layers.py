@@ -32,15 +32,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrive.models.layers import GroupNorm
+from jaxdrive.models.params import ZEROS, Init, param
 
 # Logical names (jaxdrive.parallel.rules): convolution weights are small and replicated.
 CONV3D_AXES = ("kernel", "kernel", "kernel", "channels", "channels")
 CONV2D_AXES = ("kernel", "kernel", "channels", "channels")
 VECTOR_AXES = ("channels",)
-
-
-def _param(module, name, init, shape, axes):
-    return module.param(name, nn.with_logical_partitioning(init, axes), shape)
+# Kernels as flax's lecun_normal (fan in: the taps times the input channels).
+LECUN_3D, LECUN_2D = Init("lecun_truncated", fan_in_axes=4), Init("lecun_truncated", fan_in_axes=3)
 
 
 def conv(x, kernel, bias, *, strides=(1, 1, 1), padding=((0, 0), (0, 0), (0, 0)), dtype=None):
@@ -64,9 +63,8 @@ class CausalConv3d(nn.Module):
     @nn.compact
     def __call__(self, x, cache=None):
         kt, kh, kw = self.kernel_size
-        kernel = _param(self, "kernel", nn.initializers.lecun_normal(),
-                        (kt, kh, kw, x.shape[-1], self.features), CONV3D_AXES)
-        bias = _param(self, "bias", nn.initializers.zeros, (self.features,), VECTOR_AXES)
+        kernel = param(self, "kernel", LECUN_3D, (kt, kh, kw, x.shape[-1], self.features), CONV3D_AXES)
+        bias = param(self, "bias", ZEROS, (self.features,), VECTOR_AXES)
         new_cache = None
         if kt > 1:
             front = jnp.repeat(x[:, :1], kt - 1, axis=1) if cache is None else cache.astype(x.dtype)
@@ -158,9 +156,8 @@ class Downsample3D(nn.Module):
 
     @nn.compact
     def __call__(self, x):
-        kernel = _param(self, "kernel", nn.initializers.lecun_normal(), (3, 3, x.shape[-1], self.features),
-                        CONV2D_AXES)
-        bias = _param(self, "bias", nn.initializers.zeros, (self.features,), VECTOR_AXES)
+        kernel = param(self, "kernel", LECUN_2D, (3, 3, x.shape[-1], self.features), CONV2D_AXES)
+        bias = param(self, "bias", ZEROS, (self.features,), VECTOR_AXES)
         if self.compress_time:
             x = _pool_time(x)
         return conv(x, kernel, bias, strides=(1, 2, 2), padding=((0, 0), (0, 1), (0, 1)), dtype=self.dtype)
@@ -187,9 +184,8 @@ class Upsample3D(nn.Module):
 
     @nn.compact
     def __call__(self, x, first_chunk: bool = True):
-        kernel = _param(self, "kernel", nn.initializers.lecun_normal(), (3, 3, x.shape[-1], self.features),
-                        CONV2D_AXES)
-        bias = _param(self, "bias", nn.initializers.zeros, (self.features,), VECTOR_AXES)
+        kernel = param(self, "kernel", LECUN_2D, (3, 3, x.shape[-1], self.features), CONV2D_AXES)
+        bias = param(self, "bias", ZEROS, (self.features,), VECTOR_AXES)
         if self.compress_time and first_chunk:
             x = jnp.concatenate([_upsample(x[:, :1], False), _upsample(x[:, 1:], True)], axis=1)
         else:
