@@ -145,6 +145,12 @@ def host_params(abstract, recorded: dict, seed=0, *, boxed: bool = False):
     return unflatten_dict(out)
 
 
+def count_params(params) -> int:
+    """Number of parameters in a params tree: of arrays, of ``jax.ShapeDtypeStruct`` leaves (from
+    ``jax.eval_shape``, nothing allocated), boxed or not."""
+    return int(sum(math.prod(x.shape) for x in jax.tree_util.tree_leaves(params)))
+
+
 def host_params_for_key(key, parts: dict, *, boxed: bool = False) -> dict:
     """``{name: params}`` for ``parts = {name: abstract_params(module, ...)}``, drawn as
     :func:`host_params` does from one NumPy stream seeded by the data of the JAX ``key`` (the

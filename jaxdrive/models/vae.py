@@ -31,7 +31,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import Any
 
 import flax.linen as nn
 import jax
@@ -383,7 +382,3 @@ def _posterior(vae: CausalVAE, params, video, mode: str, tiled: bool):
 def _decode(vae: CausalVAE, params, latents, mode: str, tiled: bool):
     z, unfold = _fold_views(latents)
     return unfold(vae._run("decode", params, z, mode, tiled).astype(jnp.float32))
-
-
-def vae_param_count(params: Any) -> int:
-    return int(sum(np.prod(x.shape) for x in jax.tree_util.tree_leaves(params)))
