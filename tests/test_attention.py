@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxdrive.models.attention import attention
+from jaxdrive.attention import attention
 
 
 def _qkvd(b=2, lq=40, lk=40, h=3, d=8, seed=0):
@@ -153,7 +153,7 @@ def test_ring_tiles_chunks_longer_than_its_block(causal_block):
     # chunks of 38 tokens with block = 16: padded to 4 x 48 and attended tile by tile
     from jax.sharding import AxisType
 
-    from jaxdrive.parallel.ring import ring_attention
+    from jaxdrive.attention.ring import ring_attention
     mesh = jax.make_mesh((1, 1, 4, 1), ("data", "fsdp", "seq", "tensor"),
                          axis_types=(AxisType.Explicit,) * 4, devices=jax.devices()[:4])
     q, k, v, do = _qkvd(b=2, lq=150, lk=150, h=2)
@@ -171,7 +171,7 @@ def test_ring_tiles_chunks_longer_than_its_block(causal_block):
 def test_splash_kernel_matches_dense_in_the_pallas_interpreter(kw):
     # the TPU kernel itself, run by the Pallas interpreter on CPU: padded lengths, segment-id
     # masking, the block-causal mask computed in the kernel, its own backward kernels
-    from jaxdrive.parallel.splash import splash_attention
+    from jaxdrive.attention.splash import splash_attention
     q, k, v, do = _qkvd(b=2, lq=200, lk=200, h=2, d=64)
     mask = jnp.ones((2, 200), bool).at[1].set(False) if kw.get("mask") else None  # sample 1: no key
     causal_block = kw.get("causal_block")
@@ -218,3 +218,25 @@ def test_one_device_kernels_take_sequence_sharded_inputs():
                 out = jax.jit(fn)(put(q), put(k), put(v))
                 assert out.sharding.spec == P(None, "seq", None, None)
             assert _rel(out, ref) <= 1e-5
+
+
+@pytest.mark.parametrize("impl", ["ring", "ulysses", "auto"])
+def test_a_mesh_given_outside_its_context_asks_to_enter_it(impl):
+    # outside jax.set_mesh the sharded output's type names a mesh that later ops cannot place:
+    # the forward ran, and jax.grad failed in JAX with a bare error about device assignment
+    from jax.sharding import AxisType
+    q, k, v, _ = _qkvd(b=2, lq=32, lk=32, h=4)
+    names = ("data", "fsdp", "seq", "tensor")
+    mesh = jax.make_mesh((1, 1, 4, 1), names, axis_types=(AxisType.Explicit,) * 4, devices=jax.devices()[:4])
+    other = jax.make_mesh((2, 1, 2, 1), names, axis_types=(AxisType.Explicit,) * 4, devices=jax.devices()[:4])
+    loss = lambda q: jnp.sum(jnp.sin(attention(q, k, v, impl=impl, mesh=mesh, causal_block=8)))
+    enter = r"^mesh: impl '(ring|ulysses)' runs on the mesh it is given only inside it: call attention within `with jax.set_mesh\(mesh\):`"
+    with pytest.raises(ValueError, match=enter):
+        attention(q, k, v, impl=impl, mesh=mesh, causal_block=8)
+    with pytest.raises(ValueError, match=enter):
+        jax.grad(loss)(q)
+    with jax.set_mesh(other), pytest.raises(ValueError, match=enter):   # another mesh's context
+        jax.grad(loss)(q)
+    ref = jax.grad(lambda q: jnp.sum(jnp.sin(attention(q, k, v, impl="xla", causal_block=8))))(q)
+    with jax.set_mesh(mesh):
+        assert _rel(jax.grad(loss)(q), ref) <= 1e-5

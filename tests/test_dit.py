@@ -17,7 +17,7 @@ from jaxdrive.models.dit_blocks import CrossView
 from jaxdrive.models.dit_config import CONDITIONS
 from jaxdrive.models.dit_controls import frame_mode, group_frames
 from jaxdrive.models.dit_inputs import example_inputs
-from jaxdrive.models.dit_layers import host_init
+from jaxdrive.models.params import host_init
 from jaxdrive.models.dit_presets import PRESETS, preset
 
 # 6 views x (1 + 4k) frames with k = 1: 5 pixel frames of conditions, 2 latent frames

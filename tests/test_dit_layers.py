@@ -8,8 +8,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxdrive.models.dit_layers import (Init, apply_rope, fourier_features, from_sequence, host_init, rope_3d,
-                                        sincos_3d, timestep_embedding, to_sequence)
+from jaxdrive.models.embeddings import apply_rope, fourier_features, rope_3d, sincos_3d, timestep_embedding
+from jaxdrive.models.params import Init, host_init
+from jaxdrive.models.tokens import from_sequence, to_sequence
 from jaxdrive.models.htft import HTFT, buffer_init, buffer_push, buffer_select
 
 
@@ -46,7 +47,7 @@ def test_fourier_features_worked_number():
 
 
 @pytest.mark.parametrize("init", [Init("zeros"), Init("ones"), Init("normal", 0.5), Init("xavier", fan_in_axes=2),
-                                  Init("lecun", fan_in_axes=3)])
+                                  Init("lecun", fan_in_axes=3), Init("lecun_truncated", fan_in_axes=3)])
 def test_host_initialisers_match_the_jax_ones(init):
     shape = (3, 3, 40, 50)
     a = np.asarray(init(jax.random.PRNGKey(0), shape))
@@ -62,6 +63,17 @@ def test_host_initialisers_match_the_jax_ones(init):
     # scanned layers: the leading axis does not change the fans
     c = init.host(np.random.default_rng(0), (7,) + shape, len(shape))
     np.testing.assert_allclose(c.std(), b.std(), rtol=0.05)
+
+
+def test_truncated_lecun_is_flax_lecun_normal():
+    # the VAE's kernels: in JAX bit for bit flax's initialiser; on the host the same truncation
+    init, shape = Init("lecun_truncated", fan_in_axes=3), (3, 3, 40, 50)
+    key = jax.random.PRNGKey(3)
+    np.testing.assert_array_equal(init(key, shape), nn.initializers.lecun_normal()(key, shape))
+    b = init.host(np.random.default_rng(0), shape, len(shape))
+    bound = 2 / np.sqrt(3 * 3 * 40) / 0.87962566103423978   # 2 std of the untruncated normal
+    assert np.abs(b).max() <= bound and np.abs(b).max() > 0.99 * bound
+    np.testing.assert_allclose(b.std(), 1 / np.sqrt(3 * 3 * 40), rtol=0.02)
 
 
 def test_sequence_layout_round_trip():

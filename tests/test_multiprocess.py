@@ -73,7 +73,7 @@ def global_inputs():
 def compute(mesh, x, w):
     """Jitted reduction, matmul, a contraction over both sharded axes (all-reduce), and ring
     attention over the seq axis (tokens as one head) with its input gradient."""
-    from jaxdrive.models.attention import attention
+    from jaxdrive.attention import attention
 
     def ring(x):
         h = x[:, :, None, :]

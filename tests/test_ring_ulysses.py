@@ -13,9 +13,9 @@ import pytest
 from jax.sharding import AxisType, NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from jaxdrive.parallel import softmax_blocks as sb
-from jaxdrive.parallel.ring import ring_attention
-from jaxdrive.parallel.ulysses import ulysses_attention
+from jaxdrive.attention import softmax_blocks as sb
+from jaxdrive.attention.ring import ring_attention
+from jaxdrive.attention.ulysses import ulysses_attention
 
 NAMES = ("data", "fsdp", "seq", "tensor")
 MESHES = {"seq8": (1, 1, 8, 1), "data2_seq4": (2, 1, 4, 1), "fsdp2_seq2_tensor2": (1, 2, 2, 2)}
@@ -152,7 +152,7 @@ def test_ulysses_with_small_local_blocks():
     """The local kernel really tiles the gathered sequence (several query and key blocks)."""
     from functools import partial
 
-    from jaxdrive.parallel.blockwise import blockwise_attention
+    from jaxdrive.attention.blockwise import blockwise_attention
 
     mesh = _mesh(MESHES["data2_seq4"])
     q, k, v, ct, mask = _inputs(10, 2, 60, 60, 8, 8, True)
@@ -172,7 +172,7 @@ def test_several_pieces_per_chunk(impl, lq, lk, causal_block):
     """block = 16 on seq = 4: 38-token key chunks are padded to 3 tiles and K/V travel (ring) or
     cross (all-to-all) in 3 pieces per chunk; causal blocks straddle pieces, the mask hides a
     whole batch row, and lengths do not divide the mesh."""
-    from jaxdrive.parallel import seq_shard
+    from jaxdrive.attention import seq_shard
 
     assert seq_shard.tile_size(seq_shard.chunk(lk, 4), 8, 16) == 16
     q, k, v, ct, mask = _inputs(11, 2, lq, lk, 8, 8, True)
@@ -180,7 +180,7 @@ def test_several_pieces_per_chunk(impl, lq, lk, causal_block):
 
 
 def test_tile_size_shrinks_with_the_chunk():
-    from jaxdrive.parallel.seq_shard import MIN_TILE, TILE_FRACTION, tile_size
+    from jaxdrive.attention.seq_shard import MIN_TILE, TILE_FRACTION, tile_size
 
     assert tile_size(65536, 64, 512) == 512      # long chunks: the block
     assert tile_size(8192, 64, 512) == 128       # 128^2 * 16 <= 8192 * 64 < 256^2 * 16

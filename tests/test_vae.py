@@ -21,8 +21,7 @@ TINY = VAEConfig(block_out_channels=(8, 8, 16), layers_per_block=1, latent_chann
 
 def random_params(vae, seed=0):
     """Parameters of ``vae``'s structure drawn with NumPy (kernels ~ N(0, 1/fan_in), norms and
-    biases perturbed around 1 and 0): no compilation, unlike ``vae.init`` (one XLA random draw per
-    parameter), which ``test_init`` covers once."""
+    biases perturbed around 1 and 0, which ``vae.init``'s ones and zeros are not)."""
     rng = np.random.default_rng(seed)
 
     def draw(path, leaf):
@@ -50,6 +49,18 @@ def test_init(tiny):
     assert float(jnp.abs(conv["bias"]).max()) == 0.0
     boxed = vae.init(jax.random.PRNGKey(0), boxed=True)       # logical axis names for sharding
     assert boxed["encoder"]["conv_in"]["kernel"].names == ("kernel", "kernel", "kernel", "channels", "channels")
+
+
+def test_init_is_seeded_by_the_key_and_the_same_under_jit(tiny):
+    vae, _ = tiny
+    fresh = vae.init(jax.random.PRNGKey(0))
+    for other in (jax.jit(vae.init)(jax.random.PRNGKey(0)), vae.init(jax.random.key(0))):
+        assert all(np.array_equal(a, b) for a, b in zip(jax.tree_util.tree_leaves(fresh),
+                                                         jax.tree_util.tree_leaves(other)))
+    again = vae.init(jax.random.PRNGKey(1))
+    assert not np.array_equal(fresh["encoder"]["conv_in"]["kernel"], again["encoder"]["conv_in"]["kernel"])
+    kernel = np.asarray(fresh["encoder"]["conv_in"]["kernel"])          # flax's lecun_normal: fan in 3^3 x 3
+    assert np.abs(kernel).max() <= 2 / np.sqrt(81) / 0.87962566103423978
 
 
 def _video(shape, seed=0):

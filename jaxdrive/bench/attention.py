@@ -43,7 +43,7 @@ DEFINITIONS = {"per_device_memory": "footprint_bytes", "per_device_temp_memory":
 def _grad_fn(impl, mesh=None, **kw):
     import jax
 
-    from jaxdrive.models.attention import attention
+    from jaxdrive.attention import attention
 
     def loss(q, k, v):
         return attention(q, k, v, impl=impl, mesh=mesh, **kw).astype("float32").sum()
@@ -89,7 +89,8 @@ def run(lengths, seq_sizes, time_max, heads, dim, block):
                                      axis_types=(AxisType.Explicit,) * 4, devices=jax.devices()[:n])
                 sharded = jax.ShapeDtypeStruct(shape.shape, jnp.float32,
                                                sharding=NamedSharding(mesh, P(None, "seq", None, None)))
-                compiled = _grad_fn(impl, mesh=mesh).lower(sharded, sharded, sharded).compile()
+                with jax.set_mesh(mesh):   # attention() runs a mesh it is given only inside it
+                    compiled = _grad_fn(impl, mesh=mesh).lower(sharded, sharded, sharded).compile()
                 for figure, measure in DEFINITIONS.items():
                     value = mib(getattr(report, measure)(compiled))
                     figures[figure][f"seq{n}_mib"] = value

@@ -59,6 +59,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import os
 import statistics
 import time
@@ -99,13 +100,6 @@ def peak_tflops(device, given: float | None) -> tuple[float | None, str]:
                   f"(TFLOP/s of this device) for an MFU")
 
 
-def _count(shape) -> int:
-    n = 1
-    for s in shape:
-        n *= int(s)
-    return n
-
-
 def step_flops(cfg, params, *, batch: int, views: int, frames: int, height: int, width: int) -> dict:
     """Analytic model FLOPs of one train step (module docstring): ``{"flops", "matmul_flops",
     "attention_flops", "block_params", "video_tokens", "text_tokens"}``; ``flops`` is None for
@@ -122,7 +116,7 @@ def step_flops(cfg, params, *, batch: int, views: int, frames: int, height: int,
         name = jax.tree_util.keystr(path, simple=True, separator="/")
         if not name.startswith("layers_"):
             continue
-        size = _count(leaf.shape)
+        size = math.prod(leaf.shape)
         block_params += size
         if not name.endswith("kernel") or "_linear/" in name:      # adaLN modulation: per frame
             continue
@@ -167,12 +161,12 @@ def jax_step(cfg, mesh, *, batch: int, frames: int, height: int, width: int, rep
     """Compile and time the library's train step for ``cfg``."""
     import flax.linen as nn
     import jax
-    import numpy as np
 
     from jaxdrive.bench.report import footprint_bytes
     from jaxdrive.config import FlowConfig
     from jaxdrive.models.dit import DiT
     from jaxdrive.models.dit_inputs import example_inputs
+    from jaxdrive.models.params import count_params
     from jaxdrive.train import flow_step
     from jaxdrive.train.run import global_micro_batches, sharded_state
 
@@ -204,7 +198,7 @@ def jax_step(cfg, mesh, *, batch: int, frames: int, height: int, width: int, rep
     cost = compiled.cost_analysis()
     cost = cost[0] if isinstance(cost, (list, tuple)) else cost
     xla_flops = (cost or {}).get("flops")
-    params = sum(int(np.prod(x.shape)) for x in jax.tree_util.tree_leaves(state.params))
+    params = count_params(state.params)
     return dict(step_s=statistics.median(times), compile_s=compile_s, params=params,
                 xla_flops=None if xla_flops is None else float(xla_flops), memory=footprint_bytes(compiled),
                 loss=float(metrics["loss"]), skipped=int(metrics["skipped"]), **flops)

@@ -6,11 +6,11 @@ from __future__ import annotations
 def _convert_vae(args, rest) -> int:
     from jaxdrive.convert.diffusers_vae import load_diffusers_vae
     from jaxdrive.models.pretrained import save_pretrained
-    from jaxdrive.models.vae import vae_param_count
+    from jaxdrive.models.params import count_params
 
     vae, params = load_diffusers_vae(args.src)
     path = save_pretrained(args.dst, vae, params, overwrite=args.overwrite)
-    print(f"wrote the VAE ({vae_param_count(params):,} parameters, {len(vae.config.block_out_channels)} "
+    print(f"wrote the VAE ({count_params(params):,} parameters, {len(vae.config.block_out_channels)} "
           f"blocks, {vae.config.latent_channels} latent channels) to {path}")
     return 0
 

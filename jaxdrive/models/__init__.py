@@ -1,2 +1,2 @@
-"""Flax linen modules: layers, embeddings, the attention kernel registry, condition encoders, the
-diffusion transformer, the 3D causal VAE and STAGE's HTFT feature-transfer module."""
+"""Flax linen modules: layers, embeddings, condition encoders, the diffusion transformer, the 3D
+causal VAE and STAGE's HTFT feature-transfer module (attention itself is :mod:`jaxdrive.attention`)."""

@@ -36,7 +36,7 @@ from flax import struct
 
 from jaxdrive.models.dit_config import CONDITIONS, DiTConfig
 from jaxdrive.models.dit_controls import frame_mode
-from jaxdrive.models.dit_layers import mesh_axis_size
+from jaxdrive.parallel.mesh import mesh_axis_size
 from jaxdrive.validate import check_range, check_shape
 
 # Fields that belong to a control; given while the control is off they are an error.

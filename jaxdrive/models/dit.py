@@ -58,9 +58,10 @@ from jaxdrive.models.dit_controls import (BoxEncoder, CameraEncoder, CaptionEnco
                                           TimestepMLP, TrajectoryEncoder, WaypointEncoder, null_param,
                                           use_null)
 from jaxdrive.models.dit_inputs import example_inputs
-from jaxdrive.models.dit_layers import (MLP, TEXT, VIDEO, ZEROS, Dense, LayerNorm, abstract_params, host_params,
-                                        modulate, normal, param, pool_frames, reshape, rope_3d, sincos_2d,
-                                        sincos_3d)
+from jaxdrive.models.embeddings import rope_3d, sincos_2d, sincos_3d
+from jaxdrive.models.layers import MLP, Dense, LayerNorm, modulate
+from jaxdrive.models.params import ZEROS, abstract_params, count_params, host_params, normal, param
+from jaxdrive.models.tokens import TEXT, VIDEO, pool_frames, reshape
 from jaxdrive.models.htft import HTFT
 from jaxdrive.parallel.rules import constrain
 
@@ -469,10 +470,7 @@ def reference_input(x, cond_latents, cond_mask):
 
 def param_count(cfg: DiTConfig) -> int:
     """Number of parameters of ``DiT(cfg)``, from ``jax.eval_shape`` (nothing is allocated)."""
-    dit = DiT(cfg)
-    ex = example_inputs(cfg, views=2 if cfg.multiview == "cross_view" else 1)
-    shapes = jax.eval_shape(lambda: nn.unbox(dit.init(jax.random.PRNGKey(0), **ex)["params"]))
-    return int(sum(np.prod(x.shape) for x in jax.tree_util.tree_leaves(shapes)))
+    return count_params(DiT(cfg).abstract_params(views=2 if cfg.multiview == "cross_view" else 1))
 
 
 __all__ = ["DiT", "DiTConfig", "example_inputs", "param_count", "patchify", "unpatchify"]

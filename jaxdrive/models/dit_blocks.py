@@ -15,9 +15,9 @@ attentions communicate:
   tokens: **no communication** (every device holds all frames of its patches and all context
   tokens); they run a local kernel (``local_attn_impl``).
 
-Every attention goes through :func:`jaxdrive.models.attention.attention`. Sequences are built so
+Every attention goes through :func:`jaxdrive.attention.attention`. Sequences are built so
 that the sharded axis S is the major part of the merged sequence (see
-:func:`jaxdrive.models.dit_layers.to_sequence`): each device then holds one contiguous chunk, which
+:func:`jaxdrive.models.tokens.to_sequence`): each device then holds one contiguous chunk, which
 is what the ring and all-to-all kernels expect. Attention without positions inside the sequence
 (or with RoPE applied before merging) does not depend on the token order, so the order is free.
 """
@@ -28,16 +28,17 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from jaxdrive.models.attention import attention
-from jaxdrive.models.dit_config import DiTConfig
-from jaxdrive.models.dit_layers import _explicit_mesh, _spec_of
-from jaxdrive.models.dit_layers import (MLP, TEXT, VIDEO, ZEROS, AttnProj, Dense, LayerNorm, apply_rope,
-                                        from_sequence, merge, mesh_axis_size, modulate, normal, param, reshape, rope_1d,
-                                        split, to_sequence)
-from jaxdrive.parallel.rules import constrain
 from flax import struct
 from jax.sharding import PartitionSpec
+
+from jaxdrive.attention import attention
+from jaxdrive.models.dit_config import DiTConfig
+from jaxdrive.models.embeddings import apply_rope, rope_1d
+from jaxdrive.models.layers import MLP, AttnProj, Dense, LayerNorm, modulate
+from jaxdrive.models.params import ZEROS, normal, param
+from jaxdrive.models.tokens import TEXT, VIDEO, from_sequence, merge, reshape, split, to_sequence
+from jaxdrive.parallel.mesh import explicit_mesh, mesh_axis_size, spec_of
+from jaxdrive.parallel.rules import constrain
 
 
 @struct.dataclass
@@ -181,8 +182,8 @@ def joint_attention(proj: AttnProj, xv, xt, *, impl: str, rope=None, text_mask=N
 
     def join(t, v):
         if n == 1:
-            if _explicit_mesh() is not None:      # one seq device: give the text the video's layout
-                t = jax.reshard(t, PartitionSpec(*_spec_of(v)))
+            if explicit_mesh() is not None:      # one seq device: give the text the video's layout
+                t = jax.reshard(t, PartitionSpec(*spec_of(v)))
             return jnp.concatenate([t, v], axis=1)
         return merge(jnp.concatenate([split(t, 1, n), split(v, 1, n)], axis=2), 1)
     q, k, v = (join(t, v) for t, v in zip(seqs_t, seqs_v))

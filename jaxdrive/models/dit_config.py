@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import jax.numpy as jnp
 
 from jaxdrive.flow.rectified import PREDICTIONS    # the one list of output kinds (pure math, no jaxdrive deps)
-from jaxdrive.models.attention import IMPLS
+from jaxdrive.attention import IMPLS
 from jaxdrive.validate import check_choice, check_positive_int
 
 LAYOUTS = ("factorized", "full")

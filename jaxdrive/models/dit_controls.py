@@ -20,11 +20,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrive import geometry
-from jaxdrive.models.attention import attention
+from jaxdrive.attention import attention
 from jaxdrive.parallel.rules import constrain
-from jaxdrive.models.dit_layers import (MLP, ZEROS, AttnProj, Dense, Init, LayerNorm, apply_rope,
-                                        fourier_features, lookup, merge, normal, param, rope_1d, split,
-                                        timestep_embedding)
+from jaxdrive.models.embeddings import apply_rope, fourier_features, rope_1d, timestep_embedding
+from jaxdrive.models.layers import MLP, AttnProj, Dense, LayerNorm, lookup
+from jaxdrive.models.params import ZEROS, Init, normal, param
+from jaxdrive.models.tokens import merge, split
 
 
 def frame_mode(name: str, frames: int, latent_frames: int, ratio: int) -> str:

@@ -24,35 +24,18 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import flax.linen as nn
-import jax
 import jax.numpy as jnp
 
-from jaxdrive.models.attention import attention
-from jaxdrive.models.dit_layers import ONES, ZEROS, AttnProj, Dense, from_sequence, merge, param, to_sequence
+from jaxdrive.attention import attention
+from jaxdrive.models.layers import AttnProj, Dense, GroupNorm
+from jaxdrive.models.params import ZEROS
+from jaxdrive.models.tokens import from_sequence, merge, to_sequence
 from jaxdrive.parallel.rules import constrain
 from jaxdrive.validate import check_positive_int, check_shape
 
 BUFFER_SIZE = 10
 SELECT = (-1, -5, -10)
 _SFV = (2, 1, 3)   # merged sequences: spatial patches (the sharded axis) major
-
-
-class GroupNorm(nn.Module):
-    """GroupNorm of ``x [B, F, S, V, D]`` per (batch, frame): statistics over all tokens of the
-    frame and ``D / groups`` channels, learned per-channel scale and bias; float32."""
-
-    groups: int
-    eps: float = 1e-6
-
-    @nn.compact
-    def __call__(self, x):
-        b, f, s, v, d = x.shape
-        xf = x.astype(jnp.float32).reshape(b, f, s, v, self.groups, d // self.groups)
-        mean = xf.mean(axis=(2, 3, 5), keepdims=True)
-        var = jnp.square(xf - mean).mean(axis=(2, 3, 5), keepdims=True)
-        y = ((xf - mean) * jax.lax.rsqrt(var + self.eps)).reshape(x.shape)
-        names = ("embed",)
-        return (y * param(self, "scale", ONES, (d,), names) + param(self, "bias", ZEROS, (d,), names)).astype(x.dtype)
 
 
 class HTFT(nn.Module):
@@ -75,7 +58,7 @@ class HTFT(nn.Module):
     def __call__(self, f, past, past_mask=None, deterministic: bool = True):
         check_shape("past", past, [f.shape[0], None, *f.shape[2:]])
         g = Dense(self.width, ("embed", None), dtype=self.dtype, name="linear_in")(
-            GroupNorm(self.groups, name="norm")(f))
+            GroupNorm(self.groups, keep=2, name_="embed", name="norm")(f))
         proj = AttnProj(self.heads, self.head_dim, self.width, dtype=self.dtype, name="attn")
         q, (k, v) = proj.q(g), proj.kv(past)
         mask = None

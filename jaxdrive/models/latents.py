@@ -19,7 +19,7 @@ import dataclasses
 import jax.numpy as jnp
 
 from jaxdrive import validate
-from jaxdrive.models.dit_layers import reshape   # keeps the batch sharding under Explicit meshes
+from jaxdrive.models.tokens import reshape   # keeps the batch sharding under Explicit meshes
 
 
 def space_to_depth(video, factor: int):

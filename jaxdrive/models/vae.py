@@ -31,7 +31,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import Any
 
 import flax.linen as nn
 import jax
@@ -40,7 +39,8 @@ import numpy as np
 
 from jaxdrive import validate
 from jaxdrive.models import vae_layers as L
-from jaxdrive.models.initializers import init_key
+from jaxdrive.models.layers import GroupNorm
+from jaxdrive.models.params import abstract_params, host_params_for_key
 from jaxdrive.parallel.rules import constrain
 
 MODES = ("chunked", "whole", "frame_wise")
@@ -145,7 +145,7 @@ class Encoder3D(nn.Module):
             key = f"mid_block/resnets_{j}"
             h, new[key] = L.ResnetBlock3D(c.block_out_channels[-1], c.norm_num_groups, c.norm_eps,
                                           dtype=dtype, name=key.replace("/", "_"))(h, cache=cache.get(key))
-        h = nn.silu(L.GroupNorm(c.norm_num_groups, 1e-6, name="norm_out")(h))
+        h = nn.silu(GroupNorm(c.norm_num_groups, 1e-6, name="norm_out")(h))
         h, new["conv_out"] = L.CausalConv3d(2 * c.latent_channels, dtype=dtype, name="conv_out")(
             h, cache.get("conv_out"))
         return h, new
@@ -265,10 +265,16 @@ class CausalVAE:
 
     # ---------------------------------------------------------------- parameters
     def init(self, key, *, boxed: bool = False):
-        """Fresh parameters ``{"encoder": ..., "decoder": ...}``. ``boxed=True`` keeps flax's
-        logical-axis metadata, for :func:`jaxdrive.parallel.param_shardings`."""
-        params = _init(self, key)
-        return params if boxed else nn.unbox(params)
+        """Fresh parameters ``{"encoder": ..., "decoder": ...}``, drawn on the host seeded by
+        ``key`` (:func:`jaxdrive.models.params.host_params_for_key`: nothing random is compiled).
+        ``boxed=True`` keeps flax's logical-axis metadata, for
+        :func:`jaxdrive.parallel.param_shardings`."""
+        c = self.config
+        s = c.spatial_compression
+        video = jnp.zeros((1, 1, s, s, c.in_channels), jnp.float32)
+        latent = jnp.zeros((1, 1, 1, 1, c.latent_channels), jnp.float32)
+        parts = {"encoder": abstract_params(Encoder3D(c), video), "decoder": abstract_params(Decoder3D(c), latent)}
+        return host_params_for_key(key, parts, boxed=boxed)
 
     # ---------------------------------------------------------------- shapes
     def latent_frames(self, frames: int) -> int:
@@ -354,16 +360,6 @@ class CausalVAE:
         return run(x)
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _init(vae: CausalVAE, key):
-    c = vae.config
-    s = c.spatial_compression
-    k1, k2 = jax.random.split(init_key(key))   # fast-compiling keys, see jaxdrive.models.initializers
-    video = jnp.zeros((1, 1, s, s, c.in_channels), jnp.float32)
-    latent = jnp.zeros((1, 1, 1, 1, c.latent_channels), jnp.float32)
-    return {"encoder": Encoder3D(c).init(k1, video)["params"], "decoder": Decoder3D(c).init(k2, latent)["params"]}
-
-
 def _fold_views(x):
     """``[B, V, F, ...] -> [B * V, F, ...]`` (batch sharded over data/fsdp), and the unfold."""
     if x.ndim == 5:
@@ -386,7 +382,3 @@ def _posterior(vae: CausalVAE, params, video, mode: str, tiled: bool):
 def _decode(vae: CausalVAE, params, latents, mode: str, tiled: bool):
     z, unfold = _fold_views(latents)
     return unfold(vae._run("decode", params, z, mode, tiled).astype(jnp.float32))
-
-
-def vae_param_count(params: Any) -> int:
-    return int(sum(np.prod(x.shape) for x in jax.tree_util.tree_leaves(params)))

@@ -9,8 +9,9 @@ numbers.
   with ``kt - 1`` copies of the first frame, or with the ``kt - 1`` last input frames of the
   previous chunk (the *cache*) when a long video is processed chunk by chunk; space is
   zero-padded. Every call returns ``(y, new_cache)``.
-- :class:`GroupNorm`: statistics over (time, height, width, channels of the group) per example, in
-  float32. Because the statistics span time, a chunked pass differs from a whole-clip pass.
+- GroupNorm (:class:`jaxdrive.models.layers.GroupNorm`, shared with HTFT): statistics over (time,
+  height, width, channels of the group) per example, in float32. Because the statistics span
+  time, a chunked pass differs from a whole-clip pass.
 - :class:`SpatialNorm3D`: the decoder's normalisation conditioned on the latent ``zq`` (Zheng et
   al. 2022, MoVQ): ``GroupNorm(f) * conv_y(zq) + conv_b(zq)`` with ``zq`` resized by nearest
   neighbour to ``f``, the first frame separately from the rest.
@@ -30,14 +31,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdrive.models.layers import GroupNorm
+from jaxdrive.models.params import ZEROS, Init, param
+
 # Logical names (jaxdrive.parallel.rules): convolution weights are small and replicated.
 CONV3D_AXES = ("kernel", "kernel", "kernel", "channels", "channels")
 CONV2D_AXES = ("kernel", "kernel", "channels", "channels")
 VECTOR_AXES = ("channels",)
-
-
-def _param(module, name, init, shape, axes):
-    return module.param(name, nn.with_logical_partitioning(init, axes), shape)
+# Kernels as flax's lecun_normal (fan in: the taps times the input channels).
+LECUN_3D, LECUN_2D = Init("lecun_truncated", fan_in_axes=4), Init("lecun_truncated", fan_in_axes=3)
 
 
 def conv(x, kernel, bias, *, strides=(1, 1, 1), padding=((0, 0), (0, 0), (0, 0)), dtype=None):
@@ -61,9 +63,8 @@ class CausalConv3d(nn.Module):
     @nn.compact
     def __call__(self, x, cache=None):
         kt, kh, kw = self.kernel_size
-        kernel = _param(self, "kernel", nn.initializers.lecun_normal(),
-                        (kt, kh, kw, x.shape[-1], self.features), CONV3D_AXES)
-        bias = _param(self, "bias", nn.initializers.zeros, (self.features,), VECTOR_AXES)
+        kernel = param(self, "kernel", LECUN_3D, (kt, kh, kw, x.shape[-1], self.features), CONV3D_AXES)
+        bias = param(self, "bias", ZEROS, (self.features,), VECTOR_AXES)
         new_cache = None
         if kt > 1:
             front = jnp.repeat(x[:, :1], kt - 1, axis=1) if cache is None else cache.astype(x.dtype)
@@ -71,25 +72,6 @@ class CausalConv3d(nn.Module):
             new_cache = x[:, x.shape[1] - (kt - 1):]
         pad = ((0, 0), ((kh - 1) // 2,) * 2, ((kw - 1) // 2,) * 2)
         return conv(x, kernel, bias, padding=pad, dtype=self.dtype), new_cache
-
-
-class GroupNorm(nn.Module):
-    """Group normalisation over everything but the batch axis, statistics in float32."""
-
-    groups: int
-    eps: float = 1e-6
-
-    @nn.compact
-    def __call__(self, x):
-        c = x.shape[-1]
-        scale = _param(self, "scale", nn.initializers.ones, (c,), VECTOR_AXES)
-        bias = _param(self, "bias", nn.initializers.zeros, (c,), VECTOR_AXES)
-        xf = x.astype(jnp.float32).reshape(*x.shape[:-1], self.groups, c // self.groups)
-        axes = tuple(range(1, x.ndim - 1)) + (x.ndim,)
-        mean = jnp.mean(xf, axis=axes, keepdims=True)
-        var = jnp.mean(jnp.square(xf - mean), axis=axes, keepdims=True)
-        y = ((xf - mean) * jax.lax.rsqrt(var + self.eps)).reshape(x.shape)
-        return (y * scale + bias).astype(x.dtype)
 
 
 def nearest_resize(x, size):
@@ -174,9 +156,8 @@ class Downsample3D(nn.Module):
 
     @nn.compact
     def __call__(self, x):
-        kernel = _param(self, "kernel", nn.initializers.lecun_normal(), (3, 3, x.shape[-1], self.features),
-                        CONV2D_AXES)
-        bias = _param(self, "bias", nn.initializers.zeros, (self.features,), VECTOR_AXES)
+        kernel = param(self, "kernel", LECUN_2D, (3, 3, x.shape[-1], self.features), CONV2D_AXES)
+        bias = param(self, "bias", ZEROS, (self.features,), VECTOR_AXES)
         if self.compress_time:
             x = _pool_time(x)
         return conv(x, kernel, bias, strides=(1, 2, 2), padding=((0, 0), (0, 1), (0, 1)), dtype=self.dtype)
@@ -203,9 +184,8 @@ class Upsample3D(nn.Module):
 
     @nn.compact
     def __call__(self, x, first_chunk: bool = True):
-        kernel = _param(self, "kernel", nn.initializers.lecun_normal(), (3, 3, x.shape[-1], self.features),
-                        CONV2D_AXES)
-        bias = _param(self, "bias", nn.initializers.zeros, (self.features,), VECTOR_AXES)
+        kernel = param(self, "kernel", LECUN_2D, (3, 3, x.shape[-1], self.features), CONV2D_AXES)
+        bias = param(self, "bias", ZEROS, (self.features,), VECTOR_AXES)
         if self.compress_time and first_chunk:
             x = jnp.concatenate([_upsample(x[:, :1], False), _upsample(x[:, 1:], True)], axis=1)
         else:

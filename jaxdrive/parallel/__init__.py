@@ -1,4 +1,5 @@
-"""Meshes, logical-axis sharding rules, host-to-global arrays and sequence-sharded attention.
+"""Meshes, logical-axis sharding rules and host-to-global arrays (the sequence-sharded attention
+kernels live in :mod:`jaxdrive.attention`, which builds on this package).
 
 ``rules.py`` is the only place that maps logical axis names to the mesh axes ``data``, ``fsdp``,
 ``seq`` and ``tensor``.

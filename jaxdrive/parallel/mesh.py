@@ -140,3 +140,41 @@ def parse_mesh_spec(spec: str) -> dict[str, int]:
                              f"got {value!r}")
         out[name] = size
     return out
+
+
+# ------------------------------------------------------------------ the context mesh
+# Under an Explicit mesh shardings are part of array types: layers read them from the mesh set
+# with ``jax.set_mesh`` (an AbstractMesh, also inside ``jit``) and from their inputs' types.
+
+
+def context_mesh():
+    """The mesh set with ``jax.set_mesh`` (an ``AbstractMesh``), or None outside one."""
+    mesh = jax.sharding.get_abstract_mesh()
+    return None if mesh.empty else mesh
+
+
+def explicit_mesh():
+    """The context mesh when it has an Explicit axis (where outputs need stated shardings)."""
+    mesh = context_mesh()
+    if mesh is None or not any(t == AxisType.Explicit for t in mesh.axis_types):
+        return None
+    return mesh
+
+
+def mesh_axis_size(name: str) -> int:
+    """Size of mesh axis ``name`` in the context mesh (1 without a mesh or without that axis)."""
+    mesh = context_mesh()
+    if mesh is None or name not in mesh.axis_names:
+        return 1
+    return int(dict(zip(mesh.axis_names, mesh.axis_sizes))[name])
+
+
+def spec_of(x) -> tuple:
+    """The ``PartitionSpec`` entries of ``x``'s type, one per dimension (None where unsharded)."""
+    spec = tuple(getattr(getattr(jax.typeof(x), "sharding", None), "spec", ()) or ())
+    return spec + (None,) * (x.ndim - len(spec))
+
+
+def entry_axes(entry) -> tuple[str, ...]:
+    """The mesh axes of one ``PartitionSpec`` entry: None, an axis name or a tuple of names."""
+    return () if entry is None else (entry,) if isinstance(entry, str) else tuple(entry)

@@ -43,6 +43,8 @@ import jax
 from flax.core import meta
 from jax.sharding import AxisType, NamedSharding, PartitionSpec
 
+from jaxdrive.parallel.mesh import entry_axes
+
 _log = logging.getLogger(__name__)
 
 Axes = str | tuple[str, ...] | None
@@ -106,7 +108,7 @@ def logical_to_spec(names: Sequence[str | None], rules: Mapping[str, Axes] = ACT
         if name not in rules:
             raise ValueError(f"names: expected logical axis names from {sorted(rules)}, "
                              f"got {name!r}")
-        axes = _as_tuple(rules[name])
+        axes = entry_axes(rules[name])
         for ax in axes:
             if ax in used:
                 raise ValueError(f"names: expected each mesh axis once per array, got {ax!r} "
@@ -149,7 +151,7 @@ def constrain(x: jax.Array, names: Sequence[str | None], mesh=None,
     spec = logical_to_spec(names, rules, shape=x.shape, mesh=target)
     sharding = spec if mesh is None else NamedSharding(mesh, spec)
     types = dict(zip(target.axis_names, target.axis_types))
-    used = [ax for entry in spec for ax in _as_tuple(entry)]
+    used = [ax for entry in spec for ax in entry_axes(entry)]
     if any(types[ax] == AxisType.Explicit for ax in used) or (
             not used and all(t == AxisType.Explicit for t in types.values())):
         return jax.sharding.reshard(x, sharding)

@@ -1,5 +1,5 @@
-"""Plumbing shared by the sequence-sharded attentions (:mod:`~jaxdrive.parallel.ring`,
-:mod:`~jaxdrive.parallel.ulysses`): input checks and the mesh layout, padding to whole tiles per
+"""Plumbing shared by the sequence-sharded attentions (:mod:`~jaxdrive.attention.ring`,
+:mod:`~jaxdrive.attention.ulysses`): input checks and the mesh layout, padding to whole tiles per
 ``seq`` chunk, the tile-size rule, and running a per-device kernel under ``shard_map``.
 
 Lengths the ``seq`` axis cannot split are padded: padded keys are masked out through ``kv_mask``
@@ -16,7 +16,7 @@ import jax.numpy as jnp
 from jax.sharding import PartitionSpec as P
 
 from jaxdrive import validate
-from jaxdrive.parallel import softmax_blocks as sb
+from jaxdrive.attention import softmax_blocks as sb
 
 BATCH_AXES = ("data", "fsdp")
 HEAD_AXIS = "tensor"

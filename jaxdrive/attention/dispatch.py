@@ -4,16 +4,16 @@ Implementations (``impl``):
 
 - ``"xla"``: dense softmax attention, the reference (fp32 scores and softmax).
 - ``"blockwise"``: O(L) memory on one device, forward and backward
-  (:mod:`jaxdrive.parallel.blockwise`).
+  (:mod:`jaxdrive.attention.blockwise`).
 - ``"ring"``: the sequence sharded over the mesh axis ``seq``; key/value chunks travel around the
-  ring (:mod:`jaxdrive.parallel.ring`).
+  ring (:mod:`jaxdrive.attention.ring`).
 - ``"ulysses"``: all-to-all from sequence- to head-sharding over ``seq``, a local blockwise kernel,
-  and back (:mod:`jaxdrive.parallel.ulysses`).
+  and back (:mod:`jaxdrive.attention.ulysses`).
 - ``"cudnn"``: ``jax.nn.dot_product_attention(..., implementation="cudnn")`` on GPUs (fp16/bf16).
-- ``"splash"``: JAX's Pallas splash kernel on TPUs (:mod:`jaxdrive.parallel.splash`).
+- ``"splash"``: JAX's Pallas splash kernel on TPUs (:mod:`jaxdrive.attention.splash`).
 - ``"auto"``: ``"ring"`` when the mesh shards ``seq``; else ``"splash"`` on TPU or ``"cudnn"``
   where it applies; else ``"blockwise"`` for long sequences and ``"xla"`` for short ones. It
-  never fails where ``"xla"`` works.
+  never fails where ``"xla"`` works, given that a ``mesh`` passed in is the context mesh.
 
 Masks: ``kv_mask [B, Lk]`` (True = attend; e.g. padded text tokens) and ``causal_block = n``:
 token block i (n tokens, e.g. one latent frame) attends to blocks <= i. A query row with no
@@ -28,8 +28,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdrive.parallel import softmax_blocks, splash
-from jaxdrive.parallel.blockwise import blockwise_attention
+from jaxdrive.attention import softmax_blocks, splash
+from jaxdrive.attention.blockwise import blockwise_attention
+from jaxdrive.attention.ring import ring_attention
+from jaxdrive.attention.seq_shard import layout
+from jaxdrive.attention.ulysses import ulysses_attention
+from jaxdrive.parallel.mesh import context_mesh, spec_of
 from jaxdrive.validate import check_choice, check_positive_int
 
 IMPLS = ("auto", "xla", "blockwise", "ring", "ulysses", "cudnn", "splash")
@@ -61,11 +65,15 @@ def _check_inputs(q, k, v, kv_mask, causal_block):
                              f"Lk = {k.shape[1]}")
 
 
-def _mesh_or_context(mesh):
-    if mesh is not None:
-        return mesh
-    context = jax.sharding.get_abstract_mesh()
-    return None if context.empty else context
+def _check_entered(mesh, impl):
+    """The sharded kernels type their output with ``mesh``: outside that mesh's context whatever
+    follows them cannot place it (``jax.grad`` seeding the loss's cotangent fails with a bare
+    error about device assignment), so ask for the context up front."""
+    context = context_mesh()
+    if context is None or context != getattr(mesh, "abstract_mesh", mesh):
+        raise ValueError(f"mesh: impl {impl!r} runs on the mesh it is given only inside it: call "
+                         f"attention within `with jax.set_mesh(mesh):`; got mesh {dict(mesh.shape)} "
+                         f"under context mesh {None if context is None else dict(context.shape)}")
 
 
 def _seq_size(mesh) -> int:
@@ -78,7 +86,6 @@ def _cudnn_applies(q, kv_mask, causal_block) -> bool:
 
 
 def _ring_applies(q, k, v, mesh, kv_mask, causal_block) -> bool:
-    from jaxdrive.parallel.seq_shard import layout
     try:  # batch divisible by data x fsdp, heads by tensor: otherwise "auto" must not fail
         layout(q, k, v, kv_mask, causal_block, mesh, "seq")
     except ValueError:
@@ -102,8 +109,7 @@ def _gather_sequence(x):
     the same mesh axis is an illegal sharding."""
     if x is None:
         return x
-    sharding = getattr(jax.typeof(x), "sharding", None)
-    spec = tuple(getattr(sharding, "spec", ()) or ())
+    spec = spec_of(x)
     if len(spec) < 2 or spec[1] is None:
         return x
     return jax.sharding.reshard(x, jax.sharding.PartitionSpec(spec[0], None, *spec[2:]))
@@ -118,10 +124,10 @@ def _gather_kv(k, v, kv_mask):
 def _blockwise(q, k, v, *, kv_mask, **kw):
     """The O(L) kernel slices q in tiles: it runs on gathered sequences, and the output takes q's
     sequence sharding back."""
-    spec = tuple(getattr(getattr(jax.typeof(q), "sharding", None), "spec", ()) or ())
+    spec = spec_of(q)
     k, v, kv_mask = _gather_kv(k, v, kv_mask)
     o = blockwise_attention(_gather_sequence(q), k, v, kv_mask=kv_mask, **kw)
-    if len(spec) > 1 and spec[1] is not None:
+    if spec[1] is not None:
         o = jax.sharding.reshard(o, jax.sharding.PartitionSpec(*spec))
     return o
 
@@ -143,15 +149,16 @@ def attention(q, k, v, *, impl: str = "auto", kv_mask=None, causal_block=None, m
 
     ``scale`` defaults to ``1 / sqrt(D)``. ``mesh`` (or the mesh set with ``jax.set_mesh``) is
     needed by ``"ring"`` and ``"ulysses"``, which shard the sequence over its ``seq`` axis, the
-    batch over ``data``/``fsdp`` and the heads over ``tensor``. ``block_q``/``block_k`` are the
+    batch over ``data``/``fsdp`` and the heads over ``tensor``; a ``mesh`` given must also be the
+    context mesh (``with jax.set_mesh(mesh):``). ``block_q``/``block_k`` are the
     tile sizes of ``"blockwise"``. Raises ``ValueError`` naming the argument for mismatched
     shapes or dtypes, a mask of the wrong length, an unknown impl, a mesh without ``seq`` for
-    ring/ulysses, or an impl this backend lacks.
+    ring/ulysses or one given outside its context, or an impl this backend lacks.
     """
     check_choice("impl", impl, IMPLS)
     _check_inputs(q, k, v, kv_mask, causal_block)
     scale = 1.0 / math.sqrt(q.shape[-1]) if scale is None else float(scale)
-    mesh = _mesh_or_context(mesh)
+    mesh = context_mesh() if mesh is None else mesh
     if impl == "auto":
         impl = _auto(q, k, v, mesh, kv_mask, causal_block)
     if impl == "xla":
@@ -172,8 +179,7 @@ def attention(q, k, v, *, impl: str = "auto", kv_mask=None, causal_block=None, m
     if mesh is None or "seq" not in mesh.axis_names:
         raise ValueError(f"mesh: impl {impl!r} needs a mesh with a 'seq' axis, got "
                          f"{None if mesh is None else tuple(mesh.axis_names)}")
+    _check_entered(mesh, impl)
     if impl == "ring":
-        from jaxdrive.parallel.ring import ring_attention
         return ring_attention(q, k, v, mesh=mesh, scale=scale, kv_mask=kv_mask, causal_block=causal_block)
-    from jaxdrive.parallel.ulysses import ulysses_attention
     return ulysses_attention(q, k, v, mesh=mesh, scale=scale, kv_mask=kv_mask, causal_block=causal_block)

@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdrive.parallel.softmax_blocks import pad_sequence
+from jaxdrive.attention.softmax_blocks import pad_sequence
 
 
 def available() -> bool:

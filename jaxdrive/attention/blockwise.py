@@ -1,7 +1,7 @@
 """Memory-efficient attention on one device: O(L) memory forward and backward.
 
 Queries are processed in blocks of ``block_q``; for each, a loop over key blocks of
-``block_k`` merges partial softmax results (:mod:`jaxdrive.parallel.softmax_blocks`), so at most
+``block_k`` merges partial softmax results (:mod:`jaxdrive.attention.softmax_blocks`), so at most
 one ``block_q x block_k`` score tile per head is alive (Rabe & Staats 2021). The backward is a
 ``custom_vjp`` that stores only q, k, v, the output and the row log-sum-exp, and recomputes the
 score tiles (the FlashAttention backward, Dao et al. 2022). Key blocks that causal masking hides
@@ -18,7 +18,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from jaxdrive.parallel import softmax_blocks as sb
+from jaxdrive.attention import softmax_blocks as sb
 
 
 def _tile(x, start, size, axis=1):
@@ -72,7 +72,7 @@ def tiled_attend(q, k, v, mask, *, scale, causal_block, bq, bk, q_start=0, k_sta
 def tiled_grads(q, k, v, mask, lse, delta, do, *, scale, causal_block, bq, bk, q_start=0, k_start=0,
                 k_step=None, acc=None):
     """``(dq, dk, dv)`` (float32) of :func:`tiled_attend`'s key range, given the final ``lse`` and
-    :func:`~jaxdrive.parallel.softmax_blocks.delta` of the query rows over all keys (FlashAttention
+    :func:`~jaxdrive.attention.softmax_blocks.delta` of the query rows over all keys (FlashAttention
     backward, one score tile alive at a time). ``k_step`` as in :func:`tiled_attend`; ``acc``:
     float32 ``(dq, dk, dv)`` to add into in place (a step's running gradients), zeros when None."""
     nq, nk = q.shape[1] // bq, k.shape[1] // bk
@@ -133,8 +133,8 @@ def blockwise_attention(q, k, v, *, scale, kv_mask=None, causal_block=None, bloc
     """Softmax attention ``[B, Lq, H, D]`` in O(L) memory (see the module docstring).
 
     ``kv_mask [B, Lk]`` (True = attend), ``causal_block`` as in
-    :mod:`jaxdrive.parallel.softmax_blocks`. Inputs are checked by
-    :func:`jaxdrive.models.attention.attention`; this kernel assumes consistent shapes.
+    :mod:`jaxdrive.attention.softmax_blocks`. Inputs are checked by
+    :func:`jaxdrive.attention.attention`; this kernel assumes consistent shapes.
     """
     b, lq = q.shape[:2]
     lk = k.shape[1]

@@ -10,7 +10,7 @@ and a second all-to-all restores the sequence split. The price is that the heads
 By default only the query side crosses whole: keys and values cross in *pieces* of one key tile
 (piece p of every device's chunk, exchanged together), and each piece is attended by all query
 tiles and merged into the running ``(o, lse)`` in place
-(:func:`jaxdrive.parallel.blockwise.tiled_attend`). The backward is a ``custom_vjp`` whose
+(:func:`jaxdrive.attention.blockwise.tiled_attend`). The backward is a ``custom_vjp`` whose
 residuals are q, k, v, the output and the row log-sum-exp: it exchanges q and the output
 cotangent, sends the K/V pieces again, and returns each piece's dK/dV to its owners as soon as the
 piece is done; the output and dQ return to the sequence split one query tile at a time. A device
@@ -25,7 +25,7 @@ per call instead of 8.
 all-to-all is the inverse all-to-all), with the local kernel's own backward.
 
 Batch is sharded over ``data``/``fsdp`` and heads over ``tensor`` (those present in the mesh) at
-the same time; padding follows :mod:`jaxdrive.parallel.seq_shard`.
+the same time; padding follows :mod:`jaxdrive.attention.seq_shard`.
 """
 
 from __future__ import annotations
@@ -35,9 +35,9 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from jaxdrive.parallel import seq_shard
-from jaxdrive.parallel import softmax_blocks as sb
-from jaxdrive.parallel.blockwise import tiled_attend, tiled_grads
+from jaxdrive.attention import seq_shard
+from jaxdrive.attention import softmax_blocks as sb
+from jaxdrive.attention.blockwise import tiled_attend, tiled_grads
 
 
 def _to_heads(x, axis):
@@ -143,11 +143,11 @@ def ulysses_attention(q, k, v, *, mesh, scale, kv_mask=None, causal_block=None, 
     """Softmax attention of ``q [B, Lq, H, D]`` over ``k, v [B, Lk, H, D]`` by all-to-all over ``seq``.
 
     ``kv_mask [B, Lk]`` bool (True = attend) and ``causal_block`` follow
-    :mod:`jaxdrive.parallel.softmax_blocks`; rows with no allowed key give 0. ``mesh`` must have
+    :mod:`jaxdrive.attention.softmax_blocks`; rows with no allowed key give 0. ``mesh`` must have
     the axis ``seq_axis``; batch is split over ``data``/``fsdp`` and heads over ``tensor`` where
     those axes exist, and the heads of one ``tensor`` shard must divide by the ``seq`` size.
     Tiles (and K/V pieces) are at most ``block`` tokens, shorter for short sequences
-    (:func:`jaxdrive.parallel.seq_shard.tile_size`). ``local(q, k, v, *, scale, kv_mask,
+    (:func:`jaxdrive.attention.seq_shard.tile_size`). ``local(q, k, v, *, scale, kv_mask,
     causal_block) -> [B, Lq, H', D]``, when given, is a single-device kernel run over the whole
     sequence instead (see the module docstring). Sequence lengths that ``seq`` does not divide are
     padded (padded keys masked, padded query rows dropped). Returns ``[B, Lq, H, D]`` in

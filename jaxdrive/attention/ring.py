@@ -5,7 +5,7 @@ keys/values (Liu et al. 2023, "Ring Attention with Blockwise Transformers"). Key
 their ``kv_mask``) travel around the ring by ``lax.ppermute`` in *pieces* of one key tile: piece p
 of every chunk goes once round the ring (``n`` steps) and is home again before piece p + 1 leaves.
 Each step attends all local query tiles to the visiting piece and merges the result into the
-running ``(o, lse)`` in place (:func:`jaxdrive.parallel.blockwise.tiled_attend`); tiles that
+running ``(o, lse)`` in place (:func:`jaxdrive.attention.blockwise.tiled_attend`); tiles that
 causal masking hides are skipped. The backward is a ``custom_vjp`` that keeps only q, k, v, the
 output and the row log-sum-exp; each piece travels again *together with* its dK/dV accumulators
 and lands, complete, on the device that owns it.
@@ -13,10 +13,10 @@ and lands, complete, on the device that owns it.
 Memory per device: the chunk-sized inputs, outputs and running accumulators, plus tile-sized
 rotation buffers (a ``ppermute`` output cannot reuse its input, so each travelling array is held
 twice, but only one tile long) and a few score tiles. Tiles shrink with short chunks
-(:func:`jaxdrive.parallel.seq_shard.tile_size`), so nothing in it stays constant as ``n`` grows.
+(:func:`jaxdrive.attention.seq_shard.tile_size`), so nothing in it stays constant as ``n`` grows.
 
 Batch is sharded over ``data``/``fsdp`` and heads over ``tensor`` (those present in the mesh) at
-the same time; padding follows :mod:`jaxdrive.parallel.seq_shard`.
+the same time; padding follows :mod:`jaxdrive.attention.seq_shard`.
 """
 
 from __future__ import annotations
@@ -26,9 +26,9 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from jaxdrive.parallel import seq_shard
-from jaxdrive.parallel import softmax_blocks as sb
-from jaxdrive.parallel.blockwise import tiled_attend, tiled_grads
+from jaxdrive.attention import seq_shard
+from jaxdrive.attention import softmax_blocks as sb
+from jaxdrive.attention.blockwise import tiled_attend, tiled_grads
 
 
 @functools.lru_cache(maxsize=None)
@@ -38,7 +38,7 @@ def _ring_kernel(scale: float, causal_block, axis: str, n: int, has_mask: bool, 
     K/V travel in pieces of one ``bk`` key tile: piece p of every chunk goes once round the ring
     (``n`` steps) and comes home before piece p + 1 leaves, so the rotation buffers are tile-sized.
     Each step attends all local query tiles to the visiting piece
-    (:func:`jaxdrive.parallel.blockwise.tiled_attend`), merging into the running ``(o, lse)`` in
+    (:func:`jaxdrive.attention.blockwise.tiled_attend`), merging into the running ``(o, lse)`` in
     place; in the backward the piece's dK/dV accumulators travel with it and land in dK/dV at home.
     """
     tiles = dict(scale=scale, causal_block=causal_block, bq=bq, bk=bk)
@@ -118,13 +118,13 @@ def ring_attention(q, k, v, *, mesh, scale, kv_mask=None, causal_block=None, seq
     """Softmax attention of ``q [B, Lq, H, D]`` over ``k, v [B, Lk, H, D]`` as a ring over ``seq``.
 
     ``kv_mask [B, Lk]`` bool (True = attend) and ``causal_block`` follow
-    :mod:`jaxdrive.parallel.softmax_blocks`; rows with no allowed key give 0. ``mesh`` must have
+    :mod:`jaxdrive.attention.softmax_blocks`; rows with no allowed key give 0. ``mesh`` must have
     the axis ``seq_axis``; batch is split over ``data``/``fsdp`` and heads over ``tensor`` where
     those axes exist, so ``B`` and ``H`` must divide accordingly. Sequence lengths that ``seq``
     does not divide are padded (padded keys masked, padded query rows dropped). Returns
     ``[B, Lq, H, D]`` in ``q.dtype``; differentiable in q, k and v (custom ring backward).
     Chunks are processed in square tiles of at most ``block`` tokens, shorter for short chunks
-    (:func:`jaxdrive.parallel.seq_shard.tile_size`); K/V rotate one tile at a time.
+    (:func:`jaxdrive.attention.seq_shard.tile_size`); K/V rotate one tile at a time.
     """
     lay = seq_shard.layout(q, k, v, kv_mask, causal_block, mesh, seq_axis)
     lq, q_type = q.shape[1], jax.typeof(q)
