@@ -340,9 +340,10 @@ class _BatchPlan:
             bs = self.buckets[i].batch_size
             batches.append((int(i), mine[i][used[i]:used[i] + bs]))
             used[i] += bs
-        if dropped:
-            log.info("epoch %d shard %d/%d: %d clips left over after batching (not used this epoch)",
-                     epoch, self.shard_index, self.shard_count, dropped)
+        if dropped:     # the same count every epoch: said once at INFO (the CLI shows INFO), then DEBUG
+            (log.info if epoch == 0 else log.debug)(
+                "epoch %d shard %d/%d: %d clips left over after batching (not used this epoch)",
+                epoch, self.shard_index, self.shard_count, dropped)
         if len(self._cache) > 4:
             self._cache.pop(min(self._cache))
         self._cache[epoch] = batches
