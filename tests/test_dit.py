@@ -383,3 +383,39 @@ def test_residual_reference_frame_starts_by_repeating_the_newest_given_frame():
     for f in range(4):
         np.testing.assert_array_equal(out[0, :, f], np.asarray(kw["cond_latents"])[0, :, 1])
     np.testing.assert_array_equal(out[1], 0.0)
+
+
+def test_final_convolutions_start_as_a_no_op_and_are_3x3_convolutions():
+    """U-ViT's final convolutions (``final_conv``): zero-initialised, the model's output is that of
+    the same model without them; each is a "same" 3x3 convolution (checked against XLA's)."""
+    from jaxdrive.models.dit import _conv3x3
+    from jaxdrive.models.params import Init
+    cfg = preset("tiny", prediction="data", final_conv=8,
+                 controls=dict(cond_frames="replace", reference_frame="residual"))
+    params = jax.tree_util.tree_map(jnp.asarray, nn.unbox(boxed_params(cfg, TINY_SHAPES)))
+    assert {"final_conv_1_kernel", "final_conv_2_kernel"} <= set(params)
+    assert not np.any(params["final_conv_2_kernel"]) and np.any(params["final_conv_1_kernel"])
+    assert params["final_conv_1_kernel"].shape == (3, 3, 2 * cfg.in_channels + cfg.in_channels + 1, 8)
+    lat, sig, text, kw = split_inputs(example_inputs(cfg, **dict(TINY_SHAPES)))
+    kw["cond_mask"] = np.array([[True, True, False, False], [True, False, False, False]])
+    plain = dataclasses.replace(cfg, final_conv=0)
+    trained = perturb(params)                                     # every weight, the convolutions' too
+    without = {k: v for k, v in trained.items() if not k.startswith("final_conv")}
+    zeroed = dict(trained, final_conv_2_kernel=jnp.zeros_like(trained["final_conv_2_kernel"]),
+                  final_conv_2_bias=jnp.zeros_like(trained["final_conv_2_bias"]))
+    a = forward_fn(cfg)(zeroed, lat, sig, text, kw)
+    np.testing.assert_array_equal(a, forward_fn(plain)(without, lat, sig, text, kw))
+    assert max_rel(forward_fn(cfg)(trained, lat, sig, text, kw), a) > 1e-3     # trained, they act
+
+    class Conv(nn.Module):
+        @nn.compact
+        def __call__(self, x):
+            return _conv3x3(self, "c", x, 5, Init("lecun", fan_in_axes=3))
+    x = np.random.default_rng(0).normal(size=(2, 3, 6, 7, 4)).astype(np.float32)   # any leading axes
+    p = nn.unbox(Conv().init(jax.random.key(0), x))["params"]
+    p = dict(p, c_bias=jnp.arange(5.0))
+    ref = jax.lax.conv_general_dilated(x.reshape(6, 6, 7, 4), p["c_kernel"], (1, 1), "SAME",
+                                       dimension_numbers=("NHWC", "HWIO", "NHWC")) + jnp.arange(5.0)
+    np.testing.assert_allclose(Conv().apply({"params": p}, x), ref.reshape(2, 3, 6, 7, 5), rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match=r"final_conv: expected an integer >= 0, got -1"):
+        preset("tiny", final_conv=-1)

@@ -2,6 +2,7 @@
 encodes ``sample_clip``, latent batches give the video batches' loss, Run rejects a dataset that
 does not match its config, the latent iterator resumes exactly, and a run trains on them."""
 
+import dataclasses
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -147,6 +148,9 @@ def test_sampling_conditions_on_the_stored_windows(datasets):
     np.testing.assert_array_equal(inputs["latents"][0], open_source(latents_path, "validation")[0]["latents"][:, :3])
     with pytest.raises(ValueError, match=r"frames: expected at most the 5 frames of the dataset's latent windows"):
         dataset_inputs(run.sampling(), frames=9)
+    missing = dataclasses.replace(run.sampling(), data=dataclasses.replace(run.sampling().data, path="no/such/dir"))
+    with pytest.raises(ValueError, match=r"path: expected a TFDS dataset directory, got no/such/dir \(it does not exist\)"):
+        dataset_inputs(missing, frames=3)           # named, where it once failed on len(None)
 
     # the rollout pins the stored condition latents (a stand-in velocity keeps the compile cheap)
     stand_in = SimpleNamespace(forward=lambda params, x, sigma, cond: -0.5 * x,

@@ -76,7 +76,7 @@ def dataset_inputs(spec: Sampling, *, frames: int, views=None, clips: int = 1, s
             source = open_source(d.path, name)
             break
         except ValueError:
-            if split:
+            if split or name == d.split:      # the last one tried: say why it failed
                 raise
     views = list(range(d.views)) if views is None else views
     rng = np.random.default_rng(seed)

@@ -60,7 +60,7 @@ from jaxdrive.models.dit_controls import (BoxEncoder, CameraEncoder, CaptionEnco
 from jaxdrive.models.dit_inputs import example_inputs
 from jaxdrive.models.embeddings import rope_3d, sincos_2d, sincos_3d
 from jaxdrive.models.layers import MLP, Dense, LayerNorm, modulate
-from jaxdrive.models.params import ZEROS, abstract_params, count_params, host_params, normal, param
+from jaxdrive.models.params import ZEROS, Init, abstract_params, count_params, host_params, normal, param
 from jaxdrive.models.tokens import TEXT, VIDEO, pool_frames, reshape
 from jaxdrive.models.htft import HTFT
 from jaxdrive.parallel.rules import constrain
@@ -239,6 +239,8 @@ class DiT(nn.Module):
         out = self._final(cfg, _video(cfg, carry), t)
         out = constrain(out, ("batch", "frames", None, "views", None))
         out = unpatchify(out, cfg.patch, grid, cfg.out_dim).astype(jnp.float32)
+        if cfg.final_conv:
+            out = out + self._final_conv(cfg, out, x, ref)
         if cfg.controls.reference_frame == "residual":
             out = out + ref[..., :-1]                       # the change from the newest given frame
         return (out, feats) if return_features else out
@@ -448,6 +450,26 @@ class DiT(nn.Module):
             h = modulate(LayerNorm(cfg.norm_eps, name="norm_out")(h), shift, scale)
         p = cfg.patch[0] * cfg.patch[1] * cfg.patch[2] * cfg.out_dim
         return Dense(p, ("embed", "channels"), dtype=dt, kernel_init=ZEROS, name="proj_out")(h)
+
+
+    def _final_conv(self, cfg, out, x, ref):
+        """U-ViT's 3x3 convolutions after the unpatchify (Bao et al. 2023, sec. 3.1): a token's
+        output is a linear map of its own hidden state, so neighbouring tokens' outputs meet at a
+        seam the network never sees; two convolutions over the output, the input (and the given
+        frame) smooth across it. The last one starts at zero: the network's output unchanged."""
+        h = jnp.concatenate([out, x] + ([ref] if ref is not None else []), axis=-1)
+        h = jax.nn.silu(_conv3x3(self, "final_conv_1", h, cfg.final_conv, Init("lecun", fan_in_axes=3)))
+        return _conv3x3(self, "final_conv_2", h, out.shape[-1], ZEROS)
+
+
+def _conv3x3(module, name, x, features, init):
+    """A "same" 3x3 convolution over the ``h, w`` axes of ``x [..., h, w, C]`` as nine shifted
+    dense maps: any leading axes, and no reshape that would move their sharding."""
+    h, w = x.shape[-3:-1]
+    kernel = param(module, f"{name}_kernel", init, (3, 3, x.shape[-1], features), (None, None, "channels", None))
+    xp = jnp.pad(x, [(0, 0)] * (x.ndim - 3) + [(1, 1), (1, 1), (0, 0)])
+    y = sum(jnp.einsum("...c,cd->...d", xp[..., i:i + h, j:j + w, :], kernel[i, j]) for i in range(3) for j in range(3))
+    return y + param(module, f"{name}_bias", ZEROS, (features,), (None,))
 
 
 def reference_input(x, cond_latents, cond_mask):

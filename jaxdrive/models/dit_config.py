@@ -122,7 +122,10 @@ class DiTConfig:
     :func:`jaxdrive.flow.velocity_from_output` with ``max(sigma, prediction_min_sigma)``; Li & He
     2025, JiT). A token of more numbers than the width (``patch_dim > width``) can only learn with
     data prediction: the velocity at high noise is mostly the token's own noise, which a narrower
-    network cannot pass through, so that pairing is refused.
+    network cannot pass through, so that pairing is refused. ``final_conv`` (channels; 0: off)
+    adds U-ViT's two 3x3 convolutions after the unpatchify (Bao et al. 2023, sec. 3.1), over the
+    output, the input and the given frame: without them each token's output is a linear map of its
+    own hidden state, and a narrow model's frames show the token grid as blocks.
 
     Execution: ``dtype`` (compute; params are float32), ``remat`` (``"none"``, ``"full"``,
     ``"dots"``, ``"dots_no_batch"``: which activations a layer keeps for the backward),
@@ -165,6 +168,7 @@ class DiTConfig:
     controls: Controls = field(default_factory=Controls)
     prediction: str = "velocity"
     prediction_min_sigma: float = 0.05
+    final_conv: int = 0
     vae_temporal: int = 4
     vae_spatial: int = 8
     dtype: str = "float32"
@@ -223,6 +227,7 @@ def check_config(cfg: DiTConfig) -> DiTConfig:
     for name in ("depth", "heads", "head_dim", "in_channels", "text_dim", "text_len", "time_freq_dim",
                  "vae_temporal", "vae_spatial", "htft_groups"):
         check_positive_int(name, getattr(cfg, name))
+    check_positive_int("final_conv", cfg.final_conv, minimum=0)
     for name in ("num_classes", "map_channels", "map_hidden", "fourier_freqs", "caption_vocab"):
         check_positive_int(f"controls.{name}", getattr(cfg.controls, name))
     check_positive_int("controls.encoder_layers", cfg.controls.encoder_layers, minimum=0)
