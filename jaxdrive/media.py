@@ -41,23 +41,60 @@ def view_mosaic(video) -> np.ndarray:
     return einops.rearrange(tiles, "(rows cols) f h w c -> f (rows h) (cols w) c", rows=len(layout))
 
 
+class Mp4Writer:
+    """An H.264 mp4 written part by part (views tiled by :func:`view_mosaic`; sizes padded to
+    even), so a long video never has to be in memory whole::
+
+        with Mp4Writer(path, fps=12) as out:
+            out.write(part)          # [V, n, H, W, 3] or [n, H, W, 3] in [-1, 1] or uint8
+    """
+
+    def __init__(self, path, fps: float = 12.0):
+        self.path = Path(path)
+        self.fps = fps
+        self._container = self._stream = None
+        self.frames = 0
+
+    def write(self, video) -> None:
+        import av
+
+        frames = view_mosaic(video)
+        if not len(frames):
+            return
+        f, h, w, _ = frames.shape
+        frames = np.pad(frames, ((0, 0), (0, h % 2), (0, w % 2), (0, 0)))
+        if self._container is None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._container = av.open(str(self.path), "w")
+            self._stream = self._container.add_stream("libx264", rate=round(self.fps))
+            self._stream.width, self._stream.height, self._stream.pix_fmt = frames.shape[2], frames.shape[1], "yuv420p"
+            self._stream.options = {"crf": "18"}
+        elif (frames.shape[1], frames.shape[2]) != (self._stream.height, self._stream.width):
+            raise ValueError(f"video: expected frames of {self._stream.height} x {self._stream.width} (the first part's "
+                             f"mosaic), got {frames.shape[1]} x {frames.shape[2]}")
+        for frame in frames:
+            self._container.mux(self._stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")))
+        self.frames += len(frames)
+
+    def close(self) -> Path:
+        if self._container is not None:
+            self._container.mux(self._stream.encode())
+            self._container.close()
+            self._container = None
+        return self.path
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
 def write_mp4(path, video, fps: float = 12.0) -> Path:
     """Write ``video`` (views tiled by :func:`view_mosaic`) as H.264 mp4; sizes are padded to even."""
-    import av
-
-    frames = view_mosaic(video)
-    f, h, w, _ = frames.shape
-    frames = np.pad(frames, ((0, 0), (0, h % 2), (0, w % 2), (0, 0)))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with av.open(str(path), "w") as container:
-        stream = container.add_stream("libx264", rate=round(fps))
-        stream.width, stream.height, stream.pix_fmt = frames.shape[2], frames.shape[1], "yuv420p"
-        stream.options = {"crf": "18"}
-        for frame in frames:
-            container.mux(stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")))
-        container.mux(stream.encode())
-    return path
+    with Mp4Writer(path, fps) as out:
+        out.write(video)
+    return Path(path)
 
 
 def write_frame_grid(path, video, num_frames: int = 4, *, reference=None, min_width: int = 480) -> Path:

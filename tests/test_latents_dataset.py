@@ -153,9 +153,7 @@ def test_sampling_conditions_on_the_stored_windows(datasets):
         dataset_inputs(missing, frames=3)           # named, where it once failed on len(None)
 
     # the rollout pins the stored condition latents (a stand-in velocity keeps the compile cheap)
-    stand_in = SimpleNamespace(forward=lambda params, x, sigma, cond: -0.5 * x,
-                               config=SimpleNamespace(controls=SimpleNamespace(cond_frames=None), prediction="velocity",
-                                                      prediction_min_sigma=0.05))
+    stand_in = StandIn()
     full = dataset_inputs(run.sampling(), frames=5)
     out = np.asarray(rollout(stand_in, run.codec, None, None, full, total_frames=5, window=5, overlap=1, cond_frames=2,
                              steps=2, guidance=1.0, key=jax.random.key(0)))
@@ -177,6 +175,17 @@ def test_encode_shows_progress_unless_turned_off(datasets, tmp_path, capsys):
     assert "window/s" not in err and "8/8" not in err and "INFO jaxdrive.train.encode: encoded" in err
 
 
+class StandIn:
+    """A stand-in DiT whose velocity is ``-x/2`` (a model is a static jit argument: hashable)."""
+
+    config = SimpleNamespace(controls=SimpleNamespace(cond_frames=None), prediction="velocity",
+                             prediction_min_sigma=0.05)
+
+    @staticmethod
+    def forward(params, x, sigma, cond):
+        return -0.5 * x
+
+
 def test_window_starts_overlap_and_end_at_the_last_frame():
     assert window_starts(5, 5, 1) == [0]
     assert window_starts(9, 5, 1) == [0, 4]
@@ -191,9 +200,7 @@ def test_window_starts_overlap_and_end_at_the_last_frame():
 
 def test_rollout_progress_counts_windows(datasets, capsys):
     run = Run(config(datasets[0], precomputed=False))
-    stand_in = SimpleNamespace(forward=lambda params, x, sigma, cond: -0.5 * x,
-                               config=SimpleNamespace(controls=SimpleNamespace(cond_frames=None), prediction="velocity",
-                                                      prediction_min_sigma=0.05))
+    stand_in = StandIn()
     inputs = dataset_inputs(run.sampling(), frames=9)
     kw = dict(total_frames=9, window=5, overlap=1, cond_frames=1, steps=1, guidance=1.0, key=jax.random.key(0))
     quiet = rollout(stand_in, run.codec, None, None, inputs, **kw)

@@ -52,6 +52,12 @@ def _train(args, rest) -> int:
 
 def _sample(args, rest) -> int:
     start_jax()
+    if args.strategy is not None:
+        from jaxdrive.cli.sample import sample_strategy
+        return sample_strategy(args)
+    for name in ("fine_workdir", "anchor_every", "segment_batch", "overlap", "cond_frames"):
+        if getattr(args, name) is not None:
+            raise ValueError(f"--{name.replace('_', '-')}: expected only with --strategy, got {getattr(args, name)}")
     from jaxdrive.config import override
     from jaxdrive.generate.samples import write_samples
     from jaxdrive.train.run import Run, load_run_config, restore_params
@@ -161,6 +167,17 @@ def add_commands(sub) -> None:
     sample.add_argument("--mesh", help="mesh axis sizes for sampling")
     sample.add_argument("--no-ema", action="store_true", help="sample with the raw parameters, not the EMA")
     sample.add_argument("--set", action="append", metavar="KEY=VALUE")
+    sample.add_argument("--strategy", help="long-video strategy: rollout, coarse-to-refine (MiLA) or coarse-fine "
+                                           "(LongDWM); writes sample.mp4, frames.png, latents.npy, report.json")
+    sample.add_argument("--fine-workdir", help="the fine model's run (coarse-fine; optional (Re)fine model of "
+                                               "coarse-to-refine)")
+    sample.add_argument("--cond-frames", type=int, help="given latent frames (default: the run's flow.cond_frames)")
+    sample.add_argument("--overlap", type=int, help="rollout / refine windows: frames each next window conditions on")
+    sample.add_argument("--anchor-every", type=int, help="coarse-to-refine: latent frames between anchors "
+                                                         "(default: the model's training spacing; 0: no anchors)")
+    sample.add_argument("--segment-batch", type=int, help="coarse-fine: segments per fine sampler call "
+                                                          "(default: all in one call)")
+    sample.add_argument("--clips", type=int, default=1, help="clips sampled side by side (--strategy)")
     add_progress(sample, "the sampled windows")
     sample.set_defaults(run=_sample)
 

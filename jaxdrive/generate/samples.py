@@ -161,7 +161,7 @@ def generate(spec: Sampling, params, *, frames: int | None = None, views=None, s
         latents = rollout(DiT(spec.model), codec, params, codec.params, inputs, total_frames=total, window=window,
                           overlap=overlap, cond_frames=cond, steps=steps, guidance=guidance,
                           key=jax.random.key(seed), shift=shift, tpd=f.tpd, tpd_omega=f.tpd_omega,
-                          progress=progress)
+                          progress=progress, mesh=mesh)
         video = to_numpy_video(codec, codec.params, latents)
         recorded = (np.asarray(inputs["video"]) if "video" in inputs else
                     to_numpy_video(codec, codec.params, inputs["latents"][:, :, :total]))

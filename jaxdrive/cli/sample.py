@@ -1,0 +1,102 @@
+"""``jaxdrive sample --strategy NAME``: a long video from one run (or a coarse and a fine run).
+
+    jaxdrive sample --workdir RUN [--fine-workdir RUN2] --strategy {rollout, coarse-to-refine,
+                    coarse-fine} --frames N --out DIR
+
+Loads each run's latest checkpoint (EMA parameters unless ``--no-ema``), takes the first frames
+and the per-frame controls of a dataset clip at the output rate (the fine run's dataset and frame
+stride when one is given, else the run's own) and writes what
+:func:`jaxdrive.generate.long_video.sample_long` writes. Every check that can fail does so before
+anything compiles.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def _load(workdir, sets, mesh, *, ema: bool, steps, guidance, role: str):
+    from jaxdrive.cli.train import _config_mesh
+    from jaxdrive.config import override
+    from jaxdrive.generate.windows import WindowModel
+    from jaxdrive.train.run import Run, load_run_config, restore_params
+    if not (Path(workdir) / "config.json").is_file():
+        raise ValueError(f"{role}: expected a run directory with config.json, got {str(workdir)!r}")
+    config = load_run_config(workdir)
+    for s in sets or []:
+        config = override(config, s)
+    config = _config_mesh(config, mesh) if mesh else config
+    run = Run(config)
+    spec = run.sampling()
+    return run, spec, lambda: WindowModel.from_sampling(spec, restore_params(run, workdir, ema=ema)[1], steps=steps,
+                                                        guidance=guidance)
+
+
+def sample_strategy(args) -> int:
+    """The ``--strategy`` path of ``jaxdrive sample`` (module docstring)."""
+    import jax
+    import numpy as np
+
+    from jaxdrive.generate.long_video import sample_long
+    from jaxdrive.generate.samples import dataset_inputs
+    from jaxdrive.generate.strategies import NEEDS_FINE, Models, check_strategy
+    from jaxdrive.validate import check_choice, check_positive_int
+    from jaxdrive.generate.strategies import STRATEGIES
+    check_choice("--strategy", args.strategy, STRATEGIES)
+    if args.strategy in NEEDS_FINE and not args.fine_workdir:
+        raise ValueError(f"--fine-workdir: strategy {args.strategy!r} needs a fine model run, got none")
+    if args.frames is None:
+        raise ValueError("--frames: expected the number of frames to generate with --strategy, got none")
+    check_positive_int("--frames", args.frames)
+    ema = not args.no_ema
+    run, spec, load_main = _load(args.workdir, args.set, args.mesh, ema=ema, steps=args.steps, guidance=args.cfg,
+                                 role="--workdir")
+    fine_spec = load_fine = None
+    if args.fine_workdir:
+        _, fine_spec, load_fine = _load(args.fine_workdir, args.set, args.mesh, ema=ema, steps=args.steps,
+                                        guidance=args.cfg, role="--fine-workdir")
+        for name in ("channels", "spatial", "temporal"):
+            a, b = getattr(spec.codec, name), getattr(fine_spec.codec, name)
+            if a != b:
+                raise ValueError(f"--fine-workdir: expected latents like --workdir's ({name} {a}), got {name} {b}")
+    horizon_spec = fine_spec or spec
+    length = horizon_spec.codec.latent_frames(args.frames)
+    if horizon_spec.codec.temporal > 1 and (args.frames - 1) % horizon_spec.codec.temporal:
+        raise ValueError(f"--frames: expected 1 + {horizon_spec.codec.temporal}k frames for the causal VAE, "
+                         f"got {args.frames}")
+    # check with the configs alone (parameters are not needed to know the windows and patterns)
+    from jaxdrive.generate.windows import WindowModel
+    shape_only = lambda s: WindowModel.from_sampling(s, None, steps=args.steps, guidance=args.cfg)
+    shapes = Models(shape_only(spec), shape_only(fine_spec) if fine_spec else None)
+    given = shapes.main.cond_frames if args.cond_frames is None else args.cond_frames
+    if args.strategy == "coarse-fine":
+        given = min(given, shapes.fine.window - 1)
+    check_strategy(args.strategy, shapes, length, given)
+    models = Models(load_main(), load_fine() if load_fine else None)
+    views = None if args.views is None else [int(v) for v in args.views]
+    inputs = dataset_inputs(horizon_spec, frames=args.frames, views=views, clips=args.clips, seed=args.seed)
+    codec = horizon_spec.codec
+    if "latents" in inputs:
+        first = np.asarray(inputs["latents"])[:, :, :given]
+    else:
+        window = models.main.window
+        pixels = np.asarray(inputs["video"])[:, :, :1 + codec.temporal * (window - 1)]
+        first = np.asarray(codec.encode(codec.params, pixels))[:, :, :given]
+    options = {"anchor_every": args.anchor_every, "segment_batch": args.segment_batch, "overlap": args.overlap}
+    allowed = {"rollout": ("overlap",), "coarse-to-refine": ("overlap", "anchor_every"),
+               "coarse-fine": ("segment_batch",)}[args.strategy]
+    for name, value in options.items():
+        if value is not None and name not in allowed:
+            raise ValueError(f"--{name.replace('_', '-')}: not an option of strategy {args.strategy!r} "
+                             f"(its options: {', '.join('--' + a.replace('_', '-') for a in allowed)}), got {value}")
+    options = {k: v for k, v in options.items() if k in allowed}
+    recorded = np.asarray(inputs["video"][0]) if "video" in inputs else None
+    fps = float(np.asarray(inputs["cond"].fps)[0]) if inputs["cond"].fps is not None else \
+        12.0 / horizon_spec.frame_stride
+    out = Path(args.out or Path(args.workdir) / "samples" / args.strategy)
+    with jax.set_mesh(run.mesh):
+        report = sample_long(args.strategy, models, codec, inputs["cond"], first, length, out,
+                             key=jax.random.key(args.seed), mesh=run.mesh, fps=fps, recorded=recorded, **options)
+    print(f"report: {out / 'report.json'} ({report['sequential_sampler_calls']} sequential sampler calls, "
+          f"{report['seconds']:.1f} s, peak device memory {report['peak_device_bytes'] / 2**20:.1f} MiB)")
+    return 0

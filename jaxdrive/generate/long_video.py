@@ -1,0 +1,93 @@
+"""Run a long-video strategy to files, with device memory flat in the length.
+
+:func:`sample_long` takes a strategy's latent parts (:mod:`jaxdrive.generate.strategies`) as
+they are finished, decodes each at once with the codec's streaming decoder (a causal VAE's
+decode cache carries across parts, so the video equals a whole-clip decode of the same latents)
+and appends it to the mp4. It writes under ``out``:
+
+- ``sample.mp4``: the first clip, views tiled;
+- ``frames.png``: six frames spread over the horizon (with the recorded frames on the left when
+  the dataset clip covers them);
+- ``latents.npy``: all latents ``[B, V, F', h, w, C]``;
+- ``report.json``: ``strategy``, ``frames``, ``latent_frames``, ``views``, ``clips``,
+  ``sequential_sampler_calls``, ``seconds``, ``peak_device_bytes`` (and the models' windows and
+  the options the strategy ran with).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from jaxdrive.generate.strategies import Models, run_strategy
+from jaxdrive.generate.windows import Tracker
+from jaxdrive.models.conditions import Conditions
+
+GRID_FRAMES = 6
+
+
+def sample_long(strategy: str, models: Models, codec, controls: Conditions, first, length: int, out, *, key,
+                mesh=None, fps: float = 12.0, recorded=None, log=print, **options) -> dict:
+    """Run ``strategy`` for ``length`` latent frames and write the files of the module docstring;
+    returns the report (a dict). ``recorded``: the dataset's own pixel frames ``[V, F, H, W, 3]``
+    of the first clip (for the frame grid), when it covers the horizon; ``options`` go to the
+    strategy (``overlap``, ``anchor_every``, ``segment_batch``)."""
+    tracker = Tracker()
+    start = time.perf_counter()
+    parts = run_strategy(strategy, models, controls, first, length, key=key, tracker=tracker, mesh=mesh, **options)
+    out = Path(out)
+    frames = 1 + codec.temporal * (length - 1)
+    picks = np.unique(np.linspace(0, frames - 1, min(GRID_FRAMES, frames)).round().astype(int))
+    decoder = codec.stream_decoder(length)
+    latents, grid, written = [], {}, 0
+    writer = None
+    if jax.process_index() == 0:
+        from jaxdrive.media import Mp4Writer
+        writer = Mp4Writer(out / "sample.mp4", fps=fps)
+
+    def emit(video):
+        nonlocal written
+        if video is None or not video.shape[2]:
+            return
+        clip = np.asarray(video[0])                           # [V, n, H, W, 3]
+        for p in picks[(picks >= written) & (picks < written + clip.shape[1])]:
+            grid[int(p)] = clip[:, p - written]
+        if writer is not None:
+            writer.write(clip)
+        written += clip.shape[1]
+
+    try:
+        for part in parts:
+            latents.append(part)
+            emit(decoder.push(part))
+            tracker.observe()
+        emit(decoder.flush())
+    finally:
+        if writer is not None:
+            writer.close()
+    seconds = time.perf_counter() - start
+    latents = np.concatenate(latents, axis=2)
+    report = {"strategy": strategy, "frames": int(frames), "latent_frames": int(length),
+              "views": int(latents.shape[1]), "clips": int(latents.shape[0]),
+              "sequential_sampler_calls": tracker.calls, "seconds": round(seconds, 3),
+              "peak_device_bytes": int(tracker.peak_bytes), "fps": fps,
+              "given_latent_frames": int(np.shape(first)[2]),
+              "windows": {"main": models.main.window, **({"fine": models.fine.window} if models.fine else {})},
+              "options": {k: v for k, v in options.items() if v is not None}}
+    if jax.process_index() == 0:
+        from jaxdrive.media import write_frame_grid
+        out.mkdir(parents=True, exist_ok=True)
+        np.save(out / "latents.npy", latents)
+        video = np.stack([grid[int(p)] for p in picks], axis=1)                  # [V, picks, H, W, 3]
+        reference = None
+        if recorded is not None and np.shape(recorded)[1] >= frames:
+            reference = np.asarray(recorded)[:, picks]
+        write_frame_grid(out / "frames.png", video, num_frames=len(picks), reference=reference)
+        (out / "report.json").write_text(json.dumps(report, indent=1))
+        log(f"{strategy}: {frames} frames x {report['views']} views in {seconds:.1f} s, "
+            f"{tracker.calls} sequential sampler calls, peak device memory {tracker.peak_bytes / 2**20:.1f} MiB: {out}")
+    return report

@@ -1,0 +1,238 @@
+"""The building block of every long-video strategy: a trained model (:class:`WindowModel`) run
+window by window over any list of frame positions, with the horizon's latents on the host.
+
+A strategy never holds the whole horizon on the device. The latents live in a host buffer
+(:class:`Horizon`); a sampler call gets only its window (or its stacked segments), sharded over
+the mesh's batch axes, and its result goes back to the host at once. :class:`Tracker` counts the
+sequential sampler calls and keeps the peak device memory they needed (``report.json``).
+
+Positions are latent frames of the output clip at its own rate. A pass over a subset of them
+(MiLA's low-fps anchors, LongDWM's keyframes) gives the model the per-frame controls at those
+positions and the frame rate they imply; it needs a frame-wise codec (a latent frame per pixel
+frame), since a causal VAE's latent frame summarises 4 consecutive pixel frames.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
+
+from jaxdrive import flow
+from jaxdrive.flow.jdc import DEFAULT_ALPHA1, DEFAULT_ANCHOR_SLOPE
+from jaxdrive.models.conditions import Conditions
+from jaxdrive.models.dit import DiT
+from jaxdrive.validate import check_positive_int
+
+
+@dataclasses.dataclass(frozen=True)
+class WindowModel:
+    """A trained DiT and how to sample it: its ``window`` (latent frames per sampler call), the
+    given frames it was trained with (``cond_frames``), the flow settings of its training (shift,
+    TPD, JDC slope and alpha1, the condition ``patterns`` and ``anchor_every``), the sampling
+    ``steps`` and the guidance scale. ``stride``: source frames between its training frames (a
+    coarse model's low rate)."""
+
+    dit: DiT
+    params: Any = dataclasses.field(compare=False, hash=False, repr=False)
+    window: int = 9
+    cond_frames: int = 1
+    steps: int = 20
+    guidance: float = 1.0
+    shift: float = 1.0
+    tpd: bool = False
+    tpd_omega: float = math.pi / 2
+    jdc_slope: float = DEFAULT_ANCHOR_SLOPE
+    jdc_alpha1: float = DEFAULT_ALPHA1
+    patterns: tuple[str, ...] = ("prefix",)
+    anchor_every: int = 0
+    jdc_anchor_rate: float = 0.0
+    stride: int = 1
+    temporal: int = 1
+
+    @classmethod
+    def from_sampling(cls, spec, params, *, steps: int | None = None, guidance: float = 1.0) -> "WindowModel":
+        """From a run's :class:`jaxdrive.generate.samples.Sampling` and its parameters."""
+        d, f = spec.data, spec.flow
+        shift = f.shift if f.shift > 0 else flow.resolution_shift(d.height, d.width, spec.latent_window)
+        return cls(DiT(spec.model), params, window=spec.latent_window, cond_frames=max(1, f.cond_frames),
+                   steps=spec.steps if steps is None else check_positive_int("steps", steps), guidance=guidance,
+                   shift=shift, tpd=f.tpd, tpd_omega=f.tpd_omega, jdc_slope=f.jdc_slope, jdc_alpha1=f.jdc_alpha1,
+                   patterns=tuple(getattr(f, "patterns", ("prefix",))), anchor_every=getattr(f, "anchor_every", 0),
+                   jdc_anchor_rate=f.jdc_anchor_rate, stride=spec.frame_stride, temporal=spec.codec.temporal)
+
+    @property
+    def trained_anchors(self) -> bool:
+        """Whether it learnt to correct JDC anchors (MiLA stage 3)."""
+        return self.jdc_anchor_rate > 0
+
+
+class Tracker:
+    """Sequential sampler calls, their seconds, and the peak device bytes: on GPU/TPU the
+    device's own peak (``memory_stats``); on CPU the largest sum of live device arrays after a
+    call plus the temporaries of the compiled program it ran (``memory_analysis``)."""
+
+    def __init__(self):
+        self.calls = 0
+        self.peak_bytes = 0
+        self._compiled: dict = {}
+
+    def compiled(self, model: WindowModel, *args):
+        """:func:`sample_window` of ``model`` compiled for ``args``' shapes, once per shape."""
+        leaves, tree = jax.tree_util.tree_flatten(args)
+        key = (model, tree) + tuple((x.shape, str(x.dtype)) for x in leaves)
+        if key not in self._compiled:
+            self._compiled[key] = _SAMPLE.lower(model, *args).compile()
+        return self._compiled[key]
+
+    def call(self, model: WindowModel, *args):
+        """One sequential sampler call, :func:`sample_window` ``(model, *args)``; returns its output."""
+        compiled = self.compiled(model, *args)
+        out = jax.block_until_ready(compiled(*args))
+        self.calls += 1
+        self.observe(compiled)
+        return out
+
+    def observe(self, compiled=None):
+        """Fold the current device memory (and ``compiled``'s temporaries) into the peak."""
+        stats = [d.memory_stats() for d in jax.local_devices() if d.platform != "cpu"]
+        stats = [s for s in stats if s and "peak_bytes_in_use" in s]
+        if stats:
+            self.peak_bytes = max(self.peak_bytes, sum(s["peak_bytes_in_use"] for s in stats))
+            return
+        live = sum(s.data.nbytes for a in jax.live_arrays() for s in a.addressable_shards)
+        temp = 0
+        if compiled is not None:
+            analysis = compiled.memory_analysis()
+            temp = getattr(analysis, "temp_size_in_bytes", 0) if analysis is not None else 0
+        self.peak_bytes = max(self.peak_bytes, int(live + temp))
+
+
+def to_mesh(tree, mesh):
+    """Host arrays -> device arrays with the batch (axis 0) over the mesh's ``data``/``fsdp`` axes
+    when it divides evenly, else replicated."""
+    if mesh is None:
+        return jax.tree_util.tree_map(jnp.asarray, tree)
+    sizes = dict(zip(mesh.axis_names, mesh.axis_sizes))
+    axes = tuple(a for a in ("data", "fsdp") if a in sizes)
+    shards = math.prod(sizes[a] for a in axes)
+
+    def put(x):
+        x = np.asarray(x)
+        spec = P(axes or None) if x.ndim and x.shape[0] % shards == 0 else P()
+        return jax.device_put(x, NamedSharding(mesh, spec))
+    return jax.tree_util.tree_map(put, tree)
+
+
+def controls_at(controls: Conditions, positions, temporal: int, *, fps_scale: float = 1.0) -> Conditions:
+    """The conditions of the latent frames at ``positions`` (output positions at its own rate):
+    per-frame fields taken at those frames (per pixel frame: ``1 + temporal (n - 1)`` frames of
+    a contiguous window when ``temporal > 1``), ``fps`` divided by ``fps_scale`` (a pass that
+    samples every S-th frame runs at 1 / S of the rate)."""
+    pos = np.asarray(positions)
+    contiguous = bool(np.all(np.diff(pos) == 1))
+    if temporal > 1 and not contiguous:
+        raise ValueError(f"positions: a pass over spaced frames needs a frame-wise codec (temporal compression 1), "
+                         f"got temporal compression {temporal}")
+
+    def take(name, value):
+        value = np.asarray(value)
+        pixel = value.shape[1]
+        if temporal > 1:
+            lo = int(pos[0]) * temporal
+            return value[:, lo: lo + 1 + temporal * (len(pos) - 1)]
+        if pixel <= int(pos.max()):
+            raise ValueError(f"controls.{name}: expected at least {int(pos.max()) + 1} frames for the "
+                             f"positions sampled, got {pixel}")
+        return value[:, pos]
+    out = controls.per_frame(take)
+    if fps_scale != 1.0 and out.fps is not None:
+        out = out.replace(fps=np.asarray(out.fps, np.float32) / fps_scale)
+    return out
+
+
+def window_starts(total_frames: int, window: int, overlap: int) -> list[int]:
+    """The first latent frame of each window of a rollout: 0, then each next window overlaps the
+    last ``overlap`` generated frames, and the last one ends at ``total_frames``."""
+    for name, value in (("total_frames", total_frames), ("window", window), ("overlap", overlap)):
+        check_positive_int(name, value)
+    if total_frames > window and overlap >= window:       # the windows would not advance
+        raise ValueError(f"overlap: expected fewer than window = {window} frames, got {overlap}")
+    starts, done = [0], window
+    while done < total_frames:
+        starts.append(min(done - overlap, total_frames - window))
+        done = starts[-1] + window
+    return starts
+
+
+@dataclasses.dataclass
+class Horizon:
+    """The output clip's latents on the host, ``[B, V, T, h, w, C]``, and which frames hold a
+    value (``known``): given frames, finished frames, and anchors or keyframes that a later pass
+    conditions on."""
+
+    latents: np.ndarray
+    known: np.ndarray
+
+    @classmethod
+    def start(cls, first: np.ndarray, length: int) -> "Horizon":
+        first = np.asarray(first, np.float32)
+        shape = first.shape[:2] + (length,) + first.shape[3:]
+        latents = np.zeros(shape, np.float32)
+        latents[:, :, :first.shape[2]] = first
+        known = np.zeros(length, bool)
+        known[:first.shape[2]] = True
+        return cls(latents, known)
+
+    def put(self, positions, values) -> None:
+        self.latents[:, :, np.asarray(positions)] = np.asarray(values)
+        self.known[np.asarray(positions)] = True
+
+
+def sample_window(model: WindowModel, params, x_cond, cond_mask, controls: Conditions, key, anchor_mask=None):
+    """One window ``[B, V, F', h, w, C]`` of ``model`` with ``params`` (pure; ``model`` is static
+    under jit, its own ``params`` field is not read, so they stay a traced input): ``x_cond``
+    holds the clean given frames where ``cond_mask [B, F']`` is set and, where ``anchor_mask`` is
+    set, predicted anchors, which start at the JDC level ``g = jdc_slope * sigma_max`` by
+    :func:`jaxdrive.flow.jdc_renoise` (MiLA eq. 8-12) and are denoised jointly with the frames
+    between them (their output is the corrected anchor). The per-frame schedule is
+    :func:`jaxdrive.flow.frame_schedule`'s (TPD when the model trained with it, MiLA eq. 13-14).
+    ``controls.drop`` names the conditions guidance drops (all at once, against learned nulls)."""
+    m = model.dit.config
+    names = list(controls.drop or {})
+    cond = controls.replace(drop=None)
+    if m.controls.cond_frames is not None:
+        cond = cond.replace(cond_latents=x_cond, cond_mask=cond_mask)
+    b = x_cond.shape[0]
+    null = None
+    if names and model.guidance != 1.0:
+        cond = cond.with_drops(names, False, b)
+        null = cond.with_drops(names, True, b)
+    schedule = flow.frame_schedule(flow.sampling_sigmas(model.steps, shift=model.shift), cond_mask,
+                                   anchor_mask=anchor_mask, tpd=model.tpd, omega=model.tpd_omega,
+                                   anchor_slope=model.jdc_slope)
+    # the noise comes from ``key`` itself, as it always has (a strategy without anchors draws the
+    # same windows as before anchors existed); the anchors' JDC noise from a key folded off it
+    noise = jax.random.normal(key, x_cond.shape, jnp.float32)
+    k_anchor = jax.random.fold_in(key, 1)
+    keep = cond_mask[:, None, :, None, None, None]
+    x0 = jnp.where(keep, x_cond, noise)
+    if anchor_mask is not None:
+        anchors = anchor_mask[:, None, :, None, None, None]
+        g0 = jnp.where(anchor_mask, schedule[0], 1.0)          # other frames: any legal level, unused
+        x0 = jnp.where(anchors, flow.jdc_renoise(k_anchor, x_cond, g0, model.jdc_alpha1), x0)
+
+    def velocity(x, sigma, c):
+        out = model.dit.forward(params, x, sigma, c)
+        return flow.velocity_from_output(out, x, sigma, m.prediction, m.prediction_min_sigma)
+    return flow.sample(velocity, x0, schedule, cond=cond, null_cond=null,
+                       guidance_scale=None if null is None else model.guidance, cond_mask=cond_mask)
+
+
+_SAMPLE = jax.jit(sample_window, static_argnums=(0,))
