@@ -111,27 +111,41 @@ def rollout(models: Models, controls: Conditions, first, length: int, *, key, tr
                                 overlap=overlap, anchor_every=0)
 
 
-def coarse_to_refine(models: Models, controls: Conditions, first, length: int, *, key, tracker: Tracker | None = None,
-                     mesh=None, overlap: int | None = None, anchor_every: int | None = None) -> Iterator[np.ndarray]:
-    """MiLA's Coarse-to-(Re)fine (module docstring). ``models.main`` draws the anchors (and
-    refines them unless ``models.fine`` is given); ``anchor_every`` (latent frames between
-    anchors) defaults to the refine model's training spacing (``flow.anchor_every``, else its
-    window minus its given frames: MiLA's tail anchor); 0 turns the anchors off (``rollout``)."""
+def coarse_anchors(models: Models, controls: Conditions, first, length: int, *, key, tracker: Tracker | None = None,
+                   mesh=None, anchor_every: int | None = None):
+    """The coarse pass of :func:`coarse_to_refine`: ``(horizon, key)`` with the given frames and
+    the anchors at positions ``given - 1 + j * anchor_every`` (``j >= 1``) known, drawn by
+    ``models.main`` over the given frames + the anchors at ``1 / anchor_every`` of the rate
+    (windowed when they exceed its window)."""
     tracker = tracker or Tracker()
     coarse, refine = models.main, models.fine or models.main
     first = np.asarray(first, np.float32)
     given = first.shape[2]
-    overlap = given if overlap is None else overlap
     spacing = anchor_spacing(refine, given) if anchor_every is None else anchor_every
     horizon = Horizon.start(first, length)
+    anchors = list(range(given - 1 + spacing, length, spacing)) if spacing else []
+    if anchors:
+        key = _drain(_pass(coarse, horizon, list(range(given)) + anchors, controls, key, tracker, mesh,
+                           given=given, overlap=min(given, coarse.window - 1), fps_scale=spacing))
+    return horizon, key
+
+
+def coarse_to_refine(models: Models, controls: Conditions, first, length: int, *, key, tracker: Tracker | None = None,
+                     mesh=None, overlap: int | None = None, anchor_every: int | None = None) -> Iterator[np.ndarray]:
+    """MiLA's Coarse-to-(Re)fine (module docstring). ``models.main`` draws the anchors
+    (:func:`coarse_anchors`) and refines them unless ``models.fine`` is given; ``anchor_every``
+    (latent frames between anchors) defaults to the refine model's training spacing
+    (``flow.anchor_every``, else its window minus its given frames: MiLA's tail anchor); 0 turns
+    the anchors off, which is ``rollout``."""
+    tracker = tracker or Tracker()
+    refine = models.fine or models.main
+    given = np.shape(first)[2]
+    overlap = given if overlap is None else overlap
+    horizon, key = coarse_anchors(models, controls, first, length, key=key, tracker=tracker, mesh=mesh,
+                                  anchor_every=anchor_every)
     emit = _Emitter(horizon)
-    if spacing:
-        anchors = list(range(given - 1 + spacing, length, spacing))
-        if anchors:               # the coarse pass: given frames + anchors, at 1 / spacing of the rate
-            key = _drain(_pass(coarse, horizon, list(range(given)) + anchors, controls, key, tracker, mesh,
-                               given=given, overlap=min(given, coarse.window - 1), fps_scale=spacing))
     refine_pass = _pass(refine, horizon, np.arange(length), controls, key, tracker, mesh, given=given,
-                        overlap=overlap, anchors=bool(spacing))
+                        overlap=overlap, anchors=bool(horizon.known[given:].any()))
     for done in refine_pass:               # each finished window goes out before the next is sampled
         part = emit.upto(done)
         if part is not None:

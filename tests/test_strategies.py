@@ -1,0 +1,174 @@
+"""Long-video strategies (jaxdrive.generate.strategies) on a tiny random DiT: what each pins,
+corrects and calls, and device memory flat in the length."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+from types import SimpleNamespace
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxdrive.generate import strategies as S
+from jaxdrive.generate.long_video import sample_long
+from jaxdrive.generate.windows import Tracker, WindowModel
+from jaxdrive.models.conditions import Conditions
+from jaxdrive.models.dit import DiT
+from jaxdrive.models.dit_presets import preset
+from jaxdrive.models.latents import LatentCodec
+
+H, W, C = 4, 8, 48                         # latents of 16 x 32 pixels, space-to-depth 4
+
+
+@functools.lru_cache(maxsize=None)
+def tiny_model(window: int, **kw) -> WindowModel:
+    cfg = preset("tiny", in_channels=C, vae_spatial=4, vae_temporal=1, text_dim=64, text_len=16, patch=(1, 2, 2),
+                 prediction="data", controls=dict(text=None, waypoints=True, fps=True, cond_frames="replace",
+                                                  reference_frame="residual"))
+    dit = DiT(cfg)
+    params = jax.tree_util.tree_map(jnp.asarray, nn.unbox(dit.init_params(0, batch=1, views=2, frames=window,
+                                                                          height=H, width=W)))
+    keys = iter(jax.random.split(jax.random.key(1), len(jax.tree_util.tree_leaves(params))))
+    params = jax.tree_util.tree_map(lambda p: p + 0.05 * jax.random.normal(next(keys), p.shape), params)
+    return WindowModel(dit, params, window=window, cond_frames=2, steps=2, **kw)
+
+
+def horizon_inputs(length: int, views: int = 2, given: int = 2, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    first = rng.normal(size=(1, views, given, H, W, C)).astype(np.float32)
+    controls = Conditions(waypoints=np.cumsum(rng.normal(size=(1, length, 2)), axis=1).astype(np.float32),
+                          fps=np.full((1,), 12.0, np.float32))
+    return first, controls
+
+
+def run(name, models, length, *, given=2, views=2, tracker=None, **options):
+    first, controls = horizon_inputs(length, views, given)
+    parts = list(S.run_strategy(name, models, controls, first, length, key=jax.random.key(0), tracker=tracker,
+                                **options))
+    return parts, np.concatenate(parts, axis=2), first
+
+
+def test_rollout_pins_the_given_frames_and_yields_each_window_as_it_is_done():
+    m = tiny_model(5)
+    tracker = Tracker()
+    parts, out, first = run("rollout", S.Models(m), 13, tracker=tracker)
+    assert [p.shape[2] for p in parts] == [5, 3, 3, 2]         # windows 0, 3, 6, 8 (the last starts earlier)
+    np.testing.assert_array_equal(out[:, :, :2], first)
+    assert tracker.calls == 4 == S.sequential_calls("rollout", S.Models(m), 13, 2)
+    assert np.isfinite(out).all() and out[:, :, 2:].std() > 0.1
+
+
+def test_coarse_to_refine_corrects_its_anchors_and_without_anchors_is_rollout():
+    m = tiny_model(5, jdc_anchor_rate=0.75, anchor_every=3)
+    models = S.Models(m)
+    first, controls = horizon_inputs(13)
+    horizon, _ = S.coarse_anchors(models, controls, first, 13, key=jax.random.key(0), anchor_every=3)
+    anchors = [4, 7, 10]                                        # given - 1 + j * 3
+    assert horizon.known.nonzero()[0].tolist() == [0, 1] + anchors
+    tracker = Tracker()
+    _, out, _ = run("coarse-to-refine", models, 13, tracker=tracker, anchor_every=3)
+    np.testing.assert_array_equal(out[:, :, :2], first)
+    # the refine pass re-noises the anchors (JDC) and denoises them jointly: they change
+    assert np.abs(out[:, :, anchors] - horizon.latents[:, :, anchors]).mean() > 1e-3
+    _, rolled, _ = run("rollout", models, 13)
+    assert tracker.calls == S.sequential_calls("coarse-to-refine", models, 13, 2, anchor_every=3)
+    _, off, _ = run("coarse-to-refine", models, 13, anchor_every=0)
+    np.testing.assert_array_equal(off, rolled)                  # no anchors: exactly the rollout
+
+
+class StillModel:
+    """A stand-in DiT whose velocity is 0: the sampler returns its start state, so a window's
+    output shows how the strategy initialised it (hashable: a static jit argument)."""
+
+    config = SimpleNamespace(controls=SimpleNamespace(cond_frames=None), prediction="velocity",
+                             prediction_min_sigma=0.05)
+
+    @staticmethod
+    def forward(params, x, sigma, cond):
+        return jnp.zeros_like(x)
+
+
+def test_refine_windows_start_their_anchors_at_the_jdc_level():
+    """MiLA eq. 9-12 at g = 0.5 (slope 0.5 at sigma = 1), alpha1 = 0.1: a2 = 0.4 / 0.9, the
+    anchor becomes (1 - a2) z + N(0, a2 (a2 + 2 a1 (1 - a2))), the other frames pure noise."""
+    still = WindowModel(StillModel(), None, window=5, cond_frames=2, steps=2, jdc_anchor_rate=0.75, anchor_every=3)
+    first, controls = horizon_inputs(13)
+    horizon, key = S.coarse_anchors(S.Models(still), controls, first, 13, key=jax.random.key(0), anchor_every=3)
+    z = horizon.latents[:, :, [4, 7, 10]]
+    out = np.concatenate(list(S.coarse_to_refine(S.Models(still), controls, first, 13, key=jax.random.key(0),
+                                                 anchor_every=3)), axis=2)
+    a1, a2 = 0.1, 0.4 / 0.9
+    resid = out[:, :, [4, 7, 10]] - (1 - a2) * z
+    assert abs(resid.mean()) < 0.02
+    np.testing.assert_allclose(resid.std(), np.sqrt(a2 * (a2 + 2 * a1 * (1 - a2))), rtol=0.03)
+    np.testing.assert_allclose(out[:, :, [2, 3, 5, 6, 8, 9, 11, 12]].std(), 1.0, rtol=0.03)   # noise
+    np.testing.assert_array_equal(out[:, :, :2], first)
+
+
+def test_coarse_fine_keeps_the_coarse_keyframes_bit_for_bit_in_one_fine_call():
+    coarse = tiny_model(4, stride=6)
+    fine = dataclasses.replace(tiny_model(7), patterns=("prefix", "ends"))
+    models = S.Models(coarse, fine)
+    first, controls = horizon_inputs(25, given=1)
+    keyframes = [0, 6, 12, 18, 24]
+    horizon, _ = S.coarse_anchors(S.Models(coarse, dataclasses.replace(fine, anchor_every=6)), controls, first, 25,
+                                  key=jax.random.key(0), anchor_every=6)
+    tracker = Tracker()
+    parts, out, _ = run("coarse-fine", models, 25, given=1, tracker=tracker)
+    np.testing.assert_array_equal(out[:, :, keyframes], horizon.latents[:, :, keyframes])
+    coarse_windows = len(S.window_starts(5, 4, 1))
+    assert tracker.calls == coarse_windows + 1 == S.sequential_calls("coarse-fine", models, 25, 1)
+    between = [f for f in range(25) if f not in keyframes]
+    assert np.abs(out[:, :, between]).mean() > 0.1              # the segments were filled
+    tracker = Tracker()
+    _, capped, _ = run("coarse-fine", models, 25, given=1, tracker=tracker, segment_batch=3)
+    assert tracker.calls == coarse_windows + 2                  # 4 segments, 3 per call
+    np.testing.assert_array_equal(capped[:, :, keyframes], out[:, :, keyframes])
+
+
+def test_strategies_reject_what_they_cannot_do_before_compiling():
+    m = tiny_model(5)
+    with pytest.raises(ValueError, match=r"--fine-workdir: strategy 'coarse-fine' needs a fine model run"):
+        S.check_strategy("coarse-fine", S.Models(m), 25, 1)
+    with pytest.raises(ValueError, match=r"--fine-workdir: expected a model trained for interpolation"):
+        S.check_strategy("coarse-fine", S.Models(m, tiny_model(7)), 25, 1)
+    fine = dataclasses.replace(tiny_model(7), patterns=("prefix", "ends"))
+    with pytest.raises(ValueError, match=r"frames: coarse-fine reaches 1 \+ n \* 6 latent frames .* got 24; e.g. 19 or 25"):
+        S.check_strategy("coarse-fine", S.Models(m, fine), 24, 1)
+    with pytest.raises(ValueError, match=r"workdir: coarse-to-refine needs a model trained to correct JDC anchors"):
+        S.check_strategy("coarse-to-refine", S.Models(m), 25, 2)
+    with pytest.raises(ValueError, match=r"--workdir: coarse-to-refine draws spaced anchors, which needs frame-wise"):
+        S.check_strategy("coarse-to-refine", S.Models(dataclasses.replace(m, temporal=4, jdc_anchor_rate=0.5)), 25, 2)
+    with pytest.raises(ValueError, match=r"strategy: expected one of"):
+        S.check_strategy("window", S.Models(m), 25, 2)
+    with pytest.raises(ValueError, match=r"frames: expected more latent frames than the 2 given ones, got 2"):
+        S.check_strategy("rollout", S.Models(m), 2, 2)
+
+
+def test_device_memory_is_flat_in_the_length(tmp_path):
+    """721 frames (a minute at 12 fps) on 6 views need the device memory of 145 (within 10%)."""
+    cases = {"rollout": (S.Models(tiny_model(5)), {}),
+             "coarse-to-refine": (S.Models(tiny_model(5, jdc_anchor_rate=0.75, anchor_every=3)), {}),
+             "coarse-fine": (S.Models(tiny_model(4, stride=6), dataclasses.replace(tiny_model(7), patterns=("ends",))),
+                             {"segment_batch": 24})}
+    codec = LatentCodec("space_to_depth", 4)
+    for name, (models, options) in cases.items():
+        given = 1 if name == "coarse-fine" else 2
+        peaks = {}
+        for length in (145, 721):
+            first, controls = horizon_inputs(length, views=6, given=given)
+            report = sample_long(name, models, codec, controls, first, length, tmp_path / f"{name}{length}",
+                                 key=jax.random.key(0), fps=12.0, log=lambda *a: None, **options)
+            peaks[length] = report["peak_device_bytes"]
+            assert report["sequential_sampler_calls"] == S.sequential_calls(name, models, length, given, **options)
+        assert peaks[145] > 0 and abs(peaks[721] / peaks[145] - 1) < 0.10, (name, peaks)
+    report = json.loads((tmp_path / "coarse-fine721" / "report.json").read_text())
+    assert {"strategy", "frames", "views", "sequential_sampler_calls", "seconds", "peak_device_bytes"} <= set(report)
+    assert (report["strategy"], report["frames"], report["views"]) == ("coarse-fine", 721, 6)
+    assert np.load(tmp_path / "coarse-fine721" / "latents.npy").shape == (1, 6, 721, H, W, C)
+    assert (tmp_path / "coarse-fine721" / "sample.mp4").stat().st_size > 0
