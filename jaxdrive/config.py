@@ -327,6 +327,7 @@ def check_sections(config) -> None:
     validate.check_choice("optim.schedule", o.schedule, ("cosine", "linear", "constant"))
     validate.check_choice("flow.sigma_sampling", f.sigma_sampling, ("logit_normal", "uniform"))
     validate.check_range("flow.jdc_anchor_rate", f.jdc_anchor_rate, 0.0, 1.0)
+    validate.check_range("flow.jdc_alpha1", f.jdc_alpha1, 0.0, 1.0, hi_open=True)
     check_patterns(f.patterns, f.pattern_rates, f.anchor_every, prefix="flow.")
     validate.check_choice("train.compute_dtype", t.compute_dtype, ("float32", "bfloat16"))
     validate.check_choice("latents.source", config.latents.source, ("vae", "space_to_depth"))

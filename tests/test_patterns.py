@@ -189,6 +189,7 @@ def test_defaults_and_command_line_keys():
     (dict(patterns=("prefix", "ends"), pattern_rates=(0.5, 0.6)), "flow.pattern_rates: expected non-negative rates summing to 1"),
     (dict(patterns=("prefix", "anchors")), "flow.anchor_every: expected an integer >= 1, got 0"),
     (dict(anchor_every=-1), "flow.anchor_every: expected an integer >= 0"),
+    (dict(jdc_alpha1=1.0), r"flow.jdc_alpha1: expected values in \[0.0, 1.0\)"),
 ])
 def test_bad_flow_config(kw, match):
     with pytest.raises(ValueError, match=match):
