@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from jaxdrive import validate
+from jaxdrive.flow.patterns import check_patterns
 from jaxdrive.models.dit_config import DiTConfig, check_config
 
 
@@ -79,7 +80,10 @@ class FlowConfig:
     cond_frames_random: bool = True        # draw 0..cond_frames per clip (unconditional too)
     tpd: bool = False                      # MiLA's temporal progressive denoising levels
     tpd_omega: float = 1.5707963267948966
-    jdc_anchor_rate: float = 0.0           # fraction of clips whose last frame is a JDC anchor
+    patterns: tuple[str, ...] = ("prefix",)   # where given frames sit: prefix / ends / anchors (flow.patterns)
+    pattern_rates: tuple[float, ...] = ()  # each pattern's share of the clips; empty: equal shares
+    anchor_every: int = 0                  # "anchors": an anchor every S frames from the last given one
+    jdc_anchor_rate: float = 0.0           # fraction of clips whose anchor candidates are JDC anchors
     jdc_slope: float = 0.5
     jdc_alpha1: float = 0.1
     structure_weight: float = 0.0          # LongDWM's structure-preservation loss weight
@@ -323,6 +327,8 @@ def check_sections(config) -> None:
     validate.check_choice("optim.schedule", o.schedule, ("cosine", "linear", "constant"))
     validate.check_choice("flow.sigma_sampling", f.sigma_sampling, ("logit_normal", "uniform"))
     validate.check_range("flow.jdc_anchor_rate", f.jdc_anchor_rate, 0.0, 1.0)
+    validate.check_range("flow.jdc_alpha1", f.jdc_alpha1, 0.0, 1.0, hi_open=True)
+    check_patterns(f.patterns, f.pattern_rates, f.anchor_every, prefix="flow.")
     validate.check_choice("train.compute_dtype", t.compute_dtype, ("float32", "bfloat16"))
     validate.check_choice("latents.source", config.latents.source, ("vae", "space_to_depth"))
     validate.check_range("optim.min_lr_ratio", o.min_lr_ratio, 0.0, 1.0)

@@ -64,7 +64,7 @@ def test_foreground_weighting_is_eq15_times_w_aux(dataset):
         x = t.codec.encode(None, video)
         k_levels, k_noise = jax.random.split(key)
         noise = jax.random.normal(k_noise, x.shape)
-        _, cond, levels = flow_step.draw_levels(k_levels, x, t.flow, height=32, width=56)
+        _, cond, levels, _ = flow_step.draw_levels(k_levels, x, t.flow, height=32, width=56)
         x_t = flow.add_noise(x, noise, levels)
         out = t.dit.forward(params, x_t, levels, without["cond"].replace(cond_latents=x, cond_mask=cond))
         v = flow.velocity_from_output(out, x_t, levels, t.model.prediction, t.model.prediction_min_sigma)
@@ -82,6 +82,55 @@ def test_foreground_weighting_is_eq15_times_w_aux(dataset):
     assert loss_w == pytest.approx(by_hand, rel=1e-5)
     assert loss_w != pytest.approx(loss_plain, rel=1e-3)
     assert loss_empty == pytest.approx(loss_plain, rel=1e-6)        # no object: W_aux is all ones
+
+
+# ------------------------------------------------------------------------- condition patterns, JDC anchors
+PATTERNS = ["data.frames=5", "flow.patterns=prefix,ends,anchors", "flow.pattern_rates=0.25,0.25,0.5",
+            "flow.anchor_every=2", "flow.cond_frames=2", "flow.jdc_anchor_rate=1.0", "flow.jdc_alpha1=0.1"]
+
+
+def test_jdc_anchors_enter_eq15_with_their_own_noise(dataset):
+    """The loss is eq. 15 on x_t from jdc_training_anchors, with noise_eff as the target's noise;
+    the anchor frames count (moving the target on them moves the loss)."""
+    one = ["mesh.data=1", "mesh.seq=1"]
+    run = Run(config(dataset, *PATTERNS, *one), devices=jax.devices()[:1])
+    t = run.training
+    params = t.dit.init_params(0, views=2, frames=5, height=8, width=14)
+    inputs = {k: v for k, v in micro(one_batch(run)).items() if k != "loss"}
+
+    @jax.jit
+    def both(inputs, key):
+        loss = flow_step.flow_loss_fn(t, params, None, inputs, key)[0]
+        x = t.codec.encode(None, inputs["video"])
+        k_levels, k_noise = jax.random.split(key)
+        noise = jax.random.normal(k_noise, x.shape)
+        _, cond, levels, anchor = flow_step.draw_levels(k_levels, x, t.flow, height=32, width=56)
+        x_t, eps = flow.jdc_training_anchors(jax.random.fold_in(k_noise, 1), x, noise, levels, anchor, 0.1)
+        out = t.dit.forward(params, x_t, levels, inputs["cond"].replace(cond_latents=x, cond_mask=cond))
+        v = flow.velocity_from_output(out, x_t, levels, t.model.prediction, t.model.prediction_min_sigma)
+        by_hand = flow.flow_loss(v, x, eps, cond_mask=cond)
+        plain_noise = flow.flow_loss(v, x, noise, cond_mask=cond)
+        return loss, by_hand, plain_noise, jnp.sum(anchor)
+
+    with jax.set_mesh(run.mesh):
+        found = False
+        for seed in range(8):                       # a key whose clips hold anchors
+            loss, by_hand, plain_noise, n_anchors = map(float, both(inputs, jax.random.key(seed)))
+            assert loss == pytest.approx(by_hand, rel=1e-5)
+            if n_anchors > 0:
+                found = True
+                assert loss != pytest.approx(plain_noise, rel=1e-3)
+        assert found
+
+
+def test_a_step_with_every_pattern_and_jdc_anchors_is_finite(dataset):
+    run = Run(config(dataset, *PATTERNS, "mesh.data=1", "mesh.seq=1"), devices=jax.devices()[:1])
+    batch = one_batch(run)
+    state, optimizer, shardings = run.init_state()
+    with jax.set_mesh(run.mesh):
+        _, m = run.step_fn(optimizer, shardings)(state, run.frozen_params(), batch)
+    m = jax.device_get(m)
+    assert np.isfinite(m["loss"]) and m["loss"] > 0 and m["skipped"] == 0
 
 
 # ------------------------------------------------------------------------- LongDWM distillation

@@ -53,13 +53,15 @@ def test_space_to_depth_round_trip_and_layout():
 def test_draw_levels_condition_anchor_and_generated_frames():
     x = jnp.zeros((512, 1, 6, 2, 2, 4))
     cfg = FlowConfig(cond_frames=2, cond_frames_random=False, jdc_anchor_rate=0.5, jdc_slope=0.5)
-    sigma, cond, levels = flow_step.draw_levels(jax.random.key(1), x, cfg, height=16, width=16)
+    sigma, cond, levels, anchor = flow_step.draw_levels(jax.random.key(1), x, cfg, height=16, width=16)
     assert cond.shape == (512, 6) and bool(jnp.all(cond[:, :2])) and not bool(jnp.any(cond[:, 2:]))
     np.testing.assert_array_equal(levels[:, :2], 0.0)                       # clean condition frames
     np.testing.assert_allclose(levels[:, 2:5], jnp.broadcast_to(sigma[:, None], (512, 3)))
     anchored = np.isclose(levels[:, 5], 0.5 * sigma)                          # g = slope * sigma
     assert np.all(anchored | np.isclose(levels[:, 5], sigma))
     assert 0.35 < anchored.mean() < 0.65                                      # about the anchor rate
+    np.testing.assert_array_equal(anchor[:, 5], anchored)                     # the mask says which
+    assert not bool(jnp.any(anchor[:, :5]))
     rand = flow_step.draw_levels(jax.random.key(2), x, FlowConfig(cond_frames=3), height=16, width=16)[1]
     assert set(np.asarray(rand.sum(1)).tolist()) == {0, 1, 2, 3}              # 0..cond_frames per clip
 

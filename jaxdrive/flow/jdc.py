@@ -21,7 +21,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxdrive.flow.rectified import expand_per_frame
+from jaxdrive.flow.rectified import add_noise, expand_per_frame
 from jaxdrive.validate import check_range, is_concrete
 
 DEFAULT_ALPHA1 = 0.1
@@ -107,3 +107,49 @@ def jdc_anchor_sigma(sigma, slope=DEFAULT_ANCHOR_SLOPE):
     check_range("slope", slope, 0.0, 1.0, lo_open=True)
     check_range("sigma", sigma, 0.0, 1.0)
     return jnp.asarray(slope, jnp.float32) * jnp.asarray(sigma, jnp.float32)
+
+
+def jdc_training_anchors(key, x, noise, levels, anchor_mask, alpha1=DEFAULT_ALPHA1):
+    """Noisy latents for training with JDC anchors made as the sampler makes them: ``(x_t, noise_eff)``.
+
+    ``x``, ``noise`` ``[B, ..., F, h, w, C]``; ``levels [B, F]`` (anchors at their ``g``, e.g. from
+    :func:`jaxdrive.flow.frame_sigmas`); ``anchor_mask [B, F]``; ``alpha1`` a scalar in [0, 1).
+
+    At sampling a predicted anchor ``z`` is re-noised to ``g`` by :func:`jdc_renoise`. Training
+    draws the prediction by MiLA eq. 8, ``z = (1 - a1) x + a1 n1`` (the truth plus alpha1 noise),
+    and re-noises it with :func:`jdc_renoise` (eq. 9) where ``g >= alpha1``. Where ``g < alpha1``
+    (late in sampling the model has been denoising the anchor, not re-noising it) the anchor is the
+    plain flow-path point ``add_noise(x, noise, g)``. Every other frame is ``add_noise(x, noise,
+    levels)`` with ``noise`` unchanged, bit for bit.
+
+    ``noise_eff`` is ``noise`` except on re-noised anchors, where it is ``(x_t - (1 - g) x) / g``,
+    the standard-normal noise that puts ``x_t`` on the flow path of ``x`` at ``g`` (eq. 10-12;
+    appendix A). The velocity target ``noise_eff - x`` (MiLA eq. 15's y) is then exactly the
+    velocity of the sample the network sees, and a data-predicting network's
+    ``(x_t - x) / g`` equals it too.
+    """
+    x = jnp.asarray(x)
+    noise = jnp.asarray(noise)
+    _check_alpha1(alpha1)
+    a1 = jnp.asarray(alpha1, jnp.float32)
+    if a1.ndim != 0:
+        raise ValueError(f"alpha1: expected a scalar, got shape {list(a1.shape)}")
+    levels = jnp.asarray(levels, jnp.float32)
+    if levels.ndim != 2:
+        raise ValueError(f"levels: expected shape [B, F], got {list(levels.shape)}")
+    check_range("levels", levels, 0.0, 1.0)
+    anchor_mask = jnp.asarray(anchor_mask, bool)
+    if anchor_mask.shape != levels.shape:
+        raise ValueError(f"anchor_mask: expected shape {list(levels.shape)} (that of levels), "
+                         f"got {list(anchor_mask.shape)}")
+    x_t = add_noise(x, noise, levels)
+    k_pred, k_renoise = jax.random.split(key)
+    n1 = jax.random.normal(k_pred, x.shape, jnp.float32)
+    z = add_noise(x, n1.astype(x.dtype), jnp.broadcast_to(a1, x.shape[:1]))             # eq. 8
+    renoise = anchor_mask & (levels >= a1) & (levels > 0.0)
+    g = jnp.where(renoise, levels, 1.0)          # off the re-noised anchors any g in [a1, 1] will do
+    x_n = jdc_renoise(k_renoise, z, g, alpha1)                                             # eq. 9
+    on = expand_per_frame(renoise, x, "anchor_mask")
+    g_x = expand_per_frame(g, x, "levels")
+    noise_eff = jnp.where(on, (x_n.astype(jnp.float32) - (1.0 - g_x) * x) / g_x, noise)
+    return jnp.where(on, x_n, x_t).astype(x_t.dtype), noise_eff.astype(noise.dtype)

@@ -8,19 +8,21 @@ each micro-batch (in a ``lax.scan``):
 1. encodes the video to latents ``x`` (:class:`jaxdrive.models.latents.LatentCodec`; a VAE runs
    on the fly, without gradients), or takes the batch's precomputed ``latents``;
 2. draws a base level per clip (logit-normal or uniform, then Open-Sora's shift; SD3 eq. 19),
-   ``k`` clean condition frames at the start (``0..cond_frames`` per clip, or exactly
-   ``cond_frames``), JDC anchors (the last frame at ``g = slope * sigma``, MiLA sec. 3.3) for a
-   fraction of clips, and per-frame levels by :func:`jaxdrive.flow.frame_sigmas` (TPD when on,
-   MiLA eq. 13-14);
-3. noises ``x_sigma = (1 - sigma) x + sigma noise`` per frame; the condition frames sit at level
-   0, i.e. clean, and the DiT sees level 0 for them (and ``cond_latents`` when it has a
-   condition-frame control);
+   a condition pattern per clip (:func:`jaxdrive.flow.draw_condition_masks`: ``flow.patterns``
+   prefix / ends / anchors at ``flow.pattern_rates``) with ``k`` clean condition frames at the
+   start (``0..cond_frames`` per clip, or exactly ``cond_frames``), the pattern's JDC anchors (at
+   ``g = slope * sigma``, MiLA sec. 3.3) for a fraction ``jdc_anchor_rate`` of clips, and
+   per-frame levels by :func:`jaxdrive.flow.frame_sigmas` (TPD when on, MiLA eq. 13-14);
+3. noises ``x_sigma = (1 - sigma) x + sigma noise`` per frame, anchors as the sampler makes them
+   (:func:`jaxdrive.flow.jdc_training_anchors`, MiLA eq. 8-12: the truth plus alpha1 noise,
+   re-noised to ``g``); the condition frames sit at level 0, i.e. clean, and the DiT sees level 0
+   for them (and ``cond_latents`` when it has a condition-frame control);
 4. predicts the velocity with the batch's classifier-free-guidance drops (the data pipeline draws
-   them, 15% per condition by default) and takes MiLA eq. 15's loss over the non-condition frames
-   (weighted per pixel by STAGE's foreground map W_aux when ``flow.foreground_k > 0``), plus
-   LongDWM's structure-preservation loss when weighted, plus LongDWM's fine-to-coarse distillation
-   from a frozen fine model when ``flow.distill_teacher`` names one
-   (:mod:`jaxdrive.train.distill_step`).
+   them, 15% per condition by default) and takes MiLA eq. 15's loss over the non-condition frames,
+   anchors included (weighted per pixel by STAGE's foreground map W_aux when
+   ``flow.foreground_k > 0``), plus LongDWM's structure-preservation loss when weighted, plus
+   LongDWM's fine-to-coarse distillation from a frozen fine model when ``flow.distill_teacher``
+   names one (:mod:`jaxdrive.train.distill_step`).
 
 Gradients are averaged over the micro-batches, then :func:`jaxdrive.train.state.apply_gradients`
 updates (or skips a non-finite step). The step is jitted with the state's shardings as in/out
@@ -61,24 +63,20 @@ class FlowTraining:
 
 
 def draw_levels(key, x, config: FlowConfig, *, height: int, width: int):
-    """Per-clip base levels, condition and anchor masks, per-frame levels ``[B, F']`` (step 2 of
-    the module docstring)."""
+    """Per-clip base levels, condition and anchor masks, per-frame levels (step 2 of the module
+    docstring): ``(sigma [B], cond_mask [B, F'], levels [B, F'], anchor_mask [B, F'])``."""
     b, nf = x.shape[0], x.shape[-4]
-    k_sig, k_cond, k_anchor = jax.random.split(key, 3)
+    k_sig, k_masks = jax.random.split(key)
     shift = config.shift if config.shift > 0 else flow.resolution_shift(height, width, nf)
     sigma = flow.sample_sigmas(k_sig, (b,), distribution=config.sigma_sampling, loc=config.logit_loc,
                                scale=config.logit_scale, shift=shift)
-    most = min(config.cond_frames, nf - 1)          # at least one frame is generated
-    if config.cond_frames_random and most > 0:
-        n_cond = jax.random.randint(k_cond, (b,), 0, most + 1)
-    else:
-        n_cond = jnp.full((b,), most)
-    frame = jnp.arange(nf)[None, :]
-    cond = frame < n_cond[:, None]
-    anchor = (frame == nf - 1) & (jax.random.uniform(k_anchor, (b, 1)) < config.jdc_anchor_rate)
+    cond, anchor = flow.draw_condition_masks(
+        k_masks, b, nf, patterns=config.patterns, pattern_rates=config.pattern_rates,
+        cond_frames=config.cond_frames, cond_frames_random=config.cond_frames_random,
+        anchor_every=config.anchor_every, anchor_rate=config.jdc_anchor_rate)
     levels = flow.frame_sigmas(sigma, cond, anchor_mask=anchor, tpd=config.tpd, omega=config.tpd_omega,
                                anchor_slope=config.jdc_slope)
-    return sigma, cond, levels
+    return sigma, cond, levels, anchor
 
 
 def foreground_weights(training: FlowTraining, fields: dict, x, *, height: int, width: int):
@@ -107,8 +105,12 @@ def flow_loss_fn(training: FlowTraining, params, codec_params, inputs: dict, key
         x, noise = flow.dense_to_coarse(x, seg), flow.dense_to_coarse(noise, seg)
         cond = distill_step.coarse_conditions(cond, seg)
         loss_fields = loss_fields and distill_step.coarse_fields(loss_fields, seg)
-    sigma, given, levels = draw_levels(k_levels, x, training.flow, height=height, width=width)
-    x_t = flow.add_noise(x, noise, levels)
+    sigma, given, levels, anchor = draw_levels(k_levels, x, training.flow, height=height, width=width)
+    if training.flow.jdc_anchor_rate > 0:     # anchors as the sampler makes them; noise = their flow noise
+        x_t, noise = flow.jdc_training_anchors(jax.random.fold_in(k_noise, 1), x, noise, levels, anchor,
+                                               training.flow.jdc_alpha1)
+    else:
+        x_t = flow.add_noise(x, noise, levels)
     if training.model.controls.cond_frames is not None:
         cond = cond.replace(cond_latents=x, cond_mask=given)
     m = training.model
