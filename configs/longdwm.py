@@ -53,8 +53,7 @@ def _paper(role: str) -> Config:
 def _tiny(role: str) -> Config:
     base = load_config(Path(__file__).with_name("tiny.py"))
     return dataclasses.replace(
-        base, data=dataclasses.replace(base.data, frames=7),
-        flow=dataclasses.replace(base.flow, cond_frames=1, structure_weight=0.1),
+        base, flow=dataclasses.replace(base.flow, cond_frames=1, structure_weight=0.1),
         train=dataclasses.replace(base.train, steps=300, checkpoint_every=100))
 
 

@@ -34,9 +34,11 @@ from jaxdrive.config import (Config, DataConfig, FlowConfig, LatentConfig, MeshC
                              load_config, parse_arg)
 from jaxdrive.models.dit_presets import preset
 
-# stage 1's trainable set: MiLA's new modules (cross-view attention, the condition embeddings),
-# the last block and the output layer; regexes over "a/b/kernel" parameter paths
-STAGE1_TRAINABLE = ("cross_view", "embed", "blocks_{last}/", "final", "proj_out")
+# stage 1's trainable set, regexes over "a/b/kernel" parameter paths: MiLA's new modules (the
+# Fourier + MLP condition embeddings; its multi-view spatial attention is the spatial attention
+# itself here, attending over all views, so it trains with the last block), the last block and
+# the output layer
+STAGE1_TRAINABLE = ("camera_embed", "waypoints_embed", "fps_embedder", "layers_{last}/", "final", "proj_out")
 
 
 def _paper(stage: int) -> Config:

@@ -65,7 +65,7 @@ def _pass(model: WindowModel, horizon: Horizon, positions, controls: Conditions,
     for start in window_starts(len(positions), window, overlap):
         idx = positions[start:start + window]
         n_cond = given if done == 0 else done - start
-        cond = np.broadcast_to(np.arange(window)[None] < n_cond, (b, window))
+        cond = np.broadcast_to(np.asarray(flow.pattern_masks("prefix", window, n_cond)[0]), (b, window))
         anchor = None
         if anchors:
             anchor = np.broadcast_to(horizon.known[idx][None], (b, window)) & ~cond

@@ -1,0 +1,121 @@
+"""Long video: seconds, sequential sampler calls and peak device memory of each strategy, side by
+side, for several lengths, on the tiny recipe's models (``configs/tiny.py``, random weights: the
+figures are about cost, not quality).
+
+    python -m jaxdrive.bench.longvideo [--frames 33 145 721] [--steps 10] [--views 6]
+
+Also the ratio of ``coarse-fine``'s time for 145 frames to the time of one window (LongDWM
+reports 145 frames in 70 s where Vista needs 95 s for 25) and to ``rollout``'s time for the same
+frames. On a CPU a batched call costs about as much as its segments would one by one, so the
+sequential calls are the figure that transfers to an accelerator; ``coarse-fine (capped)`` caps
+the segments per fine call (``segment_batch``), which keeps device memory flat in the length.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import tempfile
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from jaxdrive.bench.report import emit, table
+
+NAME = "longvideo"
+CONFIG = Path(__file__).resolve().parents[2] / "configs" / "tiny.py"
+
+
+def _models(config, views: int, steps: int):
+    from jaxdrive.generate.windows import WindowModel
+    from jaxdrive.models.dit import DiT
+    d = config.data
+    dit = DiT(config.model)
+    window = d.frames
+    params = jax.tree_util.tree_map(jax.numpy.asarray, dit.init_params(0, batch=1, views=views, frames=window,
+                                                                      height=d.height // 4, width=d.width // 4))
+    base = WindowModel(dit, params, window=window, cond_frames=config.flow.cond_frames, steps=steps)
+    refine = dataclasses.replace(base, jdc_anchor_rate=0.75)
+    return {"main": base, "refine": refine, "coarse": dataclasses.replace(base, cond_frames=1, stride=window - 1),
+            "fine": dataclasses.replace(base, cond_frames=1, patterns=("prefix", "ends"))}
+
+
+def _horizon(config, frames: int, views: int):
+    """A synthetic clip of ``frames`` frames as model inputs (the controls of every frame)."""
+    from jaxdrive.data.batches import model_inputs
+    from jaxdrive.data.pipeline import CONDITIONS, collate, sample_clip
+    from jaxdrive.data.synthetic import generate_clip
+    d = config.data
+    clip = generate_clip(0, views=views, frames=frames, height=d.height, width=d.width)
+    batch = collate([sample_clip(clip, size=(d.height, d.width), frames=frames)])
+    batch["drop"] = {n: np.zeros((1,), bool) for n in CONDITIONS}
+    return model_inputs(batch, config.model)
+
+
+def run(frames_list, steps: int, views: int, segment_batch: int):
+    from jaxdrive.config import load_config
+    from jaxdrive.generate.long_video import sample_long
+    from jaxdrive.generate.strategies import Models
+    from jaxdrive.models.latents import LatentCodec
+    config = load_config(CONFIG)
+    codec = LatentCodec.from_config(config.latents)
+    m = _models(config, views, steps)
+    cases = [("rollout", Models(m["main"]), {}), ("coarse-to-refine", Models(m["refine"]), {}),
+             ("coarse-fine", Models(m["coarse"], m["fine"]), {}),
+             ("coarse-fine (capped)", Models(m["coarse"], m["fine"]), {"segment_batch": segment_batch})]
+    rows, seconds = [], {}
+    out = Path(tempfile.mkdtemp(prefix="jaxdrive-bench-longvideo-"))
+    for frames in [config.data.frames] + list(frames_list):
+        inputs = _horizon(config, frames, views)
+        first = np.asarray(codec.encode(None, inputs["video"][:, :, :config.flow.cond_frames]))
+        for label, models, options in cases:
+            name = label.split(" ")[0]
+            if frames == config.data.frames and name != "rollout":
+                continue                                   # one window: the rollout's single call
+            given = 1 if name == "coarse-fine" else config.flow.cond_frames
+            # compile outside the figure: a first, short run of the same shapes
+            sample_long(name, models, codec, inputs["cond"], first[:, :, :given], min(frames, 2 * config.data.frames - 1)
+                        if name != "coarse-fine" else 1 + 2 * (config.data.frames - 1), out / "warm",
+                        key=jax.random.key(0), log=lambda *a: None, **options)
+            t = time.perf_counter()
+            report = sample_long(name, models, codec, inputs["cond"], first[:, :, :given], frames, out / label,
+                                 key=jax.random.key(0), log=lambda *a: None, **options)
+            wall = time.perf_counter() - t
+            seconds[(label, frames)] = wall
+            row = dict(strategy=label, frames=frames, seconds=round(wall, 2),
+                       sequential_calls=report["sequential_sampler_calls"],
+                       peak_mib=round(report["peak_device_bytes"] / 2**20, 1))
+            rows.append(row)
+            ctx = dict(strategy=label, frames=frames, views=views, steps=steps, backend=jax.default_backend())
+            emit(NAME, "seconds", row["seconds"], "s", **ctx)
+            emit(NAME, "sequential_sampler_calls", row["sequential_calls"], "calls", **ctx)
+            emit(NAME, "peak_device_memory", row["peak_mib"], "MiB", **ctx)
+    print(table(rows, ["strategy", "frames", "seconds", "sequential_calls", "peak_mib"]))
+    window = seconds[("rollout", config.data.frames)]
+    if ("coarse-fine", 145) in seconds:
+        cf = seconds[("coarse-fine", 145)]
+        emit(NAME, "coarse_fine_145_over_one_window", round(cf / window, 2), "x", window_frames=config.data.frames)
+        emit(NAME, "coarse_fine_145_over_rollout_145", round(cf / seconds[("rollout", 145)], 2), "x")
+        print(f"coarse-fine 145 frames: {cf / window:.1f} x one window ({window:.2f} s), "
+              f"{cf / seconds[('rollout', 145)]:.2f} x rollout's 145 frames")
+    return rows
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(prog="jaxdrive bench longvideo", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--frames", type=int, nargs="+", default=[33, 145, 721],
+                        help="pixel frames (1 + 8n for the tiny coarse-fine models)")
+    parser.add_argument("--steps", type=int, default=10)
+    parser.add_argument("--views", type=int, default=6)
+    parser.add_argument("--segment-batch", type=int, default=4, help="segments per fine call, the capped row")
+    args = parser.parse_args(argv)
+    bad = [f for f in args.frames if (f - 1) % 8]
+    if bad:
+        parser.error(f"--frames: expected 1 + 8n frames (keyframes every 8 frames), got {bad}")
+    return run(args.frames, args.steps, args.views, args.segment_batch)
+
+
+if __name__ == "__main__":
+    main()

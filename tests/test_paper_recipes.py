@@ -1,0 +1,100 @@
+"""The papers' recipes at size=tiny: every stage / role trains a few steps from its config
+argument, and samples with its long-video strategy through ``jaxdrive sample --strategy``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jaxdrive.cli import main as cli
+from jaxdrive.config import check_sections, load_config
+
+from train_fixtures import write_synthetic
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL = ["data.views=2", "data.batch_size=2", "model.depth=1", "optim.warmup_steps=1", "train.log_every=1",
+         "train.checkpoint_every=1"]
+
+
+@pytest.fixture(scope="module")
+def long_scenes(tmp_path_factory):
+    """Scenes long enough for the low-rate clips (LongDWM's coarse model: 9 frames 8 apart)."""
+    return write_synthetic(tmp_path_factory.mktemp("long") / "data", train=2, frames=72)
+
+
+def train(config: str, workdir, data, *sets, steps: int = 1):
+    args = ["train", "--config", str(ROOT / "configs" / config), "--workdir", str(workdir), "--steps", str(steps),
+            "--no-progress"]
+    for s in [f"data.path={data}", *SMALL, *sets]:
+        args += ["--set", s]
+    assert cli(args) == 0
+    return workdir
+
+
+@pytest.mark.parametrize("arg", ["size=tiny,stage=1", "size=tiny,stage=2", "size=tiny,stage=3", "stage=1", "stage=3",
+                                 "size=tiny,role=coarse", "size=tiny,role=fine", "size=tiny,role=distill",
+                                 "role=coarse", "role=fine", "role=distill"])
+def test_paper_configs_take_their_argument(arg):
+    name = "longdwm" if "role" in arg else "mila"
+    config = load_config(f"{ROOT / 'configs' / name}.py:{arg}")
+    check_sections(config)
+    if "stage=1" in arg:
+        assert config.optim.trainable and config.data.rate_head == 0 and config.data.rate_strides
+    if "stage=3" in arg:
+        assert config.flow.jdc_anchor_rate == 0.75 and config.flow.tpd and config.model.controls.frame_time
+    if "role=fine" in arg:
+        assert config.flow.patterns == ("prefix", "ends")
+    if "role=coarse" in arg:
+        assert config.data.stride == config.data.frames - 1
+    with pytest.raises(ValueError, match=r"config argument (stage|role): expected"):
+        load_config(f"{ROOT / 'configs' / name}.py:{arg.replace('stage=', 'stage=9').replace('role=', 'role=x')}")
+
+
+def test_mila_tiny_stages_train_and_sample_coarse_to_refine(long_scenes, tmp_path, capsys):
+    for stage in (1, 2):
+        train(f"mila.py:size=tiny,stage={stage}", tmp_path / f"stage{stage}", long_scenes)
+    run = train("mila.py:size=tiny,stage=3", tmp_path / "stage3", long_scenes, steps=2)
+    out = tmp_path / "c2r"
+    assert cli(["sample", "--workdir", str(run), "--strategy", "coarse-to-refine", "--frames", "20", "--steps", "2",
+                "--out", str(out), "--no-progress"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    # window 8 with 2 given: anchors every 6 frames at 7, 13, 19; the coarse pass draws them in one
+    # window, the refine pass takes 3 windows (0, 6, 12)
+    assert (report["strategy"], report["frames"], report["views"]) == ("coarse-to-refine", 20, 2)
+    assert report["sequential_sampler_calls"] == 1 + 3 and report["peak_device_bytes"] > 0
+    latents = np.load(out / "latents.npy")
+    assert latents.shape == (1, 2, 20, 8, 14, 48) and np.isfinite(latents).all()
+    assert (out / "sample.mp4").stat().st_size > 0 and (out / "frames.png").stat().st_size > 0
+    # stage 2 never trained anchors: it cannot refine them, and says so before compiling
+    capsys.readouterr()
+    assert cli(["sample", "--workdir", str(tmp_path / "stage2"), "--strategy", "coarse-to-refine", "--frames", "20",
+                "--out", str(tmp_path / "bad")]) == 2
+    assert "coarse-to-refine needs a model trained to correct JDC anchors" in capsys.readouterr().err
+
+
+def test_longdwm_tiny_roles_train_and_sample_coarse_fine(long_scenes, tmp_path, capsys):
+    coarse = train("longdwm.py:size=tiny,role=coarse", tmp_path / "coarse", long_scenes)
+    fine = train("longdwm.py:size=tiny,role=fine", tmp_path / "fine", long_scenes, steps=2)
+    train("longdwm.py:size=tiny,role=distill", tmp_path / "distill", long_scenes, f"flow.distill_teacher={fine}")
+    out = tmp_path / "cf"
+    args = ["sample", "--workdir", str(coarse), "--fine-workdir", str(fine), "--strategy", "coarse-fine",
+            "--steps", "2", "--no-progress"]
+    assert cli([*args, "--frames", "17", "--out", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    # keyframes 0, 8, 16 in one coarse window, then both segments in one fine call
+    assert report["strategy"] == "coarse-fine" and report["frames"] == 17 and report["sequential_sampler_calls"] == 2
+    latents = np.load(out / "latents.npy")
+    assert latents.shape == (1, 2, 17, 8, 14, 48) and np.isfinite(latents).all()
+    capsys.readouterr()
+    for bad, message in (
+            (["--workdir", str(coarse), "--strategy", "coarse-fine", "--frames", "17"],
+             "--fine-workdir: strategy 'coarse-fine' needs a fine model run, got none"),
+            (["--workdir", str(coarse), "--fine-workdir", str(coarse), "--strategy", "coarse-fine", "--frames", "17"],
+             "--fine-workdir: expected a model trained for interpolation"),
+            ([*args[1:], "--frames", "18"], "frames: coarse-fine reaches 1 + n * 8 latent frames")):
+        assert cli(["sample", *bad, "--out", str(tmp_path / "bad")]) == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
