@@ -3,6 +3,7 @@
     codec = LatentCodec.from_config(config.latents)            # loads the VAE when source = "vae"
     z = codec.encode(codec.params, video)     # video [B, V, F, H, W, 3] in [-1, 1] -> [B, V, F', h, w, C]
     video = codec.decode(codec.params, z)
+    dec = codec.stream_decoder(F')           # or part by part: dec.push(z_part) ..., dec.flush()
 
 ``"vae"``: a jaxdrive VAE (``jaxdrive convert vae`` or :func:`save_pretrained`), views folded
 into the batch, latents scaled by the VAE's scaling factor (:meth:`CausalVAE.scale_latents`).
@@ -93,6 +94,13 @@ class LatentCodec:
         else:
             video = self.vae.decode(params, self.vae.unscale_latents(latents))
         return jnp.clip(video, -1.0, 1.0)
+
+    def stream_decoder(self, total_latent_frames: int):
+        """A :class:`jaxdrive.models.vae_stream.StreamDecoder` for a clip of ``total_latent_frames``
+        latent frames: ``push(part)`` returns the frames that are final, ``flush()`` the rest, and
+        together they equal :meth:`decode` of the whole clip (the VAE's ``"whole"`` mode is rejected)."""
+        from jaxdrive.models.vae_stream import StreamDecoder
+        return StreamDecoder(self, total_latent_frames)
 
     def check_model(self, dit_config) -> None:
         """The DiT must read these latents: channels and the compressions its conditions assume."""

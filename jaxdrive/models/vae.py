@@ -21,6 +21,9 @@ Modes (``config.mode``, or the ``mode=`` argument):
   differs from ``"chunked"`` (on the order of 0.1-0.3 on a random model).
 - ``"frame_wise"``: every frame is its own one-frame clip (LongDWM's Coarse DiT), ``F -> F``.
 
+A video generated part by part decodes as its latents come, equal to the whole-clip decode, with
+:mod:`jaxdrive.models.vae_stream` (``"chunked"`` and ``"frame_wise"`` only).
+
 Spatial tiling (``config.tiling`` or ``tiled=``) follows diffusers' ``tiled_encode`` /
 ``tiled_decode``: overlapping tiles of ``tile_sample_height x tile_sample_width`` pixels, blended
 linearly over the overlap, for resolutions whose activations do not fit at once.
@@ -224,12 +227,16 @@ def _blend(a, b, extent: int, axis: int):
     return jnp.concatenate([head, jax.lax.slice_in_dim(b, extent, b.shape[axis], axis=axis)], axis=axis)
 
 
-def _tiled(apply, x, geo_h: dict, geo_w: dict, kind: str):
+def _tiled(apply, x, geo_h: dict, geo_w: dict, kind: str, caches=None):
     """Run ``apply`` on overlapping spatial tiles of ``x [N, T, H, W, C]`` and blend them, in
     diffusers' order: each tile is blended with the already-blended tiles above and to its left.
 
     Tiles of one shape (interior, right edge, bottom edge, corner) go through one ``lax.map``:
-    one tile at a time, as tiling is for memory, and one compilation per shape."""
+    one tile at a time, as tiling is for memory, and one compilation per shape.
+
+    With ``caches`` (a streaming decode, :mod:`jaxdrive.models.vae_stream`): ``apply(tile, cache)
+    -> (y, cache)`` and every tile keeps its own causal cache, ``{tile shape: caches stacked over
+    the tiles of that shape}`` (``{}`` for the first chunk); returns ``(video, new caches)``."""
     size_h = geo_h["tile_sample"] if kind == "encode" else geo_h["tile_latent"]
     size_w = geo_w["tile_sample"] if kind == "encode" else geo_w["tile_latent"]
     rows = range(0, x.shape[2], geo_h[f"{kind}_stride"])
@@ -239,10 +246,13 @@ def _tiled(apply, x, geo_h: dict, geo_w: dict, kind: str):
         for j in cols:
             shape = (min(size_h, x.shape[2] - i), min(size_w, x.shape[3] - j))
             groups.setdefault(shape, []).append((i, j))
-    out = {}
+    out, new_caches = {}, {}
     for (h, w), starts in groups.items():
         tiles = jnp.stack([x[:, :, i:i + h, j:j + w] for i, j in starts])
-        results = jax.lax.map(apply, tiles)
+        if caches is None:
+            results = jax.lax.map(apply, tiles)
+        else:
+            results, new_caches[(h, w)] = jax.lax.map(lambda a: apply(*a), (tiles, caches.get((h, w))))
         out.update({start: results[g] for g, start in enumerate(starts)})
     grid = [[out[(i, j)] for j in cols] for i in rows]
     mosaic = []
@@ -254,7 +264,8 @@ def _tiled(apply, x, geo_h: dict, geo_w: dict, kind: str):
                 row[c] = _blend(row[c - 1], row[c], geo_w[f"{kind}_blend"], axis=3)
         mosaic.append(jnp.concatenate([t[:, :, :geo_h[f"{kind}_keep"], :geo_w[f"{kind}_keep"]] for t in row],
                                       axis=3))
-    return jnp.concatenate(mosaic, axis=2)
+    video = jnp.concatenate(mosaic, axis=2)
+    return video if caches is None else (video, new_caches)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -353,11 +364,16 @@ class CausalVAE:
         weights = {"params": params["encoder" if kind == "encode" else "decoder"]}
         apply = lambda t, cache: module.apply(weights, t, cache)
         run = (lambda t: apply(t, None)[0]) if mode == "whole" else (lambda t: _run_chunks(apply, t, chunk))
-        if tiled:
-            geo_h, geo_w = c.tile_geometry("height"), c.tile_geometry("width")
-            if x.shape[2] > geo_h[tile_key] or x.shape[3] > geo_w[tile_key]:
-                return _tiled(run, x, geo_h, geo_w, kind)
-        return run(x)
+        geo = self._tiles(x, tile_key, tiled)
+        return run(x) if geo is None else _tiled(run, x, *geo, kind)
+
+    def _tiles(self, x, tile_key: str, tiled: bool):
+        """``(geometry of height, of width)`` when ``x [N, T, H, W, C]`` is tiled, else None: with
+        tiling on, a frame larger than one tile (``tile_key``: "tile_sample" or "tile_latent")."""
+        if not tiled:
+            return None
+        geo_h, geo_w = self.config.tile_geometry("height"), self.config.tile_geometry("width")
+        return (geo_h, geo_w) if x.shape[2] > geo_h[tile_key] or x.shape[3] > geo_w[tile_key] else None
 
 
 def _fold_views(x):
