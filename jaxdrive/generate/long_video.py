@@ -55,7 +55,7 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
             return
         clip = np.asarray(video[0])                           # [V, n, H, W, 3]
         for p in picks[(picks >= written) & (picks < written + clip.shape[1])]:
-            grid[int(p)] = clip[:, p - written]
+            grid[int(p)] = np.array(clip[:, p - written])     # a copy, not a view of the part
         if writer is not None:
             writer.write(clip)
         written += clip.shape[1]

@@ -183,6 +183,7 @@ def coarse_fine(models: Models, controls: Conditions, first, length: int, *, key
         z = np.asarray(tracker.call(fine, *to_mesh((fine.params, x, np.asarray(cond), ctrl), mesh), sub))
         for j, i in enumerate(idx):
             horizon.put(i, z[j * b:(j + 1) * b])
+        del z                  # on a CPU the array may be a view of the device buffer: free it now
         part = emit.upto(idx[-1][-1] + 1)
         if part is not None:
             yield part

@@ -82,7 +82,7 @@ class StreamDecoder:
         n = np.shape(latents)[2]
         self.pushed += n
         if not self.chunked:
-            return self._empty() if n == 0 else np.asarray(self.codec.decode(self.codec.params, latents))
+            return self._empty() if n == 0 else _to_host(self.codec.decode(self.codec.params, latents))
         self._pending.append(np.asarray(latents, np.float32))
         out = []
         while sum(p.shape[2] for p in self._pending) >= self._chunk_len():
@@ -108,7 +108,7 @@ class StreamDecoder:
         chunk, rest = buffered[:, :, :size], buffered[:, :, size:]
         self._pending = [rest] if rest.shape[2] else []
         video, self._cache = _decode_chunk(self.codec.vae, self.codec.params, chunk, self._cache)
-        return np.asarray(video)
+        return _to_host(video)
 
     def _check(self, latents):
         validate.check_ndim("latents", latents, 6)
@@ -131,3 +131,9 @@ class StreamDecoder:
         b, v, h, w, _ = self._shape
         s = self.codec.spatial
         return np.zeros((b, v, 0, h * s, w * s, 3), np.float32)
+
+
+def _to_host(video) -> np.ndarray:
+    """A host copy: on a CPU ``np.asarray`` of a device array may be a view that keeps the device
+    buffer alive as long as any frame of it is kept."""
+    return np.array(video, copy=True)
