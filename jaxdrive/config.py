@@ -40,6 +40,8 @@ class DataConfig:
     width: int = 56
     views: int = 6                    # the first V cameras in nuScenes order
     stride: int = 1                   # frame stride when sampling a clip
+    rate_head: int = 0                # mixed rates: the first frames of a clip at `stride` (condition frames)
+    rate_strides: tuple[int, ...] = ()  # ... the rest at a stride drawn per clip from these; (): `stride` throughout
     batch_size: int = 2               # global batch; every process loads batch_size / processes
     drop_prob: float = 0.15           # classifier-free-guidance drop per condition
     shuffle_seed: int = 0
@@ -351,5 +353,17 @@ def check_sections(config) -> None:
                              f"distillation (segment_len = {f.distill_segment_len}), got {d.frames}")
     if f.cond_frames < 0:
         raise ValueError(f"flow.cond_frames: expected >= 0, got {f.cond_frames}")
+    validate.check_positive_int("data.rate_head", d.rate_head, minimum=0)
+    if d.rate_head > d.frames:
+        raise ValueError(f"data.rate_head: expected at most data.frames = {d.frames} frames, got {d.rate_head}")
+    for s in d.rate_strides:
+        if isinstance(s, bool) or not isinstance(s, int) or s < 1:
+            raise ValueError(f"data.rate_strides: expected positive integers, got {d.rate_strides!r}")
+    if d.rate_strides and config.latents.precomputed:
+        raise ValueError(f"data.rate_strides: expected () with latents.precomputed (stored latent windows have "
+                         f"uniform frames), got {d.rate_strides!r}")
+    if d.rate_strides and f.distill_teacher:
+        raise ValueError(f"data.rate_strides: expected () with flow.distill_teacher (distillation cuts a uniform "
+                         f"dense clip into segments), got {d.rate_strides!r}")
     if hasattr(config, "model"):
         check_config(config.model)

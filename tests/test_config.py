@@ -84,3 +84,21 @@ def test_the_cli_reports_a_bad_config_argument(config_file, tmp_path, capsys):
     from jaxdrive.cli import main
     assert main(["train", "--config", f"{config_file}:size=tiny,sise=2", "--workdir", str(tmp_path)]) == 2
     assert "jaxdrive train: error: config argument: unknown key 'sise'" in capsys.readouterr().err
+
+
+def test_mixed_frame_rate_keys_parse_and_are_checked():
+    from jaxdrive.config import check_sections
+    c = load_config(TINY, ["data.rate_head=4", "data.rate_strides=1,6,12", "model.controls.frame_time=true"])
+    assert (c.data.rate_head, c.data.rate_strides, c.model.controls.frame_time) == (4, (1, 6, 12), True)
+    check_sections(c)
+    for sets, match in [
+        (["data.rate_head=-1"], r"data.rate_head: expected an integer >= 0, got -1"),
+        ([f"data.rate_head={c.data.frames + 1}"], rf"data.rate_head: expected at most data.frames = {c.data.frames}"),
+        (["data.rate_strides=2,0"], r"data.rate_strides: expected positive integers, got \(2, 0\)"),
+        (["data.rate_strides=2,4", "latents.precomputed=true"],
+         r"data.rate_strides: expected \(\) with latents.precomputed"),
+        (["data.rate_strides=2", "flow.distill_teacher=runs/fine", "flow.distill_segment_len=3"],
+         r"data.rate_strides: expected \(\) with flow.distill_teacher"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            check_sections(load_config(TINY, sets))

@@ -419,3 +419,80 @@ def test_final_convolutions_start_as_a_no_op_and_are_3x3_convolutions():
     np.testing.assert_allclose(Conv().apply({"params": p}, x), ref.reshape(2, 3, 6, 7, 5), rtol=1e-5, atol=1e-5)
     with pytest.raises(ValueError, match=r"final_conv: expected an integer >= 0, got -1"):
         preset("tiny", final_conv=-1)
+
+
+# 3 latent frames = 9 pixel frames: four at 12 fps, then 1 fps (MiLA: 12-fps condition frames, coarse 1 fps)
+FT_SHAPES = (("batch", 2), ("views", 1), ("frames", 3), ("height", 4), ("width", 4))
+FT_ON, FT_OFF = preset("tiny", controls=dict(frame_time=True)), preset("tiny")
+
+
+def test_latent_frames_take_the_time_of_their_newest_pixel_frame_relative_to_the_first():
+    from jaxdrive.models.dit_controls import latent_frame_times
+    t = np.array([[10.0, 10.1, 10.2, 10.3, 10.4, 11.4, 12.4, 13.4, 14.4]], np.float32)
+    np.testing.assert_allclose(latent_frame_times(t, 3, 4), [[0.0, 0.4, 4.4]], atol=1e-5)   # pixel 0, 4, 8
+    np.testing.assert_allclose(latent_frame_times(t[:, ::4], 3, 4), [[0.0, 0.4, 4.4]], atol=1e-5)  # per latent frame
+    with pytest.raises(ValueError, match=r"frame_times: expected 3 \(latent\) or 9 \(pixel\) frames .* got 4"):
+        latent_frame_times(t[:, :4], 3, 4)
+
+
+def test_frame_time_control_starts_as_a_no_op_and_reads_relative_times():
+    """Zero-initialised: a model with the control equals the same parameters without it. Once its
+    last layer is trained the output depends on the frame times, but not on a shift of all of them,
+    and a window cut from a longer clip's conditions means what the same window alone means."""
+    base = jax.tree_util.tree_map(jnp.asarray, nn.unbox(boxed_params(FT_ON, FT_SHAPES)))
+    assert not np.any(base["frame_time_embed"]["FourierMLP_0"]["fc2"]["kernel"])
+    params = perturb(base, skip=BRANCH_ZERO + ("frame_time_embed",))
+    without = {k: v for k, v in params.items() if k != "frame_time_embed"}
+    assert jax.tree_util.tree_structure(without) == jax.tree_util.tree_structure(
+        nn.unbox(boxed_params(FT_OFF, FT_SHAPES)))
+    lat, sig, text, kw = split_inputs(example_inputs(FT_ON, **dict(FT_SHAPES)))
+    times = kw["frame_times"]
+    assert times.shape == (2, 9)
+    on, off = forward_fn(FT_ON), forward_fn(FT_OFF)
+    plain = off(without, lat, sig, text, {k: v for k, v in kw.items() if k != "frame_times"})
+    np.testing.assert_allclose(on(params, lat, sig, text, kw), plain, atol=1e-6)
+
+    trained = dict(params, frame_time_embed=perturb(params["frame_time_embed"], scale=0.1, seed=3))
+    out = on(trained, lat, sig, text, kw)
+    uniform = np.tile(np.arange(9, dtype=np.float32) / 12, (2, 1))          # 12 fps throughout
+    assert max_rel(on(trained, lat, sig, text, dict(kw, frame_times=uniform)), out) > 1e-3
+    assert max_rel(out, plain) > 1e-3
+    np.testing.assert_allclose(on(trained, lat, sig, text, dict(kw, frame_times=times + 8.0)), out, atol=1e-5)
+    # per latent frame: latent frame j has pixel frame 4j's time
+    np.testing.assert_allclose(on(trained, lat, sig, text, dict(kw, frame_times=times[:, ::4])), out, atol=1e-6)
+    # a dropped frame time is the model without it; the other clip keeps its times
+    drop = {"frame_time": np.array([True, False])}
+    dropped = np.asarray(on(trained, lat, sig, text, dict(kw, drop=drop)))
+    absent = np.asarray(on(trained, lat, sig, text, {k: v for k, v in kw.items() if k != "frame_times"}))
+    np.testing.assert_allclose(dropped[0], absent[0], atol=1e-6)
+    np.testing.assert_allclose(dropped[1], np.asarray(out)[1], atol=1e-6)
+
+    # a 2-latent-frame window cut from a 5-latent-frame clip (4 at 12 fps, then 1 fps) by
+    # Conditions.per_frame, as a rollout cuts its windows, against the same window alone
+    from jaxdrive.generate.rollout import _window_controls
+    steps = np.where(np.arange(17) < 4, 1 / 12, 1.0)
+    long = np.tile(np.cumsum(steps) - steps[0], (2, 1)).astype(np.float32)
+    clip = conditions(text, dict(kw, frame_times=long))
+    cut = _window_controls(clip, 2, 3, 4).given()                          # latent frames 2..4: pixel 8..16
+    assert cut["frame_times"][0, 0] > 5                                    # not at time 0 in the long clip
+    alone = dict(kw, frame_times=np.tile(np.arange(9, dtype=np.float32), (2, 1)))   # the window at 1 fps
+    cut.pop("text")
+    np.testing.assert_allclose(on(trained, lat, sig, text, cut), on(trained, lat, sig, text, alone), atol=1e-5)
+
+
+def test_frame_times_from_a_batch_and_bad_frame_times():
+    from jaxdrive.models.conditions import Conditions
+    batch = {"fps": np.ones(2), "frame_times": np.tile(np.arange(9.0), (2, 1))}
+    c = Conditions.from_batch(batch, FT_ON)
+    assert c.frame_times.dtype == np.float32 and c.frame_times.shape == (2, 9)
+    assert Conditions.from_batch(batch, FT_OFF).frame_times is None
+    ex = example_inputs(FT_ON, **dict(FT_SHAPES))
+    lat, sig = ex["latents"], ex["sigma"]
+    ex["cond"].check(FT_ON, lat, sig)
+    for times, pattern in [(np.zeros((2, 4), np.float32), r"frame_times: expected 3 \(latent\) or 9 \(pixel\) frames"),
+                           (np.zeros((2,), np.float32), r"frame_times: expected shape \[2, \*\], got \[2\]"),
+                           (np.zeros((3, 9), np.float32), r"frame_times: expected shape \[2, \*\], got \[3, 9\]")]:
+        with pytest.raises(ValueError, match=pattern):
+            ex["cond"].replace(frame_times=times).check(FT_ON, lat, sig)
+    with pytest.raises(ValueError, match=r"frame_times: this DiT takes no frame_time \(controls.frame_time is False\)"):
+        ex["cond"].check(FT_OFF, lat, sig)

@@ -12,7 +12,7 @@ import pytest
 
 from jaxdrive.cli import main as cli
 from jaxdrive.config import load_config
-from jaxdrive.data.pipeline import collate, sample_clip
+from jaxdrive.data.pipeline import collate, sample_clip, take_window
 from jaxdrive.data.tfds_io import dataset_info, open_source
 from jaxdrive.generate.rollout import rollout, window_starts
 from jaxdrive.generate.samples import dataset_inputs
@@ -64,6 +64,9 @@ def test_encoded_windows_are_the_codec_of_sample_clip(datasets):
     for j in range(len(windows)):                             # 6 windows in batches of 4: one padded batch
         want, got = window(clips, j, cfg), windows[j]
         ref = np.asarray(codec.encode(None, want.pop("video")[None]))[0]
+        # not stored (uniform frames): take_window gives sample_clip's times back from the fps
+        times = want.pop("frame_times")
+        np.testing.assert_allclose(take_window(got, frames=5)["frame_times"], times, rtol=1e-6)
         assert got["latents"].shape == (2, 5, 8, 14, 48) and got["latents"].dtype == np.float32
         np.testing.assert_allclose(got["latents"], ref, atol=1e-6)
         for k, v in want.items():

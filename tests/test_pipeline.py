@@ -189,3 +189,83 @@ def test_argument_errors():
     with pytest.raises(ValueError, match="views: expected indices"):
         pipeline.sample_clip(CLIPS[0], size=(8, 8), frames=5, views=["CAM_BACK"])
     assert pipeline.frames_for(4) == 17 and schema.CAMERAS[0] == "CAM_FRONT"
+
+
+def test_mixed_rate_clip_frames_times_and_fps():
+    """MiLA stage 2: condition frames at one stride, the generated frames at another."""
+    np.testing.assert_array_equal(pipeline.frame_offsets(7, 1, 4, 12), [0, 1, 2, 3, 15, 27, 39])
+    assert pipeline.Bucket(8, 8, 7, 1, 1.0).needed(1, 4, 12) == 1 + 3 * 1 + 3 * 12      # 40
+    clip = CLIPS[7]                                                # 16 frames
+    fps = clip["fps"]
+    cases = [  # (head, stride, tail_stride) -> source offsets from the start; the generated part's stride
+        ((3, 1, 4), [0, 1, 2, 6, 10], 4),
+        ((0, 1, 3), [0, 3, 6, 9, 12], 3),                          # no head: tail_stride throughout
+        ((2, 2, None), [0, 2, 4, 6, 8], 2),                        # no tail_stride: stride throughout
+        ((5, 2, 4), [0, 2, 4, 6, 8], 2),                           # all head
+        ((1, 3, 2), [0, 2, 4, 6, 8], 2),
+    ]
+    for (head, stride, tail), offsets, gen in cases:
+        s = pipeline.sample_clip(clip, size=(12, 20), frames=5, stride=stride, start=2, head=head, tail_stride=tail)
+        t = 2 + np.asarray(offsets)
+        np.testing.assert_allclose(s["video"], clip["video"][:, t] / 127.5 - 1, atol=1e-5)  # same size: identity
+        np.testing.assert_array_equal(s["boxes"], clip["boxes"][t])
+        np.testing.assert_allclose(s["frame_times"], np.asarray(offsets) / fps, rtol=1e-6)
+        assert s["frame_times"].dtype == np.float32 and s["frame_times"][0] == 0
+        np.testing.assert_allclose(s["fps"], fps / gen, rtol=1e-6)
+    with pytest.raises(ValueError, match=r"5 frames at stride 2 \(2 frames\) then 6 from frame 0 need 21 source "
+                                         r"frames, but the clip has 16"):
+        pipeline.sample_clip(clip, size=(12, 20), frames=5, stride=2, head=2, tail_stride=6)
+    with pytest.raises(ValueError, match=r"head: expected an integer >= 0, got -1"):
+        pipeline.sample_clip(clip, size=(12, 20), frames=5, head=-1)
+    with pytest.raises(ValueError, match=r"tail_stride: expected an integer >= 1, got 0"):
+        pipeline.sample_clip(clip, size=(12, 20), frames=5, tail_stride=0)
+
+
+def _rate_batches(n, seed=0, **kw):
+    clips = make_clips(n=8, V=1, H=4, W=4, base_frames=14)        # 14..21 frames: every stride fits
+    ds = pipeline.make_pipeline(clips, {(4, 4, 5): 8}, rate_head=2, rate_strides=(1, 2, 4), seed=seed,
+                                drop_probs={}, shard_index=0, shard_count=1, num_threads=0, **kw)
+    it = iter(ds)
+    return clips, it, [next(it) for _ in range(n)]
+
+
+def test_pipeline_draws_the_tail_stride_per_clip_from_the_set():
+    clips, _, got = _rate_batches(60)                              # 480 samples
+    tails = []
+    for b in got:
+        assert b["frame_times"].shape == (8, 5) and b["frame_times"].dtype == np.float32
+        for j, idx in enumerate(b["index"]):
+            fps = clips[idx]["fps"]
+            tail = int(round(fps / b["fps"][j]))
+            # 2 head frames 1 source frame apart, then 3 frames `tail` apart
+            np.testing.assert_allclose(np.diff(b["frame_times"][j]) * fps, [1, tail, tail, tail], rtol=1e-5)
+            tails.append(tail)
+    tails = np.asarray(tails)
+    assert set(tails) == {1, 2, 4}
+    for s in (1, 2, 4):
+        assert abs((tails == s).mean() - 1 / 3) < 0.07, (s, (tails == s).mean())
+    # deterministic in the seed, resumable, and the seed matters
+    _, _, again = _rate_batches(6)
+    assert_batches_equal(again, got[:6])
+    _, it, _ = _rate_batches(3)
+    state = it.get_state()
+    _, fresh, _ = _rate_batches(0)
+    fresh.set_state(state)
+    assert_batches_equal([next(fresh) for _ in range(3)], got[3:6])
+    _, _, other = _rate_batches(6, seed=1)
+    assert any(not np.array_equal(x["frame_times"], y["frame_times"]) for x, y in zip(other, got[:6]))
+
+
+def test_clip_lengths_count_the_mixed_rate_span(caplog):
+    kw = dict(shard_index=0, shard_count=1)
+    # 1 head frame, then 4 frames up to 4 apart: 17 source frames; the clips have 9..16
+    with pytest.raises(ValueError, match=r"the mixed-rate span = 17 source frames at stride 1 for 1 frames then up "
+                                         r"to 4, but the longest of the 24 clips has 16"):
+        pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1}, rate_head=1, rate_strides=(1, 4), **kw)
+    with caplog.at_level("WARNING"):                               # 13 source frames: 12 of 24 clips are short
+        pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1}, rate_head=1, rate_strides=(3, 1), **kw)
+    assert "skipping 12 of 24 clips" in caplog.text
+    with pytest.raises(ValueError, match=r"rate_strides: expected an integer >= 1, got 0"):
+        pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1}, rate_strides=(2, 0), **kw)
+    with pytest.raises(ValueError, match=r"rate_head: expected an integer >= 0, got -2"):
+        pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1}, rate_head=-2, **kw)

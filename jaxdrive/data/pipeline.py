@@ -9,7 +9,9 @@ Every batch holds one bucket (H, W, F) (Open-Sora / MagicDrive-V2 mixed resoluti
 ``cam_to_ego [B, V, 4, 4]``; ``ego_to_world [B, F, 4, 4]`` (float32); ``boxes [B, F, N, 7]``,
 ``box_classes``/``box_ids``/``box_valid [B, F, N]`` (N padded to the batch maximum or
 ``max_boxes``, padding invalid); ``bev_map [B, F, Hm, Wm, 8]`` uint8; ``waypoints [B, F, 2]`` in
-the ego frame of the first sampled frame; ``fps [B]`` = source fps / stride; ``caption`` (list of
+the ego frame of the first sampled frame; ``fps [B]`` = source fps / stride (of the generated
+frames, the stride after the head in a mixed-rate clip); ``frame_times [B, F]`` float32 seconds
+from the first sampled frame; ``caption`` (list of
 str, as other text fields of the clips); ``drop`` {condition: [B] bool} for classifier-free
 guidance; ``index [B]`` the source indices. ``instance_ids`` is not carried.
 
@@ -27,8 +29,11 @@ Choices:
   sequence shared by all shards, so all processes feed the same shapes at every step (required to
   assemble global arrays). ``batch_size`` is per process. Leftover clips are dropped and counted
   in the log.
-- Per-sample draws (start frame, crop offset, drop masks) are seeded by (seed, epoch, index): the
-  same for any shard count. Iterator state is grain's (the next batch index), exact on resume.
+- Per-sample draws (start frame, crop offset, drop masks, the stride after the head of a mixed-rate
+  clip) are seeded by (seed, epoch, index): the same for any shard count.
+- Mixed frame rates (MiLA appendix B, stage 2: 12-fps condition frames, generated frames at other
+  rates): ``rate_head`` frames at ``stride``, then the rest at one stride per clip drawn uniformly
+  from ``rate_strides``; a clip must be long enough for the longest of them. Iterator state is grain's (the next batch index), exact on resume.
 - Resize: scale to cover (H, W) keeping the aspect ratio, then crop (centre or random); an
   antialiased triangle filter in the pixel-centre convention (pixel c covers [c, c + 1), centre
   c + 0.5), so ``fx' = fx * sx``, ``cx' = cx * sx - crop_x`` exactly match the resampled image.
@@ -74,9 +79,21 @@ class Bucket:
     def key(self) -> tuple[int, int, int]:
         return (self.height, self.width, self.frames)
 
-    def needed(self, stride: int) -> int:
-        """Source frames one clip of this bucket spans at ``stride``."""
-        return 1 + (self.frames - 1) * stride
+    def needed(self, stride: int, head: int = 0, tail_stride: int | None = None) -> int:
+        """Source frames one clip of this bucket spans (:func:`frame_offsets`)."""
+        return int(frame_offsets(self.frames, stride, head, tail_stride)[-1]) + 1
+
+
+def frame_offsets(frames: int, stride: int, head: int = 0, tail_stride: int | None = None) -> np.ndarray:
+    """Source-frame offsets ``[frames]`` of a clip from its first frame: the first ``head`` frames
+    every ``stride``, then every ``tail_stride`` after the last of them (``head = 0``: every
+    ``tail_stride`` throughout; ``tail_stride=None``: ``stride``). Spans
+    ``1 + (head - 1) stride + (frames - head) tail_stride`` source frames when ``0 < head < frames``."""
+    tail = stride if tail_stride is None else tail_stride
+    h = min(head, frames)
+    if h == 0:
+        return tail * np.arange(frames)
+    return np.concatenate([stride * np.arange(h), stride * (h - 1) + tail * np.arange(1, frames - h + 1)])
 
 
 def parse_buckets(buckets, *, compression: int = 4) -> tuple[Bucket, ...]:
@@ -167,17 +184,27 @@ def _view_indices(views, num_views: int, where: str) -> np.ndarray:
 
 def sample_clip(clip: Mapping, *, size: tuple[int, int], frames: int, stride: int = 1, start: int = 0,
                 views=None, crop: str = "center", rng: np.random.Generator | None = None,
-                where: str = "clip") -> dict:
+                where: str = "clip", head: int = 0, tail_stride: int | None = None) -> dict:
     """One training sample from a clip: ``frames`` frames from ``start`` every ``stride``, a view
     subset, resized and cropped to ``size`` with intrinsics to match, waypoints re-expressed in
-    the ego frame of the first sampled frame."""
+    the ego frame of the first sampled frame.
+
+    Mixed rates (:func:`frame_offsets`): frames ``0 .. head - 1`` every ``stride``, then every
+    ``tail_stride`` (``head = 0``: ``tail_stride`` throughout; None: ``stride``). ``frame_times``
+    ``[F]`` are seconds from the first sampled frame (source index / clip fps); ``fps`` is the
+    clip fps over the stride of the generated part (``tail_stride`` when ``head < frames``)."""
+    stride = check_positive_int("stride", stride)
+    head = check_positive_int("head", head, minimum=0)
+    tail = stride if tail_stride is None else check_positive_int("tail_stride", tail_stride)
     T = int(np.shape(clip["ego_to_world"])[0])
-    need = 1 + (frames - 1) * stride
+    offsets = frame_offsets(frames, stride, head, tail)
+    need = int(offsets[-1]) + 1
     if start < 0 or start + need > T:
-        raise ValueError(f"{where}: {frames} frames at stride {stride} from frame {start} need "
+        rate = f"stride {stride}" if tail == stride else f"stride {stride} ({head} frames) then {tail}"
+        raise ValueError(f"{where}: {frames} frames at {rate} from frame {start} need "
                          f"{need} source frames, but the clip has {T}: the clip length or frame stride "
                          f"is too long for this scene")
-    t = start + stride * np.arange(frames)
+    t = start + offsets
     v = _view_indices(views, int(np.shape(clip["video"])[0]), where)
     video = np.asarray(clip["video"])[v[:, None], t[None, :]]
     plan = resize_plan(video.shape[-3:-1], size, crop=crop, rng=rng)
@@ -190,7 +217,8 @@ def sample_clip(clip: Mapping, *, size: tuple[int, int], frames: int, stride: in
         "cam_to_ego": np.asarray(clip["cam_to_ego"], np.float32)[v],
         "ego_to_world": e2w.astype(np.float32),
         "waypoints": rel[:, :2, 3].astype(np.float32),
-        "fps": np.float32(float(clip["fps"]) / stride),
+        "fps": np.float32(float(clip["fps"]) / (tail if head < frames else stride)),
+        "frame_times": (offsets / float(clip["fps"])).astype(np.float32),
     }
     for name in ("boxes", "box_classes", "box_ids", "box_valid", "bev_map"):
         out[name] = np.asarray(clip[name])[t]
@@ -214,6 +242,7 @@ def take_window(record: Mapping, *, frames: int, views=None, where: str = "windo
         value = np.asarray(record[name])
         out[name] = value[v] if spec[0] == "V" else value
     out["fps"] = np.float32(record["fps"])          # stored as float64 by TFDS; sample_clip's dtype
+    out["frame_times"] = (np.arange(frames) / float(record["fps"])).astype(np.float32)   # uniform frames
     for name, value in record.items():
         if isinstance(value, str):
             out[name] = value
@@ -269,24 +298,37 @@ def _rng(*keys: int) -> np.random.Generator:
 class _BatchPlan:
     """Random access to batch specs ``(epoch, bucket, source indices)``: the whole schedule."""
 
-    def __init__(self, frame_counts, buckets, *, stride, seed, shard_index, shard_count, num_epochs):
+    def __init__(self, frame_counts, buckets, *, stride, seed, shard_index, shard_count, num_epochs,
+                 rate_head=0, rate_strides=()):
         self.counts = np.asarray(frame_counts, np.int64)
         self.buckets, self.stride, self.seed = buckets, stride, seed
+        self.rate_head, self.rate_strides = rate_head, tuple(rate_strides)
         self.shard_index, self.shard_count, self.num_epochs = shard_index, shard_count, num_epochs
-        need = np.array([b.needed(stride) for b in buckets])
+        need = np.array([self.needed(b) for b in buckets])
         self.eligible = self.counts[:, None] >= need[None, :]  # [N, buckets]
         self._lock = threading.Lock()
         self._lengths: list[int] = []
         self._cache: dict[int, list] = {}
         self._check()
 
+    def needed(self, bucket: Bucket, tail_stride: int | None = None) -> int:
+        """Source frames a clip of ``bucket`` spans at ``tail_stride`` after the head (default: the
+        longest of ``rate_strides``, which every eligible clip must fit)."""
+        if tail_stride is None and self.rate_strides:
+            tail_stride = max(self.rate_strides)
+        return bucket.needed(self.stride, self.rate_head, tail_stride)
+
+    def _rate(self) -> str:
+        if not self.rate_strides:
+            return f"stride {self.stride}"
+        return f"stride {self.stride} for {self.rate_head} frames then up to {max(self.rate_strides)}"
+
     def _check(self) -> None:
         n, longest = len(self.counts), int(self.counts.max(initial=0))
         short = int((~self.eligible.any(1)).sum())
         if short:
             log.warning("skipping %d of %d clips: shorter than the %d source frames the shortest bucket "
-                        "needs at stride %d", short, n, min(b.needed(self.stride) for b in self.buckets),
-                        self.stride)
+                        "needs at %s", short, n, min(self.needed(b) for b in self.buckets), self._rate())
         epoch0 = self._epoch(0)
         got = {}
         for b, _ in epoch0:
@@ -295,8 +337,9 @@ class _BatchPlan:
             if b.prob == 0 or got.get(i):
                 continue
             if not self.eligible[:, i].any():
-                why = (f"each clip needs 1 + (F - 1) * stride = {b.needed(self.stride)} source frames at "
-                       f"stride {self.stride}, but the longest of the {n} clips has {longest}: the frame "
+                span = "1 + (F - 1) * stride" if not self.rate_strides else "the mixed-rate span"
+                why = (f"each clip needs {span} = {self.needed(b)} source frames at "
+                       f"{self._rate()}, but the longest of the {n} clips has {longest}: the frame "
                        f"stride or clip length is longer than every scene")
             else:
                 why = (f"fewer clips were assigned to it ({self._assigned_min(i)} on some shard in epoch 0) "
@@ -393,13 +436,16 @@ class _LoadBatch:
             rng = _rng(self.plan.seed, epoch, int(idx), _TAG_SAMPLE)
             clip = self.source[int(idx)]
             T = int(np.shape(clip["ego_to_world"])[0])
-            start = int(rng.integers(0, T - bucket.needed(self.plan.stride) + 1))
+            strides = self.plan.rate_strides       # no draw without them: the same samples as before
+            tail = int(strides[rng.integers(len(strides))]) if strides else None
+            start = int(rng.integers(0, T - self.plan.needed(bucket, tail) + 1))
             if "latents" in clip:
                 s = take_window(clip, frames=bucket.frames, views=self.views, where=f"source window {int(idx)}")
             else:
                 s = sample_clip(clip, size=(bucket.height, bucket.width), frames=bucket.frames,
                                 stride=self.plan.stride, start=start, views=self.views, crop=self.crop,
-                                rng=rng, where=f"source clip {int(idx)}")
+                                rng=rng, where=f"source clip {int(idx)}", head=self.plan.rate_head,
+                                tail_stride=tail)
             s["drop"] = {n: bool(rng.random() < p) for n, p in sorted(self.drop_probs.items())}
             s["index"] = np.int64(idx)
             samples.append(s)
@@ -410,7 +456,8 @@ def make_pipeline(source, buckets, *, stride: int = 1, views=None, crop: str = "
                   drop_probs: Mapping[str, float] | None = None, max_boxes: int | None = None,
                   seed: int = 0, num_epochs: int | None = None, shard_index: int | None = None,
                   shard_count: int | None = None, frame_counts: Sequence[int] | None = None,
-                  num_threads: int = 4, prefetch: int = 8, compression: int = 4) -> grain.IterDataset:
+                  num_threads: int = 4, prefetch: int = 8, compression: int = 4, rate_head: int = 0,
+                  rate_strides: Sequence[int] = ()) -> grain.IterDataset:
     """A grain ``IterDataset`` of training batches from a random-access clip ``source``.
 
     ``buckets``: ``{(H, W, F): batch_size}`` or ``{(H, W, F): (batch_size, prob)}`` with
@@ -418,12 +465,20 @@ def make_pipeline(source, buckets, *, stride: int = 1, views=None, crop: str = "
     for all. ``drop_probs``: condition -> drop probability (default 0.15 for each of
     :data:`CONDITIONS`). Shards default to ``jax.process_index()`` / ``jax.process_count()``.
     ``num_epochs=None`` repeats forever. ``iter(ds)`` has grain's ``get_state`` / ``set_state``.
+    ``rate_head`` / ``rate_strides``: mixed frame rates (module docstring; ``sample_clip``'s
+    ``head`` and ``tail_stride``, one tail stride per clip drawn from ``rate_strides``; empty:
+    ``stride`` throughout).
     """
     parsed = parse_buckets(buckets, compression=compression)
     stride = check_positive_int("stride", stride)
     if getattr(source, "kind", "clips") == "windows" and stride != 1:
         raise ValueError(f"stride: expected 1 for a source of latent windows (their frames were strided when "
                          f"encoded), got {stride}")
+    rate_head = check_positive_int("rate_head", rate_head, minimum=0)
+    rate_strides = tuple(check_positive_int("rate_strides", s) for s in rate_strides)
+    if getattr(source, "kind", "clips") == "windows" and rate_strides:
+        raise ValueError(f"rate_strides: expected () for a source of latent windows (their frames are uniform), "
+                         f"got {rate_strides}")
     if shard_index is None or shard_count is None:
         import jax
         shard_index, shard_count = jax.process_index(), jax.process_count()
@@ -448,7 +503,7 @@ def make_pipeline(source, buckets, *, stride: int = 1, views=None, crop: str = "
     if len(frame_counts) != len(source):
         raise ValueError(f"frame_counts: expected {len(source)} counts (one per clip), got {len(frame_counts)}")
     plan = _BatchPlan(frame_counts, parsed, stride=stride, seed=seed, shard_index=int(shard_index),
-                      shard_count=shard_count, num_epochs=num_epochs)
+                      shard_count=shard_count, num_epochs=num_epochs, rate_head=rate_head, rate_strides=rate_strides)
     load = _LoadBatch(source, plan, views=views, crop=crop, drop_probs=drop_probs, max_boxes=max_boxes)
     return grain.MapDataset.source(plan).map(load).to_iter_dataset(
         grain.ReadOptions(num_threads=num_threads, prefetch_buffer_size=prefetch))

@@ -111,7 +111,7 @@ def _window_prefix(codec, record, frames: int, views, where: str) -> dict:
                          f"(latents.precomputed fixes the length), got {frames}")
     s = take_window(record, frames=have, views=views, where=where)
     s.update({k: s[k][:frames] for k, (_, spec) in WINDOW_FIELDS.items() if spec[0] == "F"},
-             latents=s["latents"][:, :codec.latent_frames(frames)])
+             latents=s["latents"][:, :codec.latent_frames(frames)], frame_times=s["frame_times"][:frames])
     return s
 
 

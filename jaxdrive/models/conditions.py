@@ -11,7 +11,8 @@ per pixel frame ``1 + vae_temporal (F' - 1)``:
 - ``text [B, L, text_dim]`` (or token ids ``[B, L]`` for the caption encoder) with
   ``text_mask [B, L]``; ``fps [B]``; ``ofs [B]`` (CogVideoX 1.5 I2V);
 - ``intrinsics [B, V, 3, 3]`` + ``cam_to_ego [B, V, 4, 4]``; ``waypoints [B, F, 2]``;
-  ``ego_to_world [B, F, 4, 4]`` (trajectory); ``boxes [B, F, N, 7]``, ``box_classes``,
+  ``ego_to_world [B, F, 4, 4]`` (trajectory); ``frame_times [B, F]`` (seconds; only differences
+  matter); ``boxes [B, F, N, 7]``, ``box_classes``,
   ``box_valid [B, F, N]``; ``bev_map [B, F, Hm, Wm, C_map]``;
 - ``cond_latents`` (like the latents) + ``cond_mask [B, F']``: clean condition frames;
   ``warp`` (warped-frame latents, like the latents);
@@ -42,9 +43,10 @@ from jaxdrive.validate import check_range, check_shape
 # Fields that belong to a control; given while the control is off they are an error.
 CONTROL_OF = {"fps": "fps", "intrinsics": "camera", "cam_to_ego": "camera", "waypoints": "waypoints",
               "ego_to_world": "trajectory", "boxes": "boxes", "box_classes": "boxes",
-              "box_valid": "boxes", "bev_map": "map", "warp": "warp"}
+              "box_valid": "boxes", "bev_map": "map", "warp": "warp",
+              "frame_times": "frame_time"}
 # Fields with a (pixel or latent) frame axis at 1; the others are per clip or per view.
-PER_FRAME = ("waypoints", "ego_to_world", "boxes", "box_classes", "box_valid", "bev_map")
+PER_FRAME = ("waypoints", "ego_to_world", "boxes", "box_classes", "box_valid", "bev_map", "frame_times")
 # The data pipeline's drop names (jaxdrive.data.pipeline.CONDITIONS) -> the DiT conditions they drop.
 BATCH_DROPS = {"text": ("text",), "camera": ("camera",), "trajectory": ("trajectory", "waypoints"),
                "boxes": ("boxes",), "map": ("map",)}
@@ -73,6 +75,7 @@ class Conditions:
     features_mask: Any = None
     drop: Any = None
     ofs: Any = None
+    frame_times: Any = None
 
     @classmethod
     def from_batch(cls, batch: Mapping, cfg: DiTConfig, *, text=None, text_mask=None) -> "Conditions":
@@ -99,6 +102,8 @@ class Conditions:
             kw.update({k: np.asarray(batch[k]) for k in ("boxes", "box_classes", "box_valid")})
         if "map" in on:
             kw["bev_map"] = f32("bev_map") / 255.0
+        if "frame_time" in on:
+            kw["frame_times"] = f32("frame_times")
         kw["drop"] = {t: np.asarray(batch["drop"][name], bool) for name, targets in BATCH_DROPS.items()
                       if name in batch.get("drop", {}) for t in targets if t in on}
         return cls(**kw)
@@ -185,6 +190,9 @@ def _check(cfg: DiTConfig, latents, sigma, cond: Conditions) -> None:
     if kw.get("ego_to_world") is not None:
         check_shape("ego_to_world", kw["ego_to_world"], [b, None, 4, 4])
         frame_mode("ego_to_world", np.shape(kw["ego_to_world"])[1], nf, r)
+    if kw.get("frame_times") is not None:
+        check_shape("frame_times", kw["frame_times"], [b, None])
+        frame_mode("frame_times", np.shape(kw["frame_times"])[1], nf, r)
     _check_boxes(cfg, b, nf, cams[0], kw)
     if kw.get("bev_map") is not None:
         check_shape("bev_map", kw["bev_map"], [b, None, None, None, c.map_channels])

@@ -31,6 +31,8 @@ droppable for classifier-free guidance by ``cond.drop={name: [B] bool}``:
 - learned nulls replace the embedding of a dropped ``text``, ``fps``, ``camera``, ``waypoints``,
   ``trajectory``, ``boxes`` or ``warp``; leaving the input out (None) is the same as dropping it
   for every sample;
+- a dropped or absent ``frame_times`` adds nothing (its embedding's last layer starts at zero,
+  so the "null" is the model without the control);
 - a dropped ``map`` is the all-zero map (MagicDrive-V2 appendix E, after MagicDrive); leaving
   ``bev_map`` out switches the ControlNet branch off;
 - condition frames are set by ``cond_latents``/``cond_mask`` (interpolation = first and last frame
@@ -54,9 +56,9 @@ import numpy as np
 from jaxdrive.models.conditions import Conditions
 from jaxdrive.models.dit_blocks import LayerContext, layer_class
 from jaxdrive.models.dit_config import DiTConfig, check_config
-from jaxdrive.models.dit_controls import (BoxEncoder, CameraEncoder, CaptionEncoder, MapEncoder,
-                                          TimestepMLP, TrajectoryEncoder, WaypointEncoder, null_param,
-                                          use_null)
+from jaxdrive.models.dit_controls import (BoxEncoder, CameraEncoder, CaptionEncoder, FrameTimeEncoder,
+                                          MapEncoder, TimestepMLP, TrajectoryEncoder, WaypointEncoder,
+                                          null_param, use_null)
 from jaxdrive.models.dit_inputs import example_inputs
 from jaxdrive.models.embeddings import rope_3d, sincos_2d, sincos_3d
 from jaxdrive.models.layers import MLP, Dense, LayerNorm, modulate
@@ -280,6 +282,11 @@ class DiT(nn.Module):
                                      name="waypoints_embed")(jnp.asarray(waypoints, jnp.float32), nf)
                 wp = use_null(drop.get("waypoints"), pool_frames(wp, pt), null)
             add = add + wp[:, :, None, None]                                # [B, Ft, 1, 1, D]
+        if c.frame_time and cond.frame_times is not None:
+            ft = FrameTimeEncoder(width, c.fourier_freqs, c.fourier_temperature, cfg.vae_temporal, dt,
+                                  name="frame_time_embed")(cond.frame_times, nf)
+            ft = use_null(drop.get("frame_time"), pool_frames(ft, pt), jnp.zeros((), dt))
+            add = add + ft[:, :, None, None]                                # [B, Ft, 1, 1, D]
         if ref is not None:
             add = add + Dense(width, ("channels", "embed"), dtype=dt, kernel_init=ZEROS, name="reference_embed")(
                 constrain(patchify(ref, cfg.patch), VIDEO[:-1] + ("channels",)))

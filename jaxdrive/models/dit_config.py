@@ -31,7 +31,7 @@ REFERENCE_FRAME = ("input", "residual", None)
 
 # Condition names accepted in ``drop`` (classifier-free guidance), as in the data pipeline where
 # they overlap ("text", "boxes", "map", "trajectory", "camera").
-CONDITIONS = ("text", "fps", "camera", "waypoints", "trajectory", "boxes", "map", "warp")
+CONDITIONS = ("text", "fps", "camera", "waypoints", "trajectory", "boxes", "map", "warp", "frame_time")
 
 
 @dataclass(frozen=True)
@@ -67,6 +67,13 @@ class Controls:
       learns the motion. A clip with no given frame gets ``ref = 0``.
     - ``warp``: LongDWM's warp-guided frames: warped latents through a trainable patch embedding,
       injected into every layer through zero-initialised projections.
+    - ``frame_time``: each frame's time in seconds (``Conditions.frame_times``), so that one clip
+      can mix frame rates (MiLA appendix B: 12-fps condition frames, then generated frames at 1-12
+      fps). Each latent frame's time relative to the window's first frame (a window cut from a
+      long clip means what the same window alone means), Fourier + MLP (MiLA eq. 1), added to
+      that frame's tokens (eq. 2). The last projection starts at zero, so a model initialised
+      from a run without the control starts unchanged; a dropped or absent ``frame_times`` adds
+      nothing (the model without the control).
     """
 
     text: str | None = "embeddings"
@@ -85,6 +92,7 @@ class Controls:
     cond_frames: str | None = None
     reference_frame: str | None = None
     warp: bool = False
+    frame_time: bool = False
     fourier_freqs: int = 8
     fourier_temperature: float = 100.0
     encoder_layers: int = 1
@@ -95,7 +103,7 @@ class Controls:
         """The conditions this DiT takes, by their names in :data:`CONDITIONS` (the one list
         of which controls are on: checks, batch preparation and guidance read it)."""
         on = {"text": self.text is not None, "fps": self.fps, "camera": self.camera, "waypoints": self.waypoints,
-              "trajectory": self.trajectory, "boxes": self.boxes, "map": self.map, "warp": self.warp}
+              "trajectory": self.trajectory, "boxes": self.boxes, "map": self.map, "warp": self.warp, "frame_time": self.frame_time}
         return tuple(name for name in CONDITIONS if on[name])
 
 

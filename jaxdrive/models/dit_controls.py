@@ -1,7 +1,7 @@
-"""Condition encoders of the diffusion transformer: timestep / fps embeddings, cameras and ego
-waypoints (MiLA eq. 1-2), MagicDrive-V2's spatial-temporal trajectory, box and map encoders, the
-built-in caption encoder, and the temporal downsampling that aligns per-frame conditions with the
-latent frames of a 3D VAE.
+"""Condition encoders of the diffusion transformer: timestep / fps embeddings, cameras, ego
+waypoints and frame times (MiLA eq. 1-2), MagicDrive-V2's spatial-temporal trajectory, box and
+map encoders, the built-in caption encoder, and the temporal downsampling that aligns per-frame
+conditions with the latent frames of a 3D VAE.
 
 Frame alignment: a per-frame condition comes either per latent frame (``F'`` frames) or per pixel
 frame (``F = 1 + r (F' - 1)`` with ``r`` the VAE's temporal compression, 4 for CogVideoX's VAE).
@@ -89,18 +89,21 @@ class TimestepMLP(nn.Module):
 
 
 class FourierMLP(nn.Module):
-    """MiLA eq. 1: ``h_c = MLP(FFT(c))``, Fourier features of the raw parameters then a 2-layer MLP."""
+    """MiLA eq. 1: ``h_c = MLP(FFT(c))``, Fourier features of the raw parameters then a 2-layer MLP.
+    ``zero_out``: the last layer starts at zero (a control added to a model trained without it)."""
 
     out: int
     num_freqs: int = 8
     temperature: float = 100.0
     dtype: jnp.dtype = jnp.float32
+    zero_out: bool = False
 
     @nn.compact
     def __call__(self, c):
         f = fourier_features(c, self.num_freqs, self.temperature)
         h = Dense(self.out, ("channels", "embed"), dtype=self.dtype, name="fc1")(f)
-        return Dense(self.out, ("mlp", "embed"), dtype=self.dtype, name="fc2")(jax.nn.silu(h))
+        return Dense(self.out, ("mlp", "embed"), dtype=self.dtype, kernel_init=ZEROS if self.zero_out else None,
+                     name="fc2")(jax.nn.silu(h))
 
 
 def null_param(module: nn.Module, name: str, shape, names):
@@ -204,9 +207,8 @@ class CameraEncoder(nn.Module):
             jnp.concatenate([params, pose], -1))
 
 
-class WaypointEncoder(nn.Module):
-    """Ego waypoints per frame ``[B, Fw, 2]`` -> ``[B, F', D]`` (MiLA eq. 1), downsampled to latent
-    frames when given per pixel frame."""
+class _PerFrameFourier(nn.Module):
+    """The fields of a per-frame Fourier + MLP encoder (MiLA eq. 1) with the VAE's frame ratio."""
 
     width: int
     num_freqs: int
@@ -214,10 +216,38 @@ class WaypointEncoder(nn.Module):
     ratio: int
     dtype: jnp.dtype = jnp.float32
 
+
+class WaypointEncoder(_PerFrameFourier):
+    """Ego waypoints per frame ``[B, Fw, 2]`` -> ``[B, F', D]`` (MiLA eq. 1), downsampled to latent
+    frames when given per pixel frame."""
+
     @nn.compact
     def __call__(self, waypoints, latent_frames):
         h = FourierMLP(self.width, self.num_freqs, self.temperature, self.dtype)(waypoints)
         return _align(self, "waypoints", h, None, latent_frames, self.ratio, self.width, self.dtype)[0]
+
+
+def latent_frame_times(frame_times, latent_frames: int, ratio: int):
+    """Times ``[B, F]`` per pixel frame (``F = 1 + ratio (F' - 1)``) or per latent frame ->
+    ``[B, F']``, relative to the first frame (a window cut from a longer clip gets the times of the
+    same window alone). Latent frame j takes pixel frame ``ratio j``'s time: the newest frame of its
+    causal group (:func:`group_frames`), the frame it has seen last."""
+    t = jnp.asarray(frame_times, jnp.float32)
+    t = t - t[:, :1]
+    if frame_mode("frame_times", t.shape[1], latent_frames, ratio) == "pixel":
+        t = group_frames(t, ratio)[:, :, -1]
+    return t
+
+
+class FrameTimeEncoder(_PerFrameFourier):
+    """Each frame's time ``[B, Ft]`` (seconds, per pixel or latent frame) -> ``[B, F', D]``:
+    Fourier + MLP (MiLA eq. 1) of :func:`latent_frame_times`, the last layer zero-initialised
+    (``Controls.frame_time``: mixed frame rates in one clip, MiLA appendix B)."""
+
+    @nn.compact
+    def __call__(self, frame_times, latent_frames):
+        t = latent_frame_times(frame_times, latent_frames, self.ratio)
+        return FourierMLP(self.width, self.num_freqs, self.temperature, self.dtype, zero_out=True)(t[..., None])
 
 
 class TrajectoryEncoder(nn.Module):

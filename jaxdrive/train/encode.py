@@ -63,9 +63,11 @@ def _windows(source, data, every: int):
         longest = max(longest, have)
         for start in _starts(have, data, every):
             count += 1
-            yield sample_clip(clip, size=(data.height, data.width), frames=data.frames, stride=data.stride,
-                              start=start, views=list(range(data.views)),
-                              where=f"{source.path} split {source.split!r} clip {i}")
+            window = sample_clip(clip, size=(data.height, data.width), frames=data.frames, stride=data.stride,
+                                 start=start, views=list(range(data.views)),
+                                 where=f"{source.path} split {source.split!r} clip {i}")
+            del window["frame_times"]           # uniform frames: take_window rebuilds them from the fps
+            yield window
     if count == 0:
         raise ValueError(f"data.frames: {data.frames} frames at stride {data.stride} need {span} source frames, "
                          f"but the longest clip of split {source.split!r} of {source.path} has {longest}")

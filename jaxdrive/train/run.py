@@ -252,7 +252,8 @@ class Run:
         return make_pipeline(source, {(d.height, d.width, d.frames): self.local_batch}, stride=stride,
                              views=list(range(d.views)), drop_probs={n: d.drop_prob for n in CONDITIONS},
                              seed=d.shuffle_seed, num_threads=d.threads, prefetch=2 if d.threads else 0,
-                             compression=max(self.codec.temporal, 1))
+                             compression=max(self.codec.temporal, 1), rate_head=d.rate_head,
+                             rate_strides=d.rate_strides)
 
     def global_batch(self, micro_batches: list[dict]):
         """Host micro-batches (this process's samples) -> one global ``[A, b, ...]`` tree."""
