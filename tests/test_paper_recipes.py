@@ -15,7 +15,7 @@ from jaxdrive.config import check_sections, load_config
 from train_fixtures import write_synthetic
 
 ROOT = Path(__file__).resolve().parents[1]
-SMALL = ["data.views=2", "data.batch_size=2", "model.depth=1", "optim.warmup_steps=1", "train.log_every=1",
+SMALL = ["data.views=2", "data.batch_size=2", "optim.warmup_steps=1", "train.log_every=1",
          "train.checkpoint_every=1"]
 
 
@@ -27,7 +27,7 @@ def long_scenes(tmp_path_factory):
 
 def train(config: str, workdir, data, *sets, steps: int = 1):
     args = ["train", "--config", str(ROOT / "configs" / config), "--workdir", str(workdir), "--steps", str(steps),
-            "--no-progress"]
+            "--no-progress", "--mesh", "data=2,seq=4"]
     for s in [f"data.path={data}", *SMALL, *sets]:
         args += ["--set", s]
     assert cli(args) == 0
@@ -66,7 +66,7 @@ def test_mila_tiny_stages_train_and_sample_coarse_to_refine(long_scenes, tmp_pat
     assert (report["strategy"], report["frames"], report["views"]) == ("coarse-to-refine", 20, 2)
     assert report["sequential_sampler_calls"] == 1 + 3 and report["peak_device_bytes"] > 0
     latents = np.load(out / "latents.npy")
-    assert latents.shape == (1, 2, 20, 8, 14, 48) and np.isfinite(latents).all()
+    assert latents.shape == (2, 2, 20, 8, 14, 48) and np.isfinite(latents).all()
     assert (out / "sample.mp4").stat().st_size > 0 and (out / "frames.png").stat().st_size > 0
     # stage 2 never trained anchors: it cannot refine them, and says so before compiling
     capsys.readouterr()
@@ -87,7 +87,7 @@ def test_longdwm_tiny_roles_train_and_sample_coarse_fine(long_scenes, tmp_path, 
     # keyframes 0, 8, 16 in one coarse window, then both segments in one fine call
     assert report["strategy"] == "coarse-fine" and report["frames"] == 17 and report["sequential_sampler_calls"] == 2
     latents = np.load(out / "latents.npy")
-    assert latents.shape == (1, 2, 17, 8, 14, 48) and np.isfinite(latents).all()
+    assert latents.shape == (2, 2, 17, 8, 14, 48) and np.isfinite(latents).all()
     capsys.readouterr()
     for bad, message in (
             (["--workdir", str(coarse), "--strategy", "coarse-fine", "--frames", "17"],

@@ -74,7 +74,12 @@ def sample_strategy(args) -> int:
     check_strategy(args.strategy, shapes, length, given)
     models = Models(load_main(), load_fine() if load_fine else None)
     views = None if args.views is None else [int(v) for v in args.views]
-    inputs = dataset_inputs(horizon_spec, frames=args.frames, views=views, clips=args.clips, seed=args.seed)
+    sizes = dict(zip(run.mesh.axis_names, run.mesh.axis_sizes))
+    shards = sizes.get("data", 1) * sizes.get("fsdp", 1)
+    clips = shards if args.clips is None else check_positive_int("--clips", args.clips)
+    if clips % shards:
+        raise ValueError(f"--clips: expected a multiple of the mesh's data x fsdp size {shards}, got {clips}")
+    inputs = dataset_inputs(horizon_spec, frames=args.frames, views=views, clips=clips, seed=args.seed)
     codec = horizon_spec.codec
     if "latents" in inputs:
         first = np.asarray(inputs["latents"])[:, :, :given]

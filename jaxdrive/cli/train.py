@@ -177,7 +177,8 @@ def add_commands(sub) -> None:
                                                          "(default: the model's training spacing; 0: no anchors)")
     sample.add_argument("--segment-batch", type=int, help="coarse-fine: segments per fine sampler call "
                                                           "(default: all in one call)")
-    sample.add_argument("--clips", type=int, default=1, help="clips sampled side by side (--strategy)")
+    sample.add_argument("--clips", type=int, help="clips sampled side by side (--strategy; default: the mesh's "
+                                                  "data x fsdp size)")
     add_progress(sample, "the sampled windows")
     sample.set_defaults(run=_sample)
 
