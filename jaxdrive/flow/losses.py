@@ -16,6 +16,7 @@ depend on how many condition frames a clip has.
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
 from jaxdrive.flow.rectified import expand_per_frame, velocity_target
 from jaxdrive.validate import check_range, check_same_shape, check_shape
@@ -95,9 +96,21 @@ def high_pass_mask(height: int, width: int, cutoff: float):
 def high_pass(x, cutoff: float = 0.25):
     """LongDWM's ``H``: the 2D high-pass of ``x [..., h, w, C]`` over the latent height and width."""
     x = jnp.asarray(x, jnp.float32)
-    mask = high_pass_mask(x.shape[-3], x.shape[-2], cutoff)[:, :, None]
-    spectrum = jnp.fft.fft2(x, axes=(-3, -2))
-    return jnp.real(jnp.fft.ifft2(spectrum * mask, axes=(-3, -2)))
+    h, w = x.shape[-3], x.shape[-2]
+    mask = high_pass_mask(h, w, cutoff)[:, :, None]
+    # The 2D DFT as two small matrix products, not jnp.fft: XLA's CPU FFT fails (a RET_CHECK on
+    # its input layout in fft_thunk) inside sharded programs, and the latent grid is small, so
+    # the dense DFT costs O(h w (h + w)) per channel and runs as ordinary dots on any backend.
+    fh, fw = _dft(h), _dft(w)
+    spectrum = jnp.einsum("ah,...hwc,bw->...abc", fh, x.astype(jnp.complex64), fw)
+    y = jnp.einsum("ah,...hwc,bw->...abc", jnp.conj(fh) / h, spectrum * mask, jnp.conj(fw) / w)
+    return jnp.real(y)
+
+
+def _dft(n: int) -> np.ndarray:
+    """The ``n``-point DFT matrix ``exp(-2 pi i j k / n)`` (complex64)."""
+    k = np.arange(n)
+    return np.exp(-2j * np.pi * np.outer(k, k) / n).astype(np.complex64)
 
 
 def structure_loss(x_pred, x, *, cutoff: float = 0.25, cond_mask=None, weight_map=None):
