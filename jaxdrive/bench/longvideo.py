@@ -1,6 +1,6 @@
 """Long video: seconds, sequential sampler calls and peak device memory of each strategy, side by
 side, for several lengths, on the tiny recipe's models (``configs/tiny.py``, random weights: the
-figures are about cost, not quality).
+figures are about cost, not quality). Each figure is the second of two runs (compiling is left out).
 
     python -m jaxdrive.bench.longvideo [--frames 33 145 721] [--steps 10] [--views 6]
 
@@ -75,9 +75,9 @@ def run(frames_list, steps: int, views: int, segment_batch: int):
             if frames == config.data.frames and name != "rollout":
                 continue                                   # one window: the rollout's single call
             given = 1 if name == "coarse-fine" else config.flow.cond_frames
-            # compile outside the figure: a first, short run of the same shapes
-            sample_long(name, models, codec, inputs["cond"], first[:, :, :given], min(frames, 2 * config.data.frames - 1)
-                        if name != "coarse-fine" else 1 + 2 * (config.data.frames - 1), out / "warm",
+            # compile outside the figure: a first run of the same length (coarse-fine's batched
+            # call has a shape of its own for every length)
+            sample_long(name, models, codec, inputs["cond"], first[:, :, :given], frames, out / "warm",
                         key=jax.random.key(0), log=lambda *a: None, **options)
             t = time.perf_counter()
             report = sample_long(name, models, codec, inputs["cond"], first[:, :, :given], frames, out / label,
