@@ -64,7 +64,7 @@ class WindowModel:
         return cls(DiT(spec.model), params, window=spec.latent_window, cond_frames=max(1, f.cond_frames),
                    steps=spec.steps if steps is None else check_positive_int("steps", steps), guidance=guidance,
                    shift=shift, tpd=f.tpd, tpd_omega=f.tpd_omega, jdc_slope=f.jdc_slope, jdc_alpha1=f.jdc_alpha1,
-                   patterns=tuple(getattr(f, "patterns", ("prefix",))), anchor_every=getattr(f, "anchor_every", 0),
+                   patterns=tuple(f.patterns), anchor_every=f.anchor_every,
                    jdc_anchor_rate=f.jdc_anchor_rate, stride=spec.frame_stride, temporal=spec.codec.temporal)
 
     @property
