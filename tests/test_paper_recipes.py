@@ -68,6 +68,13 @@ def test_mila_tiny_stages_train_and_sample_coarse_to_refine(long_scenes, tmp_pat
     latents = np.load(out / "latents.npy")
     assert latents.shape == (2, 2, 20, 8, 14, 48) and np.isfinite(latents).all()
     assert (out / "sample.mp4").stat().st_size > 0 and (out / "frames.png").stat().st_size > 0
+    # rollout of one clip on a mesh whose batch axes have size 1 (the frame-time embedding once lost
+    # its batch sharding there)
+    out = tmp_path / "rollout"
+    assert cli(["sample", "--workdir", str(run), "--strategy", "rollout", "--frames", "12", "--steps", "2",
+                "--mesh", "data=1,seq=8", "--out", str(out), "--no-progress"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["sequential_sampler_calls"] == 2 and np.load(out / "latents.npy").shape == (1, 2, 12, 8, 14, 48)
     # stage 2 never trained anchors: it cannot refine them, and says so before compiling
     capsys.readouterr()
     assert cli(["sample", "--workdir", str(tmp_path / "stage2"), "--strategy", "coarse-to-refine", "--frames", "20",

@@ -9,7 +9,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdrive.models.tokens import merge
+from jaxdrive.models.tokens import reshape
 
 
 def timestep_embedding(t, dim: int, *, flip_sin_to_cos: bool = True, shift: float = 0.0,
@@ -126,6 +126,8 @@ def fourier_features(x, num_freqs: int, temperature: float = 100.0, include_inpu
     x = jnp.asarray(x, jnp.float32)
     freqs = jnp.asarray(temperature ** (np.arange(num_freqs) / num_freqs), jnp.float32)
     ang = x[..., None] * freqs                                   # [..., k, n]
-    feats = merge(merge(jnp.stack([jnp.sin(ang), jnp.cos(ang)], axis=-1), x.ndim), x.ndim - 1)
+    # one reshape that keeps x's leading shardings (two merges lost the batch sharding of a
+    # size-1 batch under an Explicit mesh, and the concatenation below then refused the operands)
+    feats = reshape(jnp.stack([jnp.sin(ang), jnp.cos(ang)], axis=-1), (*x.shape[:-1], x.shape[-1] * num_freqs * 2))
     return jnp.concatenate([x, feats], axis=-1) if include_input else feats
 
