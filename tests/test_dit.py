@@ -469,11 +469,11 @@ def test_frame_time_control_starts_as_a_no_op_and_reads_relative_times():
 
     # a 2-latent-frame window cut from a 5-latent-frame clip (4 at 12 fps, then 1 fps) by
     # Conditions.per_frame, as a rollout cuts its windows, against the same window alone
-    from jaxdrive.generate.rollout import _window_controls
+    from jaxdrive.generate.windows import controls_at
     steps = np.where(np.arange(17) < 4, 1 / 12, 1.0)
     long = np.tile(np.cumsum(steps) - steps[0], (2, 1)).astype(np.float32)
     clip = conditions(text, dict(kw, frame_times=long))
-    cut = _window_controls(clip, 2, 3, 4).given()                          # latent frames 2..4: pixel 8..16
+    cut = controls_at(clip, [2, 3, 4], 4).given()                            # latent frames 2..4: pixel 8..16
     assert cut["frame_times"][0, 0] > 5                                    # not at time 0 in the long clip
     alone = dict(kw, frame_times=np.tile(np.arange(9, dtype=np.float32), (2, 1)))   # the window at 1 fps
     cut.pop("text")
