@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from jaxdrive.eval.frames import clip_quality, noise_like, psnr, ssim
+from jaxdrive.eval.frames import FrameScores, clip_quality, noise_like, psnr, ssim
 
 
 def _clip(seed=0, views=2, frames=5, hw=(24, 32)):
@@ -55,3 +55,34 @@ def test_clip_quality_rejects_bad_input():
         clip_quality(rec, rec, cond_frames=2, window=2)
     with pytest.raises(ValueError, match=r"generated: expected 4 or 5 dimensions"):
         clip_quality(rec[0, 0], rec[0, 0], cond_frames=1)
+
+
+def test_frame_scores_part_by_part_equal_the_whole_clip_and_give_a_horizon_curve():
+    rec = _clip(frames=9)
+    gen = rec + np.linspace(0.0, 0.4, 9, dtype=np.float32)[None, :, None, None, None]   # drifts more each frame
+    whole = clip_quality(gen, rec, cond_frames=2, window=5)
+    parts = FrameScores(rec, cond_frames=2)
+    for lo, hi in ((0, 2), (2, 5), (5, 6), (6, 9)):
+        parts.add(gen[:, lo:hi])
+    q = parts.result(window=5, every=3)
+    for a, b in zip(q["per_frame"], whole["per_frame"], strict=True):
+        assert a["kind"] == b["kind"] and {k: a[k] for k in a if k != "kind"} == pytest.approx(
+            {k: b[k] for k in b if k != "kind"}, rel=1e-5)
+    assert q["first_window"]["frames"] == whole["first_window"]["frames"] == [2, 3, 4]
+    assert q["first_window"]["psnr"] == pytest.approx(whole["first_window"]["psnr"], rel=1e-5)
+    assert [h["frames"] for h in q["horizon"]] == [[2, 3, 4], [5, 6, 7], [8]]
+    # the drift grows, so quality falls along the horizon
+    assert q["horizon"][0]["psnr"] > q["horizon"][1]["psnr"] > q["horizon"][2]["psnr"]
+    assert q["horizon"][0]["psnr"] == pytest.approx(np.mean([whole["per_frame"][f]["psnr"] for f in (2, 3, 4)]))
+
+
+def test_frame_scores_reject_bad_parts():
+    rec = _clip(frames=4)
+    scores = FrameScores(rec, cond_frames=1)
+    with pytest.raises(ValueError, match=r"generated: expected the next frames \[V, n, H, W, 3\] of a clip shaped "
+                                         r"\[2, 4, 24, 32, 3\] \(frames 0..3 left\), got shape \[2, 5, 24, 32, 3\]"):
+        scores.add(np.concatenate([rec, rec[:, :1]], 1))
+    with pytest.raises(ValueError, match=r"generated: expected frames beyond the 1 given ones, got 1 frames"):
+        scores.add(rec[:, :1]).result()
+    with pytest.raises(ValueError, match=r"recorded: expected 5 dimensions"):
+        FrameScores(rec[0], cond_frames=1)

@@ -68,6 +68,13 @@ def test_mila_tiny_stages_train_and_sample_coarse_to_refine(long_scenes, tmp_pat
     latents = np.load(out / "latents.npy")
     assert latents.shape == (2, 2, 20, 8, 14, 48) and np.isfinite(latents).all()
     assert (out / "sample.mp4").stat().st_size > 0 and (out / "frames.png").stat().st_size > 0
+    # the dataset clip covers the 20 frames: every generated frame is scored against it, part by part
+    quality = report["quality"]
+    assert quality["all_generated"]["frames"] == list(range(2, 20)) and quality["window"] == 8
+    assert [f for h in quality["horizon"] for f in h["frames"]] == list(range(2, 20))
+    assert np.isfinite(quality["all_generated"]["psnr"]) and 0 < quality["all_generated"]["noise_psnr"] < 100
+    per_frame = json.loads((out / "quality.json").read_text())["per_frame"]
+    assert len(per_frame) == 20 and per_frame[0]["psnr"] > per_frame[5]["psnr"]    # given frames decode near-exactly
     # rollout of one clip on a mesh whose batch axes have size 1 (the frame-time embedding once lost
     # its batch sharding there)
     out = tmp_path / "rollout"

@@ -74,6 +74,65 @@ def _summary(rows: list[dict], frames: list[int]) -> dict:
     return {"frames": [int(f) for f in frames], **{k: float(np.mean([r[k] for r in pick])) for k in keys}}
 
 
+class FrameScores:
+    """:func:`clip_quality` a part at a time, for videos too long to hold decoded: ``add`` the
+    generated frames in order as they are decoded (``[V, n, H, W, 3]``), then ``result()``.
+    ``recorded`` is the whole recorded clip ``[V, F, H, W, 3]`` (the baselines need its last
+    given frame and its colour statistics); the scores equal :func:`clip_quality` of the whole
+    clip, part boundaries aside."""
+
+    def __init__(self, recorded, *, cond_frames: int, seed: int = 0):
+        r = np.asarray(recorded, np.float32)
+        check_ndim("recorded", r, (5,))
+        if r.shape[-1] != 3:
+            raise ValueError(f"recorded: expected RGB frames [..., H, W, 3], got shape {list(r.shape)}")
+        check_positive_int("cond_frames", cond_frames)
+        if cond_frames >= r.shape[1]:
+            raise ValueError(f"cond_frames: expected fewer than the clip's {r.shape[1]} frames, got {cond_frames}")
+        self.recorded, self.cond_frames, self.seed = r, cond_frames, seed
+        self._noise = None
+        self.rows: list[dict] = []
+
+    def add(self, generated) -> "FrameScores":
+        """Score the next frames ``[V, n, H, W, 3]`` of the generated clip."""
+        g = np.asarray(generated, np.float32)
+        lo, r = len(self.rows), self.recorded
+        hi = lo + (g.shape[1] if g.ndim == 5 else 0)
+        if g.ndim != 5 or g.shape[0] != r.shape[0] or g.shape[2:] != r.shape[2:] or hi > r.shape[1]:
+            raise ValueError(f"generated: expected the next frames [V, n, H, W, 3] of a clip shaped "
+                             f"{list(r.shape)} (frames {lo}..{r.shape[1] - 1} left), got shape {list(g.shape)}")
+        if self._noise is None:
+            self._noise = noise_like(r, self.seed)
+        truth = r[:, lo:hi]
+        held = np.minimum(np.arange(lo, hi), self.cond_frames - 1)       # the last given frame, held
+        scores = {"": _per_frame(g, truth), "repeat_": _per_frame(r[:, held], truth),
+                  "noise_": _per_frame(self._noise[:, lo:hi], truth)}
+        for i, f in enumerate(range(lo, hi)):
+            row = {"frame": f, "kind": "condition" if f < self.cond_frames else "generated"}
+            for prefix, (p, s) in scores.items():
+                row[f"{prefix}psnr"], row[f"{prefix}ssim"] = float(p[i]), float(s[i])
+            self.rows.append(row)
+        return self
+
+    def result(self, window: int | None = None, every: int | None = None) -> dict:
+        """The JSON-ready report of :func:`clip_quality` over the frames added so far; with
+        ``every``, also ``horizon``: the summary of each run of ``every`` generated frames (a
+        quality-versus-horizon curve, e.g. one point per second of video)."""
+        nf, k = len(self.rows), self.cond_frames
+        if nf <= k:
+            raise ValueError(f"generated: expected frames beyond the {k} given ones, got {nf} frames")
+        window = nf if window is None else min(check_positive_int("window", window), nf)
+        if window <= k:
+            raise ValueError(f"window: expected more than cond_frames = {k} frames, got {window}")
+        out = {"views": int(self.recorded.shape[0]), "cond_frames": int(k), "window": int(window),
+               "per_frame": self.rows, "first_window": _summary(self.rows, list(range(k, window))),
+               "all_generated": _summary(self.rows, list(range(k, nf)))}
+        if every is not None:
+            every = check_positive_int("every", every)
+            out["horizon"] = [_summary(self.rows, list(range(a, min(a + every, nf)))) for a in range(k, nf, every)]
+        return out
+
+
 def clip_quality(generated, recorded, *, cond_frames: int, window: int | None = None, seed: int = 0) -> dict:
     """PSNR / SSIM of each frame of ``generated`` against ``recorded`` (same shape), and of the
     ``repeat`` and ``noise`` baselines (module docstring).
@@ -92,21 +151,4 @@ def clip_quality(generated, recorded, *, cond_frames: int, window: int | None = 
         g, r = g[None], r[None]
     if g.shape[-1] != 3:
         raise ValueError(f"generated: expected RGB frames [..., H, W, 3], got shape {list(g.shape)}")
-    nf = g.shape[1]
-    check_positive_int("cond_frames", cond_frames)
-    if cond_frames >= nf:
-        raise ValueError(f"cond_frames: expected fewer than the clip's {nf} frames, got {cond_frames}")
-    window = nf if window is None else min(check_positive_int("window", window), nf)
-    if window <= cond_frames:
-        raise ValueError(f"window: expected more than cond_frames = {cond_frames} frames, got {window}")
-    repeat = np.concatenate([r[:, :cond_frames], np.repeat(r[:, cond_frames - 1: cond_frames], nf - cond_frames, 1)], 1)
-    scores = {"": _per_frame(g, r), "repeat_": _per_frame(repeat, r), "noise_": _per_frame(noise_like(r, seed), r)}
-    rows = []
-    for f in range(nf):
-        row = {"frame": f, "kind": "condition" if f < cond_frames else "generated"}
-        for prefix, (p, s) in scores.items():
-            row[f"{prefix}psnr"], row[f"{prefix}ssim"] = float(p[f]), float(s[f])
-        rows.append(row)
-    return {"views": int(g.shape[0]), "cond_frames": int(cond_frames), "window": int(window), "per_frame": rows,
-            "first_window": _summary(rows, list(range(cond_frames, window))),
-            "all_generated": _summary(rows, list(range(cond_frames, nf)))}
+    return FrameScores(r, cond_frames=cond_frames, seed=seed).add(g).result(window)

@@ -11,7 +11,11 @@ and appends it to the mp4. It writes under ``out``:
 - ``latents.npy``: all latents ``[B, V, F', h, w, C]``;
 - ``report.json``: ``strategy``, ``frames``, ``latent_frames``, ``views``, ``clips``,
   ``sequential_sampler_calls``, ``seconds``, ``peak_device_bytes`` (and the models' windows and
-  the options the strategy ran with).
+  the options the strategy ran with); when the recorded clip covers the horizon, ``quality``:
+  PSNR / SSIM of the first clip against it, beside the repeat and noise baselines, over the
+  first window, all generated frames and each second (``horizon``), scored part by part as the
+  frames are decoded (:class:`jaxdrive.eval.frames.FrameScores`);
+- ``quality.json``: the same scores with one row per frame.
 """
 
 from __future__ import annotations
@@ -44,6 +48,11 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
     picks = np.unique(np.linspace(0, frames - 1, min(GRID_FRAMES, frames)).round().astype(int))
     decoder = codec.stream_decoder(length)
     latents, grid, written = [], {}, 0
+    scores = None
+    if recorded is not None and np.shape(recorded)[1] >= frames:
+        from jaxdrive.eval.frames import FrameScores
+        given = 1 + codec.temporal * (np.shape(first)[2] - 1)          # pixel frames the given latents hold
+        scores = FrameScores(np.asarray(recorded)[:, :frames], cond_frames=given)
     writer = None
     if jax.process_index() == 0:
         from jaxdrive.media import Mp4Writer
@@ -56,6 +65,8 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
         clip = np.asarray(video[0])                           # [V, n, H, W, 3]
         for p in picks[(picks >= written) & (picks < written + clip.shape[1])]:
             grid[int(p)] = np.array(clip[:, p - written])     # a copy, not a view of the part
+        if scores is not None:
+            scores.add(clip)
         if writer is not None:
             writer.write(clip)
         written += clip.shape[1]
@@ -78,6 +89,11 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
               "given_latent_frames": int(np.shape(first)[2]),
               "windows": {"main": models.main.window, **({"fine": models.fine.window} if models.fine else {})},
               "options": {k: v for k, v in options.items() if v is not None}}
+    quality = None
+    if scores is not None:
+        window = 1 + codec.temporal * ((models.fine or models.main).window - 1)
+        quality = scores.result(window=window, every=max(int(round(fps)), 1))
+        report["quality"] = {k: v for k, v in quality.items() if k != "per_frame"}
     if jax.process_index() == 0:
         from jaxdrive.media import write_frame_grid
         out.mkdir(parents=True, exist_ok=True)
@@ -88,6 +104,12 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
             reference = np.asarray(recorded)[:, picks]
         write_frame_grid(out / "frames.png", video, num_frames=len(picks), reference=reference)
         (out / "report.json").write_text(json.dumps(report, indent=1))
+        if quality is not None:
+            (out / "quality.json").write_text(json.dumps(quality, indent=1))
         log(f"{strategy}: {frames} frames x {report['views']} views in {seconds:.1f} s, "
             f"{tracker.calls} sequential sampler calls, peak device memory {tracker.peak_bytes / 2**20:.1f} MiB: {out}")
+        if quality is not None:
+            a = quality["all_generated"]
+            log(f"all generated frames against the recorded clip: PSNR {a['psnr']:.2f} dB, SSIM {a['ssim']:.3f} "
+                f"(repeat the last given frame: {a['repeat_psnr']:.2f} dB, {a['repeat_ssim']:.3f})")
     return report
