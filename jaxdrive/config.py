@@ -47,6 +47,9 @@ class DataConfig:
     shuffle_seed: int = 0
     threads: int = 0                  # grain read threads (0: in the main thread)
     text_embeddings: str = ""         # .npz of 'jaxdrive data text-embed' (models with text='embeddings')
+    # mixed resolution / length training (MagicDrive-V2 appendix B): "HxWxF:batch[:prob]" each, the
+    # batch global; F = 1 is an image bucket. (): one bucket, height x width x frames at batch_size
+    buckets: tuple[str, ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -365,5 +368,12 @@ def check_sections(config) -> None:
     if d.rate_strides and f.distill_teacher:
         raise ValueError(f"data.rate_strides: expected () with flow.distill_teacher (distillation cuts a uniform "
                          f"dense clip into segments), got {d.rate_strides!r}")
+    if d.buckets:
+        from jaxdrive.data.pipeline import parse_bucket_specs
+        parse_bucket_specs(d.buckets)
+        for name, value, ok in (("latents.precomputed", config.latents.precomputed, False),
+                                ("flow.distill_teacher", f.distill_teacher, ""), ("optim.grad_accum", o.grad_accum, 1)):
+            if value != ok:       # stored windows have one shape; a step's micro-batches must share a bucket
+                raise ValueError(f"{name}: expected {ok!r} with data.buckets, got {value!r}")
     if hasattr(config, "model"):
         check_config(config.model)

@@ -119,6 +119,33 @@ def parse_buckets(buckets, *, compression: int = 4) -> tuple[Bucket, ...]:
     return tuple(dataclasses.replace(b, prob=b.prob / total) for b in out)
 
 
+def parse_bucket_specs(specs: Sequence[str], *, name: str = "data.buckets") -> dict:
+    """Config text ``("HxWxF:B", "HxWxF:B:P", ...)`` -> ``{(H, W, F): (B, P)}`` (``P`` defaults to
+    1; :func:`parse_buckets` normalises). ``B`` is the bucket's global batch; MagicDrive-V2
+    (appendix B) picks each so that every bucket's step takes about the same time."""
+    if isinstance(specs, str) or not isinstance(specs, Sequence):
+        raise ValueError(f"{name}: expected a sequence of 'HxWxF:batch[:prob]' strings, got {specs!r}")
+    out = {}
+    for spec in specs:
+        parts = str(spec).split(":")
+        dims = parts[0].lower().split("x")
+        try:
+            if len(parts) not in (2, 3) or len(dims) != 3:
+                raise ValueError
+            key = tuple(int(v) for v in dims)
+            batch, prob = int(parts[1]), float(parts[2]) if len(parts) == 3 else 1.0
+        except ValueError:
+            raise ValueError(f"{name}: expected 'HxWxF:batch[:prob]' (e.g. '32x56x9:2'), got {spec!r}") from None
+        if min(key) < 1 or batch < 1 or not prob >= 0:
+            raise ValueError(f"{name}: expected positive H, W, F and batch and a probability >= 0, got {spec!r}")
+        if key in out:
+            raise ValueError(f"{name}: expected each (H, W, F) once, got {key} twice")
+        out[key] = (batch, prob)
+    if not out or sum(p for _, p in out.values()) <= 0:
+        raise ValueError(f"{name}: expected at least one bucket with a positive probability, got {list(specs)!r}")
+    return out
+
+
 # ----------------------------------------------------------------------------- per-clip transforms
 
 def _resize_weights(n_in: int, n_resized: int, offset: int, n_out: int) -> np.ndarray:

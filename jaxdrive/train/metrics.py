@@ -30,16 +30,17 @@ class MetricsWriter:
             from tqdm import tqdm
             self._bar = tqdm(total=total_steps, initial=start_step, unit="step", dynamic_ncols=True)
 
-    def write(self, step: int, metrics: dict) -> dict:
+    def write(self, step: int, metrics: dict, tokens: int | None = None) -> dict:
         """Log ``metrics`` (scalars) at ``step``; adds ``steps_per_s`` and ``tokens_per_s`` since the
-        last call. Returns the row written."""
+        last call (``tokens``: the tokens trained since then, when steps differ in size; default
+        ``tokens_per_step`` per step). Returns the row written."""
         now = time.perf_counter()
         elapsed, steps = now - self._last[0], step - self._last[1]
         self._last = (now, step)
         row = {"step": int(step), **{k: _scalar(v) for k, v in metrics.items()}}
         if steps > 0 and elapsed > 0:
             row["steps_per_s"] = steps / elapsed
-            row["tokens_per_s"] = steps * self.tokens_per_step / elapsed
+            row["tokens_per_s"] = (steps * self.tokens_per_step if tokens is None else tokens) / elapsed
         if not self.enabled:
             return row
         self._jsonl.write(json.dumps(row) + "\n")

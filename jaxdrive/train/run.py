@@ -60,17 +60,32 @@ def mesh_from_config(config: Config, devices=None):
     return make_mesh(**sizes, devices=devices)
 
 
-def check_batch(config: Config, mesh) -> tuple[int, int]:
-    """``(micro-batch per process, micro-batch global)``; ``ValueError`` when the global batch
-    does not divide over processes, accumulation steps and the mesh's batch axes."""
+def check_batch(config: Config, mesh, batch: int | None = None, name: str = "data.batch_size") -> tuple[int, int]:
+    """``(micro-batch per process, micro-batch global)`` of the global ``batch`` (default
+    ``data.batch_size``); ``ValueError`` naming ``name`` when it does not divide over processes,
+    accumulation steps and the mesh's batch axes."""
     sizes = dict(zip(mesh.axis_names, mesh.axis_sizes))
     shards = sizes.get("data", 1) * sizes.get("fsdp", 1)
-    b, a, procs = config.data.batch_size, config.optim.grad_accum, jax.process_count()
+    b = config.data.batch_size if batch is None else batch
+    a, procs = config.optim.grad_accum, jax.process_count()
     micro = b // a if b % a == 0 else None
     if micro is None or micro % shards or micro % procs:
-        raise ValueError(f"data.batch_size: expected a multiple of optim.grad_accum ({a}) x the batch mesh "
+        raise ValueError(f"{name}: expected a multiple of optim.grad_accum ({a}) x the batch mesh "
                          f"axes data x fsdp ({shards}) and of the process count ({procs}), got {b}")
     return micro // procs, micro
+
+
+def training_buckets(config: Config, compression: int):
+    """The (H, W, F) buckets a run trains on, each with its global batch
+    (:class:`jaxdrive.data.pipeline.Bucket`): ``data.buckets``, or the one bucket
+    ``data.height x data.width x data.frames`` at ``data.batch_size``."""
+    from jaxdrive.data.pipeline import parse_bucket_specs, parse_buckets
+    d = config.data
+    specs = parse_bucket_specs(d.buckets) if d.buckets else {(d.height, d.width, d.frames): (d.batch_size, 1.0)}
+    try:
+        return parse_buckets(specs, compression=compression)
+    except ValueError as e:
+        raise ValueError(f"data.buckets: {e}") from None
 
 
 def sharded_state(boxed_params, mesh, optim_config, total_steps: int, seed: int):
@@ -128,6 +143,9 @@ class Run:
         self.mesh = mesh_from_config(config, devices)
         self.local_batch, self.micro_batch = check_batch(config, self.mesh)
         self.codec = LatentCodec.from_config(config.latents)
+        self.buckets = training_buckets(config, max(self.codec.temporal, 1))
+        for b in self.buckets:
+            check_batch(config, self.mesh, b.batch_size, name=f"data.buckets {'x'.join(map(str, b.key))}")
         check_dataset(config, self.codec)           # latent windows or clips, as latents.precomputed says
         model = config.model
         if config.train.compute_dtype != model.dtype:
@@ -138,9 +156,10 @@ class Run:
             raise ValueError(f"model.heads: expected a multiple of the mesh axis tensor ({tensor}), got {model.heads}")
         d = config.data
         grid = self.codec.spatial * model.patch[1]
-        if d.height % grid or d.width % (self.codec.spatial * model.patch[2]):
-            raise ValueError(f"data.height, data.width: expected multiples of latent compression x patch "
-                             f"({grid}), got {d.height} x {d.width}")
+        for name, (h, w) in [("data.height, data.width", (d.height, d.width))] + [
+                (f"data.buckets {'x'.join(map(str, b.key))}", (b.height, b.width)) for b in self.buckets]:
+            if h % grid or w % (self.codec.spatial * model.patch[2]):
+                raise ValueError(f"{name}: expected multiples of latent compression x patch ({grid}), got {h} x {w}")
         if config.train.init_from and not Path(config.train.init_from).is_dir():
             raise ValueError(f"train.init_from: expected a run directory or a diffusers transformer folder, got "
                              f"{config.train.init_from!r} (not a directory)")
@@ -155,11 +174,23 @@ class Run:
         if teacher is not None:
             self.latent_frames = (d.frames - 1) // (config.flow.distill_segment_len - 1) + 1
             self.frame_stride = d.stride * (config.flow.distill_segment_len - 1)
-        self.tokens_per_step = (d.batch_size * d.views * self.latent_frames * (d.height // grid) *
-                                (d.width // (self.codec.spatial * model.patch[2])))
+        self.tokens_per_step = self.tokens(d.batch_size, d.height, d.width, self.latent_frames)
         self.text = None
         if model.controls.text == "embeddings":
             self.text = TextEmbeddings(d.text_embeddings) if d.text_embeddings else None
+
+    def tokens(self, batch: int, height: int, width: int, latent_frames: int) -> int:
+        """Video tokens of a global batch of ``batch`` clips at ``height x width`` pixels."""
+        m, sp = self.training.model, self.codec.spatial
+        return batch * self.config.data.views * latent_frames * (height // (sp * m.patch[1])) * (width // (sp * m.patch[2]))
+
+    def batch_tokens(self, batch) -> int:
+        """Video tokens of a global batch from :meth:`global_batch` (its bucket's shape)."""
+        x = batch["latents"] if "latents" in batch else batch["video"]       # [A, b, V, F, H, W, C]
+        frames = x.shape[3] if "latents" in batch else self.codec.latent_frames(x.shape[3])
+        h, w = (x.shape[4] * self.codec.spatial, x.shape[5] * self.codec.spatial) if "latents" in batch else \
+            (x.shape[4], x.shape[5])
+        return self.tokens(x.shape[0] * x.shape[1], h, w, frames)
 
     def _teacher_model(self, devices):
         """The fine model of LongDWM's distillation, from the config of the run directory
@@ -249,7 +280,9 @@ class Run:
         d = self.config.data
         source = open_source(d.path, split or d.split)
         stride = 1 if self.config.latents.precomputed else d.stride     # latent windows are strided already
-        return make_pipeline(source, {(d.height, d.width, d.frames): self.local_batch}, stride=stride,
+        procs = jax.process_count()
+        buckets = {b.key: (b.batch_size // (procs * self.config.optim.grad_accum), b.prob) for b in self.buckets}
+        return make_pipeline(source, buckets, stride=stride,
                              views=list(range(d.views)), drop_probs={n: d.drop_prob for n in CONDITIONS},
                              seed=d.shuffle_seed, num_threads=d.threads, prefetch=2 if d.threads else 0,
                              compression=max(self.codec.temporal, 1), rate_head=d.rate_head,
@@ -315,15 +348,17 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
     step_fn, frozen = run.step_fn(optimizer, shardings), run.frozen_params()
     writer = MetricsWriter(workdir, total_steps=run.total_steps, start_step=start,
                            tokens_per_step=run.tokens_per_step, progress=progress)
-    status, step, row = "done", start, {}
+    status, step, row, tokens = "done", start, {}, 0
     with _Stop() as stop, jax.set_mesh(run.mesh):
         while step < run.total_steps:
             batch = run.global_batch([next(it) for _ in range(cfg.optim.grad_accum)])
-            state, metrics = step_fn(state, frozen, batch)
+            tokens += run.batch_tokens(batch)          # buckets differ in tokens per step
+            state, metrics = step_fn(state, frozen, batch)   # compiled once per bucket shape
             step += 1
             bad = int(metrics["bad_steps"])
             if step % cfg.train.log_every == 0 or step == run.total_steps or bad:
-                row = writer.write(step, jax.device_get(metrics))
+                row = writer.write(step, jax.device_get(metrics), tokens=tokens)
+                tokens = 0
             if on_step is not None:
                 on_step(step, metrics)
             if bad >= cfg.train.max_bad_steps:
@@ -348,7 +383,10 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
             _save(ckpts, step, state, it, cfg, status=status)
     ckpts.close()
     writer.close()
-    return {"step": step, "status": status, "loss": row.get("loss"), "state": state, "run": run}
+    # programs the step compiled: one per bucket shape met since this process started
+    compiled = step_fn._cache_size() if hasattr(step_fn, "_cache_size") else None
+    return {"step": step, "status": status, "loss": row.get("loss"), "state": state, "run": run,
+            "compiled_steps": compiled}
 
 
 def load_run_config(workdir) -> Config:
