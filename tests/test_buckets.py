@@ -1,12 +1,8 @@
 """Mixed resolution / length training (MagicDrive-V2 appendix B): ``data.buckets`` in a run, one
 compiled step per bucket shape, the bucket schedule resumed exactly, bad buckets named."""
 
-import os
-import signal
 from pathlib import Path
 
-import jax
-import numpy as np
 import pytest
 
 from jaxdrive.config import load_config
@@ -14,7 +10,7 @@ from jaxdrive.data.pipeline import parse_bucket_specs
 from jaxdrive.train.metrics import read_metrics
 from jaxdrive.train.run import Run, train
 
-from train_fixtures import write_synthetic
+from train_fixtures import assert_same_state, train_with_a_stop, write_synthetic
 
 ROOT = Path(__file__).resolve().parents[1]
 BUCKETS = "data.buckets=32x56x1:4:4,16x24x5:2,32x56x5:2"     # images (2/3 of the clips), a small short clip, a clip
@@ -65,15 +61,10 @@ def test_buckets_compile_once_each_and_resume_bit_exact(scenes, tmp_path):
     whole = train(cfg, tmp_path / "whole", progress=False)
     assert whole["status"] == "done" and whole["compiled_steps"] == 3       # one program per bucket, not per step
 
-    def stop_at_3(step, metrics):
-        if step == 3:
-            os.kill(os.getpid(), signal.SIGTERM)
-    part = train(cfg, tmp_path / "split", progress=False, on_step=stop_at_3)
+    part, resumed = train_with_a_stop(cfg, tmp_path / "split", stop_at=3)
     assert part["status"] == "interrupted" and part["step"] == 3
-    resumed = train(cfg, tmp_path / "split", progress=False)
     assert resumed["status"] == "done" and resumed["step"] == 6
-    for a, b in zip(jax.tree_util.tree_leaves(whole["state"]), jax.tree_util.tree_leaves(resumed["state"])):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))          # the same buckets in the same order
+    assert_same_state(whole["state"], resumed["state"])                  # the same buckets in the same order
     # tokens/s counts each step's own bucket: an image step of 4 x 2 views x 8 x 14 / 4 tokens, ...
     per_step = {(4, 1, 32, 56): 4 * 2 * 1 * 4 * 7, (2, 5, 16, 24): 2 * 2 * 5 * 2 * 3, (2, 5, 32, 56): 2 * 2 * 5 * 4 * 7}
     rows = read_metrics(tmp_path / "whole")

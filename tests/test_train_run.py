@@ -3,8 +3,6 @@ step against the single-device step, exact resume after SIGTERM, non-finite loss
 run, bad configs rejected before compiling, and ``jaxdrive train`` / ``sample`` from the CLI."""
 
 import json
-import os
-import signal
 from pathlib import Path
 
 import jax
@@ -20,7 +18,7 @@ from jaxdrive.train import flow_step
 from jaxdrive.train.metrics import read_metrics
 from jaxdrive.train.run import Run, train
 
-from train_fixtures import write_synthetic
+from train_fixtures import assert_same_state, train_with_a_stop, write_synthetic
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "configs" / "tiny.py"
@@ -97,15 +95,10 @@ def test_resume_after_sigterm_is_bit_exact(dataset, tmp_path):
     whole = train(cfg, tmp_path / "whole", progress=False)
     assert whole["status"] == "done" and whole["step"] == 4
 
-    def stop_at_2(step, metrics):
-        if step == 2:
-            os.kill(os.getpid(), signal.SIGTERM)
-    part = train(cfg, tmp_path / "split", progress=False, on_step=stop_at_2)
+    part, resumed = train_with_a_stop(cfg, tmp_path / "split", stop_at=2)
     assert part["status"] == "interrupted" and part["step"] == 2
-    resumed = train(cfg, tmp_path / "split", progress=False)
     assert resumed["status"] == "done" and resumed["step"] == 4
-    for a, b in zip(jax.tree_util.tree_leaves(whole["state"]), jax.tree_util.tree_leaves(resumed["state"])):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))          # params, Adam moments, EMA, rng
+    assert_same_state(whole["state"], resumed["state"])
     rows = read_metrics(tmp_path / "split")
     assert [r["step"] for r in rows] == [1, 2, 3, 4] and all(np.isfinite(r["loss"]) for r in rows)
 

@@ -11,3 +11,26 @@ def write_synthetic(out, *, first: int = 0, train: int = 3, frames: int = 9):
     clips = lambda seed, n: (generate_clip(seed + i, views=6, frames=frames, height=32, width=56) for i in range(n))
     write_dataset(out, {"train": clips(first, train), "validation": clips(100, 1)}, name="jaxdrive_synthetic")
     return out
+
+
+def train_with_a_stop(config, workdir, *, stop_at: int):
+    """Train in ``workdir``, SIGTERM after step ``stop_at``, then run the same command again;
+    returns ``(interrupted summary, resumed summary)``."""
+    import os
+    import signal
+
+    from jaxdrive.train.run import train
+
+    def stop(step, metrics):
+        if step == stop_at:
+            os.kill(os.getpid(), signal.SIGTERM)
+    part = train(config, workdir, progress=False, on_step=stop)
+    return part, train(config, workdir, progress=False)
+
+
+def assert_same_state(a, b):
+    """Every leaf of two train states (params, Adam moments, EMA, rng) bit for bit."""
+    import jax
+    import numpy as np
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
