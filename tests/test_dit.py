@@ -6,6 +6,7 @@ import json
 import functools
 
 import flax.linen as nn
+import flax.traverse_util
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -496,3 +497,34 @@ def test_frame_times_from_a_batch_and_bad_frame_times():
             ex["cond"].replace(frame_times=times).check(FT_ON, lat, sig)
     with pytest.raises(ValueError, match=r"frame_times: this DiT takes no frame_time \(controls.frame_time is False\)"):
         ex["cond"].check(FT_OFF, lat, sig)
+
+
+def test_growing_temporal_blocks_leaves_a_spatial_only_models_outputs_unchanged():
+    """MagicDrive-V2's stage 1 -> 2 growth: a spatial-only model (``temporal="off"``) loaded into
+    one with zero-initialised temporal blocks (``temporal="zero_init"``) gives exactly its outputs,
+    on images and on videos; once trained, the temporal blocks act."""
+    spatial = preset("tiny", temporal="off")
+    grown = dataclasses.replace(spatial, temporal="zero_init")
+    shapes = dict(TINY_SHAPES)
+    stage1 = perturb(jax.tree_util.tree_map(jnp.asarray, nn.unbox(boxed_params(spatial, TINY_SHAPES))))
+    fresh = jax.tree_util.tree_map(jnp.asarray, nn.unbox(boxed_params(grown, TINY_SHAPES)))
+    flat1, flat2 = flax.traverse_util.flatten_dict(stage1, sep="/"), flax.traverse_util.flatten_dict(fresh, sep="/")
+    assert set(flat1) < set(flat2) and all("/temporal/" in k for k in set(flat2) - set(flat1))
+    assert not any("/temporal/" in k for k in flat1)
+    stage2 = flax.traverse_util.unflatten_dict({**flat2, **flat1}, sep="/")       # what train.init_from loads
+    for frames in (1, shapes["frames"]):
+        inputs = example_inputs(spatial, **dict(shapes, frames=frames))
+        lat, sig, text, kw = split_inputs(inputs)
+        a = forward_fn(spatial)(stage1, lat, sig, text, kw)
+        np.testing.assert_allclose(forward_fn(grown)(stage2, lat, sig, text, kw), a, rtol=1e-6, atol=1e-6)
+        # the usual init of the same blocks is not a no-op, and trained grown blocks act
+        usual = flax.traverse_util.unflatten_dict({**flax.traverse_util.flatten_dict(
+            nn.unbox(boxed_params(dataclasses.replace(spatial, temporal="on"), TINY_SHAPES)), sep="/"), **flat1},
+            sep="/")
+        assert max_rel(forward_fn(dataclasses.replace(spatial, temporal="on"))(usual, lat, sig, text, kw), a) > 1e-3
+        if frames > 1:
+            assert max_rel(forward_fn(grown)(perturb(stage2), lat, sig, text, kw), a) > 1e-3
+    with pytest.raises(ValueError, match=r"temporal: expected 'on' for layout 'factorized' with block 'stdit2'"):
+        preset("tiny", block="stdit2", temporal="off")
+    with pytest.raises(ValueError, match=r"temporal: expected one of"):
+        preset("tiny", temporal="grow")

@@ -237,7 +237,8 @@ class STBlock(nn.Module):
         cfg = self.cfg
         shift, scale, gate, shift_m, scale_m, gate_m = _chunks(_table(self, 6, cfg.width), ctx.t0, 6)
         h = modulate(LayerNorm(cfg.norm_eps, affine=False, name="norm1")(x), shift, scale)
-        proj = _proj(cfg, "attn")
+        grown = self.temporal and cfg.temporal == "zero_init"      # added to a spatial-only model: identity at init
+        proj = _proj(cfg, "attn", zero_out=grown)
         if self.temporal:
             a = temporal_attention(proj, h, cfg.local_attn_impl, cfg.rope_theta)
         else:
@@ -248,7 +249,7 @@ class STBlock(nn.Module):
         x = x + context_attention(_proj(cfg, "cross_attn", qk_norm="none", zero_out=True), x, ctx,
                                   cfg.local_attn_impl)
         h = modulate(LayerNorm(cfg.norm_eps, affine=False, name="norm2")(x), shift_m, scale_m)
-        mlp = MLP(int(cfg.width * cfg.mlp_ratio), cfg.width, dtype=cfg.compute_dtype, name="mlp")
+        mlp = MLP(int(cfg.width * cfg.mlp_ratio), cfg.width, dtype=cfg.compute_dtype, zero_out=grown, name="mlp")
         return x + gate_m * mlp(h)
 
 
@@ -270,7 +271,8 @@ class FactorizedLayer(nn.Module):
                           kernel_init=ZEROS, name="warp_proj")(ctx.warp)
         if cfg.block == "stdit3":
             x = STBlock(cfg, False, name="spatial")(x, ctx)
-            x = STBlock(cfg, True, name="temporal")(x, ctx)
+            if cfg.temporal != "off":
+                x = STBlock(cfg, True, name="temporal")(x, ctx)
             return constrain(x, VIDEO)
         chunks = _chunks(_table(self, 9, cfg.width), ctx.t0, 9)
         shift, scale, gate, shift_m, scale_m, gate_m, shift_t, scale_t, gate_t = chunks

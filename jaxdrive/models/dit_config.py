@@ -18,6 +18,7 @@ from jaxdrive.validate import check_choice, check_positive_int
 
 LAYOUTS = ("factorized", "full")
 BLOCKS = ("stdit3", "stdit2")
+TEMPORAL = ("on", "off", "zero_init")
 MULTIVIEW = ("joint", "cross_view")
 QK_NORMS = ("rms", "layer", "none")
 POSITIONS = ("rope", "sincos")
@@ -120,6 +121,12 @@ class DiTConfig:
     ``neighbor_offsets``, MagicDrive-V2). Layout ``"full"`` (CogVideoX): full 3D attention over
     ``[text; video]`` with expert adaLN, ``positions`` ``"rope"`` or ``"sincos"``.
 
+    Growing (MagicDrive-V2 sec. 4.3 / appendix B, after Open-Sora 1.2): ``temporal`` ``"off"``
+    builds the stdit3 layers without their temporal blocks (a spatial-only model, trained on
+    images); ``"zero_init"`` adds them with their attention and MLP output projections
+    zero-initialised, so each starts as the identity and a spatial-only model's parameters loaded
+    into the rest (``train.init_from``) give exactly its outputs; ``"on"``: the usual init.
+
     Sizes: ``width = heads * head_dim``; ``patch = (pt, ph, pw)``. ``time_embed_dim`` (``None`` =
     width) and ``time_freq_dim`` size the timestep embedding; ``timestep_scale`` maps sigma to the
     embedded timestep (1000: Open-Sora's t and imported CogVideoX models). ``text_len`` is the
@@ -155,6 +162,7 @@ class DiTConfig:
     out_channels: int | None = None
     patch: tuple[int, int, int] = (1, 2, 2)
     block: str = "stdit3"
+    temporal: str = "on"
     multiview: str = "joint"
     neighbor_offsets: tuple[int, ...] = (-1, 1)
     qk_norm: str = "rms"
@@ -220,6 +228,10 @@ def check_config(cfg: DiTConfig) -> DiTConfig:
     """Validate ``cfg``; raises ``ValueError`` naming the field, the expected and the actual value."""
     check_choice("layout", cfg.layout, LAYOUTS)
     check_choice("block", cfg.block, BLOCKS)
+    check_choice("temporal", cfg.temporal, TEMPORAL)
+    if cfg.temporal != "on" and (cfg.layout, cfg.block) != ("factorized", "stdit3"):
+        raise ValueError(f"temporal: expected 'on' for layout {cfg.layout!r} with block {cfg.block!r} (only the "
+                         f"factorized stdit3 layer has separate temporal blocks to drop or grow), got {cfg.temporal!r}")
     check_choice("multiview", cfg.multiview, MULTIVIEW)
     check_choice("qk_norm", cfg.qk_norm, QK_NORMS)
     check_choice("positions", cfg.positions, POSITIONS)
