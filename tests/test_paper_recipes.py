@@ -112,3 +112,30 @@ def test_longdwm_tiny_roles_train_and_sample_coarse_fine(long_scenes, tmp_path, 
         assert cli(["sample", *bad, "--out", str(tmp_path / "bad")]) == 2
         assert message in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()
+
+
+def test_magicdrive_tiny_stages_grow_from_images_and_train_on_their_buckets(tmp_path, capsys):
+    """MagicDrive-V2 at size=tiny: stage 1 (spatial-only, images) -> 2 (temporal blocks grown,
+    images and videos of two resolutions) -> 3 (three resolutions, seq = 4), each from the last
+    with train.init_from, on the configs' own buckets; then a sample of the stage-3 model."""
+    from jaxdrive.train.run import Run
+    data = write_synthetic(tmp_path / "data", train=48, frames=33, views=1)   # every bucket fills in epoch 0
+    runs = {}
+    for stage in (1, 2, 3):
+        config = load_config(f"{ROOT / 'configs' / 'magicdrive_v2.py'}:size=tiny,stage={stage}",
+                             [f"data.path={data}", "data.views=1"])
+        run = Run(config)                                 # every bucket's batch and grid checked
+        assert len(run.buckets) == {1: 1, 2: 7, 3: 9}[stage]
+        sets = [] if stage == 1 else [f"train.init_from={runs[stage - 1]}"]
+        capsys.readouterr()
+        runs[stage] = train(f"magicdrive_v2.py:size=tiny,stage={stage}", tmp_path / f"stage{stage}", data,
+                            "data.views=1", *sets, steps=1 if stage < 3 else 2)
+        out = capsys.readouterr().out
+        if stage == 2:     # the stage-1 model has no temporal blocks: they start at their zero init
+            assert "kept the new initialisation of" in out and "temporal" in out
+        if stage == 3:
+            assert "kept the new initialisation" not in out
+    out = tmp_path / "sample"
+    assert cli(["sample", "--workdir", str(runs[3]), "--strategy", "rollout", "--frames", "20", "--steps", "2",
+                "--out", str(out), "--no-progress"]) == 0
+    assert np.load(out / "latents.npy").shape == (2, 1, 20, 8, 14, 48)
