@@ -30,7 +30,7 @@ import dataclasses
 from pathlib import Path
 
 from jaxdrive.config import (Config, DataConfig, FlowConfig, LatentConfig, MeshConfig, OptimConfig, TrainConfig,
-                             load_config, parse_arg)
+                             check_arg, load_config, parse_arg)
 from jaxdrive.models.dit_presets import preset
 
 SEGMENT = 13          # K: frames of a fine segment; keyframes every K - 1
@@ -59,10 +59,8 @@ def _tiny(role: str) -> Config:
 
 def get_config(arg=None) -> Config:
     a = parse_arg(arg, size="paper", role="coarse")
-    if a.size not in ("paper", "tiny"):
-        raise ValueError(f"config argument size: expected 'paper' or 'tiny', got {a.size!r}")
-    if a.role not in ("coarse", "fine", "distill"):
-        raise ValueError(f"config argument role: expected 'coarse', 'fine' or 'distill', got {a.role!r}")
+    check_arg("size", a.size, ("paper", "tiny"))
+    check_arg("role", a.role, ("coarse", "fine", "distill"))
     config = _paper(a.role) if a.size == "paper" else _tiny(a.role)
     seg = config.data.frames                          # K: the fine window
     d, f = config.data, config.flow

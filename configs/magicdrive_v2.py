@@ -34,7 +34,7 @@ import dataclasses
 from pathlib import Path
 
 from jaxdrive.config import (Config, DataConfig, FlowConfig, LatentConfig, MeshConfig, OptimConfig, TrainConfig,
-                             load_config, parse_arg)
+                             check_arg, load_config, parse_arg)
 from jaxdrive.models.dit_presets import preset
 
 MAX_GROUP_BATCH = {"paper": 8, "tiny": 2}
@@ -113,8 +113,6 @@ def _tiny(stage: int) -> Config:
 
 def get_config(arg=None) -> Config:
     a = parse_arg(arg, size="paper", stage=3)
-    if a.size not in ("paper", "tiny"):
-        raise ValueError(f"config argument size: expected 'paper' or 'tiny', got {a.size!r}")
-    if a.stage not in (1, 2, 3):
-        raise ValueError(f"config argument stage: expected 1, 2 or 3, got {a.stage}")
+    check_arg("size", a.size, ("paper", "tiny"))
+    check_arg("stage", a.stage, (1, 2, 3))
     return _paper(a.stage) if a.size == "paper" else _tiny(a.stage)

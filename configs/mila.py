@@ -31,7 +31,7 @@ import dataclasses
 from pathlib import Path
 
 from jaxdrive.config import (Config, DataConfig, FlowConfig, LatentConfig, MeshConfig, OptimConfig, TrainConfig,
-                             load_config, parse_arg)
+                             check_arg, load_config, parse_arg)
 from jaxdrive.models.dit_presets import preset
 
 # stage 1's trainable set, regexes over "a/b/kernel" parameter paths: MiLA's new modules (the
@@ -69,10 +69,8 @@ def _tiny(stage: int) -> Config:
 
 def get_config(arg=None) -> Config:
     a = parse_arg(arg, size="paper", stage=3)
-    if a.size not in ("paper", "tiny"):
-        raise ValueError(f"config argument size: expected 'paper' or 'tiny', got {a.size!r}")
-    if a.stage not in (1, 2, 3):
-        raise ValueError(f"config argument stage: expected 1, 2 or 3, got {a.stage}")
+    check_arg("size", a.size, ("paper", "tiny"))
+    check_arg("stage", a.stage, (1, 2, 3))
     config = _paper(a.stage) if a.size == "paper" else _tiny(a.stage)
     d, f = config.data, config.flow
     given = f.cond_frames

@@ -259,6 +259,14 @@ def parse_arg(arg: str | None, **defaults) -> types.SimpleNamespace:
     return types.SimpleNamespace(**values)
 
 
+def check_arg(key: str, value, choices) -> None:
+    """``ValueError`` unless the config argument ``key`` is one of ``choices`` (a config's
+    ``get_config`` after :func:`parse_arg`)."""
+    if value not in choices:
+        want = ", ".join(repr(c) for c in choices[:-1]) + f" or {choices[-1]!r}" if len(choices) > 1 else repr(choices[0])
+        raise ValueError(f"config argument {key}: expected {want}, got {value!r}")
+
+
 def split_config_path(spec) -> tuple[Path, str | None]:
     """``"configs/x.py:a=1,b=2"`` -> ``(Path("configs/x.py"), "a=1,b=2")``; a path without an
     argument gives ``(path, None)``. The argument starts at the first colon after ``.py``, so its
