@@ -117,7 +117,7 @@ def test_longdwm_tiny_roles_train_and_sample_coarse_fine(long_scenes, tmp_path, 
 def test_magicdrive_tiny_stages_grow_from_images_and_train_on_their_buckets(tmp_path, capsys):
     """MagicDrive-V2 at size=tiny: stage 1 (spatial-only, images) -> 2 (temporal blocks grown,
     images and videos of two resolutions) -> 3 (three resolutions, seq = 4), each from the last
-    with train.init_from, on the configs' own buckets; then a sample of the stage-3 model."""
+    with train.init_from, on the configs' own buckets; then the stage-3 model's one-shot window."""
     from jaxdrive.train.run import Run
     data = write_synthetic(tmp_path / "data", train=48, frames=33, views=1)   # every bucket fills in epoch 0
     runs = {}
@@ -135,7 +135,14 @@ def test_magicdrive_tiny_stages_grow_from_images_and_train_on_their_buckets(tmp_
             assert "kept the new initialisation of" in out and "temporal" in out
         if stage == 3:
             assert "kept the new initialisation" not in out
+    # one window of all 33 frames (its sampling window is 17), tokens over seq = 4
     out = tmp_path / "sample"
-    assert cli(["sample", "--workdir", str(runs[3]), "--strategy", "rollout", "--frames", "20", "--steps", "2",
+    assert cli(["sample", "--workdir", str(runs[3]), "--strategy", "window", "--frames", "33", "--steps", "2",
                 "--out", str(out), "--no-progress"]) == 0
-    assert np.load(out / "latents.npy").shape == (2, 1, 20, 8, 14, 48)
+    report = json.loads((out / "report.json").read_text())
+    assert (report["strategy"], report["frames"], report["sequential_sampler_calls"]) == ("window", 33, 1)
+    assert np.load(out / "latents.npy").shape == (2, 1, 33, 8, 14, 48)
+    capsys.readouterr()             # a model trained on one length cannot: said before compiling
+    assert cli(["sample", "--workdir", str(runs[1]), "--strategy", "window", "--frames", "33",
+                "--out", str(tmp_path / "bad")]) == 2
+    assert "needs a model trained on several lengths" in capsys.readouterr().err

@@ -145,6 +145,10 @@ def test_strategies_reject_what_they_cannot_do_before_compiling():
     with pytest.raises(ValueError, match=r"--workdir: coarse-to-refine draws spaced anchors, which needs frame-wise"):
         S.check_strategy("coarse-to-refine", S.Models(dataclasses.replace(m, temporal=4, jdc_anchor_rate=0.5)), 25, 2)
     with pytest.raises(ValueError, match=r"strategy: expected one of"):
+        S.check_strategy("one-shot", S.Models(m), 25, 2)
+    with pytest.raises(ValueError, match=r"--strategy: 'window' samples the whole length at once, which needs a model "
+                                         r"trained on several lengths \(data.buckets, MagicDrive-V2\), got one trained "
+                                         r"on \[5\] latent frames only"):
         S.check_strategy("window", S.Models(m), 25, 2)
     with pytest.raises(ValueError, match=r"frames: expected more latent frames than the 2 given ones, got 2"):
         S.check_strategy("rollout", S.Models(m), 2, 2)
@@ -172,3 +176,22 @@ def test_device_memory_is_flat_in_the_length(tmp_path):
     assert (report["strategy"], report["frames"], report["views"]) == ("coarse-fine", 721, 6)
     assert np.load(tmp_path / "coarse-fine721" / "latents.npy").shape == (1, 6, 721, H, W, C)
     assert (tmp_path / "coarse-fine721" / "sample.mp4").stat().st_size > 0
+
+
+def test_window_is_one_call_over_the_whole_length_and_seq_sharding_changes_nothing():
+    """MagicDrive-V2's one-shot window: 13 latent frames (past the 5 it trained on) in one sampler
+    call, the given frames pinned; the same numbers with its tokens over seq = 4 as on one device."""
+    from jaxdrive.parallel import make_mesh
+    m = dataclasses.replace(tiny_model(5), lengths=(1, 5))           # trained on images and 5-frame clips
+    first, controls = horizon_inputs(13)
+    out = {}
+    for seq in (1, 4):
+        mesh, tracker = make_mesh(seq=seq, devices=jax.devices()[:seq]), Tracker()
+        with jax.set_mesh(mesh):
+            parts = list(S.run_strategy("window", S.Models(m), controls, first, 13, key=jax.random.key(0),
+                                        tracker=tracker, mesh=mesh))
+        assert len(parts) == 1 and tracker.calls == 1 == S.sequential_calls("window", S.Models(m), 13, 2)
+        out[seq] = parts[0]
+    assert out[1].shape == (1, 2, 13, H, W, C) and out[1][:, :, 2:].std() > 0.1
+    np.testing.assert_array_equal(out[1][:, :, :2], first)
+    np.testing.assert_allclose(out[4], out[1], rtol=1e-4, atol=1e-4)

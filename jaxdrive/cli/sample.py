@@ -1,7 +1,7 @@
 """``jaxdrive sample --strategy NAME``: a long video from one run (or a coarse and a fine run).
 
     jaxdrive sample --workdir RUN [--fine-workdir RUN2] --strategy {rollout, coarse-to-refine,
-                    coarse-fine} --frames N --out DIR
+                    coarse-fine, window} --frames N --out DIR
 
 Loads each run's latest checkpoint (EMA parameters unless ``--no-ema``), takes the first frames
 and the per-frame controls of a dataset clip at the output rate (the fine run's dataset and frame
@@ -89,7 +89,7 @@ def sample_strategy(args) -> int:
         first = np.asarray(codec.encode(codec.params, pixels))[:, :, :given]
     options = {"anchor_every": args.anchor_every, "segment_batch": args.segment_batch, "overlap": args.overlap}
     allowed = {"rollout": ("overlap",), "coarse-to-refine": ("overlap", "anchor_every"),
-               "coarse-fine": ("segment_batch",)}[args.strategy]
+               "coarse-fine": ("segment_batch",), "window": ()}[args.strategy]
     for name, value in options.items():
         if value is not None and name not in allowed:
             raise ValueError(f"--{name.replace('_', '-')}: not an option of strategy {args.strategy!r} "

@@ -167,8 +167,9 @@ def add_commands(sub) -> None:
     sample.add_argument("--mesh", help="mesh axis sizes for sampling")
     sample.add_argument("--no-ema", action="store_true", help="sample with the raw parameters, not the EMA")
     sample.add_argument("--set", action="append", metavar="KEY=VALUE")
-    sample.add_argument("--strategy", help="long-video strategy: rollout, coarse-to-refine (MiLA) or coarse-fine "
-                                           "(LongDWM); writes sample.mp4, frames.png, latents.npy, report.json")
+    sample.add_argument("--strategy", help="long-video strategy: rollout, coarse-to-refine (MiLA), coarse-fine "
+                                           "(LongDWM) or window (MagicDrive-V2: one window, models trained on "
+                                           "several lengths); writes sample.mp4, frames.png, latents.npy, report.json")
     sample.add_argument("--fine-workdir", help="the fine model's run (coarse-fine; optional (Re)fine model of "
                                                "coarse-to-refine)")
     sample.add_argument("--cond-frames", type=int, help="given latent frames (default: the run's flow.cond_frames)")

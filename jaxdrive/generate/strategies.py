@@ -21,6 +21,10 @@ frames ``[B, V, k, h, w, C]``; ``length`` the latent frames to produce (the give
   between consecutive keyframes in one batched sampler call (segments stacked on the batch axis,
   sharded over ``data``), both ends pinned. Sequential sampler calls: the coarse windows + 1
   (+ more when ``segment_batch`` caps the segments per call, which keeps device memory flat).
+- ``window`` (MagicDrive-V2 sec. 4.5, 6): the whole length in one sampler call, for a model
+  trained on several lengths (``data.buckets``), which extrapolates past them; its tokens are
+  sharded over the mesh's ``seq`` axis, so the length is bounded by the mesh, not by one
+  device. One sequential call; device memory grows with the length.
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ from jaxdrive.generate.windows import Horizon, Tracker, WindowModel, controls_at
 from jaxdrive.models.conditions import Conditions
 from jaxdrive.validate import check_choice, check_positive_int
 
-STRATEGIES = ("rollout", "coarse-to-refine", "coarse-fine")
+STRATEGIES = ("rollout", "coarse-to-refine", "coarse-fine", "window")
 NEEDS_FINE = ("coarse-fine",)
 
 
@@ -189,6 +193,19 @@ def coarse_fine(models: Models, controls: Conditions, first, length: int, *, key
             yield part
 
 
+def window(models: Models, controls: Conditions, first, length: int, *, key, tracker: Tracker | None = None,
+           mesh=None) -> Iterator[np.ndarray]:
+    """MagicDrive-V2's one-shot long window (module docstring): ``models.main`` over all
+    ``length`` latent frames in one sampler call, the given frames pinned."""
+    tracker = tracker or Tracker()
+    first = np.asarray(first, np.float32)
+    given = first.shape[2]
+    horizon = Horizon.start(first, length)
+    whole = dataclasses.replace(models.main, window=length)
+    _drain(_pass(whole, horizon, np.arange(length), controls, key, tracker, mesh, given=given, overlap=given))
+    yield horizon.latents.copy()
+
+
 def anchor_spacing(model: WindowModel, given: int) -> int:
     """Latent frames between (Re)fine anchors: the model's ``anchor_every`` or, trained with
     MiLA's tail anchor only, its window minus the given frames."""
@@ -232,6 +249,10 @@ def check_strategy(name: str, models: Models, length: int, given: int) -> None:
         if refine.jdc_slope < refine.jdc_alpha1:
             raise ValueError(f"flow.jdc_slope: expected >= flow.jdc_alpha1 = {refine.jdc_alpha1} (JDC re-noises "
                              f"anchors to g = slope * sigma_max >= alpha1), got {refine.jdc_slope}")
+    if name == "window" and len(main.lengths) < 2:
+        raise ValueError(f"--strategy: 'window' samples the whole length at once, which needs a model trained on "
+                         f"several lengths (data.buckets, MagicDrive-V2), got one trained on "
+                         f"{list(main.lengths) or [main.window]} latent frames only")
     if main.window < 2 or (fine is not None and fine.window < 2):
         raise ValueError("window: expected models of at least 2 latent frames")
 
@@ -241,13 +262,15 @@ def run_strategy(name: str, models: Models, controls: Conditions, first, length:
     """Check, then run the strategy ``name`` (its generator of latent parts)."""
     first = np.asarray(first)
     check_strategy(name, models, length, first.shape[2])
-    fn = {"rollout": rollout, "coarse-to-refine": coarse_to_refine, "coarse-fine": coarse_fine}[name]
+    fn = {"rollout": rollout, "coarse-to-refine": coarse_to_refine, "coarse-fine": coarse_fine, "window": window}[name]
     return fn(models, controls, first, length, key=key, tracker=tracker, mesh=mesh, **options)
 
 
 def sequential_calls(name: str, models: Models, length: int, given: int, **options) -> int:
     """The sampler calls ``name`` makes one after another (without running it)."""
     main, fine = models.main, models.fine
+    if name == "window":
+        return 1
     coarse_windows = lambda n: len(window_starts(n, min(main.window, n), min(given, main.window - 1)))
     if name == "coarse-fine":
         seg = fine.window - 1

@@ -55,17 +55,24 @@ class WindowModel:
     jdc_anchor_rate: float = 0.0
     stride: int = 1
     temporal: int = 1
+    lengths: tuple[int, ...] = ()
 
     @classmethod
     def from_sampling(cls, spec, params, *, steps: int | None = None, guidance: float = 1.0) -> "WindowModel":
-        """From a run's :class:`jaxdrive.generate.samples.Sampling` and its parameters."""
+        """From a run's :class:`jaxdrive.generate.samples.Sampling` and its parameters; ``lengths``:
+        the latent frame counts it trained on (several with ``data.buckets`` of several lengths)."""
+        from jaxdrive.data.pipeline import parse_bucket_specs
         d, f = spec.data, spec.flow
+        lengths = {spec.latent_window}
+        if d.buckets:
+            lengths = {spec.codec.latent_frames(k[2]) for k in parse_bucket_specs(d.buckets)}
         shift = f.shift if f.shift > 0 else flow.resolution_shift(d.height, d.width, spec.latent_window)
         return cls(DiT(spec.model), params, window=spec.latent_window, cond_frames=max(1, f.cond_frames),
                    steps=spec.steps if steps is None else check_positive_int("steps", steps), guidance=guidance,
                    shift=shift, tpd=f.tpd, tpd_omega=f.tpd_omega, jdc_slope=f.jdc_slope, jdc_alpha1=f.jdc_alpha1,
                    patterns=tuple(f.patterns), anchor_every=f.anchor_every,
-                   jdc_anchor_rate=f.jdc_anchor_rate, stride=spec.frame_stride, temporal=spec.codec.temporal)
+                   jdc_anchor_rate=f.jdc_anchor_rate, stride=spec.frame_stride, temporal=spec.codec.temporal,
+                   lengths=tuple(sorted(lengths)))
 
     @property
     def trained_anchors(self) -> bool:
