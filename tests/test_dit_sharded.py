@@ -23,6 +23,11 @@ CASES = {
     "mvdit-controls": (preset("tiny-mv", depth=1, controls=dict(trajectory=False, warp=False, waypoints=False,
                                                                 camera=False)), dict(fsdp=2, seq=2, tensor=2), 3),
     "full-scan-remat": (preset("tiny-full", scan_layers=True, remat="full"), dict(seq=8), 2),
+    # the per-frame output head (U-ViT's final convolutions over output, input and given frame)
+    # with its frames over seq
+    "final-conv-frames-over-seq": (preset("tiny", depth=1, prediction="data", final_conv=8,
+                                          controls=dict(cond_frames="replace", reference_frame="residual")),
+                                   dict(data=2, seq=2, tensor=2), 2),
 }
 
 

@@ -239,7 +239,8 @@ class DiT(nn.Module):
             residuals = self._map_branch(cfg, carry, ctx, c.bev_map, drop, nf, grid)
         carry, feats = self._stack(cfg, carry, ctx, residuals, c.features, c.features_mask, deterministic)
         out = self._final(cfg, _video(cfg, carry), t)
-        out = constrain(out, ("batch", "frames", None, "views", None))
+        # the head is per frame: frames over seq keep a long window's output split across the mesh
+        out = constrain(out, ("batch", "out_frames", None, "views", None))
         out = unpatchify(out, cfg.patch, grid, cfg.out_dim).astype(jnp.float32)
         if cfg.final_conv:
             out = out + self._final_conv(cfg, out, x, ref)
@@ -464,7 +465,8 @@ class DiT(nn.Module):
         output is a linear map of its own hidden state, so neighbouring tokens' outputs meet at a
         seam the network never sees; two convolutions over the output, the input (and the given
         frame) smooth across it. The last one starts at zero: the network's output unchanged."""
-        h = jnp.concatenate([out, x] + ([ref] if ref is not None else []), axis=-1)
+        split = lambda a: constrain(a, ("batch", "views", "out_frames", None, None, None))   # per frame: frames over seq
+        h = jnp.concatenate([split(a) for a in [out, x] + ([ref] if ref is not None else [])], axis=-1)
         h = jax.nn.silu(_conv3x3(self, "final_conv_1", h, cfg.final_conv, Init("lecun", fan_in_axes=3)))
         return _conv3x3(self, "final_conv_2", h, out.shape[-1], ZEROS)
 

@@ -54,6 +54,8 @@ LOGICAL_AXIS_RULES: dict[str, tuple[Axes, Axes, str]] = {
     "batch": (("data", "fsdp"), None, "examples; FSDP shards the batch like data parallelism"),
     "views": (None, None, "camera views V (cross-view attention needs all views local)"),
     "frames": (None, None, "latent or pixel frames F when not folded into tokens"),
+    "out_frames": ("seq", None, "frames of the DiT's per-frame output head (final layer, unpatchify, final "
+                                "convolutions): sequence parallel, so a long window's output stays split"),
     "height": (None, None, "latent / pixel rows"),
     "width": (None, None, "latent / pixel columns"),
     "tokens": ("seq", None, "the flattened video sequence (frames x patches): sequence parallel"),
