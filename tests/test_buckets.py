@@ -71,3 +71,20 @@ def test_buckets_compile_once_each_and_resume_bit_exact(scenes, tmp_path):
     assert [r["step"] for r in rows] == list(range(1, 7))
     ratios = [r["tokens_per_s"] / r["steps_per_s"] for r in rows[1:]]
     assert sorted({round(x) for x in ratios}) == sorted({per_step[s[0:1] + s[2:5]] for s in shapes[1:]})
+
+
+def test_two_processes_take_the_same_bucket_at_every_step(scenes, monkeypatch):
+    """Each process loads its share of every bucket's global batch, and all take the same bucket
+    at every step (the global arrays are assembled from one shape); their clips are disjoint."""
+    import jax
+    loads = []
+    for pid in (0, 1):
+        monkeypatch.setattr(jax, "process_index", lambda: pid)
+        monkeypatch.setattr(jax, "process_count", lambda: 2)
+        it = iter(Run(tiny(scenes, BUCKETS, "data.shuffle_seed=2")).dataset())   # a seed that fills every shard
+        loads.append([next(it) for _ in range(8)])
+    shapes = [[b["video"].shape for b in load] for load in loads]
+    assert shapes[0] == shapes[1]
+    assert {s[0] for s in shapes[0] if s[2] == 1} == {2} and {s[0] for s in shapes[0] if s[2] > 1} == {1}
+    for a, b in zip(*loads):
+        assert not set(a["index"].tolist()) & set(b["index"].tolist())
