@@ -61,6 +61,7 @@ def run(config_arg: str, sets, repeats: int, views: int, rebalance: bool = False
 
     def measure(sizes: dict) -> list[dict]:
         nonlocal state
+        jax.clear_caches()         # each round compiles new shapes: the old programs' code pages add up
         rows = []
         with jax.set_mesh(run.mesh):
             for bucket in run.buckets:
