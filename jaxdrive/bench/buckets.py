@@ -100,17 +100,22 @@ def run(config_arg: str, sets, repeats: int, views: int, rebalance: bool = False
     out = {"rows": rows, "balance": report(rows, "configured")}
     if not rebalance:
         return out
-    # secant steps on each bucket's time-versus-batch line, from its last two measured points
-    prev = measure({k: 2 * v for k, v in given.items()})
-    last, target = rows, max(r["step_s"] for r in rows)
+    # secant steps on each bucket's time-versus-batch line, through its last two measured points
+    # of different batch sizes (a bucket whose batch did not change keeps its earlier point)
+    points = {b.key: [(r["batch"], r["step_s"])] for b, r in zip(run.buckets, rows)}
+    for b, r in zip(run.buckets, measure({k: 2 * v for k, v in given.items()})):
+        points[b.key].append((r["batch"], r["step_s"]))
+    target = max(r["step_s"] for r in rows)
     for i in range(rounds):
         sizes = {}
-        for b, r1, r2 in zip(run.buckets, last, prev):
-            slope = (r2["step_s"] - r1["step_s"]) / (r2["batch"] - r1["batch"]) if r2["batch"] != r1["batch"] else 0
-            slope = max(slope, 1e-6)                                   # seconds per sample, noise kept positive
-            want = r1["batch"] + (target - r1["step_s"]) / slope
+        for b in run.buckets:
+            (b2, t2), (b1, t1) = points[b.key][-1], next(p for p in reversed(points[b.key]) if p[0] != points[b.key][-1][0])
+            slope = max((t2 - t1) / (b2 - b1), 1e-6)                 # seconds per sample, noise kept positive
+            want = b2 + (target - t2) / slope
             sizes[b.key] = min(max(1, round(want / groups)) * groups, max_batch or 1 << 30)
-        prev, last = last, measure(sizes)
+        last = measure(sizes)
+        for b, r in zip(run.buckets, last):
+            points[b.key].append((r["batch"], r["step_s"]))
         balance = report(last, f"rebalanced (round {i + 1})")
         out.update(rebalanced=last, rebalanced_balance=balance)
         if balance <= 1.25:
