@@ -85,7 +85,7 @@ def sample_strategy(args) -> int:
         first = np.asarray(inputs["latents"])[:, :, :given]
     else:
         window = models.main.window
-        pixels = np.asarray(inputs["video"])[:, :, :1 + codec.temporal * (window - 1)]
+        pixels = np.asarray(inputs["video"])[:, :, :codec.pixel_frames(window)]
         first = np.asarray(codec.encode(codec.params, pixels))[:, :, :given]
     options = {"anchor_every": args.anchor_every, "segment_batch": args.segment_batch, "overlap": args.overlap}
     allowed = {"rollout": ("overlap",), "coarse-to-refine": ("overlap", "anchor_every"),

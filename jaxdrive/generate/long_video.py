@@ -44,14 +44,14 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
     start = time.perf_counter()
     parts = run_strategy(strategy, models, controls, first, length, key=key, tracker=tracker, mesh=mesh, **options)
     out = Path(out)
-    frames = 1 + codec.temporal * (length - 1)
+    frames = codec.pixel_frames(length)
     picks = np.unique(np.linspace(0, frames - 1, min(GRID_FRAMES, frames)).round().astype(int))
     decoder = codec.stream_decoder(length)
     latents, grid, written = [], {}, 0
     scores = None
     if recorded is not None and np.shape(recorded)[1] >= frames:
         from jaxdrive.eval.frames import FrameScores
-        given = 1 + codec.temporal * (np.shape(first)[2] - 1)          # pixel frames the given latents hold
+        given = codec.pixel_frames(np.shape(first)[2])
         scores = FrameScores(np.asarray(recorded)[:, :frames], cond_frames=given)
     writer = None
     if jax.process_index() == 0:
@@ -91,7 +91,7 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
               "options": {k: v for k, v in options.items() if v is not None}}
     quality = None
     if scores is not None:
-        window = 1 + codec.temporal * ((models.fine or models.main).window - 1)
+        window = codec.pixel_frames((models.fine or models.main).window)
         quality = scores.result(window=window, every=max(int(round(fps)), 1))
         report["quality"] = {k: v for k, v in quality.items() if k != "per_frame"}
     if jax.process_index() == 0:

@@ -50,8 +50,7 @@ def rollout(dit: DiT, codec, params, codec_params, inputs: dict, *, total_frames
     if "latents" in inputs:                                            # stored (latents.precomputed)
         first = np.asarray(inputs["latents"])[:, :, :cond_frames]
     else:                       # encoded as a whole window, as training encodes its clips
-        pixel_window = 1 + codec.temporal * (window - 1)
-        video = jnp.asarray(inputs["video"])[:, :, :pixel_window]
+        video = jnp.asarray(inputs["video"])[:, :, :codec.pixel_frames(window)]
         first = np.asarray(codec.encode(codec_params, video))[:, :, :cond_frames]
     model = WindowModel(dit, params, window=window, cond_frames=cond_frames, steps=steps, guidance=guidance,
                         shift=shift, tpd=tpd, tpd_omega=tpd_omega, temporal=codec.temporal)

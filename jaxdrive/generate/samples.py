@@ -165,7 +165,7 @@ def generate(spec: Sampling, params, *, frames: int | None = None, views=None, s
         video = to_numpy_video(codec, codec.params, latents)
         recorded = (np.asarray(inputs["video"]) if "video" in inputs else
                     to_numpy_video(codec, codec.params, inputs["latents"][:, :, :total]))
-    pixel = lambda n: 1 + codec.temporal * (n - 1) if n else 0          # latent frames -> pixel frames
+    pixel = lambda n: codec.pixel_frames(n) if n else 0
     return Generated(video, np.asarray(latents), recorded, pixel(cond), min(pixel(window), video.shape[2]))
 
 

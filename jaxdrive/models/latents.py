@@ -81,6 +81,10 @@ class LatentCodec:
     def latent_frames(self, frames: int) -> int:
         return frames if self.vae is None else self.vae.latent_frames(frames)
 
+    def pixel_frames(self, latent_frames: int) -> int:
+        """Pixel frames that ``latent_frames`` latent frames decode to (the inverse of :meth:`latent_frames`)."""
+        return latent_frames if self.vae is None else self.vae.video_frames(latent_frames)
+
     def encode(self, params, video):
         """``[B, V, F, H, W, 3]`` in [-1, 1] -> latents ``[B, V, F', h, w, C]`` (scaled)."""
         if self.vae is None:

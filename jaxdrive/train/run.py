@@ -84,8 +84,8 @@ def training_buckets(config: Config, compression: int):
     specs = parse_bucket_specs(d.buckets) if d.buckets else {(d.height, d.width, d.frames): (d.batch_size, 1.0)}
     try:
         return parse_buckets(specs, compression=compression)
-    except ValueError as e:
-        raise ValueError(f"data.buckets: {e}") from None
+    except ValueError as e:         # parse_buckets names its argument "buckets"
+        raise ValueError(f"data.{e}") from None
 
 
 def sharded_state(boxed_params, mesh, optim_config, total_steps: int, seed: int):
