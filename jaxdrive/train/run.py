@@ -141,10 +141,10 @@ class Run:
         self.config = config
         self.total_steps = int(total_steps or config.train.steps)
         self.mesh = mesh_from_config(config, devices)
-        self.local_batch, self.micro_batch = check_batch(config, self.mesh)
+        check_batch(config, self.mesh)
         self.codec = LatentCodec.from_config(config.latents)
         self.buckets = training_buckets(config, max(self.codec.temporal, 1))
-        for b in self.buckets:
+        for b in self.buckets if config.data.buckets else ():      # the default bucket is data.batch_size's
             check_batch(config, self.mesh, b.batch_size, name=f"data.buckets {'x'.join(map(str, b.key))}")
         check_dataset(config, self.codec)           # latent windows or clips, as latents.precomputed says
         model = config.model
