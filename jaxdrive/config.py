@@ -102,6 +102,29 @@ class FlowConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class StreamConfig:
+    """STAGE's streaming, frame by frame (``jaxdrive.train.stream_step``, ``--strategy streaming``).
+
+    With ``enabled`` every training example is one window ``[anchor, condition, new]`` (the first
+    frame of the clip, the frame before the new one, the new one) cut from a clip of ``data.frames``
+    latent frames; the HTFT buffer holds the last ``buffer`` frames' features and ``taps`` says which
+    are fused (STAGE sec. 4B: N = 10, S = {-1, -5, -10}); HTFT is on where the model has
+    ``htft_layers`` and ``taps`` is not empty. ``self_rollout`` (stage 3) makes the condition frames
+    the model's own streaming rollout of the clip (``rollout_steps`` sampling steps, once per clip),
+    ``degrade_rate`` of them DCT low-passed to ``degrade_keep`` of their frequencies and all of them
+    noised with std ``cond_noise`` (STAGE's augmentation)."""
+
+    enabled: bool = False
+    buffer: int = 10
+    taps: tuple[int, ...] = (-1, -5, -10)
+    self_rollout: bool = False
+    rollout_steps: int = 4
+    degrade_rate: float = 0.0
+    degrade_keep: float = 0.5
+    cond_noise: float = 0.0
+
+
+@dataclasses.dataclass(frozen=True)
 class OptimConfig:
     """AdamW with warmup and a schedule, clipping, accumulation, EMA and partial training."""
 
@@ -155,6 +178,7 @@ class Config:
     optim: OptimConfig = OptimConfig()
     train: TrainConfig = TrainConfig()
     mesh: MeshConfig = MeshConfig()
+    stream: StreamConfig = StreamConfig()
 
 
 # ------------------------------------------------------------------------------------ overrides

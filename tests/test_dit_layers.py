@@ -86,25 +86,33 @@ def test_sequence_layout_round_trip():
 
 def test_htft_starts_as_identity_and_attends_to_the_buffer():
     f = jax.random.normal(jax.random.PRNGKey(0), (2, 1, 4, 3, 16))
-    buf = buffer_init((2, 4, 3, 16), size=10)
-    frames = [jax.random.normal(jax.random.PRNGKey(i + 1), (2, 4, 3, 16)) for i in range(6)]
-    for fr in frames:
-        buf = buffer_push(buf, fr)
+    buf = buffer_init({5: (2, 4, 3, 16)}, size=10, steps=2)
+    frames = [jax.random.normal(jax.random.PRNGKey(i + 1), (2, 2, 4, 3, 16)) for i in range(13)]
+    for k, fr in enumerate(frames[:6]):
+        buf = buffer_push(buf, {5: fr})
+    assert buf["data"][5].shape == (2, 2, 10, 4, 3, 16)          # [steps, B, N, S, V, D], preallocated
     past, mask = buffer_select(buf, (-1, -5, -10))
-    np.testing.assert_array_equal(past[:, 0], frames[-1])
-    np.testing.assert_array_equal(past[:, 1], frames[-5])
+    np.testing.assert_array_equal(past[5][:, :, 0], frames[5])    # every step's features of frame -1
+    np.testing.assert_array_equal(past[5][:, :, 1], frames[1])
     np.testing.assert_array_equal(mask, [[True, True, False]] * 2)   # only 6 frames pushed so far
+    for fr in frames[6:]:                                          # 13 pushed: the ring wrapped around
+        buf = buffer_push(buf, {5: fr})
+    past, mask = buffer_select(buf, (-1, -5, -10))
+    for i, o in enumerate((-1, -5, -10)):
+        np.testing.assert_array_equal(past[5][:, :, i], frames[13 + o])
+    assert bool(mask.all()) and buf["data"][5].shape[2] == 10
     mod = HTFT(16, 2, 8, groups=4)
-    variables = nn.unbox(host_init(mod, f, past, mask))
+    p0, m0 = past[5][0], mask
+    variables = nn.unbox(host_init(mod, f, p0, m0))
     apply = jax.jit(mod.apply)
-    np.testing.assert_array_equal(apply(variables, f, past, mask), f)     # zero-initialised Linear
+    np.testing.assert_array_equal(apply(variables, f, p0, m0), f)     # zero-initialised Linear
     trained = jax.tree_util.tree_map(lambda x: x + 0.1, variables)
-    out = apply(trained, f, past, mask)
+    out = apply(trained, f, p0, m0)
     assert float(jnp.abs(out - f).max()) > 1e-3
     # an empty slot is not attended to: its content does not matter
-    other = past.at[:, 2].set(100.0)
-    np.testing.assert_allclose(apply(trained, f, other, mask), out, atol=1e-6)
-    with pytest.raises(ValueError, match=r"offsets: expected values in \[-10, -1\]"):
+    m1 = m0.at[:, 2].set(False)
+    np.testing.assert_allclose(apply(trained, f, p0.at[:, 2].set(100.0), m1), apply(trained, f, p0, m1), atol=1e-6)
+    with pytest.raises(ValueError, match=r"offsets: expected offsets in \[-10, -1\]"):
         buffer_select(buf, (-11,))
 
 

@@ -17,12 +17,11 @@ import pytest
 from jaxdrive.generate import strategies as S
 from jaxdrive.generate.long_video import sample_long
 from jaxdrive.generate.windows import Tracker, WindowModel
-from jaxdrive.models.conditions import Conditions
 from jaxdrive.models.dit import DiT
 from jaxdrive.models.dit_presets import preset
 from jaxdrive.models.latents import LatentCodec
 
-H, W, C = 4, 8, 48                         # latents of 16 x 32 pixels, space-to-depth 4
+from strategy_fixtures import C, H, W, horizon_inputs
 
 
 @functools.lru_cache(maxsize=None)
@@ -36,14 +35,6 @@ def tiny_model(window: int, **kw) -> WindowModel:
     keys = iter(jax.random.split(jax.random.key(1), len(jax.tree_util.tree_leaves(params))))
     params = jax.tree_util.tree_map(lambda p: p + 0.05 * jax.random.normal(next(keys), p.shape), params)
     return WindowModel(dit, params, window=window, cond_frames=2, steps=2, **kw)
-
-
-def horizon_inputs(length: int, views: int = 2, given: int = 2, seed: int = 0):
-    rng = np.random.default_rng(seed)
-    first = rng.normal(size=(1, views, given, H, W, C)).astype(np.float32)
-    controls = Conditions(waypoints=np.cumsum(rng.normal(size=(1, length, 2)), axis=1).astype(np.float32),
-                          fps=np.full((1,), 12.0, np.float32))
-    return first, controls
 
 
 def run(name, models, length, *, given=2, views=2, tracker=None, **options):

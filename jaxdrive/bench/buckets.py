@@ -13,13 +13,13 @@ seconds per step, steps/s and tokens/s of each bucket, and ``balance`` = the slo
 time over the fastest's.
 
 With ``--rebalance`` it then does what the paper did by hand: it times each bucket at a second
-batch size (twice its own), and for up to ``--rounds`` rounds draws the line ``step time = a + c *
-batch`` through each bucket's last two measured points, picks the batch (a multiple of the
-data-parallel groups, at most ``--max-batch``) that the line puts at the slowest bucket's step
-time, and times the buckets at those batches (a secant search: a CPU's step time is not quite
-linear in the batch); it stops at balance 1.25 and prints the balance of each round and the
-``data.buckets`` value that gives it (probabilities proportional to the batches, so every bucket
-gets about the same number of batches an epoch). Batches are made by repeating the drawn samples.
+batch size (twice its own), and for up to ``--rounds`` rounds fits the line ``step time = a + c *
+batch`` through all of each bucket's measured points (least squares), picks the batch (a
+multiple of the data-parallel groups, at most ``--max-batch``) that the line puts at the slowest
+bucket's configured step time, and times the buckets at those batches; it stops at balance 1.25
+and prints the balance of each round and the ``data.buckets`` value of the best round
+(probabilities proportional to the batches, so every bucket gets about the same number of
+batches an epoch). Batches are made by repeating the drawn samples.
 """
 
 from __future__ import annotations
@@ -100,29 +100,45 @@ def run(config_arg: str, sets, repeats: int, views: int, rebalance: bool = False
     out = {"rows": rows, "balance": report(rows, "configured")}
     if not rebalance:
         return out
-    # secant steps on each bucket's time-versus-batch line, through its last two measured points
-    # of different batch sizes (a bucket whose batch did not change keeps its earlier point)
+    # each bucket's time-versus-batch line, refitted through all its points after every round
     points = {b.key: [(r["batch"], r["step_s"])] for b, r in zip(run.buckets, rows)}
     for b, r in zip(run.buckets, measure({k: 2 * v for k, v in given.items()})):
         points[b.key].append((r["batch"], r["step_s"]))
     target = max(r["step_s"] for r in rows)
+    best = (out["balance"], given)
     for i in range(rounds):
-        sizes = {}
-        for b in run.buckets:
-            (b2, t2), (b1, t1) = points[b.key][-1], next(p for p in reversed(points[b.key]) if p[0] != points[b.key][-1][0])
-            slope = max((t2 - t1) / (b2 - b1), 1e-6)                 # seconds per sample, noise kept positive
-            want = b2 + (target - t2) / slope
-            sizes[b.key] = min(max(1, round(want / groups)) * groups, max_batch or 1 << 30)
+        sizes = {b.key: _fit_batch(points[b.key], target, groups, max_batch) for b in run.buckets}
         last = measure(sizes)
         for b, r in zip(run.buckets, last):
             points[b.key].append((r["batch"], r["step_s"]))
         balance = report(last, f"rebalanced (round {i + 1})")
-        out.update(rebalanced=last, rebalanced_balance=balance)
+        if balance < best[0]:
+            best = (balance, sizes)
+            out.update(rebalanced=last, rebalanced_balance=balance)
         if balance <= 1.25:
             break
+    balance, sizes = best
+    print(f"best balance {balance:.2f} with")
     spec = ",".join(f"{'x'.join(map(str, k))}:{v}:{v // groups}" for k, v in sizes.items())
     print(f"data.buckets={spec}")
     return out
+
+
+def _fit_batch(points, target: float, groups: int, max_batch: int) -> int:
+    """The batch (a multiple of ``groups``, at most ``max_batch``) that the least-squares line
+    ``step time = a + c * batch`` through a bucket's measured ``points`` puts at ``target``
+    seconds. All points, not the last two: a CPU's step times jitter by 10-20%, and a secant
+    through two noisy points can slope the wrong way (round 4 of a 9-bucket run sent a bucket from
+    batch 120 to 2). The slope is kept at least a fifth of the proportional one (time / batch)."""
+    import numpy as np
+    b, t = (np.asarray(v, float) for v in zip(*points))
+    slope = 0.0
+    if np.ptp(b) > 0:
+        slope = float(np.polyfit(b, t, 1)[0])
+    slope = max(slope, 0.2 * t.mean() / b.mean())
+    a = t.mean() - slope * b.mean()
+    want = (target - a) / slope
+    return int(min(max(1, round(want / groups)) * groups, max_batch or 1 << 30))
 
 
 def _groups(run) -> int:

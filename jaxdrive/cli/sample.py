@@ -1,7 +1,7 @@
 """``jaxdrive sample --strategy NAME``: a long video from one run (or a coarse and a fine run).
 
     jaxdrive sample --workdir RUN [--fine-workdir RUN2] --strategy {rollout, coarse-to-refine,
-                    coarse-fine, window} --frames N --out DIR
+                    coarse-fine, window, streaming} --frames N [--taps=-1,-5,-10] --out DIR
 
 Loads each run's latest checkpoint (EMA parameters unless ``--no-ema``), takes the first frames
 and the per-frame controls of a dataset clip at the output rate (the fine run's dataset and frame
@@ -32,6 +32,19 @@ def _load(workdir, sets, mesh, *, ema: bool, steps, guidance, role: str):
                                                         guidance=guidance)
 
 
+def parse_taps(text):
+    """``--taps``: ``"-1,-5,-10"`` -> ``(-1, -5, -10)``; ``"none"`` -> ``()``; None stays None."""
+    if text is None:
+        return None
+    if text.strip().lower() in ("none", ""):
+        return ()
+    try:
+        return tuple(int(t) for t in text.split(","))
+    except ValueError:
+        raise ValueError(f"--taps: expected comma-separated negative offsets like -1,-5,-10 (or none), "
+                         f"got {text!r}") from None
+
+
 def sample_strategy(args) -> int:
     """The ``--strategy`` path of ``jaxdrive sample`` (module docstring)."""
     import jax
@@ -39,7 +52,7 @@ def sample_strategy(args) -> int:
 
     from jaxdrive.generate.long_video import sample_long
     from jaxdrive.generate.samples import dataset_inputs
-    from jaxdrive.generate.strategies import NEEDS_FINE, Models, check_strategy
+    from jaxdrive.generate.strategies import NEEDS_FINE, Models, check_strategy, check_taps
     from jaxdrive.validate import check_choice, check_positive_int
     from jaxdrive.generate.strategies import STRATEGIES
     check_choice("--strategy", args.strategy, STRATEGIES)
@@ -72,6 +85,17 @@ def sample_strategy(args) -> int:
     if args.strategy == "coarse-fine":
         given = min(given, shapes.fine.window - 1)
     check_strategy(args.strategy, shapes, length, given)
+    options = {"anchor_every": args.anchor_every, "segment_batch": args.segment_batch, "overlap": args.overlap,
+               "taps": parse_taps(args.taps)}
+    allowed = {"rollout": ("overlap",), "coarse-to-refine": ("overlap", "anchor_every"),
+               "coarse-fine": ("segment_batch",), "window": (), "streaming": ("taps",)}[args.strategy]
+    for name, value in options.items():
+        if value is not None and name not in allowed:
+            raise ValueError(f"--{name.replace('_', '-')}: not an option of strategy {args.strategy!r} "
+                             f"(its options: {', '.join('--' + a.replace('_', '-') for a in allowed)}), got {value}")
+    options = {k: v for k, v in options.items() if k in allowed}
+    if args.strategy == "streaming":
+        check_taps(shapes, options.get("taps"))
     models = Models(load_main(), load_fine() if load_fine else None)
     views = None if args.views is None else [int(v) for v in args.views]
     sizes = dict(zip(run.mesh.axis_names, run.mesh.axis_sizes))
@@ -85,16 +109,8 @@ def sample_strategy(args) -> int:
         first = np.asarray(inputs["latents"])[:, :, :given]
     else:
         window = models.main.window
-        pixels = np.asarray(inputs["video"])[:, :, :codec.pixel_frames(window)]
+        pixels = np.asarray(inputs["video"])[:, :, :codec.pixel_frames(max(window, given))]
         first = np.asarray(codec.encode(codec.params, pixels))[:, :, :given]
-    options = {"anchor_every": args.anchor_every, "segment_batch": args.segment_batch, "overlap": args.overlap}
-    allowed = {"rollout": ("overlap",), "coarse-to-refine": ("overlap", "anchor_every"),
-               "coarse-fine": ("segment_batch",), "window": ()}[args.strategy]
-    for name, value in options.items():
-        if value is not None and name not in allowed:
-            raise ValueError(f"--{name.replace('_', '-')}: not an option of strategy {args.strategy!r} "
-                             f"(its options: {', '.join('--' + a.replace('_', '-') for a in allowed)}), got {value}")
-    options = {k: v for k, v in options.items() if k in allowed}
     recorded = np.asarray(inputs["video"][0]) if "video" in inputs else None
     fps = float(np.asarray(inputs["cond"].fps)[0]) if inputs["cond"].fps is not None else \
         12.0 / horizon_spec.frame_stride

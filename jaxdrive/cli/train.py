@@ -168,8 +168,9 @@ def add_commands(sub) -> None:
     sample.add_argument("--no-ema", action="store_true", help="sample with the raw parameters, not the EMA")
     sample.add_argument("--set", action="append", metavar="KEY=VALUE")
     sample.add_argument("--strategy", help="long-video strategy: rollout, coarse-to-refine (MiLA), coarse-fine "
-                                           "(LongDWM) or window (MagicDrive-V2: one window, models trained on "
-                                           "several lengths); writes sample.mp4, frames.png, latents.npy, report.json")
+                                           "(LongDWM), window (MagicDrive-V2: one window, models trained on "
+                                           "several lengths) or streaming (STAGE: frame by frame with the HTFT "
+                                           "buffer); writes sample.mp4, frames.png, latents.npy, report.json")
     sample.add_argument("--fine-workdir", help="the fine model's run (coarse-fine; optional (Re)fine model of "
                                                "coarse-to-refine)")
     sample.add_argument("--cond-frames", type=int, help="given latent frames (default: the run's flow.cond_frames)")
@@ -178,6 +179,8 @@ def add_commands(sub) -> None:
                                                          "(default: the model's training spacing; 0: no anchors)")
     sample.add_argument("--segment-batch", type=int, help="coarse-fine: segments per fine sampler call "
                                                           "(default: all in one call)")
+    sample.add_argument("--taps", help="streaming: the past frames HTFT fuses, e.g. --taps=-1,-5,-10 (default: the "
+                                       "run's stream.taps; 'none': HTFT off)")
     sample.add_argument("--clips", type=int, help="clips sampled side by side (--strategy; default: the mesh's "
                                                   "data x fsdp size)")
     add_progress(sample, "the sampled windows")

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrive.flow.rectified import expand_per_frame
+from jaxdrive.parallel.rules import reshard_like
 from jaxdrive.validate import check_choice, check_shape, is_concrete
 
 METHODS = ("euler", "heun")
@@ -104,30 +105,41 @@ def _interleave(leaves):
 
 
 def _like(v, x):
-    """``v`` with exactly ``x``'s sharding under an Explicit mesh, where the Euler update cannot
-    add two differently sharded arrays (the network may return its batch sharded otherwise)."""
-    spec = getattr(getattr(jax.typeof(x), "sharding", None), "spec", None)
-    if spec is None or jax.sharding.get_abstract_mesh().empty:
-        return v
-    return jax.reshard(v, spec)
+    """``v`` with exactly ``x``'s sharding: the Euler update cannot add two differently sharded
+    arrays under an Explicit mesh (the network may return its batch sharded otherwise)."""
+    return reshard_like(v, x)
 
 
-def _batched_velocity(velocity_fn, variants, combine):
-    """One call of ``velocity_fn`` over all guidance variants stacked along the batch."""
+def _batched_velocity(velocity_fn, variants, combine, per_step: bool = False):
+    """One call of ``velocity_fn`` over all guidance variants stacked along the batch. With
+    ``per_step`` it takes a step input (batch-major leaves, given to every variant) and returns
+    ``(v, out)``: ``out`` is the conditional variant's."""
     n = len(variants)
     if n == 1:
-        return lambda x, s: _like(velocity_fn(x, s, variants[0]), x)
+        if per_step:
+            def velocity(x, s, inp):
+                v, out = velocity_fn(x, s, variants[0], inp)
+                return _like(v, x), out
+            return velocity
+        return lambda x, s, inp=None: _like(velocity_fn(x, s, variants[0]), x)
     stacked = jax.tree_util.tree_map(lambda *leaves: _interleave(leaves), *variants)
 
-    def velocity(x, sigma):
-        v = velocity_fn(_interleave([x] * n), _interleave([sigma] * n), stacked)
+    def velocity(x, sigma, inp=None):
+        args = (_interleave([x] * n), _interleave([sigma] * n), stacked)
+        out = None
+        if per_step:
+            v, out = velocity_fn(*args, jax.tree_util.tree_map(lambda a: _interleave([a] * n), inp))
+            out = jax.tree_util.tree_map(lambda a: a.reshape((x.shape[0], n) + a.shape[1:])[:, 0], out)
+        else:
+            v = velocity_fn(*args)
         v = v.reshape((x.shape[0], n) + v.shape[1:])
-        return _like(combine([v[:, i] for i in range(n)]), x)
+        v = _like(combine([v[:, i] for i in range(n)]), x)
+        return (v, out) if per_step else v
     return velocity
 
 
 def sample(velocity_fn: Callable, x, sigmas, *, cond=None, null_cond=None, guidance_scale=None,
-           cond_mask=None, method: str = "euler", return_trajectory: bool = False):
+           cond_mask=None, method: str = "euler", return_trajectory: bool = False, step_inputs=None):
     """Integrate the flow ODE from ``sigmas[0]`` to ``sigmas[-1]`` in one ``lax.scan``.
 
     Args:
@@ -147,14 +159,20 @@ def sample(velocity_fn: Callable, x, sigmas, *, cond=None, null_cond=None, guida
       method: ``"euler"`` (one evaluation per step) or ``"heun"`` (two, second order; a step that
         ends at level 0 falls back to Euler, where the velocity of a sharp distribution blows up).
       return_trajectory: also return the state after every step, ``[N, *x.shape]``.
+      step_inputs: a pytree whose leaves have the steps as axis 0 (``[N, B, ...]``); then
+        ``velocity_fn(x, sigma, cond, step_input) -> (v, step_output)`` sees step i's slice and
+        its outputs (of the conditional variant, of the step's first evaluation) are returned
+        stacked ``[N, B, ...]``: STAGE's per-step feature buffer (:mod:`jaxdrive.generate.streaming`).
 
-    Returns the final state, or ``(final, trajectory)``.
+    Returns the final state, or ``(final, trajectory)``; with ``step_inputs`` the step outputs
+    come last: ``(final, outputs)`` or ``(final, trajectory, outputs)``.
     """
     check_choice("method", method, METHODS)
     x = jnp.asarray(x)
     levels = _per_step_sigmas(sigmas, x, cond_mask)
     variants, combine = _guidance_variants(cond, null_cond, guidance_scale)
-    velocity = _batched_velocity(velocity_fn, variants, combine)
+    per_step = step_inputs is not None
+    velocity = _batched_velocity(velocity_fn, variants, combine, per_step)
     keep = None if cond_mask is None else expand_per_frame(jnp.asarray(cond_mask, bool), x, "cond_mask")
     x_cond = x
 
@@ -167,20 +185,26 @@ def sample(velocity_fn: Callable, x, sigmas, *, cond=None, null_cond=None, guida
         y = y.astype(x.dtype)
         return y if keep is None else jnp.where(keep, x_cond, y)
 
-    def step(state, pair):
-        s, s_next = pair
-        v = velocity(state, s)
+    def evaluate(state, s, inp):
+        return velocity(state, s, inp) if per_step else (velocity(state, s), None)
+
+    def step(state, xs):
+        s, s_next, inp = xs
+        v, out = evaluate(state, s, inp)
         ds = expand(s_next) - expand(s)
         euler = pin(state + ds * v)
         if method == "heun":
             def heun():
-                v_next = velocity(euler, s_next)
+                v_next, _ = evaluate(euler, s_next, inp)
                 corrected = state + ds * 0.5 * (v + v_next)
                 return pin(jnp.where(expand(s_next) > 0.0, corrected, euler))
             new = jax.lax.cond(jnp.all(s_next == 0.0), lambda: euler, heun)
         else:
             new = euler
-        return new, (new if return_trajectory else None)
+        return new, (new if return_trajectory else None, out)
 
-    final, traj = jax.lax.scan(step, x, (levels[:-1], levels[1:]))
-    return (final, traj) if return_trajectory else final
+    final, (traj, outs) = jax.lax.scan(step, x, (levels[:-1], levels[1:], step_inputs))
+    result = (final, traj) if return_trajectory else (final,)
+    if per_step:
+        result = result + (outs,)
+    return result if len(result) > 1 else result[0]

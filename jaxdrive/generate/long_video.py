@@ -11,7 +11,8 @@ and appends it to the mp4. It writes under ``out``:
 - ``latents.npy``: all latents ``[B, V, F', h, w, C]``;
 - ``report.json``: ``strategy``, ``frames``, ``latent_frames``, ``views``, ``clips``,
   ``sequential_sampler_calls``, ``seconds``, ``peak_device_bytes`` (and the models' windows and
-  the options the strategy ran with); when the recorded clip covers the horizon, ``quality``:
+  the options the strategy ran with, ``compiled_programs``; ``stream`` for ``streaming``: the HTFT
+  buffer's frames, taps and fixed ``buffer_bytes``); when the recorded clip covers the horizon, ``quality``:
   PSNR / SSIM of the first clip against it, beside the repeat and noise baselines, over the
   first window, all generated frames and each second (``horizon``), scored part by part as the
   frames are decoded (:class:`jaxdrive.eval.frames.FrameScores`);
@@ -88,7 +89,8 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
               "peak_device_bytes": int(tracker.peak_bytes), "fps": fps,
               "given_latent_frames": int(np.shape(first)[2]),
               "windows": {"main": models.main.window, **({"fine": models.fine.window} if models.fine else {})},
-              "options": {k: v for k, v in options.items() if v is not None}}
+              "options": {k: v for k, v in options.items() if v is not None}, "compiled_programs": tracker.programs,
+              **tracker.notes}
     quality = None
     if scores is not None:
         window = codec.pixel_frames((models.fine or models.main).window)

@@ -21,7 +21,7 @@ from jax.sharding import PartitionSpec as P
 from jax.sharding import Mesh
 
 from jaxdrive import flow
-from jaxdrive.config import DataConfig, FlowConfig
+from jaxdrive.config import DataConfig, FlowConfig, StreamConfig
 from jaxdrive.generate.rollout import rollout, to_numpy_video
 from jaxdrive.models.dit import DiT
 from jaxdrive.models.dit_config import DiTConfig
@@ -36,7 +36,8 @@ class Sampling:
     (TPD, shift, condition frames), T5 embeddings for ``text="embeddings"`` models, the window
     (latent frames per sampler call; default: the latent frames of ``data.frames``) and the
     source-frame stride between its frames (default ``data.stride``); ``precomputed``: ``data.path``
-    holds latent windows (``jaxdrive data encode``)."""
+    holds latent windows (``jaxdrive data encode``); ``stream``: STAGE's streaming settings of a
+    model trained frame by frame."""
 
     model: DiTConfig
     codec: LatentCodec
@@ -48,6 +49,7 @@ class Sampling:
     stride: int | None = None
     precomputed: bool = False
     steps: int = 20
+    stream: StreamConfig = StreamConfig()
 
     @property
     def latent_window(self) -> int:

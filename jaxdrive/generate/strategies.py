@@ -25,6 +25,9 @@ frames ``[B, V, k, h, w, C]``; ``length`` the latent frames to produce (the give
   trained on several lengths (``data.buckets``), which extrapolates past them; its tokens are
   sharded over the mesh's ``seq`` axis, so the length is bounded by the mesh, not by one
   device. One sequential call; device memory grows with the length.
+- ``streaming`` (STAGE, :mod:`jaxdrive.generate.streaming`): frame by frame, each new frame from
+  the anchor (first) frame and the frame before it, with the HTFT buffer of the past frames'
+  features at every denoising step; one sequential call per frame, device memory flat.
 """
 
 from __future__ import annotations
@@ -41,7 +44,7 @@ from jaxdrive.generate.windows import Horizon, Tracker, WindowModel, controls_at
 from jaxdrive.models.conditions import Conditions
 from jaxdrive.validate import check_choice, check_positive_int
 
-STRATEGIES = ("rollout", "coarse-to-refine", "coarse-fine", "window")
+STRATEGIES = ("rollout", "coarse-to-refine", "coarse-fine", "window", "streaming")
 NEEDS_FINE = ("coarse-fine",)
 
 
@@ -249,6 +252,12 @@ def check_strategy(name: str, models: Models, length: int, given: int) -> None:
         if refine.jdc_slope < refine.jdc_alpha1:
             raise ValueError(f"flow.jdc_slope: expected >= flow.jdc_alpha1 = {refine.jdc_alpha1} (JDC re-noises "
                              f"anchors to g = slope * sigma_max >= alpha1), got {refine.jdc_slope}")
+    if name == "streaming" and not main.streaming:
+        raise ValueError("--workdir: 'streaming' needs a model trained frame by frame (stream.enabled, STAGE's "
+                         f"configs/stage.py), got one trained on windows of {main.window} latent frames")
+    if name != "streaming" and main.streaming:
+        raise ValueError(f"--strategy: a model trained frame by frame (stream.enabled) samples with 'streaming', "
+                         f"got {name!r}")
     if name == "window" and len(main.lengths) < 2:
         raise ValueError(f"--strategy: 'window' samples the whole length at once, which needs a model trained on "
                          f"several lengths (data.buckets, MagicDrive-V2), got one trained on "
@@ -262,8 +271,28 @@ def run_strategy(name: str, models: Models, controls: Conditions, first, length:
     """Check, then run the strategy ``name`` (its generator of latent parts)."""
     first = np.asarray(first)
     check_strategy(name, models, length, first.shape[2])
-    fn = {"rollout": rollout, "coarse-to-refine": coarse_to_refine, "coarse-fine": coarse_fine, "window": window}[name]
+    fn = {"rollout": rollout, "coarse-to-refine": coarse_to_refine, "coarse-fine": coarse_fine, "window": window,
+          "streaming": _streaming}[name]
     return fn(models, controls, first, length, key=key, tracker=tracker, mesh=mesh, **options)
+
+
+def _streaming(*args, **kwargs):
+    from jaxdrive.generate.streaming import streaming
+    return streaming(*args, **kwargs)
+
+
+def check_taps(models: Models, taps) -> tuple[int, ...]:
+    """``--taps`` of ``streaming`` (None: the model's own): offsets within its buffer, and only for
+    a model with HTFT layers; ``ValueError`` naming ``--taps``."""
+    from jaxdrive.models.htft import check_taps as check_offsets
+    main = models.main
+    if taps is None:
+        return main.stream_taps
+    taps = check_offsets(taps, main.stream_buffer, "--taps")
+    if taps and not main.dit.config.htft_layers:
+        raise ValueError(f"--taps: HTFT streaming needs a model with HTFT layers (model.htft_layers, STAGE stage 2), "
+                         f"got taps {list(taps)} for a model without them")
+    return taps
 
 
 def sequential_calls(name: str, models: Models, length: int, given: int, **options) -> int:
@@ -271,6 +300,9 @@ def sequential_calls(name: str, models: Models, length: int, given: int, **optio
     main, fine = models.main, models.fine
     if name == "window":
         return 1
+    if name == "streaming":             # the given frames after the anchor are observed into the buffer
+        taps = main.stream_taps if options.get("taps") is None else options["taps"]
+        return length - given + (given - 1 if taps else 0)
     coarse_windows = lambda n: len(window_starts(n, min(main.window, n), min(given, main.window - 1)))
     if name == "coarse-fine":
         seg = fine.window - 1

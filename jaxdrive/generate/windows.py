@@ -37,7 +37,8 @@ class WindowModel:
     given frames it was trained with (``cond_frames``), the flow settings of its training (shift,
     TPD, JDC slope and alpha1, the condition ``patterns`` and ``anchor_every``), the sampling
     ``steps`` and the guidance scale. ``stride``: source frames between its training frames (a
-    coarse model's low rate)."""
+    coarse model's low rate). ``streaming``: trained frame by frame (STAGE, ``stream.enabled``),
+    with an HTFT buffer of ``stream_buffer`` frames fusing ``stream_taps`` (empty: HTFT off)."""
 
     dit: DiT
     params: Any = dataclasses.field(compare=False, hash=False, repr=False)
@@ -56,6 +57,9 @@ class WindowModel:
     stride: int = 1
     temporal: int = 1
     lengths: tuple[int, ...] = ()
+    streaming: bool = False
+    stream_buffer: int = 10
+    stream_taps: tuple[int, ...] = ()
 
     @classmethod
     def from_sampling(cls, spec, params, *, steps: int | None = None, guidance: float = 1.0) -> "WindowModel":
@@ -72,7 +76,9 @@ class WindowModel:
                    shift=shift, tpd=f.tpd, tpd_omega=f.tpd_omega, jdc_slope=f.jdc_slope, jdc_alpha1=f.jdc_alpha1,
                    patterns=tuple(f.patterns), anchor_every=f.anchor_every,
                    jdc_anchor_rate=f.jdc_anchor_rate, stride=spec.frame_stride, temporal=spec.codec.temporal,
-                   lengths=tuple(sorted(lengths)))
+                   lengths=tuple(sorted(lengths)), streaming=spec.stream.enabled,
+                   stream_buffer=spec.stream.buffer,
+                   stream_taps=tuple(spec.stream.taps) if spec.model.htft_layers else ())
 
     @property
     def trained_anchors(self) -> bool:
@@ -83,24 +89,34 @@ class WindowModel:
 class Tracker:
     """Sequential sampler calls, their seconds, and the peak device bytes: on GPU/TPU the
     device's own peak (``memory_stats``); on CPU the largest sum of live device arrays after a
-    call plus the temporaries of the compiled program it ran (``memory_analysis``)."""
+    call plus the temporaries of the compiled program it ran (``memory_analysis``). ``notes``:
+    what a strategy adds to ``report.json`` (the streaming buffer's size)."""
 
     def __init__(self):
         self.calls = 0
         self.peak_bytes = 0
+        self.notes: dict = {}
         self._compiled: dict = {}
 
-    def compiled(self, model: WindowModel, *args):
-        """:func:`sample_window` of ``model`` compiled for ``args``' shapes, once per shape."""
+    @property
+    def programs(self) -> int:
+        """Distinct programs compiled so far (one per function and input shapes)."""
+        return len(self._compiled)
+
+    def compiled(self, model: WindowModel, *args, fn=None, static=()):
+        """``fn`` (default :func:`sample_window`, jitted with ``model`` and then ``static`` as
+        static arguments) compiled for ``args``' shapes, once per shape."""
+        fn = _SAMPLE if fn is None else fn
         leaves, tree = jax.tree_util.tree_flatten(args)
-        key = (model, tree) + tuple((x.shape, str(x.dtype)) for x in leaves)
+        key = (fn, model, static, tree) + tuple((x.shape, str(x.dtype)) for x in leaves)
         if key not in self._compiled:
-            self._compiled[key] = _SAMPLE.lower(model, *args).compile()
+            self._compiled[key] = fn.lower(model, *static, *args).compile()
         return self._compiled[key]
 
-    def call(self, model: WindowModel, *args):
-        """One sequential sampler call, :func:`sample_window` ``(model, *args)``; returns its output."""
-        compiled = self.compiled(model, *args)
+    def call(self, model: WindowModel, *args, fn=None, static=()):
+        """One sequential sampler call, ``fn(model, *static, *args)`` (default
+        :func:`sample_window`); returns its output."""
+        compiled = self.compiled(model, *args, fn=fn, static=static)
         out = jax.block_until_ready(compiled(*args))
         self.calls += 1
         self.observe(compiled)

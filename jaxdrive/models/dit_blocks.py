@@ -38,7 +38,7 @@ from jaxdrive.models.layers import MLP, AttnProj, Dense, LayerNorm, modulate
 from jaxdrive.models.params import ZEROS, normal, param
 from jaxdrive.models.tokens import TEXT, VIDEO, from_sequence, merge, reshape, split, to_sequence
 from jaxdrive.parallel.mesh import explicit_mesh, mesh_axis_size, spec_of
-from jaxdrive.parallel.rules import constrain
+from jaxdrive.parallel.rules import constrain, reshard_like
 
 
 @struct.dataclass
@@ -141,11 +141,12 @@ def context_attention(proj: AttnProj, x, ctx: "LayerContext", impl: str):
     mc = ctx.tokens_mask
     if text is not None:
         kt, vt = proj.kv(text)                               # [B, L, H, Dh]
-        grow = lambda a: jnp.broadcast_to(a[:, None, None], (b, f, nv) + a.shape[1:])
-        kc, vc = jnp.concatenate([grow(kt), kc], 3), jnp.concatenate([grow(vt), vc], 3)
+        # the text's sharding may differ from the control tokens' (text replicated, boxes per sample)
+        grow = lambda a, like: reshard_like(jnp.broadcast_to(a[:, None, None], (b, f, nv) + a.shape[1:]), like)
+        kc, vc = jnp.concatenate([grow(kt, kc), kc], 3), jnp.concatenate([grow(vt, vc), vc], 3)
         tm = ctx.text_mask
         tm = jnp.ones(text.shape[:2], bool) if tm is None else tm
-        mc = jnp.concatenate([grow(tm), mc], 3)
+        mc = jnp.concatenate([grow(tm, mc), mc], 3)
     groups = lambda a: merge(merge(a, 0), 0)                 # [B F V, ...]
     qs = groups(jnp.transpose(q, (0, 1, 3, 2, 4, 5)))
     o = attention(qs, groups(kc), groups(vc), impl=impl, kv_mask=groups(mc))

@@ -10,8 +10,11 @@ the features that the same layers produced at the same denoising step for select
     F_fused = Dropout(f_t^T) + Linear(H_t^T)
 
 :class:`HTFT` is the fusion; :func:`buffer_init`, :func:`buffer_push` and :func:`buffer_select`
-are the FIFO as pure functions (the streaming generator keeps one buffer per fused layer and
-denoising step). N and S are arguments (configuration), the paper's values the defaults.
+are the FIFO as pure functions over a preallocated ring (a slot index, never growing): one ring
+per fused layer holding every denoising step's features, ``[steps, B, N, S, V, D]``, which the
+streaming generator (:mod:`jaxdrive.generate.streaming`) reads at step i and writes once a frame
+is done. N and S are arguments (configuration, ``stream.buffer`` / ``stream.taps``), the paper's
+values the defaults.
 
 Choices where STAGE is not specific: the last Linear is zero-initialised, so that adding HTFT to a
 trained model (STAGE's stage 2 trains only the HTFT parameters) starts from the model's own
@@ -21,16 +24,18 @@ per frame); the cross-attention has its own q/k/v/out projections.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import flax.linen as nn
+import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxdrive.attention import attention
 from jaxdrive.models.layers import AttnProj, Dense, GroupNorm
 from jaxdrive.models.params import ZEROS
 from jaxdrive.models.tokens import from_sequence, merge, to_sequence
-from jaxdrive.parallel.rules import constrain
+from jaxdrive.parallel.rules import constrain, reshard_like
 from jaxdrive.validate import check_positive_int, check_shape
 
 BUFFER_SIZE = 10
@@ -75,29 +80,63 @@ class HTFT(nn.Module):
         return nn.Dropout(self.dropout)(f, deterministic=deterministic) + out
 
 
-def buffer_init(frame_shape: Sequence[int], size: int = BUFFER_SIZE, dtype=jnp.float32) -> dict:
-    """An empty FIFO of ``size`` frames of features ``frame_shape = (B, S, V, D)``:
-    ``{"data": [B, size, S, V, D], "filled": [B, size] bool}``, slot 0 the most recent frame."""
+def check_taps(taps: Sequence[int], size: int, name: str = "taps") -> tuple[int, ...]:
+    """``taps`` (past-frame offsets, -1 = the previous frame) checked against a buffer of ``size``
+    frames: ``ValueError`` naming ``name`` for an offset outside ``[-size, -1]`` or a repeat."""
+    taps = tuple(taps)
+    for o in taps:
+        if isinstance(o, bool) or not isinstance(o, (int, np.integer)) or not -size <= o <= -1:
+            raise ValueError(f"{name}: expected offsets in [-{size}, -1] for a buffer of {size} frames, got {o!r}")
+    if len(set(taps)) != len(taps):
+        raise ValueError(f"{name}: expected distinct offsets, got {taps}")
+    return taps
+
+
+def write_slot(data, update, index, axis: int):
+    """``data`` with ``update`` (``data`` without ``axis``) written at ``index`` of ``axis``; under an
+    Explicit mesh the update first takes ``data``'s sharding (the model's features come sharded
+    over ``seq``, a preallocated buffer however it was made)."""
+    update = jnp.expand_dims(update.astype(data.dtype), axis)
+    return jax.lax.dynamic_update_slice_in_dim(data, reshard_like(update, data), index, axis=axis)
+
+
+def buffer_init(frame_shapes, size: int = BUFFER_SIZE, *, steps: int = 1, dtype=jnp.float32) -> dict:
+    """An empty ring buffer of ``size`` frames of features at ``steps`` denoising steps each:
+    ``frame_shapes`` is one frame's shape ``(B, S, V, D)`` or a mapping ``{layer: shape}``;
+    ``{"data": [steps, B, size, S, V, D] (per layer), "head": the slot the next frame goes to,
+    "count": frames pushed so far}``. Preallocated: pushing never grows it."""
     check_positive_int("size", size)
-    b, *rest = frame_shape
-    return {"data": jnp.zeros((b, size, *rest), dtype), "filled": jnp.zeros((b, size), bool)}
+    check_positive_int("steps", steps)
+
+    def empty(shape):
+        b, *rest = shape
+        return jnp.zeros((steps, b, size, *rest), dtype)
+    data = ({k: empty(v) for k, v in frame_shapes.items()} if isinstance(frame_shapes, Mapping)
+            else empty(frame_shapes))
+    return {"data": data, "head": jnp.zeros((), jnp.int32), "count": jnp.zeros((), jnp.int32)}
 
 
 def buffer_push(buf: dict, frame) -> dict:
-    """Push one frame's features ``[B, S, V, D]`` into the FIFO (the oldest falls out)."""
-    data, filled = buf["data"], buf["filled"]
-    check_shape("frame", frame, [data.shape[0], *data.shape[2:]])
-    data = jnp.concatenate([frame[:, None].astype(data.dtype), data[:, :-1]], axis=1)
-    filled = jnp.concatenate([jnp.ones_like(filled[:, :1]), filled[:, :-1]], axis=1)
-    return {"data": data, "filled": filled}
+    """Write one frame's features (``[steps, B, S, V, D]`` per layer, like ``buf["data"]``
+    without the slot axis) into the slot at ``head``, the oldest frame's once the ring is full."""
+    size = jax.tree_util.tree_leaves(buf["data"])[0].shape[2]
+
+    def write(data, f):
+        check_shape("frame", f, [data.shape[0], data.shape[1], *data.shape[3:]])
+        return write_slot(data, f, buf["head"], 2)
+    return {"data": jax.tree_util.tree_map(write, buf["data"], frame), "head": (buf["head"] + 1) % size,
+            "count": jnp.minimum(buf["count"] + 1, size)}
 
 
 def buffer_select(buf: dict, offsets: Sequence[int] = SELECT):
     """The frames at ``offsets`` (-1 = the previous frame, -10 = ten frames back):
-    ``(past [B, K, S, V, D], mask [B, K])``, mask False where the slot is still empty."""
-    size = buf["data"].shape[1]
-    for o in offsets:
-        if not -size <= o <= -1:
-            raise ValueError(f"offsets: expected values in [-{size}, -1] for a buffer of {size} frames, got {o}")
-    idx = jnp.asarray([-o - 1 for o in offsets])
-    return jnp.take(buf["data"], idx, axis=1), jnp.take(buf["filled"], idx, axis=1)
+    ``(past, mask)``: ``past [steps, B, K, S, V, D]`` (per layer, like ``buf["data"]``) and
+    ``mask [B, K]``, False where that frame does not exist yet (its slot is not attended to)."""
+    leaf = jax.tree_util.tree_leaves(buf["data"])[0]
+    size = leaf.shape[2]
+    offsets = check_taps(offsets, size, "offsets")
+    off = jnp.asarray(offsets, jnp.int32)
+    idx = (buf["head"] + off) % size
+    past = jax.tree_util.tree_map(lambda d: jnp.take(d, idx, axis=2), buf["data"])
+    mask = jnp.broadcast_to(buf["count"] >= -off, (leaf.shape[1], len(offsets)))
+    return past, mask

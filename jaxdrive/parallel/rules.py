@@ -193,3 +193,13 @@ def shard_params(params, mesh, rules: Mapping[str, Axes] = PARAM_RULES):
     values = jax.tree_util.tree_map(lambda x: x.value if _is_box(x) else x, params,
                                     is_leaf=_is_box)
     return jax.device_put(values, shardings)
+
+
+def reshard_like(v: jax.Array, x: jax.Array) -> jax.Array:
+    """``v`` with exactly ``x``'s sharding under an Explicit mesh, where operations that combine
+    arrays (a concatenate, an update slice, an add in a loop carry) need equal shardings; ``v``
+    as it is without a mesh or when ``x`` carries none."""
+    spec = getattr(getattr(jax.typeof(x), "sharding", None), "spec", None)
+    if spec is None or jax.sharding.get_abstract_mesh().empty:
+        return v
+    return jax.reshard(v, spec)

@@ -24,6 +24,9 @@ each micro-batch (in a ``lax.scan``):
    LongDWM's fine-to-coarse distillation from a frozen fine model when ``flow.distill_teacher``
    names one (:mod:`jaxdrive.train.distill_step`).
 
+With ``stream.enabled`` steps 2-4 are STAGE's frame-by-frame loss instead
+(:mod:`jaxdrive.train.stream_step`).
+
 Gradients are averaged over the micro-batches, then :func:`jaxdrive.train.state.apply_gradients`
 updates (or skips a non-finite step). The step is jitted with the state's shardings as in/out
 shardings and the state donated; the batch is ``[A, b, ...]`` sharded over ``data``/``fsdp`` on
@@ -40,7 +43,7 @@ import numpy as np
 import optax
 
 from jaxdrive import flow
-from jaxdrive.config import FlowConfig
+from jaxdrive.config import FlowConfig, StreamConfig
 from jaxdrive.models.dit import DiT
 from jaxdrive.models.dit_config import DiTConfig
 from jaxdrive.models.latents import LatentCodec
@@ -56,6 +59,7 @@ class FlowTraining:
     flow: FlowConfig
     codec: LatentCodec
     teacher: DiTConfig | None = None     # the frozen fine model of LongDWM's distillation
+    stream: StreamConfig = StreamConfig()  # STAGE's frame-by-frame training when enabled
 
     @property
     def dit(self) -> DiT:
@@ -95,6 +99,9 @@ def flow_loss_fn(training: FlowTraining, params, codec_params, inputs: dict, key
     # precomputed latents (jaxdrive data encode) or the video encoded here
     x = inputs["latents"] if "latents" in inputs else (
         jax.lax.stop_gradient(training.codec.encode(codec_params, inputs["video"])))
+    if training.stream.enabled:            # STAGE: one [anchor, condition, new] window per clip
+        from jaxdrive.train.stream_step import stream_loss_fn
+        return stream_loss_fn(training, params, x, inputs, key)
     height, width = x.shape[-3] * training.codec.spatial, x.shape[-2] * training.codec.spatial
     k_levels, k_noise = jax.random.split(key)
     noise = jax.random.normal(k_noise, x.shape, jnp.float32)

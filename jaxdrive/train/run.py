@@ -167,13 +167,15 @@ class Run:
             from jaxdrive.train.init_from import parse_name_map
             parse_name_map(config.train.init_map)
         teacher = self._teacher_model(devices) if config.flow.distill_teacher else None
-        self.training = flow_step.FlowTraining(model, config.flow, self.codec, teacher)
+        self.training = flow_step.FlowTraining(model, config.flow, self.codec, teacher, config.stream)
         # frames the trained model sees, and the source-frame stride between them
         self.latent_frames = self.codec.latent_frames(d.frames)
         self.frame_stride = d.stride
         if teacher is not None:
             self.latent_frames = (d.frames - 1) // (config.flow.distill_segment_len - 1) + 1
             self.frame_stride = d.stride * (config.flow.distill_segment_len - 1)
+        from jaxdrive.train.stream_step import check_stream
+        check_stream(config, self.latent_frames)
         self.tokens_per_step = self.tokens(d.batch_size, d.height, d.width, self.latent_frames)
         self.text = None
         if model.controls.text == "embeddings":
@@ -233,9 +235,10 @@ class Run:
         frame stride, a distilled coarse model's included)."""
         from jaxdrive.generate.samples import Sampling
         c = self.config
+        from jaxdrive.generate.streaming import WINDOW
         return Sampling(self.training.model, self.codec, self.mesh, c.data, c.flow, text_embeddings=self.text,
-                        window=self.latent_frames, stride=self.frame_stride, precomputed=c.latents.precomputed,
-                        steps=c.train.sample_steps)
+                        window=WINDOW if c.stream.enabled else self.latent_frames, stride=self.frame_stride,
+                        precomputed=c.latents.precomputed, steps=c.train.sample_steps, stream=c.stream)
 
     # ------------------------------------------------------------------ state
     def boxed_params(self):

@@ -1,0 +1,195 @@
+"""STAGE's streaming: the HTFT ring buffer against a plain re-run of the model, streaming without
+taps against a frame-by-frame rollout, flat memory, the training step's feature pass and rollout
+against the sampler's, and the bad inputs."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxdrive import flow
+from jaxdrive.config import FlowConfig, StreamConfig
+from jaxdrive.generate import strategies as S
+from jaxdrive.generate import streaming as ST
+from jaxdrive.generate.long_video import sample_long
+from jaxdrive.generate.windows import Tracker, WindowModel, sample_window
+from jaxdrive.models.conditions import Conditions
+from jaxdrive.models.dit import DiT
+from jaxdrive.models.dit_presets import preset
+from jaxdrive.models.latents import LatentCodec
+from strategy_fixtures import C, H, W, horizon_inputs
+
+
+TAPS, BUFFER = (-1, -2, -4), 4
+
+
+@functools.lru_cache(maxsize=None)
+def model(htft: bool = True, steps: int = 3) -> WindowModel:
+    cfg = preset("tiny", in_channels=C, vae_spatial=4, vae_temporal=1, patch=(1, 2, 2), prediction="data",
+                 htft_layers=(0,) if htft else (),
+                 controls=dict(waypoints=True, fps=True, cond_frames="replace", reference_frame="residual"))
+    dit = DiT(cfg)
+    params = jax.tree_util.tree_map(jnp.asarray, nn.unbox(dit.init_params(0, batch=1, views=2, frames=3,
+                                                                          height=H, width=W)))
+    keys = iter(jax.random.split(jax.random.key(1), len(jax.tree_util.tree_leaves(params))))
+    # every parameter moved off its initialisation: HTFT's zero output layer too, so the past matters
+    params = jax.tree_util.tree_map(lambda p: p + 0.05 * jax.random.normal(next(keys), p.shape), params)
+    return WindowModel(dit, params, window=3, cond_frames=1, steps=steps, streaming=True, stream_buffer=BUFFER,
+                       stream_taps=TAPS if htft else ())
+
+
+def reference_stream(m: WindowModel, first, controls, length, key, taps):
+    """Streaming written out plainly: Python loops over frames and steps, every feature kept in a
+    list (no ring), the model re-run on each state."""
+    sig = np.asarray(flow.sampling_sigmas(m.steps, shift=m.shift))
+    frames, feats = [first[:, :, :1]], []                        # feats[p - 1][i]: frame p at step i
+    mask3 = jnp.asarray([[True, True, False]])
+    for j in range(1, length):
+        ctrl = ST.window_controls(controls, j, 1)
+        x_cond = jnp.concatenate([frames[0], frames[-1], jnp.zeros_like(frames[0])], axis=2)
+        x = jnp.where(mask3[:, None, :, None, None, None], x_cond, jax.random.normal(jax.random.fold_in(key, j),
+                                                                                       x_cond.shape))
+        cond = ctrl.replace(cond_latents=x_cond, cond_mask=mask3)
+        mine = []
+        for i in range(m.steps):
+            levels = jnp.where(mask3, 0.0, float(sig[i]))
+            c = cond
+            if taps:
+                past = [j + o for o in taps]
+                empty = jnp.zeros((1, (H // 2) * (W // 2), 2, m.dit.config.width))
+                c = cond.replace(features={0: jnp.stack([feats[p - 1][i] if p >= 1 else empty for p in past], axis=1)},
+                                 features_mask=jnp.asarray([[p >= 1 for p in past]]))
+            out, f = m.dit.forward(m.params, x, levels, c, return_features=True)
+            mine.append(f[0][:, ST.NEW])
+            v = flow.velocity_from_output(out, x, levels, m.dit.config.prediction, m.dit.config.prediction_min_sigma)
+            x = jnp.where(mask3[:, None, :, None, None, None], x_cond, x + (sig[i + 1] - sig[i]) * v)
+        feats.append(mine)
+        frames.append(x[:, :, ST.NEW:])
+    return jnp.concatenate(frames, axis=2), feats
+
+
+def test_the_buffer_holds_the_last_frames_features_at_every_step():
+    m = model()
+    length = 7
+    first, controls = horizon_inputs(length, given=1)
+    key = jax.random.key(3)
+    want, feats = reference_stream(m, first, controls, length, key, TAPS)
+    buf = ST.new_buffer(m, 1, 2, (H, W))
+    prev = jnp.asarray(first[:, :, :1])
+    got = [prev]
+    for j in range(1, length):
+        prev, buf = ST._STREAM(m, TAPS, m.params, got[0], prev, ST.window_controls(controls, j, 1),
+                               jax.random.fold_in(key, j), buf)
+        got.append(prev)
+        # after frame j the ring holds frames j .. j - 3 (those that exist) at every step
+        past, mask = ST.buffer_select(buf, tuple(range(-1, -BUFFER - 1, -1)))
+        for k in range(BUFFER):
+            p = j - k
+            assert bool(mask[0, k]) == (p >= 1)
+            if p >= 1:
+                np.testing.assert_allclose(past[0][:, :, k], jnp.stack(feats[p - 1]), atol=2e-5, err_msg=(j, k))
+    np.testing.assert_allclose(jnp.concatenate(got, axis=2), want, atol=2e-5)
+    # the past matters: the same frames without HTFT differ
+    plain, _ = reference_stream(m, first, controls, length, key, ())
+    assert float(jnp.abs(plain[:, :, 2:] - want[:, :, 2:]).max()) > 1e-3
+
+
+def test_streaming_without_taps_is_frame_by_frame_rollout_of_the_window_sampler():
+    m = model()
+    length = 5
+    first, controls = horizon_inputs(length, given=1)
+    key = jax.random.key(0)
+    tracker = Tracker()
+    parts = list(S.run_strategy("streaming", S.Models(m), controls, first, length, key=key, tracker=tracker, taps=()))
+    assert [p.shape[2] for p in parts] == [1, 1, 1, 1, 1]           # each frame as it is done
+    out = np.concatenate(parts, axis=2)
+    np.testing.assert_array_equal(out[:, :, :1], first)
+    prev = first[:, :, :1]
+    for j in range(1, length):
+        x_cond = np.concatenate([first[:, :, :1], prev, np.zeros_like(prev)], axis=2)
+        z = sample_window(m, m.params, jnp.asarray(x_cond), jnp.asarray([[True, True, False]]),
+                          ST.window_controls(controls, j, 1), jax.random.fold_in(key, j))
+        np.testing.assert_allclose(out[:, :, j], z[:, :, 2], atol=1e-5, err_msg=str(j))
+        prev = out[:, :, j:j + 1]
+    assert tracker.calls == length - 1 == S.sequential_calls("streaming", S.Models(m), length, 1, taps=())
+    assert tracker.notes["stream"]["buffer_bytes"] == 0
+
+
+def test_given_frames_are_observed_into_the_buffer_and_kept():
+    m = model()
+    first, controls = horizon_inputs(6, given=3)
+    tracker = Tracker()
+    out = np.concatenate(list(S.run_strategy("streaming", S.Models(m), controls, first, 6, key=jax.random.key(0),
+                                             tracker=tracker)), axis=2)
+    np.testing.assert_array_equal(out[:, :, :3], first)
+    assert tracker.calls == 2 + 3 == S.sequential_calls("streaming", S.Models(m), 6, 3)
+    assert tracker.programs == 2                                   # one observing, one sampling program
+
+
+def test_streaming_memory_is_flat_and_it_compiles_once(tmp_path):
+    m = model(steps=2)
+    codec = LatentCodec("space_to_depth", 4)
+    reports = {}
+    for length in (33, 145):
+        first, controls = horizon_inputs(length, views=6, given=1)
+        reports[length] = sample_long("streaming", S.Models(m), codec, controls, first, length, tmp_path / str(length),
+                                      key=jax.random.key(0), fps=12.0, log=lambda *a: None)
+    small, big = reports[33], reports[145]
+    assert small["compiled_programs"] == big["compiled_programs"] == 1
+    assert big["stream"]["buffer_bytes"] == small["stream"]["buffer_bytes"] > 0
+    assert big["stream"]["taps"] == list(TAPS) and big["stream"]["buffer_frames"] == BUFFER
+    assert small["peak_device_bytes"] > 0 and abs(big["peak_device_bytes"] / small["peak_device_bytes"] - 1) < 0.10
+
+
+def _training(m: WindowModel, stream: StreamConfig):
+    from jaxdrive.train.flow_step import FlowTraining
+    return FlowTraining(m.dit.config, FlowConfig(shift=m.shift), LatentCodec("space_to_depth", 4), stream=stream)
+
+
+def test_training_sees_what_the_sampler_buffer_holds_and_stage_3_conditions_on_its_own_rollout():
+    from jaxdrive.train import stream_step
+    m = model()
+    stream = StreamConfig(enabled=True, buffer=BUFFER, taps=TAPS, self_rollout=True, rollout_steps=m.steps)
+    training = _training(m, stream)
+    nf = 6
+    first, controls = horizon_inputs(nf, given=1)
+    x = jnp.asarray(np.random.default_rng(1).normal(size=(1, 2, nf, H, W, C)), jnp.float32)
+    key, sigma = jax.random.key(7), jnp.asarray([0.6])
+    store = stream_step.past_features(training, m.params, x, x, controls, sigma, key)
+    buf = ST.new_buffer(dataclasses.replace(m, steps=1), 1, 2, (H, W))
+    for p in range(1, nf - 1):       # the sampler's observation of recorded frames at the one level
+        buf = ST.observe_frame(m, TAPS, m.params, x[:, :, :1], x[:, :, p - 1:p], x[:, :, p:p + 1],
+                               ST.window_controls(controls, p, 1), jax.random.fold_in(key, p), buf, sigmas=sigma)
+        np.testing.assert_allclose(store[0][:, p], buf["data"][0][0, :, (p - 1) % BUFFER], atol=2e-5, err_msg=str(p))
+    # stage 3: the condition frames are the model's own streaming rollout, not the recording
+    rolled = stream_step.self_rollout(training, m.params, x, controls, key)
+    assert rolled.shape == (1, 2, nf - 1, H, W, C)
+    np.testing.assert_array_equal(rolled[:, :, 0], x[:, :, 0])
+    want = np.concatenate(list(S.run_strategy("streaming", S.Models(m), controls, np.asarray(x[:, :, :1]), nf - 1,
+                                              key=key)), axis=2)
+    np.testing.assert_allclose(rolled, want, atol=2e-5)
+    assert float(jnp.abs(rolled[:, :, 1:] - x[:, :, 1:nf - 1]).min()) > 0
+    # and the loss of a window is finite and has gradients for HTFT
+    loss, grads = jax.value_and_grad(lambda p: stream_step.stream_loss_fn(
+        training, p, x, {"cond": controls}, jax.random.key(0))[0])(m.params)
+    assert np.isfinite(float(loss)) and float(jnp.abs(grads["htft_0"]["linear_out"]["kernel"]).max()) > 0
+
+
+def test_streaming_rejects_what_it_cannot_do():
+    first, controls = horizon_inputs(6, given=1)
+    with pytest.raises(ValueError, match=r"--taps: expected offsets in \[-4, -1\]"):
+        list(S.run_strategy("streaming", S.Models(model()), controls, first, 6, key=jax.random.key(0), taps=(-1, -5)))
+    with pytest.raises(ValueError, match=r"--taps: HTFT streaming needs a model with HTFT layers"):
+        S.check_taps(S.Models(model(htft=False)), (-1,))
+    assert S.check_taps(S.Models(model(htft=False)), ()) == ()
+    windowed = dataclasses.replace(model(), streaming=False)
+    with pytest.raises(ValueError, match=r"--workdir: 'streaming' needs a model trained frame by frame"):
+        S.check_strategy("streaming", S.Models(windowed), 6, 1)
+    with pytest.raises(ValueError, match=r"--strategy: a model trained frame by frame"):
+        S.check_strategy("rollout", S.Models(model()), 6, 1)
