@@ -88,3 +88,15 @@ def test_two_processes_take_the_same_bucket_at_every_step(scenes, monkeypatch):
     assert {s[0] for s in shapes[0] if s[2] == 1} == {2} and {s[0] for s in shapes[0] if s[2] > 1} == {1}
     for a, b in zip(*loads):
         assert not set(a["index"].tolist()) & set(b["index"].tolist())
+
+
+def test_bench_rebalance_fits_all_points_and_survives_timing_noise():
+    """The batch search of ``jaxdrive bench buckets --rebalance``: a least-squares line through all
+    of a bucket's points; two noisy points whose time falls as the batch grows (measured: 120 ->
+    0.315 s, 128 -> 0.296 s) must not send the batch to the floor or the cap."""
+    from jaxdrive.bench.buckets import _fit_batch
+    points = [(60, 0.16), (120, 0.3152), (128, 0.2957)]
+    assert 100 <= _fit_batch(points, 0.30, groups=2, max_batch=256) <= 130
+    assert _fit_batch([(4, 0.1), (8, 0.2)], 0.4, groups=2, max_batch=256) == 16        # exact on a line
+    assert _fit_batch([(4, 0.1), (8, 0.2)], 10.0, groups=2, max_batch=64) == 64        # capped
+    assert _fit_batch([(4, 0.1), (4, 0.1)], 0.2, groups=4, max_batch=0) == 8           # one batch: proportional

@@ -15,6 +15,7 @@ from jaxdrive.config import check_sections, load_config
 from train_fixtures import write_synthetic
 
 ROOT = Path(__file__).resolve().parents[1]
+MESH = ["mesh.data=2", "mesh.seq=4"]
 SMALL = ["data.views=2", "data.batch_size=2", "optim.warmup_steps=1", "train.log_every=1",
          "train.checkpoint_every=1"]
 
@@ -146,3 +147,70 @@ def test_magicdrive_tiny_stages_grow_from_images_and_train_on_their_buckets(tmp_
     assert cli(["sample", "--workdir", str(runs[1]), "--strategy", "window", "--frames", "33",
                 "--out", str(tmp_path / "bad")]) == 2
     assert "needs a model trained on several lengths" in capsys.readouterr().err
+
+
+def test_stage_tiny_stages_train_htft_only_in_stage_2_and_stream(long_scenes, tmp_path, capsys):
+    """STAGE at size=tiny: stage 1 (windows of recorded frames, no HTFT) -> 2 (HTFT added at zero,
+    only its parameters trained, from stage 1) -> 3 (conditions from the model's own rollout);
+    then ``--strategy streaming`` with the stage-3 model, and the options it refuses."""
+    import jax
+
+    from jaxdrive.train.run import Run, load_run_config, restore_params
+    # two steps: the first has the warm-up's zero learning rate, and a model whose output layer is
+    # still at its zero initialisation passes no gradient back to HTFT
+    runs = {1: train("stage.py:size=tiny,stage=1", tmp_path / "stage1", long_scenes, steps=2)}
+    with pytest.raises(ValueError, match=r"train.init_from: HTFT learning \(STAGE stage 2\)"):
+        Run(load_config(f"{ROOT / 'configs' / 'stage.py'}:size=tiny,stage=2", [f"data.path={long_scenes}", *MESH]))
+    capsys.readouterr()
+    runs[2] = train("stage.py:size=tiny,stage=2", tmp_path / "stage2", long_scenes, f"train.init_from={runs[1]}",
+                    steps=2)
+    assert "kept the new initialisation of" in capsys.readouterr().out       # HTFT's, at zero output
+    runs[3] = train("stage.py:size=tiny,stage=3", tmp_path / "stage3", long_scenes, f"train.init_from={runs[2]}")
+
+    def params(stage, ema):
+        run = Run(load_run_config(runs[stage]))
+        return jax.tree_util.tree_map(np.asarray, restore_params(run, runs[stage], ema=ema, log=lambda *a: None)[1])
+    before, after = params(1, True), params(2, False)            # stage 2 starts from stage 1's EMA weights
+    flat = dict(jax.tree_util.tree_leaves_with_path(after))
+    for path, value in jax.tree_util.tree_leaves_with_path(before):      # the base frozen, bit for bit
+        np.testing.assert_array_equal(flat[path], value, err_msg=jax.tree_util.keystr(path))
+    assert float(np.abs(after["htft_0"]["linear_out"]["kernel"]).max()) > 0   # HTFT trained off its zero
+    out = tmp_path / "stream"
+    assert cli(["sample", "--workdir", str(runs[3]), "--strategy", "streaming", "--frames", "14", "--steps", "2",
+                "--cfg", "1", "--out", str(out), "--no-progress"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert (report["strategy"], report["frames"], report["sequential_sampler_calls"]) == ("streaming", 14, 13)
+    assert report["compiled_programs"] == 1
+    assert report["stream"]["taps"] == [-1, -5, -10] and report["stream"]["buffer_bytes"] > 0
+    latents = np.load(out / "latents.npy")
+    assert latents.shape == (2, 2, 14, 8, 14, 48) and np.isfinite(latents).all()
+    capsys.readouterr()
+    for workdir, extra, message in (
+            (runs[3], ["--taps=-1,-11"], "--taps: expected offsets in [-10, -1]"),
+            (runs[1], ["--taps=-1"], "--taps: HTFT streaming needs a model with HTFT layers"),
+            (runs[3], ["--strategy", "rollout"], "--strategy: a model trained frame by frame"),
+            (long_scenes, [], "--workdir: expected a run directory")):
+        args = ["sample", "--workdir", str(workdir), "--strategy", "streaming", "--frames", "14", *extra]
+        assert cli([*args, "--out", str(tmp_path / "bad")]) == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
+    with pytest.raises(ValueError, match=r"stream.taps: expected offsets in \[-10, -1\]"):
+        Run(load_config(f"{ROOT / 'configs' / 'stage.py'}:size=tiny,stage=3",
+                        [f"data.path={long_scenes}", "stream.taps=-1,-12", *MESH]))
+    with pytest.raises(ValueError, match=r"stream.taps: HTFT needs a model with HTFT layers"):
+        Run(load_config(f"{ROOT / 'configs' / 'stage.py'}:size=tiny,stage=1",
+                        [f"data.path={long_scenes}", "stream.taps=-1", *MESH]))
+
+
+@pytest.mark.parametrize("stage", [1, 2, 3])
+@pytest.mark.parametrize("size", ["tiny", "paper"])
+def test_stage_configs_take_their_argument(size, stage):
+    config = load_config(f"{ROOT / 'configs' / 'stage.py'}:size={size},stage={stage}")
+    check_sections(config)
+    s = config.stream
+    assert s.enabled and s.buffer == 10 and config.flow.foreground_k > 0
+    assert bool(config.model.htft_layers) == (stage > 1) and bool(s.taps) == (stage > 1)
+    assert config.optim.trainable == (("htft_",) if stage == 2 else ())
+    assert s.self_rollout == (stage == 3)
+    with pytest.raises(ValueError, match=r"config argument stage: expected"):
+        load_config(f"{ROOT / 'configs' / 'stage.py'}:size={size},stage=4")

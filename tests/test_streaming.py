@@ -19,7 +19,6 @@ from jaxdrive.generate import strategies as S
 from jaxdrive.generate import streaming as ST
 from jaxdrive.generate.long_video import sample_long
 from jaxdrive.generate.windows import Tracker, WindowModel, sample_window
-from jaxdrive.models.conditions import Conditions
 from jaxdrive.models.dit import DiT
 from jaxdrive.models.dit_presets import preset
 from jaxdrive.models.latents import LatentCodec
@@ -193,3 +192,14 @@ def test_streaming_rejects_what_it_cannot_do():
         S.check_strategy("streaming", S.Models(windowed), 6, 1)
     with pytest.raises(ValueError, match=r"--strategy: a model trained frame by frame"):
         S.check_strategy("rollout", S.Models(model()), 6, 1)
+
+
+def test_guidance_evaluates_both_variants_with_the_same_past():
+    m = dataclasses.replace(model(), guidance=3.0)
+    first, controls = horizon_inputs(5, given=1)
+    controls = controls.replace(drop={"waypoints": np.zeros((1,), bool)})
+    key = jax.random.key(0)
+    guided = np.concatenate(list(S.run_strategy("streaming", S.Models(m), controls, first, 5, key=key)), axis=2)
+    plain = np.concatenate(list(S.run_strategy("streaming", S.Models(dataclasses.replace(m, guidance=1.0)), controls,
+                                               first, 5, key=key)), axis=2)
+    assert np.isfinite(guided).all() and float(np.abs(guided[:, :, 1:] - plain[:, :, 1:]).max()) > 1e-3

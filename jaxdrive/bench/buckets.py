@@ -52,12 +52,12 @@ def run(config_arg: str, sets, repeats: int, views: int, rebalance: bool = False
                             overwrite=True)
     state, optimizer, shardings = run.init_state(log=lambda *a: None)
     step, frozen = run.step_fn(optimizer, shardings), run.frozen_params()
-    batches, it = {}, iter(run.dataset())
+    groups = _groups(run)
+    batches, it = {}, iter(_drawing_run(config, groups).dataset())
     while len(batches) < len(run.buckets):
         b = next(it)
         key = (b["video"].shape[3], b["video"].shape[4], b["video"].shape[2])
         batches.setdefault(key, b)
-    groups = _groups(run)
 
     def measure(sizes: dict) -> list[dict]:
         nonlocal state
@@ -127,18 +127,34 @@ def run(config_arg: str, sets, repeats: int, views: int, rebalance: bool = False
 def _fit_batch(points, target: float, groups: int, max_batch: int) -> int:
     """The batch (a multiple of ``groups``, at most ``max_batch``) that the least-squares line
     ``step time = a + c * batch`` through a bucket's measured ``points`` puts at ``target``
-    seconds. All points, not the last two: a CPU's step times jitter by 10-20%, and a secant
+    seconds (through the origin while only one batch size is measured). All points, not the last two: a CPU's step times jitter by 10-20%, and a secant
     through two noisy points can slope the wrong way (round 4 of a 9-bucket run sent a bucket from
     batch 120 to 2). The slope is kept at least a fifth of the proportional one (time / batch)."""
     import numpy as np
     b, t = (np.asarray(v, float) for v in zip(*points))
-    slope = 0.0
+    proportional = t.mean() / b.mean()
+    slope = proportional                               # one batch size measured: time ~ batch
     if np.ptp(b) > 0:
-        slope = float(np.polyfit(b, t, 1)[0])
-    slope = max(slope, 0.2 * t.mean() / b.mean())
+        slope = max(float(np.polyfit(b, t, 1)[0]), 0.2 * proportional)
     a = t.mean() - slope * b.mean()
     want = (target - a) / slope
     return int(min(max(1, round(want / groups)) * groups, max_batch or 1 << 30))
+
+
+def _drawing_run(config, groups: int):
+    """A run like ``config``'s whose buckets draw ``groups`` clips a batch: one batch of each is
+    all the bench needs (it repeats its samples to any batch), and a large configured batch would
+    need that many clips of the bucket in the synthetic dataset (equal shares, whatever the
+    configured probabilities)."""
+    import dataclasses
+
+    from jaxdrive.data.pipeline import parse_bucket_specs
+    from jaxdrive.train.run import Run
+    if not config.data.buckets:
+        return Run(config)
+    specs = parse_bucket_specs(config.data.buckets)
+    small = tuple(f"{h}x{w}x{f}:{groups}:1" for h, w, f in specs)          # equal shares: each fills
+    return Run(dataclasses.replace(config, data=dataclasses.replace(config.data, buckets=small)))
 
 
 def _groups(run) -> int:

@@ -9,6 +9,9 @@ reports 145 frames in 70 s where Vista needs 95 s for 25) and to ``rollout``'s t
 frames. On a CPU a batched call costs about as much as its segments would one by one, so the
 sequential calls are the figure that transfers to an accelerator; ``coarse-fine (capped)`` caps
 the segments per fine call (``segment_batch``), which keeps device memory flat in the length.
+``streaming`` (STAGE) is the tiny model with an HTFT layer, its buffer of 10 frames fusing
+-1, -5, -10: one sequential call per frame, so its figure is ``s_per_frame``; ``programs`` is
+the number of programs each run compiled (streaming: one, whatever the length).
 """
 
 from __future__ import annotations
@@ -38,8 +41,14 @@ def _models(config, views: int, steps: int):
                                                                       height=d.height // 4, width=d.width // 4))
     base = WindowModel(dit, params, window=window, cond_frames=config.flow.cond_frames, steps=steps)
     refine = dataclasses.replace(base, jdc_anchor_rate=0.75)
+    from jaxdrive.generate.streaming import WINDOW
+    stage = DiT(config.model.replace(htft_layers=(0,)))
+    stage_params = jax.tree_util.tree_map(jax.numpy.asarray, stage.init_params(
+        0, batch=1, views=views, frames=WINDOW, height=d.height // 4, width=d.width // 4))
+    stream = WindowModel(stage, stage_params, window=WINDOW, cond_frames=1, steps=steps, streaming=True,
+                         stream_buffer=10, stream_taps=(-1, -5, -10))
     return {"main": base, "refine": refine, "coarse": dataclasses.replace(base, cond_frames=1, stride=window - 1),
-            "fine": dataclasses.replace(base, cond_frames=1, patterns=("prefix", "ends"))}
+            "fine": dataclasses.replace(base, cond_frames=1, patterns=("prefix", "ends")), "stream": stream}
 
 
 def _horizon(config, frames: int, views: int):
@@ -64,7 +73,8 @@ def run(frames_list, steps: int, views: int, segment_batch: int):
     m = _models(config, views, steps)
     cases = [("rollout", Models(m["main"]), {}), ("coarse-to-refine", Models(m["refine"]), {}),
              ("coarse-fine", Models(m["coarse"], m["fine"]), {}),
-             ("coarse-fine (capped)", Models(m["coarse"], m["fine"]), {"segment_batch": segment_batch})]
+             ("coarse-fine (capped)", Models(m["coarse"], m["fine"]), {"segment_batch": segment_batch}),
+             ("streaming", Models(m["stream"]), {})]
     rows, seconds = [], {}
     out = Path(tempfile.mkdtemp(prefix="jaxdrive-bench-longvideo-"))
     for frames in [config.data.frames] + list(frames_list):
@@ -74,7 +84,7 @@ def run(frames_list, steps: int, views: int, segment_batch: int):
             name = label.split(" ")[0]
             if frames == config.data.frames and name != "rollout":
                 continue                                   # one window: the rollout's single call
-            given = 1 if name == "coarse-fine" else config.flow.cond_frames
+            given = 1 if name in ("coarse-fine", "streaming") else config.flow.cond_frames
             # compile outside the figure: a first run of the same length (coarse-fine's batched
             # call has a shape of its own for every length)
             sample_long(name, models, codec, inputs["cond"], first[:, :, :given], frames, out / "warm",
@@ -84,15 +94,17 @@ def run(frames_list, steps: int, views: int, segment_batch: int):
                                  key=jax.random.key(0), log=lambda *a: None, **options)
             wall = time.perf_counter() - t
             seconds[(label, frames)] = wall
-            row = dict(strategy=label, frames=frames, seconds=round(wall, 2),
+            row = dict(strategy=label, frames=frames, seconds=round(wall, 2), s_per_frame=round(wall / frames, 4),
                        sequential_calls=report["sequential_sampler_calls"],
-                       peak_mib=round(report["peak_device_bytes"] / 2**20, 1))
+                       peak_mib=round(report["peak_device_bytes"] / 2**20, 1), programs=report["compiled_programs"])
             rows.append(row)
             ctx = dict(strategy=label, frames=frames, views=views, steps=steps, backend=jax.default_backend())
             emit(NAME, "seconds", row["seconds"], "s", **ctx)
             emit(NAME, "sequential_sampler_calls", row["sequential_calls"], "calls", **ctx)
             emit(NAME, "peak_device_memory", row["peak_mib"], "MiB", **ctx)
-    print(table(rows, ["strategy", "frames", "seconds", "sequential_calls", "peak_mib"]))
+            emit(NAME, "seconds_per_frame", row["s_per_frame"], "s", **ctx)
+            emit(NAME, "compiled_programs", row["programs"], "programs", **ctx)
+    print(table(rows, ["strategy", "frames", "seconds", "s_per_frame", "sequential_calls", "peak_mib", "programs"]))
     window = seconds[("rollout", config.data.frames)]
     if ("coarse-fine", 145) in seconds:
         cf = seconds[("coarse-fine", 145)]

@@ -70,10 +70,14 @@ def window_controls(controls: Conditions, j, temporal: int) -> Conditions:
             return v[:, pos]
         return controls.per_frame(take)
 
-    def gather(name, v):
-        ix = idx.reshape(idx.shape + (1,) * (v.ndim - 2))
-        return jnp.take_along_axis(v, ix, axis=1)
-    return controls.per_frame(gather)
+    return controls.per_frame(lambda name, v: gather_frames(v, idx, 1))
+
+
+def gather_frames(a, idx, axis: int):
+    """``a``'s entries ``idx [B, K]`` along ``axis`` for each sample ``b`` (per-clip frames),
+    keeping ``a``'s sharding (a gather with traced indices otherwise returns its own)."""
+    ix = idx.reshape(idx.shape[:1] + (1,) * (axis - 1) + idx.shape[1:] + (1,) * (a.ndim - axis - 1))
+    return reshard_like(jnp.take_along_axis(a, ix, axis=axis), a)
 
 
 def noise_like(key, x):
@@ -92,17 +96,27 @@ def window_inputs(model: WindowModel, anchor, prev, controls: Conditions):
     return x, mask, cond
 
 
-def _velocity(model: WindowModel, params, features_mask):
-    """``(x, sigma, cond, features) -> (v, the new slot's features {layer: [B, S, V, D]})``."""
+def _velocity(model: WindowModel, params):
+    """``(x, sigma, cond, past) -> (v, the new slot's features {layer: [B, S, V, D]})``; ``past``:
+    ``{"features": {layer: [B, K, S, V, D]}, "mask": [B, K]}`` or None (no HTFT). Both travel as
+    per-step inputs, so guidance stacks them with its variants like every other batch input."""
     m = model.dit.config
 
-    def velocity(x, sigma, c, features):
-        if features is not None:
-            c = c.replace(features=features, features_mask=features_mask)
+    def velocity(x, sigma, c, past):
+        if past is not None:
+            c = c.replace(features=past["features"], features_mask=past["mask"])
         out, feats = model.dit.forward(params, x, sigma, c, return_features=True)
         v = flow.velocity_from_output(out, x, sigma, m.prediction, m.prediction_min_sigma)
         return v, {k: f[:, NEW] for k, f in feats.items()}
     return velocity
+
+
+def _per_step(buffer, taps):
+    """The buffer's taps as per-step inputs: ``{"features": [steps, B, K, S, V, D] per layer,
+    "mask": [steps, B, K]}``."""
+    past, mask = buffer_select(buffer, taps)
+    steps = jax.tree_util.tree_leaves(past)[0].shape[0]
+    return {"features": past, "mask": jnp.broadcast_to(mask, (steps,) + mask.shape)}
 
 
 def stream_frame(model: WindowModel, taps: tuple[int, ...], params, anchor, prev, controls: Conditions, key,
@@ -123,12 +137,11 @@ def stream_frame(model: WindowModel, taps: tuple[int, ...], params, anchor, prev
     x0 = jnp.where(mask[:, None, :, None, None, None], x_cond, noise)
     guidance = None if null is None else model.guidance
     if buffer is None or not taps or not m.htft_layers:
-        out = flow.sample(lambda x, s, c: _velocity(model, params, None)(x, s, c, None)[0], x0, schedule,
+        out = flow.sample(lambda x, s, c: _velocity(model, params)(x, s, c, None)[0], x0, schedule,
                           cond=cond, null_cond=null, guidance_scale=guidance, cond_mask=mask)
         return out[:, :, NEW:], None
-    past, past_mask = buffer_select(buffer, taps)
-    out, feats = flow.sample(_velocity(model, params, past_mask), x0, schedule, cond=cond, null_cond=null,
-                             guidance_scale=guidance, cond_mask=mask, step_inputs=past)
+    out, feats = flow.sample(_velocity(model, params), x0, schedule, cond=cond, null_cond=null,
+                             guidance_scale=guidance, cond_mask=mask, step_inputs=_per_step(buffer, taps))
     return out[:, :, NEW:], buffer_push(buffer, feats)
 
 
@@ -141,15 +154,15 @@ def observe_frame(model: WindowModel, taps: tuple[int, ...], params, anchor, pre
     if sigmas is None:
         sigmas = flow.sampling_sigmas(model.steps, shift=model.shift)[:-1]
     noise = noise_like(key, frame)
-    past, past_mask = buffer_select(buffer, taps)
-    velocity = _velocity(model, params, past_mask)
+    velocity = _velocity(model, params)
 
     def step(_, xs):
-        s, feats = xs
+        s, past = xs
         x = x_cond.at[:, :, NEW:].set(flow.add_noise(frame, noise, jnp.broadcast_to(s, (frame.shape[0],))))
         levels = jnp.where(mask, 0.0, s)
-        return None, velocity(x, levels, cond, feats)[1]
-    _, new = jax.lax.scan(step, None, (jnp.asarray(sigmas, jnp.float32), past))
+        return None, velocity(x, levels, cond, past)[1]
+    sigmas = jnp.asarray(sigmas, jnp.float32)
+    _, new = jax.lax.scan(step, None, (sigmas, _per_step(buffer, taps)))
     return buffer_push(buffer, new)
 
 

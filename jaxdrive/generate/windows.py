@@ -86,6 +86,10 @@ class WindowModel:
         return self.jdc_anchor_rate > 0
 
 
+KEEP_PROGRAMS = 16
+_PROGRAMS: dict = {}          # compiled sampler programs of this process, least recently used first
+
+
 class Tracker:
     """Sequential sampler calls, their seconds, and the peak device bytes: on GPU/TPU the
     device's own peak (``memory_stats``); on CPU the largest sum of live device arrays after a
@@ -96,22 +100,29 @@ class Tracker:
         self.calls = 0
         self.peak_bytes = 0
         self.notes: dict = {}
-        self._compiled: dict = {}
+        self._used: set = set()
 
     @property
     def programs(self) -> int:
-        """Distinct programs compiled so far (one per function and input shapes)."""
-        return len(self._compiled)
+        """Distinct programs this tracker's calls ran (one per function and input shapes)."""
+        return len(self._used)
 
     def compiled(self, model: WindowModel, *args, fn=None, static=()):
         """``fn`` (default :func:`sample_window`, jitted with ``model`` and then ``static`` as
-        static arguments) compiled for ``args``' shapes, once per shape."""
+        static arguments) compiled for ``args``' shapes, once per shape and process (the last
+        :data:`KEEP_PROGRAMS` are kept: a second run of a strategy compiles nothing)."""
         fn = _SAMPLE if fn is None else fn
         leaves, tree = jax.tree_util.tree_flatten(args)
-        key = (fn, model, static, tree) + tuple((x.shape, str(x.dtype)) for x in leaves)
-        if key not in self._compiled:
-            self._compiled[key] = fn.lower(model, *static, *args).compile()
-        return self._compiled[key]
+        key = (fn, model, static, tree) + tuple((x.shape, str(x.dtype), getattr(x, "sharding", None))
+                                                 for x in leaves)
+        self._used.add(key)
+        if key in _PROGRAMS:
+            _PROGRAMS[key] = _PROGRAMS.pop(key)                     # most recently used last
+        else:
+            _PROGRAMS[key] = fn.lower(model, *static, *args).compile()
+            while len(_PROGRAMS) > KEEP_PROGRAMS:
+                _PROGRAMS.pop(next(iter(_PROGRAMS)))
+        return _PROGRAMS[key]
 
     def call(self, model: WindowModel, *args, fn=None, static=()):
         """One sequential sampler call, ``fn(model, *static, *args)`` (default

@@ -373,8 +373,10 @@ class DiT(nn.Module):
                                                              cam_to_ego, image_hw)
                 bt = pool_frames(bt, pt)
                 bm = jnp.any(bm.reshape(b, ft, pt, *bm.shape[2:]), axis=2)
-                bt = jnp.broadcast_to(bt, (b, ft, nv) + bt.shape[3:])
-                bm = jnp.broadcast_to(bm, (b, ft, nv) + bm.shape[3:])
+                # per-sample over the batch axes only: the encoder's reshapes over views may leave
+                # another layout, which the drop's per-sample select below cannot broadcast with
+                bt = constrain(jnp.broadcast_to(bt, (b, ft, nv) + bt.shape[3:]), ("batch", None, None, None, None))
+                bm = constrain(jnp.broadcast_to(bm, (b, ft, nv) + bm.shape[3:]), ("batch", None, None, None))
                 d = drop.get("boxes")
                 if d is not None:
                     first = jnp.arange(bm.shape[-1]) == 0
@@ -396,7 +398,8 @@ class DiT(nn.Module):
         if drop.get("map") is not None:
             bev = use_null(drop["map"], bev, jnp.zeros((), jnp.float32))
         m = MapEncoder(cfg.width, c.map_hidden, cfg.vae_temporal, dt, name="map_embed")(bev, nf, grid)
-        m = pool_frames(m, pt)                                             # [B, Ft, S, D]
+        # the encoder folds frames into the batch: put the batch back on the batch axes alone
+        m = constrain(pool_frames(m, pt), ("batch", "frames", "tokens", "embed"))   # [B, Ft, S, D]
         m = Dense(cfg.width, ("embed", None), dtype=dt, kernel_init=ZEROS, name="map_in")(m)
         video = _video(cfg, carry)
         branch = _with_video(cfg, carry, constrain(video + m[:, :, :, None], VIDEO))

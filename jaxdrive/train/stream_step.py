@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxdrive import flow
-from jaxdrive.generate.streaming import noise_like
+from jaxdrive.generate.streaming import gather_frames, noise_like
 from jaxdrive.models.htft import check_taps, write_slot
 from jaxdrive.models.tokens import VIDEO
 from jaxdrive.parallel.rules import constrain
@@ -65,7 +65,7 @@ def check_stream(config, latent_frames: int) -> None:
 def _frame(x, j):
     """Latent frame ``j`` (an int array ``[B]``, or a scalar) of ``x [B, V, F, h, w, C]`` as ``[B, V, 1, ...]``."""
     j = jnp.broadcast_to(jnp.asarray(j, jnp.int32), (x.shape[0],))
-    return jnp.take_along_axis(x, j.reshape(-1, 1, 1, 1, 1, 1), axis=2)
+    return gather_frames(x, j[:, None], 2)
 
 
 def _augment(key, prev, stream):
@@ -125,7 +125,7 @@ def past_features(training, params, x, given, cond, sigma, key):
     from the window ``[x_0, given_{p-1}, given_p noised]`` fusing its own taps among the frames
     before it: ``{layer: [B, F, S, V, D]}`` (frame 0 and F - 1 zero), without gradients."""
     from jaxdrive.generate.streaming import NEW, window_controls
-    dit, taps, temporal = training.dit, _taps(training), training.codec.temporal
+    taps, temporal = _taps(training), training.codec.temporal
     m = training.model
     b, v, nf, h, w, _ = x.shape
     s = (h // m.patch[1]) * (w // m.patch[2])
@@ -151,8 +151,7 @@ def select(store, j, taps):
     frame has no features)."""
     idx = j[:, None] + jnp.asarray(taps, jnp.int32)[None]
     mask = idx >= 1
-    pick = lambda a: jnp.take_along_axis(a, jnp.maximum(idx, 0).reshape(idx.shape + (1, 1, 1)), axis=1)
-    return {k: pick(a) for k, a in store.items()}, mask
+    return {k: gather_frames(a, jnp.maximum(idx, 0), 1) for k, a in store.items()}, mask
 
 
 def _forward(training, params, window, sigma, cond, features, features_mask):
@@ -195,7 +194,7 @@ def stream_loss_fn(training, params, x, inputs: dict, key):
     weight_map = None
     if loss_fields:
         frames = jnp.stack([jnp.zeros_like(j), temporal * (j - 1), temporal * j], axis=1)   # newest pixel frame
-        pick = lambda a: jnp.take_along_axis(a, frames.reshape(frames.shape + (1,) * (a.ndim - 2)), axis=1)
+        pick = lambda a: gather_frames(a, frames, 1)
         weight_map = flow.foreground_weight_map(pick(loss_fields["boxes"]), pick(loss_fields["box_valid"]),
                                                 loss_fields["intrinsics"], loss_fields["cam_to_ego"],
                                                 map_hw=(h, w), image_hw=hw, k=f.foreground_k, c=f.foreground_c)
