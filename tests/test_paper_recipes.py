@@ -151,21 +151,22 @@ def test_magicdrive_tiny_stages_grow_from_images_and_train_on_their_buckets(tmp_
 
 def test_stage_tiny_stages_train_htft_only_in_stage_2_and_stream(long_scenes, tmp_path, capsys):
     """STAGE at size=tiny: stage 1 (windows of recorded frames, no HTFT) -> 2 (HTFT added at zero,
-    only its parameters trained, from stage 1) -> 3 (conditions from the model's own rollout);
-    then ``--strategy streaming`` with the stage-3 model, and the options it refuses."""
+    only its parameters trained, from stage 1); then ``--strategy streaming`` with the stage-2
+    model, and the options it refuses. (Stage 3's loss, the model's own rollout as conditions, is
+    tested in tests/test_streaming.py; its config in test_stage_configs_take_their_argument.)"""
     import jax
 
     from jaxdrive.train.run import Run, load_run_config, restore_params
     # two steps: the first has the warm-up's zero learning rate, and a model whose output layer is
     # still at its zero initialisation passes no gradient back to HTFT
-    runs = {1: train("stage.py:size=tiny,stage=1", tmp_path / "stage1", long_scenes, steps=2)}
+    fast = ["data.frames=7", "stream.rollout_steps=2"]      # shorter scans over the clip than the config's
+    runs = {1: train("stage.py:size=tiny,stage=1", tmp_path / "stage1", long_scenes, *fast, steps=2)}
     with pytest.raises(ValueError, match=r"train.init_from: HTFT learning \(STAGE stage 2\)"):
         Run(load_config(f"{ROOT / 'configs' / 'stage.py'}:size=tiny,stage=2", [f"data.path={long_scenes}", *MESH]))
     capsys.readouterr()
     runs[2] = train("stage.py:size=tiny,stage=2", tmp_path / "stage2", long_scenes, f"train.init_from={runs[1]}",
-                    steps=2)
+                    *fast, steps=2)
     assert "kept the new initialisation of" in capsys.readouterr().out       # HTFT's, at zero output
-    runs[3] = train("stage.py:size=tiny,stage=3", tmp_path / "stage3", long_scenes, f"train.init_from={runs[2]}")
 
     def params(stage, ema):
         run = Run(load_run_config(runs[stage]))
@@ -176,7 +177,7 @@ def test_stage_tiny_stages_train_htft_only_in_stage_2_and_stream(long_scenes, tm
         np.testing.assert_array_equal(flat[path], value, err_msg=jax.tree_util.keystr(path))
     assert float(np.abs(after["htft_0"]["linear_out"]["kernel"]).max()) > 0   # HTFT trained off its zero
     out = tmp_path / "stream"
-    assert cli(["sample", "--workdir", str(runs[3]), "--strategy", "streaming", "--frames", "14", "--steps", "2",
+    assert cli(["sample", "--workdir", str(runs[2]), "--strategy", "streaming", "--frames", "14", "--steps", "2",
                 "--cfg", "1", "--out", str(out), "--no-progress"]) == 0
     report = json.loads((out / "report.json").read_text())
     assert (report["strategy"], report["frames"], report["sequential_sampler_calls"]) == ("streaming", 14, 13)
@@ -186,9 +187,9 @@ def test_stage_tiny_stages_train_htft_only_in_stage_2_and_stream(long_scenes, tm
     assert latents.shape == (2, 2, 14, 8, 14, 48) and np.isfinite(latents).all()
     capsys.readouterr()
     for workdir, extra, message in (
-            (runs[3], ["--taps=-1,-11"], "--taps: expected offsets in [-10, -1]"),
+            (runs[2], ["--taps=-1,-11"], "--taps: expected offsets in [-10, -1]"),
             (runs[1], ["--taps=-1"], "--taps: HTFT streaming needs a model with HTFT layers"),
-            (runs[3], ["--strategy", "rollout"], "--strategy: a model trained frame by frame"),
+            (runs[2], ["--strategy", "rollout"], "--strategy: a model trained frame by frame"),
             (long_scenes, [], "--workdir: expected a run directory")):
         args = ["sample", "--workdir", str(workdir), "--strategy", "streaming", "--frames", "14", *extra]
         assert cli([*args, "--out", str(tmp_path / "bad")]) == 2
