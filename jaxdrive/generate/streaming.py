@@ -38,7 +38,7 @@ from jaxdrive.models.htft import buffer_init, buffer_push, buffer_select
 from jaxdrive.parallel.rules import reshard_like
 
 WINDOW = 3                        # anchor, condition, new
-ANCHOR, CONDITION, NEW = range(WINDOW)
+NEW = 2                           # the new frame's slot
 COND_MASK = (True, True, False)
 
 
@@ -85,27 +85,34 @@ def noise_like(key, x):
     return reshard_like(jax.random.normal(key, x.shape, jnp.float32), x)
 
 
+def window_conditions(dit, window, cond: Conditions):
+    """``(cond_mask [B, 3], cond)`` of a streaming ``window [B, V, 3, h, w, C]``: the anchor and
+    condition slots given (and the condition-frame control fed the window)."""
+    mask = jnp.broadcast_to(jnp.asarray(COND_MASK), (window.shape[0], WINDOW))
+    if dit.config.controls.cond_frames is not None:
+        cond = cond.replace(cond_latents=window, cond_mask=mask)
+    return mask, cond
+
+
 def window_inputs(model: WindowModel, anchor, prev, controls: Conditions):
     """``(x_cond [B, V, 3, h, w, C] (the new slot zero), cond_mask [B, 3], conditions)`` of one
-    streaming window; the condition-frame control gets the two clean frames."""
+    streaming window to sample (no guidance drops)."""
     x = jnp.concatenate([anchor, reshard_like(prev, anchor), jnp.zeros_like(anchor)], axis=2)
-    mask = jnp.broadcast_to(jnp.asarray(COND_MASK), (x.shape[0], WINDOW))
-    cond = controls.replace(drop=None)
-    if model.dit.config.controls.cond_frames is not None:
-        cond = cond.replace(cond_latents=x, cond_mask=mask)
+    mask, cond = window_conditions(model.dit, x, controls.replace(drop=None))
     return x, mask, cond
 
 
-def _velocity(model: WindowModel, params):
-    """``(x, sigma, cond, past) -> (v, the new slot's features {layer: [B, S, V, D]})``; ``past``:
-    ``{"features": {layer: [B, K, S, V, D]}, "mask": [B, K]}`` or None (no HTFT). Both travel as
-    per-step inputs, so guidance stacks them with its variants like every other batch input."""
-    m = model.dit.config
+def window_velocity(dit, params):
+    """``(x, sigma, cond, past) -> (v, the new slot's features {layer: [B, S, V, D]})`` of ``dit``
+    on a streaming window; ``past``: ``{"features": {layer: [B, K, S, V, D]}, "mask": [B, K]}`` or
+    None (no HTFT). The sampler passes it as per-step inputs, so guidance stacks it with its
+    variants like every other batch input; the training step calls it directly."""
+    m = dit.config
 
     def velocity(x, sigma, c, past):
         if past is not None:
             c = c.replace(features=past["features"], features_mask=past["mask"])
-        out, feats = model.dit.forward(params, x, sigma, c, return_features=True)
+        out, feats = dit.forward(params, x, sigma, c, return_features=True)
         v = flow.velocity_from_output(out, x, sigma, m.prediction, m.prediction_min_sigma)
         return v, {k: f[:, NEW] for k, f in feats.items()}
     return velocity
@@ -137,10 +144,10 @@ def stream_frame(model: WindowModel, taps: tuple[int, ...], params, anchor, prev
     x0 = jnp.where(mask[:, None, :, None, None, None], x_cond, noise)
     guidance = None if null is None else model.guidance
     if buffer is None or not taps or not m.htft_layers:
-        out = flow.sample(lambda x, s, c: _velocity(model, params)(x, s, c, None)[0], x0, schedule,
+        out = flow.sample(lambda x, s, c: window_velocity(model.dit, params)(x, s, c, None)[0], x0, schedule,
                           cond=cond, null_cond=null, guidance_scale=guidance, cond_mask=mask)
         return out[:, :, NEW:], None
-    out, feats = flow.sample(_velocity(model, params), x0, schedule, cond=cond, null_cond=null,
+    out, feats = flow.sample(window_velocity(model.dit, params), x0, schedule, cond=cond, null_cond=null,
                              guidance_scale=guidance, cond_mask=mask, step_inputs=_per_step(buffer, taps))
     return out[:, :, NEW:], buffer_push(buffer, feats)
 
@@ -154,7 +161,7 @@ def observe_frame(model: WindowModel, taps: tuple[int, ...], params, anchor, pre
     if sigmas is None:
         sigmas = flow.sampling_sigmas(model.steps, shift=model.shift)[:-1]
     noise = noise_like(key, frame)
-    velocity = _velocity(model, params)
+    velocity = window_velocity(model.dit, params)
 
     def step(_, xs):
         s, past = xs
@@ -198,7 +205,7 @@ def streaming(models, controls: Conditions, first, length: int, *, key, tracker:
     first = np.asarray(first, np.float32)
     b, v, given, h, w, _ = first.shape
     htft = bool(taps)
-    buffer = to_mesh(new_buffer(model, b, v, (h, w)), None) if htft else None
+    buffer = new_buffer(model, b, v, (h, w)) if htft else None
     tracker.notes["stream"] = {"buffer_frames": model.stream_buffer if htft else 0, "taps": list(taps),
                                "buffer_bytes": buffer_bytes(model, b, v, (h, w)) if htft else 0}
     anchor = to_mesh(first[:, :, :1], mesh)

@@ -84,7 +84,8 @@ def stream_model(training, hw):
     """The :class:`jaxdrive.generate.windows.WindowModel` of the stage-3 rollout at ``hw`` pixels."""
     from jaxdrive.generate.windows import WindowModel
     s = training.stream
-    return WindowModel(training.dit, None, window=3, steps=s.rollout_steps, shift=_shift(training, hw),
+    from jaxdrive.generate.streaming import WINDOW
+    return WindowModel(training.dit, None, window=WINDOW, steps=s.rollout_steps, shift=_shift(training, hw),
                        streaming=True, stream_buffer=s.buffer, stream_taps=_taps(training))
 
 
@@ -124,7 +125,7 @@ def past_features(training, params, x, given, cond, sigma, key):
     """Stage 2 / 3: the HTFT features of frames ``1 .. F - 2`` at the levels ``sigma [B]``, each
     from the window ``[x_0, given_{p-1}, given_p noised]`` fusing its own taps among the frames
     before it: ``{layer: [B, F, S, V, D]}`` (frame 0 and F - 1 zero), without gradients."""
-    from jaxdrive.generate.streaming import NEW, window_controls
+    from jaxdrive.generate.streaming import window_controls
     taps, temporal = _taps(training), training.codec.temporal
     m = training.model
     b, v, nf, h, w, _ = x.shape
@@ -139,7 +140,7 @@ def past_features(training, params, x, given, cond, sigma, key):
         noise = noise_like(jax.random.fold_in(key, p), anchor)
         window = jnp.concatenate([anchor, _frame(given, pj - 1), flow.add_noise(_frame(given, pj), noise, sigma)], 2)
         _, out = _forward(training, params, window, sigma, window_controls(cond, pj, temporal), feats, mask)
-        return {i: write_slot(store[i], out[i][:, NEW], p, 1) for i in store}, None
+        return {i: write_slot(store[i], out[i], p, 1) for i in store}, None
     if nf > 2:
         store, _ = jax.lax.scan(frame, store, jnp.arange(1, nf - 1))
     return jax.lax.stop_gradient(store)
@@ -155,17 +156,13 @@ def select(store, j, taps):
 
 
 def _forward(training, params, window, sigma, cond, features, features_mask):
-    """The DiT on a streaming window (the first two frames clean): ``(velocity, features)``."""
-    from jaxdrive.generate.streaming import COND_MASK
-    m = training.model
-    mask = jnp.broadcast_to(jnp.asarray(COND_MASK), (window.shape[0], 3))
+    """The DiT on a streaming window, the new frame at ``sigma [B]``: ``(velocity, the new slot's
+    features)`` (:func:`jaxdrive.generate.streaming.window_velocity`, as the sampler)."""
+    from jaxdrive.generate.streaming import window_conditions, window_velocity
+    mask, cond = window_conditions(training.dit, window, cond)
     levels = jnp.where(mask, 0.0, sigma[:, None])
-    if m.controls.cond_frames is not None:
-        cond = cond.replace(cond_latents=window, cond_mask=mask)
-    if features is not None and m.htft_layers and training.stream.taps:
-        cond = cond.replace(features=features, features_mask=features_mask)
-    out, feats = training.dit.forward(params, window, levels, cond, return_features=True)
-    return flow.velocity_from_output(out, window, levels, m.prediction, m.prediction_min_sigma), feats
+    past = None if features is None else {"features": features, "mask": features_mask}
+    return window_velocity(training.dit, params)(window, levels, cond, past)
 
 
 def stream_loss_fn(training, params, x, inputs: dict, key):
