@@ -121,6 +121,32 @@ def test_streaming_without_taps_is_frame_by_frame_rollout_of_the_window_sampler(
     assert tracker.notes["stream"]["buffer_bytes"] == 0
 
 
+def test_streamed_frames_are_kept_in_the_latents_range():
+    """Each streamed frame is the next one's condition frame: a value no encoded frame can have is
+    clipped to the codec's range before it is fed back (and the next frames are sampled from it)."""
+    m = model(htft=False)
+    length, r = 4, 0.5
+    first, controls = horizon_inputs(length, given=1)
+    key = jax.random.key(2)
+
+    def stream(wm):
+        return np.concatenate(list(S.run_strategy("streaming", S.Models(wm), controls, first, length, key=key,
+                                                  taps=())), axis=2)
+    free = stream(m)
+    assert m.value_range is None and np.abs(free[:, :, 1:]).max() > 2 * r     # unbounded without a range
+    got = stream(dataclasses.replace(m, value_range=(-r, r)))
+    assert np.abs(got[:, :, 1:]).max() <= r
+    np.testing.assert_allclose(got[:, :, 1], np.clip(free[:, :, 1], -r, r), atol=1e-6)
+    # frame 2 is sampled from the clipped frame 1, not merely clipped itself
+    assert np.abs(got[:, :, 2] - np.clip(free[:, :, 2], -r, r)).max() > 1e-3
+    # the codecs' ranges: space-to-depth latents of [-1, 1] pixels, scaled; a VAE's are unbounded
+    codec = LatentCodec("space_to_depth", 4, 0.5)
+    video = np.random.default_rng(0).choice([-1.0, 1.0], size=(1, 1, 1, 16, 32, 3)).astype(np.float32)
+    z = np.asarray(codec.encode(None, video))
+    assert codec.value_range == (-0.5, 0.5) == (z.min(), z.max())
+    assert LatentCodec("vae", vae=object()).value_range is None
+
+
 def test_given_frames_are_observed_into_the_buffer_and_kept():
     m = model()
     first, controls = horizon_inputs(6, given=3)
@@ -154,6 +180,23 @@ def _training(m: WindowModel, stream: StreamConfig):
     return FlowTraining(m.dit.config, FlowConfig(shift=m.shift), LatentCodec("space_to_depth", 4), stream=stream)
 
 
+def test_condition_frame_augmentation_degrades_its_share_then_adds_noise():
+    from jaxdrive.train.stream_step import _augment
+    prev = jnp.asarray(np.random.default_rng(2).normal(size=(64, 2, 1, H, W, C)), jnp.float32)
+    key = jax.random.key(5)
+    every = _augment(key, prev, StreamConfig(degrade_rate=1.0, degrade_keep=0.5, cond_noise=0.0))
+    np.testing.assert_allclose(every, flow.degrade_frames(prev, jnp.ones((64, 1), bool), 0.5), atol=1e-6)
+    assert float(jnp.abs(every - prev).max()) > 0.1
+    none = _augment(key, prev, StreamConfig(degrade_rate=0.0, cond_noise=0.0))
+    np.testing.assert_array_equal(none, prev)
+    noisy = np.asarray(_augment(key, prev, StreamConfig(degrade_rate=0.0, cond_noise=0.1)) - prev)
+    assert abs(noisy.std() - 0.1) < 0.005 and abs(noisy.mean()) < 0.005
+    # a share: about 30% of the clips degraded (each clip all or nothing)
+    some = np.asarray(_augment(key, prev, StreamConfig(degrade_rate=0.3, degrade_keep=0.5, cond_noise=0.0)))
+    changed = np.abs(some - np.asarray(prev)).reshape(64, -1).max(axis=1) > 1e-6
+    assert 8 <= changed.sum() <= 32
+
+
 def test_training_sees_what_the_sampler_buffer_holds_and_stage_3_conditions_on_its_own_rollout():
     from jaxdrive.train import stream_step
     m = model()
@@ -173,9 +216,12 @@ def test_training_sees_what_the_sampler_buffer_holds_and_stage_3_conditions_on_i
     rolled = stream_step.self_rollout(training, m.params, x, controls, key)
     assert rolled.shape == (1, 2, nf - 1, H, W, C)
     np.testing.assert_array_equal(rolled[:, :, 0], x[:, :, 0])
-    want = np.concatenate(list(S.run_strategy("streaming", S.Models(m), controls, np.asarray(x[:, :, :1]), nf - 1,
-                                              key=key)), axis=2)
+    # (the training codec's latents lie in [-1, 1]: its rollout clips as the sampler of that codec does)
+    sampler = dataclasses.replace(m, value_range=(-1.0, 1.0))
+    want = np.concatenate(list(S.run_strategy("streaming", S.Models(sampler), controls, np.asarray(x[:, :, :1]),
+                                              nf - 1, key=key)), axis=2)
     np.testing.assert_allclose(rolled, want, atol=2e-5)
+    assert np.abs(rolled[:, :, 1:]).max() <= 1.0
     assert float(jnp.abs(rolled[:, :, 1:] - x[:, :, 1:nf - 1]).min()) > 0
     # and the loss of a window is finite and has gradients for HTFT
     loss, grads = jax.value_and_grad(lambda p: stream_step.stream_loss_fn(

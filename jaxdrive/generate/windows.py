@@ -38,7 +38,8 @@ class WindowModel:
     TPD, JDC slope and alpha1, the condition ``patterns`` and ``anchor_every``), the sampling
     ``steps`` and the guidance scale. ``stride``: source frames between its training frames (a
     coarse model's low rate). ``streaming``: trained frame by frame (STAGE, ``stream.enabled``),
-    with an HTFT buffer of ``stream_buffer`` frames fusing ``stream_taps`` (empty: HTFT off)."""
+    with an HTFT buffer of ``stream_buffer`` frames fusing ``stream_taps`` (empty: HTFT off).
+    ``value_range``: the interval its codec's latents lie in (``LatentCodec.value_range``), or None."""
 
     dit: DiT
     params: Any = dataclasses.field(compare=False, hash=False, repr=False)
@@ -60,6 +61,7 @@ class WindowModel:
     streaming: bool = False
     stream_buffer: int = 10
     stream_taps: tuple[int, ...] = ()
+    value_range: tuple[float, float] | None = None
 
     @classmethod
     def from_sampling(cls, spec, params, *, steps: int | None = None, guidance: float = 1.0) -> "WindowModel":
@@ -78,7 +80,8 @@ class WindowModel:
                    jdc_anchor_rate=f.jdc_anchor_rate, stride=spec.frame_stride, temporal=spec.codec.temporal,
                    lengths=tuple(sorted(lengths)), streaming=spec.stream.enabled,
                    stream_buffer=spec.stream.buffer,
-                   stream_taps=tuple(spec.stream.taps) if spec.model.htft_layers else ())
+                   stream_taps=tuple(spec.stream.taps) if spec.model.htft_layers else (),
+                   value_range=spec.codec.value_range)
 
     @property
     def trained_anchors(self) -> bool:

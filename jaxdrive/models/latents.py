@@ -78,6 +78,12 @@ class LatentCodec:
     def temporal(self) -> int:
         return 1 if self.vae is None or self.vae.config.mode == "frame_wise" else self.vae.config.temporal_compression
 
+    @property
+    def value_range(self) -> tuple[float, float] | None:
+        """The interval every encoded latent lies in: ``(-scale, scale)`` for space-to-depth
+        latents (pixels in [-1, 1], rearranged and scaled); None for a VAE's (unbounded)."""
+        return (-self.scale, self.scale) if self.vae is None else None
+
     def latent_frames(self, frames: int) -> int:
         return frames if self.vae is None else self.vae.latent_frames(frames)
 

@@ -86,7 +86,8 @@ def stream_model(training, hw):
     s = training.stream
     from jaxdrive.generate.streaming import WINDOW
     return WindowModel(training.dit, None, window=WINDOW, steps=s.rollout_steps, shift=_shift(training, hw),
-                       streaming=True, stream_buffer=s.buffer, stream_taps=_taps(training))
+                       streaming=True, stream_buffer=s.buffer, stream_taps=_taps(training),
+                       value_range=training.codec.value_range)
 
 
 def _taps(training) -> tuple[int, ...]:
