@@ -203,6 +203,26 @@ def test_stage_tiny_stages_train_htft_only_in_stage_2_and_stream(long_scenes, tm
                         [f"data.path={long_scenes}", "stream.taps=-1", *MESH]))
 
 
+def test_stage_sampler_shifts_as_its_training_step():
+    """At paper size the shift is the resolution rule's (flow.shift=0), which counts the frames of
+    one sampler call: a streaming model's are the window's 3, in the sampler as in the step (not
+    the 12 of data.frames)."""
+    from types import SimpleNamespace
+
+    from jaxdrive.flow import resolution_shift
+    from jaxdrive.generate.samples import Sampling
+    from jaxdrive.generate.windows import WindowModel
+    from jaxdrive.models.latents import LatentCodec
+    from jaxdrive.train.stream_step import _shift
+    config = load_config(f"{ROOT / 'configs' / 'stage.py'}:size=paper,stage=3")
+    d = config.data
+    assert config.flow.shift == 0 and d.frames == 12
+    spec = Sampling(config.model, LatentCodec("space_to_depth", 8), None, d, config.flow, stream=config.stream)
+    shift = WindowModel.from_sampling(spec, None).shift
+    assert shift == pytest.approx(_shift(SimpleNamespace(flow=config.flow), (d.height, d.width)))
+    assert shift == pytest.approx(resolution_shift(512, 768, 3))
+
+
 @pytest.mark.parametrize("stage", [1, 2, 3])
 @pytest.mark.parametrize("size", ["tiny", "paper"])
 def test_stage_configs_take_their_argument(size, stage):

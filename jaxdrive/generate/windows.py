@@ -72,7 +72,11 @@ class WindowModel:
         lengths = {spec.latent_window}
         if d.buckets:
             lengths = {spec.codec.latent_frames(k[2]) for k in parse_bucket_specs(d.buckets)}
-        shift = f.shift if f.shift > 0 else flow.resolution_shift(d.height, d.width, spec.latent_window)
+        # the resolution rule counts the frames one sampler call denoises: a streaming model's
+        # window is [anchor, condition, new] (as its training step counts it), not data.frames
+        from jaxdrive.generate.streaming import WINDOW
+        shift = f.shift if f.shift > 0 else flow.resolution_shift(
+            d.height, d.width, WINDOW if spec.stream.enabled else spec.latent_window)
         return cls(DiT(spec.model), params, window=spec.latent_window, cond_frames=max(1, f.cond_frames),
                    steps=spec.steps if steps is None else check_positive_int("steps", steps), guidance=guidance,
                    shift=shift, tpd=f.tpd, tpd_omega=f.tpd_omega, jdc_slope=f.jdc_slope, jdc_alpha1=f.jdc_alpha1,
