@@ -35,7 +35,7 @@ def trajectory_poses(points, frames: int, *, times=None, degree: int = 3) -> np.
     to ``frames - 1``). LongDWM appendix A.1: an interpolating B-spline of degree
     ``min(degree, K - 1)`` (``scipy.interpolate.make_interp_spline``) through the points, leaving
     the first along the ego's x axis (frame 0's pose is the identity); the heading is the
-    tangent's direction, held where the ego stands still (a stop)."""
+    tangent's direction, held where the ego stands still (under 1 cm a frame: a stop)."""
     from scipy.interpolate import make_interp_spline
     pts = np.asarray(points, np.float64)
     if pts.ndim != 2 or pts.shape[1] != 2 or pts.shape[0] < 2:
@@ -59,7 +59,8 @@ def trajectory_poses(points, frames: int, *, times=None, degree: int = 3) -> np.
     xy, dxy = spline(s), spline.derivative()(s)
     speed = np.hypot(dxy[:, 0], dxy[:, 1])
     yaw = np.arctan2(dxy[:, 1], dxy[:, 0])
-    moving = speed > 1e-6
+    # below 1 cm a frame the tangent is the spline's ringing about a standstill, not a heading
+    moving = speed > 1e-2
     if not moving.any():
         yaw[:] = 0.0
     else:   # standing still: keep the last heading (the first one before the ego moves)
