@@ -50,6 +50,9 @@ class DataConfig:
     # mixed resolution / length training (MagicDrive-V2 appendix B): "HxWxF:batch[:prob]" each, the
     # batch global; F = 1 is an image bucket. (): one bucket, height x width x frames at batch_size
     buckets: tuple[str, ...] = ()
+    # LongDWM's warp-guided control (models with controls.warp): the one depth, in metres, at which
+    # the first frame is warped along the clip's poses (jaxdrive.warp); beyond the clip's travel
+    warp_depth: float = 20.0
 
 
 @dataclasses.dataclass(frozen=True)

@@ -74,6 +74,11 @@ def model_inputs(batch: dict, model: DiTConfig, text_embeddings: TextEmbeddings 
     ``teacher``, ``teacher`` holds the fine model's ``cond`` and the ego poses (:data:`POSES`)."""
     x = "latents" if "latents" in batch else "video"          # precomputed latent windows or pixels
     out = {x: np.asarray(batch[x], np.float32), "cond": conditions(batch, model, text_embeddings)}
+    if model.controls.warp:
+        if "warp_video" not in batch:
+            raise ValueError("batch: expected 'warp_video' (the pipeline's warp_depth > 0) for a model with "
+                             "controls.warp, got a batch without it")
+        out["warp_video"] = np.asarray(batch["warp_video"], np.float32)     # encoded by the step, like video
     if foreground:
         out["loss"] = {k: np.asarray(batch[k]) for k in LOSS_FIELDS}
     if teacher is not None:

@@ -448,12 +448,24 @@ class _BatchPlan:
         self._lock = threading.Lock()
 
 
+def clip_warp(sample: Mapping, depth: float) -> np.ndarray:
+    """LongDWM's warped frames of a training sample (sec. 3.4: from the clip's own future poses, so
+    the model learns to correct the warp's distortions): its first frame of every view warped
+    along the sample's ego poses at one ``depth``, holes inpainted on the host
+    (:func:`jaxdrive.warp.warp_views`): ``[V, F, H, W, 3]`` in [-1, 1] like ``video``."""
+    from jaxdrive.warp import warp_views
+    e2w = np.asarray(sample["ego_to_world"], np.float64)
+    poses = np.linalg.inv(e2w[0]) @ e2w
+    return warp_views(np.asarray(sample["video"])[:, 0], np.asarray(sample["intrinsics"]),
+                      np.asarray(sample["cam_to_ego"]), poses.astype(np.float32), depth)
+
+
 class _LoadBatch:
     """Loads, transforms and collates the clips of one batch spec (picklable for grain workers)."""
 
-    def __init__(self, source, plan: _BatchPlan, *, views, crop, drop_probs, max_boxes):
+    def __init__(self, source, plan: _BatchPlan, *, views, crop, drop_probs, max_boxes, warp_depth=0.0):
         self.source, self.plan, self.views, self.crop = source, plan, views, crop
-        self.drop_probs, self.max_boxes = dict(drop_probs), max_boxes
+        self.drop_probs, self.max_boxes, self.warp_depth = dict(drop_probs), max_boxes, warp_depth
 
     def __call__(self, spec) -> dict:
         epoch, b, indices = spec
@@ -473,6 +485,8 @@ class _LoadBatch:
                                 stride=self.plan.stride, start=start, views=self.views, crop=self.crop,
                                 rng=rng, where=f"source clip {int(idx)}", head=self.plan.rate_head,
                                 tail_stride=tail)
+            if self.warp_depth > 0:
+                s["warp_video"] = clip_warp(s, self.warp_depth)
             s["drop"] = {n: bool(rng.random() < p) for n, p in sorted(self.drop_probs.items())}
             s["index"] = np.int64(idx)
             samples.append(s)
@@ -484,7 +498,7 @@ def make_pipeline(source, buckets, *, stride: int = 1, views=None, crop: str = "
                   seed: int = 0, num_epochs: int | None = None, shard_index: int | None = None,
                   shard_count: int | None = None, frame_counts: Sequence[int] | None = None,
                   num_threads: int = 4, prefetch: int = 8, compression: int = 4, rate_head: int = 0,
-                  rate_strides: Sequence[int] = ()) -> grain.IterDataset:
+                  rate_strides: Sequence[int] = (), warp_depth: float = 0.0) -> grain.IterDataset:
     """A grain ``IterDataset`` of training batches from a random-access clip ``source``.
 
     ``buckets``: ``{(H, W, F): batch_size}`` or ``{(H, W, F): (batch_size, prob)}`` with
@@ -494,7 +508,8 @@ def make_pipeline(source, buckets, *, stride: int = 1, views=None, crop: str = "
     ``num_epochs=None`` repeats forever. ``iter(ds)`` has grain's ``get_state`` / ``set_state``.
     ``rate_head`` / ``rate_strides``: mixed frame rates (module docstring; ``sample_clip``'s
     ``head`` and ``tail_stride``, one tail stride per clip drawn from ``rate_strides``; empty:
-    ``stride`` throughout).
+    ``stride`` throughout). ``warp_depth`` > 0: each sample also gets ``warp_video``
+    (:func:`clip_warp`, LongDWM's warp-guided control).
     """
     parsed = parse_buckets(buckets, compression=compression)
     stride = check_positive_int("stride", stride)
@@ -520,6 +535,11 @@ def make_pipeline(source, buckets, *, stride: int = 1, views=None, crop: str = "
             raise ValueError(f"drop_probs[{name!r}]: expected a probability in [0, 1], got {p!r}")
     if max_boxes is not None:
         check_positive_int("max_boxes", max_boxes)
+    if not (np.isfinite(warp_depth) and warp_depth >= 0):
+        raise ValueError(f"warp_depth: expected a depth in metres >= 0 (0: no warped frames), got {warp_depth}")
+    if warp_depth > 0 and getattr(source, "kind", "clips") == "windows":
+        raise ValueError("warp_depth: expected 0 for a source of latent windows (no pixels to warp), "
+                         f"got {warp_depth}")
     if len(source) == 0:
         raise ValueError(f"source: expected at least one clip, got an empty {source!r}")
     if frame_counts is None:
@@ -531,6 +551,7 @@ def make_pipeline(source, buckets, *, stride: int = 1, views=None, crop: str = "
         raise ValueError(f"frame_counts: expected {len(source)} counts (one per clip), got {len(frame_counts)}")
     plan = _BatchPlan(frame_counts, parsed, stride=stride, seed=seed, shard_index=int(shard_index),
                       shard_count=shard_count, num_epochs=num_epochs, rate_head=rate_head, rate_strides=rate_strides)
-    load = _LoadBatch(source, plan, views=views, crop=crop, drop_probs=drop_probs, max_boxes=max_boxes)
+    load = _LoadBatch(source, plan, views=views, crop=crop, drop_probs=drop_probs, max_boxes=max_boxes,
+                      warp_depth=float(warp_depth))
     return grain.MapDataset.source(plan).map(load).to_iter_dataset(
         grain.ReadOptions(num_threads=num_threads, prefetch_buffer_size=prefetch))

@@ -48,7 +48,7 @@ CONTROL_OF = {"fps": "fps", "intrinsics": "camera", "cam_to_ego": "camera", "way
 # Fields with a (pixel or latent) frame axis at 1; the others are per clip or per view.
 PER_FRAME = ("waypoints", "ego_to_world", "boxes", "box_classes", "box_valid", "bev_map", "frame_times")
 # The data pipeline's drop names (jaxdrive.data.pipeline.CONDITIONS) -> the DiT conditions they drop.
-BATCH_DROPS = {"text": ("text",), "camera": ("camera",), "trajectory": ("trajectory", "waypoints"),
+BATCH_DROPS = {"text": ("text",), "camera": ("camera",), "trajectory": ("trajectory", "waypoints", "warp"),
                "boxes": ("boxes",), "map": ("map",)}
 
 

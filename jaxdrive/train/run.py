@@ -126,6 +126,21 @@ def abstract_train_state(model, optim_config, total_steps: int, mesh, *, seed: i
     return jax.tree_util.tree_map(on_mesh, shapes), optimizer
 
 
+def check_warp(config: Config) -> None:
+    """LongDWM's warp-guided control needs pixel clips to warp, and one window per clip:
+    ``ValueError`` naming the option that rules it out."""
+    d = config.data
+    if not (np.isfinite(d.warp_depth) and d.warp_depth > 0):
+        raise ValueError(f"data.warp_depth: expected a positive depth in metres for a model with controls.warp, "
+                         f"got {d.warp_depth}")
+    for name, value, ok in (("latents.precomputed", config.latents.precomputed, False),
+                            ("flow.distill_teacher", config.flow.distill_teacher, ""),
+                            ("stream.enabled", config.stream.enabled, False)):
+        if value != ok:
+            raise ValueError(f"{name}: expected {ok!r} with model.controls.warp (the warp is made from the clip's "
+                             f"pixels, one warped clip per window), got {value!r}")
+
+
 def global_micro_batches(inputs: list[dict], mesh):
     """This process's micro-batches (host model inputs) -> one global ``[A, b, ...]`` tree with
     ``b`` over the mesh's batch axes (``data``/``fsdp``) and the rest replicated."""
@@ -176,6 +191,8 @@ class Run:
             self.frame_stride = d.stride * (config.flow.distill_segment_len - 1)
         from jaxdrive.train.stream_step import check_stream
         check_stream(config, self.latent_frames)
+        if model.controls.warp:
+            check_warp(config)
         self.tokens_per_step = self.tokens(d.batch_size, d.height, d.width, self.latent_frames)
         self.text = None
         if model.controls.text == "embeddings":
@@ -289,7 +306,8 @@ class Run:
                              views=list(range(d.views)), drop_probs={n: d.drop_prob for n in CONDITIONS},
                              seed=d.shuffle_seed, num_threads=d.threads, prefetch=2 if d.threads else 0,
                              compression=max(self.codec.temporal, 1), rate_head=d.rate_head,
-                             rate_strides=d.rate_strides)
+                             rate_strides=d.rate_strides,
+                             warp_depth=d.warp_depth if self.training.model.controls.warp else 0.0)
 
     def global_batch(self, micro_batches: list[dict]):
         """Host micro-batches (this process's samples) -> one global ``[A, b, ...]`` tree."""
