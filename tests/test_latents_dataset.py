@@ -181,7 +181,7 @@ def test_encode_shows_progress_unless_turned_off(datasets, tmp_path, capsys):
 class StandIn:
     """A stand-in DiT whose velocity is ``-x/2`` (a model is a static jit argument: hashable)."""
 
-    config = SimpleNamespace(controls=SimpleNamespace(cond_frames=None), prediction="velocity",
+    config = SimpleNamespace(controls=SimpleNamespace(cond_frames=None, warp=False), prediction="velocity",
                              prediction_min_sigma=0.05)
 
     @staticmethod

@@ -76,7 +76,7 @@ class StillModel:
     """A stand-in DiT whose velocity is 0: the sampler returns its start state, so a window's
     output shows how the strategy initialised it (hashable: a static jit argument)."""
 
-    config = SimpleNamespace(controls=SimpleNamespace(cond_frames=None), prediction="velocity",
+    config = SimpleNamespace(controls=SimpleNamespace(cond_frames=None, warp=False), prediction="velocity",
                              prediction_min_sigma=0.05)
 
     @staticmethod

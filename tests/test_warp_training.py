@@ -80,3 +80,96 @@ def test_the_step_encodes_the_warped_clip_into_the_dit_and_learns_its_embedding(
 def test_what_rules_the_warp_out_is_refused(data, sets, match):
     with pytest.raises(ValueError, match=match):
         Run(config(data, *sets))
+
+
+# ------------------------------------------------------------------ sampling
+def _warp_model():
+    import flax.linen as nn
+    import jax
+    import jax.numpy as jnp
+
+    from jaxdrive.generate.windows import WindowModel
+    from jaxdrive.models.dit import DiT
+    from jaxdrive.models.dit_presets import preset
+    from strategy_fixtures import C, H, W
+    cfg = preset("tiny", in_channels=C, vae_spatial=4, vae_temporal=1, patch=(1, 2, 2), prediction="data",
+                 controls=dict(waypoints=True, fps=True, warp=True, cond_frames="replace"))
+    dit = DiT(cfg)
+    params = jax.tree_util.tree_map(jnp.asarray, nn.unbox(dit.init_params(0, batch=1, views=2, frames=4,
+                                                                          height=H, width=W)))
+    keys = iter(jax.random.split(jax.random.key(1), len(jax.tree_util.tree_leaves(params))))
+    # every parameter off its initialisation (the warp embedding and the output layer start at zero)
+    params = jax.tree_util.tree_map(lambda p: p + 0.05 * jax.random.normal(next(keys), p.shape), params)
+    return WindowModel(dit, params, window=4, cond_frames=2, steps=2)
+
+
+class _Spy:
+    """A warp guide that records what each window asks for and answers a constant per call."""
+
+    def __init__(self, scale=1.0):
+        self.calls, self.scale = [], scale
+
+    def window(self, first, frames):
+        self.calls.append((np.asarray(first).copy(), np.asarray(frames)))
+        return np.full(first.shape[:2] + (len(frames),) + first.shape[3:], self.scale * len(self.calls), np.float32)
+
+
+def test_every_window_warps_its_own_first_frame_and_the_warp_steers_it():
+    import jax
+
+    from jaxdrive.generate import strategies as S
+    from strategy_fixtures import horizon_inputs
+    m = _warp_model()
+    first, controls = horizon_inputs(10, given=2)
+    spy = _Spy()
+    out = np.concatenate(list(S.run_strategy("rollout", S.Models(m), controls, first, 10, key=jax.random.key(0),
+                                             warp=spy)), axis=2)
+    assert [list(f) for _, f in spy.calls] == [list(range(s, s + 4)) for s in (0, 2, 4, 6)]
+    for (got_first, frames) in spy.calls:          # the horizon's frame at the window's start, as it was then
+        np.testing.assert_array_equal(got_first, out[:, :, frames[:1]])
+    other = np.concatenate(list(S.run_strategy("rollout", S.Models(m), controls, first, 10, key=jax.random.key(0),
+                                               warp=_Spy(scale=-1.0))), axis=2)
+    assert np.abs(other[:, :, 2:] - out[:, :, 2:]).max() > 1e-4
+    with pytest.raises(ValueError, match="warp: a model trained with warped frames"):
+        list(S.run_strategy("rollout", S.Models(m), controls, first, 10, key=jax.random.key(0)))
+
+
+def test_the_guide_warps_the_decoded_first_frame_along_the_window_poses_and_encodes_it():
+    from jaxdrive.data.synthetic import generate_clip
+    from jaxdrive.generate.warps import WarpGuide
+    from jaxdrive.models.latents import LatentCodec
+    from jaxdrive.warp import warp_views
+    clip = generate_clip(1, views=6, frames=6, height=32, width=48)
+    video = clip["video"][None, :2].astype(np.float32) / 127.5 - 1               # [1, 2, 6, H, W, 3]
+    codec = LatentCodec("space_to_depth", 4)
+    guide = WarpGuide(codec, None, clip["ego_to_world"][None], clip["intrinsics"][None, :2],
+                      clip["cam_to_ego"][None, :2], 12.0)
+    z = np.asarray(codec.encode(None, video))
+    got = guide.window(z[:, :, 2:3], [2, 3, 4, 5])
+    e2w = clip["ego_to_world"].astype(np.float64)
+    rel = (np.linalg.inv(e2w[2]) @ e2w[2:6]).astype(np.float32)
+    want = codec.encode(None, warp_views(video[0, :, 2], clip["intrinsics"][:2], clip["cam_to_ego"][:2], rel,
+                                         12.0)[None])
+    np.testing.assert_allclose(got, want, atol=1e-5)
+    np.testing.assert_allclose(got[:, :, 0], z[:, :, 2], atol=1e-5)              # the first frame unmoved
+    with pytest.raises(ValueError, match="poses: expected a pose for pixel frame 6"):
+        guide.window(z[:, :, 2:3], [4, 5, 6])
+
+
+def test_a_warp_run_trains_and_samples_through_the_cli(data, tmp_path):
+    """``jaxdrive train`` with the warp control, then ``jaxdrive sample --strategy rollout``: its
+    windows warp along the validation clip's recorded poses at the run's data.warp_depth."""
+    import json
+
+    from jaxdrive.cli import main as cli
+    args = ["train", "--config", str(ROOT / "configs" / "tiny.py"), "--workdir", str(tmp_path / "run"), "--steps",
+            "1", "--no-progress"]
+    for s in [f"data.path={data}", *WARP, "data.warp_depth=18"]:
+        args += ["--set", s]
+    assert cli(args) == 0
+    out = tmp_path / "sample"
+    assert cli(["sample", "--workdir", str(tmp_path / "run"), "--strategy", "rollout", "--frames", "9", "--steps", "2",
+                "--out", str(out), "--no-progress"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["warp"] == {"depth": 18.0} and report["frames"] == 9
+    assert np.isfinite(np.load(out / "latents.npy")).all()

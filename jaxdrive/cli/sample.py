@@ -111,6 +111,9 @@ def sample_strategy(args) -> int:
         window = models.main.window
         pixels = np.asarray(inputs["video"])[:, :, :codec.pixel_frames(max(window, given))]
         first = np.asarray(codec.encode(codec.params, pixels))[:, :, :given]
+    if any(m is not None and m.dit.config.controls.warp for m in (shapes.main, shapes.fine)):
+        from jaxdrive.generate.warps import WarpGuide      # LongDWM: each window's first frame warped
+        options["warp"] = WarpGuide.from_inputs(inputs, codec, depth=horizon_spec.data.warp_depth)
     recorded = np.asarray(inputs["video"][0]) if "video" in inputs else None
     fps = float(np.asarray(inputs["cond"].fps)[0]) if inputs["cond"].fps is not None else \
         12.0 / horizon_spec.frame_stride

@@ -74,11 +74,12 @@ def model_inputs(batch: dict, model: DiTConfig, text_embeddings: TextEmbeddings 
     ``teacher``, ``teacher`` holds the fine model's ``cond`` and the ego poses (:data:`POSES`)."""
     x = "latents" if "latents" in batch else "video"          # precomputed latent windows or pixels
     out = {x: np.asarray(batch[x], np.float32), "cond": conditions(batch, model, text_embeddings)}
-    if model.controls.warp:
-        if "warp_video" not in batch:
-            raise ValueError("batch: expected 'warp_video' (the pipeline's warp_depth > 0) for a model with "
-                             "controls.warp, got a batch without it")
-        out["warp_video"] = np.asarray(batch["warp_video"], np.float32)     # encoded by the step, like video
+    if model.controls.warp:       # LongDWM's warped frames: made by the pipeline (training) or the sampler
+        if "warp_video" in batch:
+            out["warp_video"] = np.asarray(batch["warp_video"], np.float32)     # encoded by the step, like video
+        else:
+            out["warp"] = {k: np.asarray(batch[b], np.float32) for k, b in
+                           (("poses", "ego_to_world"), ("intrinsics", "intrinsics"), ("cam_to_ego", "cam_to_ego"))}
     if foreground:
         out["loss"] = {k: np.asarray(batch[k]) for k in LOSS_FIELDS}
     if teacher is not None:

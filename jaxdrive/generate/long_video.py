@@ -89,8 +89,10 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
               "peak_device_bytes": int(tracker.peak_bytes), "fps": fps,
               "given_latent_frames": int(np.shape(first)[2]),
               "windows": {"main": models.main.window, **({"fine": models.fine.window} if models.fine else {})},
-              "options": {k: v for k, v in options.items() if v is not None}, "compiled_programs": tracker.programs,
-              **tracker.notes}
+              "options": {k: v for k, v in options.items() if v is not None and k != "warp"},
+              "compiled_programs": tracker.programs, **tracker.notes}
+    if options.get("warp") is not None:          # LongDWM's warped frames: the plane depth they used
+        report["warp"] = {"depth": options["warp"].depth}
     quality = None
     if scores is not None:
         window = codec.pixel_frames((models.fine or models.main).window)

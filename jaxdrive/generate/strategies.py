@@ -40,7 +40,7 @@ import jax
 import numpy as np
 
 from jaxdrive import flow
-from jaxdrive.generate.windows import Horizon, Tracker, WindowModel, controls_at, to_mesh, window_starts
+from jaxdrive.generate.windows import Horizon, Tracker, WindowModel, controls_at, pixel_frames, to_mesh, window_starts
 from jaxdrive.models.conditions import Conditions
 from jaxdrive.validate import check_choice, check_positive_int
 
@@ -58,12 +58,23 @@ class Models:
     fine: WindowModel | None = None
 
 
+def window_controls(model: WindowModel, horizon: Horizon, idx, controls: Conditions, *, fps_scale: float = 1.0,
+                    warp=None) -> Conditions:
+    """The conditions of ``model``'s window at horizon positions ``idx``: the per-frame controls
+    there and, for a model trained with warps (LongDWM, ``controls.warp``), the window's first
+    frame warped along its frames' poses (``warp``: a :class:`jaxdrive.generate.warps.WarpGuide`)."""
+    ctrl = controls_at(controls, idx, model.temporal, fps_scale=fps_scale)
+    if model.dit.config.controls.warp:
+        ctrl = ctrl.replace(warp=warp.window(horizon.latents[:, :, idx[:1]], pixel_frames(idx, model.temporal)))
+    return ctrl
+
+
 def _pass(model: WindowModel, horizon: Horizon, positions, controls: Conditions, key, tracker: Tracker, mesh,
-          *, given: int, overlap: int, fps_scale: float = 1.0, anchors: bool = False):
+          *, given: int, overlap: int, fps_scale: float = 1.0, anchors: bool = False, warp=None):
     """Windows of ``model`` over the horizon ``positions`` (:func:`window_starts`): the first
     conditions on its ``given`` known frames, each next on the ``overlap`` frames before it; with
-    ``anchors``, known frames inside a window that are not given are JDC anchors. Results go back
-    into ``horizon``. A generator: yields the number of positions finished after each window,
+    ``anchors``, known frames inside a window that are not given are JDC anchors; ``warp``: the
+    warped frames' guide of a model trained with them. Results go back into ``horizon``. A generator: yields the number of positions finished after each window,
     returns the next random key."""
     positions = np.asarray(positions)
     window = min(model.window, len(positions))
@@ -79,7 +90,7 @@ def _pass(model: WindowModel, horizon: Horizon, positions, controls: Conditions,
             anchor = anchor if anchor.any() else None
         key, sub = jax.random.split(key)
         args = to_mesh((model.params, horizon.latents[:, :, idx], cond,
-                        controls_at(controls, idx, model.temporal, fps_scale=fps_scale)), mesh)
+                        window_controls(model, horizon, idx, controls, fps_scale=fps_scale, warp=warp)), mesh)
         z = tracker.call(model, *args, sub, *(() if anchor is None else (to_mesh(anchor, mesh),)))
         horizon.put(idx, np.asarray(z))
         del z, args
@@ -112,14 +123,14 @@ class _Emitter:
 
 
 def rollout(models: Models, controls: Conditions, first, length: int, *, key, tracker: Tracker | None = None,
-            mesh=None, overlap: int | None = None) -> Iterator[np.ndarray]:
+            mesh=None, overlap: int | None = None, warp=None) -> Iterator[np.ndarray]:
     """The recurrent baseline (module docstring); ``overlap`` defaults to the given frames."""
     yield from coarse_to_refine(models, controls, first, length, key=key, tracker=tracker, mesh=mesh,
-                                overlap=overlap, anchor_every=0)
+                                overlap=overlap, anchor_every=0, warp=warp)
 
 
 def coarse_anchors(models: Models, controls: Conditions, first, length: int, *, key, tracker: Tracker | None = None,
-                   mesh=None, anchor_every: int | None = None):
+                   mesh=None, anchor_every: int | None = None, warp=None):
     """The coarse pass of :func:`coarse_to_refine`: ``(horizon, key)`` with the given frames and
     the anchors at positions ``given - 1 + j * anchor_every`` (``j >= 1``) known, drawn by
     ``models.main`` over the given frames + the anchors at ``1 / anchor_every`` of the rate
@@ -133,12 +144,13 @@ def coarse_anchors(models: Models, controls: Conditions, first, length: int, *, 
     anchors = list(range(given - 1 + spacing, length, spacing)) if spacing else []
     if anchors:
         key = _drain(_pass(coarse, horizon, list(range(given)) + anchors, controls, key, tracker, mesh,
-                           given=given, overlap=min(given, coarse.window - 1), fps_scale=spacing))
+                           given=given, overlap=min(given, coarse.window - 1), fps_scale=spacing, warp=warp))
     return horizon, key
 
 
 def coarse_to_refine(models: Models, controls: Conditions, first, length: int, *, key, tracker: Tracker | None = None,
-                     mesh=None, overlap: int | None = None, anchor_every: int | None = None) -> Iterator[np.ndarray]:
+                     mesh=None, overlap: int | None = None, anchor_every: int | None = None,
+                     warp=None) -> Iterator[np.ndarray]:
     """MiLA's Coarse-to-(Re)fine (module docstring). ``models.main`` draws the anchors
     (:func:`coarse_anchors`) and refines them unless ``models.fine`` is given; ``anchor_every``
     (latent frames between anchors) defaults to the refine model's training spacing
@@ -149,10 +161,10 @@ def coarse_to_refine(models: Models, controls: Conditions, first, length: int, *
     given = np.shape(first)[2]
     overlap = given if overlap is None else overlap
     horizon, key = coarse_anchors(models, controls, first, length, key=key, tracker=tracker, mesh=mesh,
-                                  anchor_every=anchor_every)
+                                  anchor_every=anchor_every, warp=warp)
     emit = _Emitter(horizon)
     refine_pass = _pass(refine, horizon, np.arange(length), controls, key, tracker, mesh, given=given,
-                        overlap=overlap, anchors=bool(horizon.known[given:].any()))
+                        overlap=overlap, anchors=bool(horizon.known[given:].any()), warp=warp)
     for done in refine_pass:               # each finished window goes out before the next is sampled
         part = emit.upto(done)
         if part is not None:
@@ -160,7 +172,7 @@ def coarse_to_refine(models: Models, controls: Conditions, first, length: int, *
 
 
 def coarse_fine(models: Models, controls: Conditions, first, length: int, *, key, tracker: Tracker | None = None,
-                mesh=None, segment_batch: int | None = None) -> Iterator[np.ndarray]:
+                mesh=None, segment_batch: int | None = None, warp=None) -> Iterator[np.ndarray]:
     """LongDWM's coarse keyframes + parallel fine interpolation (module docstring).
     ``segment_batch``: segments per fine sampler call (default: all of them in one call)."""
     tracker = tracker or Tracker()
@@ -173,7 +185,7 @@ def coarse_fine(models: Models, controls: Conditions, first, length: int, *, key
     emit = _Emitter(horizon)
     coarse_positions = sorted(set(range(given)) | set(keys))
     key = _drain(_pass(coarse, horizon, coarse_positions, controls, key, tracker, mesh, given=given,
-                       overlap=min(given, coarse.window - 1), fps_scale=seg))
+                       overlap=min(given, coarse.window - 1), fps_scale=seg, warp=warp))
     segments = len(keys) - 1
     per_call = segments if segment_batch is None else check_positive_int("segment_batch", segment_batch)
     b = first.shape[0]
@@ -184,7 +196,7 @@ def coarse_fine(models: Models, controls: Conditions, first, length: int, *, key
         # both ends pinned; the first segment also keeps every given frame
         n_cond = np.concatenate([np.full(b, given if i == 0 else 1) for i in group])
         cond, _ = flow.pattern_masks("ends", fine.window, n_cond)
-        ctrl = [controls_at(controls, i, fine.temporal) for i in idx]
+        ctrl = [window_controls(fine, horizon, i, controls, warp=warp) for i in idx]
         ctrl = jax.tree_util.tree_map(lambda *v: np.concatenate([np.asarray(a) for a in v], axis=0), *ctrl)
         key, sub = jax.random.split(key)
         z = np.asarray(tracker.call(fine, *to_mesh((fine.params, x, np.asarray(cond), ctrl), mesh), sub))
@@ -197,7 +209,7 @@ def coarse_fine(models: Models, controls: Conditions, first, length: int, *, key
 
 
 def window(models: Models, controls: Conditions, first, length: int, *, key, tracker: Tracker | None = None,
-           mesh=None) -> Iterator[np.ndarray]:
+           mesh=None, warp=None) -> Iterator[np.ndarray]:
     """MagicDrive-V2's one-shot long window (module docstring): ``models.main`` over all
     ``length`` latent frames in one sampler call, the given frames pinned."""
     tracker = tracker or Tracker()
@@ -205,7 +217,8 @@ def window(models: Models, controls: Conditions, first, length: int, *, key, tra
     given = first.shape[2]
     horizon = Horizon.start(first, length)
     whole = dataclasses.replace(models.main, window=length)
-    _drain(_pass(whole, horizon, np.arange(length), controls, key, tracker, mesh, given=given, overlap=given))
+    _drain(_pass(whole, horizon, np.arange(length), controls, key, tracker, mesh, given=given, overlap=given,
+                 warp=warp))
     yield horizon.latents.copy()
 
 
@@ -271,6 +284,13 @@ def run_strategy(name: str, models: Models, controls: Conditions, first, length:
     """Check, then run the strategy ``name`` (its generator of latent parts)."""
     first = np.asarray(first)
     check_strategy(name, models, length, first.shape[2])
+    warped = [m for m in (models.main, models.fine) if m is not None and m.dit.config.controls.warp]
+    if warped and name == "streaming":
+        raise ValueError("--strategy: a model trained with warped frames (controls.warp) samples windows, "
+                         "got 'streaming'")
+    if warped and options.get("warp") is None:
+        raise ValueError("warp: a model trained with warped frames (controls.warp) needs the poses to warp along "
+                         "(a WarpGuide: the clip's recorded poses or a route), got none")
     fn = {"rollout": rollout, "coarse-to-refine": coarse_to_refine, "coarse-fine": coarse_fine, "window": window,
           "streaming": _streaming}[name]
     return fn(models, controls, first, length, key=key, tracker=tracker, mesh=mesh, **options)

@@ -171,27 +171,35 @@ def to_mesh(tree, mesh):
     return jax.tree_util.tree_map(put, tree)
 
 
+def pixel_frames(positions, temporal: int) -> np.ndarray:
+    """The output pixel frames of the latent frames at ``positions``: the positions themselves for
+    a frame-wise codec; ``1 + temporal (n - 1)`` frames from ``temporal * positions[0]`` for a
+    contiguous window of a causal VAE (spaced positions need a frame-wise codec)."""
+    pos = np.asarray(positions)
+    if temporal == 1:
+        return pos
+    if not bool(np.all(np.diff(pos) == 1)):
+        raise ValueError(f"positions: a pass over spaced frames needs a frame-wise codec (temporal compression 1), "
+                         f"got temporal compression {temporal}")
+    lo = int(pos[0]) * temporal
+    return np.arange(lo, lo + 1 + temporal * (len(pos) - 1))
+
+
 def controls_at(controls: Conditions, positions, temporal: int, *, fps_scale: float = 1.0) -> Conditions:
     """The conditions of the latent frames at ``positions`` (output positions at its own rate):
     per-frame fields taken at those frames (per pixel frame: ``1 + temporal (n - 1)`` frames of
     a contiguous window when ``temporal > 1``), ``fps`` divided by ``fps_scale`` (a pass that
     samples every S-th frame runs at 1 / S of the rate)."""
-    pos = np.asarray(positions)
-    contiguous = bool(np.all(np.diff(pos) == 1))
-    if temporal > 1 and not contiguous:
-        raise ValueError(f"positions: a pass over spaced frames needs a frame-wise codec (temporal compression 1), "
-                         f"got temporal compression {temporal}")
+    frames = pixel_frames(positions, temporal)
 
     def take(name, value):
         value = np.asarray(value)
-        pixel = value.shape[1]
         if temporal > 1:
-            lo = int(pos[0]) * temporal
-            return value[:, lo: lo + 1 + temporal * (len(pos) - 1)]
-        if pixel <= int(pos.max()):
-            raise ValueError(f"controls.{name}: expected at least {int(pos.max()) + 1} frames for the "
-                             f"positions sampled, got {pixel}")
-        return value[:, pos]
+            return value[:, frames[0]:frames[-1] + 1]
+        if value.shape[1] <= int(frames.max()):
+            raise ValueError(f"controls.{name}: expected at least {int(frames.max()) + 1} frames for the "
+                             f"positions sampled, got {value.shape[1]}")
+        return value[:, frames]
     out = controls.per_frame(take)
     if fps_scale != 1.0 and out.fps is not None:
         out = out.replace(fps=np.asarray(out.fps, np.float32) / fps_scale)

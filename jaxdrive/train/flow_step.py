@@ -99,7 +99,10 @@ def flow_loss_fn(training: FlowTraining, params, codec_params, inputs: dict, key
     # precomputed latents (jaxdrive data encode) or the video encoded here
     x = inputs["latents"] if "latents" in inputs else (
         jax.lax.stop_gradient(training.codec.encode(codec_params, inputs["video"])))
-    if "warp_video" in inputs:            # LongDWM's warped frames enter encoded, like the latents
+    if training.model.controls.warp:      # LongDWM's warped frames enter encoded, like the latents
+        if "warp_video" not in inputs:
+            raise ValueError("inputs: expected 'warp_video' (the pipeline's warp_depth > 0) for a model with "
+                             "controls.warp, got none")
         cond = cond.replace(warp=jax.lax.stop_gradient(training.codec.encode(codec_params, inputs["warp_video"])))
     if training.stream.enabled:            # STAGE: one [anchor, condition, new] window per clip
         from jaxdrive.train.stream_step import stream_loss_fn
