@@ -156,7 +156,7 @@ def test_the_guide_warps_the_decoded_first_frame_along_the_window_poses_and_enco
         guide.window(z[:, :, 2:3], [4, 5, 6])
 
 
-def test_a_warp_run_trains_and_samples_through_the_cli(data, tmp_path):
+def test_a_warp_run_trains_and_samples_through_the_cli(data, tmp_path, capsys, monkeypatch):
     """``jaxdrive train`` with the warp control, then ``jaxdrive sample --strategy rollout``: its
     windows warp along the validation clip's recorded poses at the run's data.warp_depth."""
     import json
@@ -172,4 +172,27 @@ def test_a_warp_run_trains_and_samples_through_the_cli(data, tmp_path):
                 "--out", str(out), "--no-progress"]) == 0
     report = json.loads((out / "report.json").read_text())
     assert report["warp"] == {"depth": 18.0} and report["frames"] == 9
-    assert np.isfinite(np.load(out / "latents.npy")).all()
+    recorded = np.load(out / "latents.npy")
+    assert np.isfinite(recorded).all()
+    # --route: the same clip driven through a left turn; the windows warp along the route's poses
+    from jaxdrive.generate.route import load_route
+    from jaxdrive.generate.warps import WarpGuide
+    seen, window = [], WarpGuide.window
+    monkeypatch.setattr(WarpGuide, "window", lambda self, first, frames: seen.append((list(frames), self.poses)) or
+                        window(self, first, frames))
+    turned = tmp_path / "turn"
+    assert cli(["sample", "--workdir", str(tmp_path / "run"), "--strategy", "rollout", "--frames", "9", "--steps", "2",
+                "--route", "left turn", "--out", str(turned), "--no-progress"]) == 0
+    assert json.loads((turned / "report.json").read_text())["route"] == "manoeuvre 'left turn'"
+    want = load_route("left turn", duration=8 / 12).poses(9, 12.0).astype(np.float64)
+    for frames, poses in seen:          # each window's poses relative to its first: the route's
+        p = poses[:, frames].astype(np.float64)
+        np.testing.assert_allclose(np.linalg.inv(p[:, :1]) @ p, np.broadcast_to(
+            np.linalg.inv(want[frames[0]]) @ want[frames], p.shape), atol=1e-3)
+    assert len(seen) == 3 and np.isfinite(np.load(turned / "latents.npy")).all()
+    bad = tmp_path / "bad.csv"
+    bad.write_text("x,y\n0,0\n1,nan\n")
+    capsys.readouterr()
+    assert cli(["sample", "--workdir", str(tmp_path / "run"), "--strategy", "rollout", "--frames", "9",
+                "--route", str(bad), "--out", str(tmp_path / "no")]) == 2
+    assert f"route {bad} row 3: expected finite values" in capsys.readouterr().err

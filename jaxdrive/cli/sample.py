@@ -117,10 +117,17 @@ def sample_strategy(args) -> int:
     recorded = np.asarray(inputs["video"][0]) if "video" in inputs else None
     fps = float(np.asarray(inputs["cond"].fps)[0]) if inputs["cond"].fps is not None else \
         12.0 / horizon_spec.frame_stride
+    if args.route:                   # drive the user's route: waypoints, trajectory and warps follow it
+        from jaxdrive.generate.route import apply_route, load_route
+        route = load_route(args.route, duration=(args.frames - 1) / fps)
+        inputs = apply_route(inputs, route, args.frames, fps)
+        if "warp" in options:
+            options["warp"] = WarpGuide.from_inputs(inputs, codec, depth=horizon_spec.data.warp_depth)
     out = Path(args.out or Path(args.workdir) / "samples" / args.strategy)
     with jax.set_mesh(run.mesh):
         report = sample_long(args.strategy, models, codec, inputs["cond"], first, length, out,
-                             key=jax.random.key(args.seed), mesh=run.mesh, fps=fps, recorded=recorded, **options)
+                             key=jax.random.key(args.seed), mesh=run.mesh, fps=fps, recorded=recorded,
+                             route=route.source if args.route else None, **options)
     print(f"report: {out / 'report.json'} ({report['sequential_sampler_calls']} sequential sampler calls, "
           f"{report['seconds']:.1f} s, peak device memory {report['peak_device_bytes'] / 2**20:.1f} MiB)")
     return 0

@@ -55,7 +55,7 @@ def _sample(args, rest) -> int:
     if args.strategy is not None:
         from jaxdrive.cli.sample import sample_strategy
         return sample_strategy(args)
-    for name in ("fine_workdir", "anchor_every", "segment_batch", "overlap", "cond_frames"):
+    for name in ("fine_workdir", "anchor_every", "segment_batch", "overlap", "cond_frames", "route"):
         if getattr(args, name) is not None:
             raise ValueError(f"--{name.replace('_', '-')}: expected only with --strategy, got {getattr(args, name)}")
     from jaxdrive.config import override
@@ -181,6 +181,9 @@ def add_commands(sub) -> None:
                                                           "(default: all in one call)")
     sample.add_argument("--taps", help="streaming: the past frames HTFT fuses, e.g. --taps=-1,-5,-10 (default: the "
                                        "run's stream.taps; 'none': HTFT off)")
+    sample.add_argument("--route", help="drive this route instead of the recorded one (--strategy): a JSON or CSV "
+                                        "file of ego waypoints (x, y[, t]) or a manoeuvre: 'straight 10m/s', "
+                                        "'left turn', 'right turn', 'stop'")
     sample.add_argument("--clips", type=int, help="clips sampled side by side (--strategy; default: the mesh's "
                                                   "data x fsdp size)")
     add_progress(sample, "the sampled windows")

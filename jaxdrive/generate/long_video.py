@@ -36,11 +36,13 @@ GRID_FRAMES = 6
 
 
 def sample_long(strategy: str, models: Models, codec, controls: Conditions, first, length: int, out, *, key,
-                mesh=None, fps: float = 12.0, recorded=None, log=print, **options) -> dict:
+                mesh=None, fps: float = 12.0, recorded=None, log=print, route: str | None = None,
+                **options) -> dict:
     """Run ``strategy`` for ``length`` latent frames and write the files of the module docstring;
     returns the report (a dict). ``recorded``: the dataset's own pixel frames ``[V, F, H, W, 3]``
     of the first clip (for the frame grid), when it covers the horizon; ``options`` go to the
-    strategy (``overlap``, ``anchor_every``, ``segment_batch``)."""
+    strategy (``overlap``, ``anchor_every``, ``segment_batch``, ``warp``); ``route``: where the
+    driven route came from (``jaxdrive sample --route``), for the report."""
     tracker = Tracker()
     start = time.perf_counter()
     parts = run_strategy(strategy, models, controls, first, length, key=key, tracker=tracker, mesh=mesh, **options)
@@ -93,6 +95,8 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
               "compiled_programs": tracker.programs, **tracker.notes}
     if options.get("warp") is not None:          # LongDWM's warped frames: the plane depth they used
         report["warp"] = {"depth": options["warp"].depth}
+    if route is not None:
+        report["route"] = route
     quality = None
     if scores is not None:
         window = codec.pixel_frames((models.fine or models.main).window)

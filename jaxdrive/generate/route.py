@@ -57,12 +57,11 @@ class Route:
 
 
 def manoeuvre(name: str, speed: float | None, duration: float, step: float = 0.1) -> Route:
-    """A named manoeuvre (module docstring) sampled every ``step`` seconds for ``duration``."""
+    """A named manoeuvre (module docstring) sampled about every ``step`` seconds over ``duration``."""
     name = name.lower()
     v = DEFAULT_SPEED[name] if speed is None else float(speed)
-    t = np.arange(0.0, duration + step / 2, step)
-    if len(t) < 2:
-        t = np.asarray([0.0, max(duration, step)])
+    duration = max(float(duration), step)
+    t = np.linspace(0.0, duration, max(2, int(np.ceil(duration / step)) + 1))      # up to the clip's end
     s = v * t                                                   # distance along the path
     if name == "straight":
         xy = np.stack([s, np.zeros_like(s)], axis=1)
@@ -168,3 +167,31 @@ def load_route(spec: str, *, duration: float) -> Route:
     if m:
         return manoeuvre(m.group(1), None if m.group(2) is None else float(m.group(2)), duration)
     return load_route_file(spec)
+
+
+def apply_route(inputs: dict, route: Route, frames: int, fps: float) -> dict:
+    """Sampling inputs (:func:`jaxdrive.data.batches.model_inputs` of the horizon) that drive
+    ``route`` instead of the recorded path, for every clip: the ego's ``waypoints`` become the
+    route's positions, ``ego_to_world`` (the trajectory control) the clip's first pose followed by
+    the route's, and so do the poses warped frames follow (``inputs["warp"]``). Other agents'
+    boxes and the map stay the recorded ones."""
+    poses = route.poses(frames, fps).astype(np.float64)                        # [F, 4, 4] from frame 0
+    cond = inputs["cond"]
+    out = dict(inputs)
+    changes = {}
+    if cond.waypoints is not None:
+        w = np.asarray(cond.waypoints)
+        changes["waypoints"] = np.broadcast_to(poses[:, :2, 3], (w.shape[0], frames, 2)).astype(np.float32)
+    start = None
+    if cond.ego_to_world is not None:
+        start = np.asarray(cond.ego_to_world, np.float64)[:, :1]
+    elif "warp" in inputs:
+        start = np.asarray(inputs["warp"]["poses"], np.float64)[:, :1]
+    if start is not None:
+        driven = (start @ poses[None]).astype(np.float32)                      # [B, F, 4, 4]
+        if cond.ego_to_world is not None:
+            changes["ego_to_world"] = driven
+        if "warp" in inputs:
+            out["warp"] = dict(inputs["warp"], poses=driven)
+    out["cond"] = cond.replace(**changes)
+    return out
