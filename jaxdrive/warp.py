@@ -159,7 +159,8 @@ def warp_views(first, intrinsics, cam_to_ego, ego_poses, depth: float, *, inpain
     if not float(depth) > 0:
         raise ValueError(f"depth: expected a positive plane depth in metres, got {depth}")
     motion = camera_motion(ego_poses, cam_to_ego)                                  # [V, F, 4, 4]
-    out, holes = zip(*(depth_free_warp(first[i], intrinsics[i], motion[i], float(depth))
-                       for i in range(first.shape[0])))
-    out, holes = np.stack([np.asarray(o) for o in out]), np.stack([np.asarray(h) for h in holes])
+    # every view in one program: the views are a batch axis of the gather
+    out, holes = jax.vmap(depth_free_warp, in_axes=(0, 0, 0, None))(first, jnp.asarray(intrinsics, jnp.float32),
+                                                                     motion, float(depth))
+    out, holes = np.asarray(out), np.asarray(holes)
     return inpaint_holes(out, holes) if inpaint else out
