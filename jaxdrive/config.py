@@ -184,6 +184,34 @@ class Config:
     stream: StreamConfig = StreamConfig()
 
 
+@dataclasses.dataclass(frozen=True)
+class PredictorConfig:
+    """The future-controls predictor (:mod:`jaxdrive.models.predictor`): a transformer over the past
+    ``history`` steps of the ego pose and the agents' boxes and the BEV map around the ego, one step
+    every ``stride`` source frames of the dataset; trained by rolling it ``horizon`` steps forward."""
+
+    history: int = 8
+    horizon: int = 8
+    stride: int = 2
+    width: int = 64
+    depth: int = 2
+    heads: int = 4
+    map_patch: int = 8                 # BEV cells per side of one map token
+    max_agents: int = 20               # agent slots (a clip's box slots, padded or cut)
+
+
+@dataclasses.dataclass(frozen=True)
+class PredictorRunConfig:
+    """A predictor's training run (``jaxdrive train --config configs/predictor.py:size=tiny``):
+    ``data`` reads ``path``, ``split``, ``batch_size`` (windows per step) and ``shuffle_seed``;
+    the validation split, when there is one, gives ADE / FDE at the end of training."""
+
+    predictor: PredictorConfig = PredictorConfig()
+    data: DataConfig = DataConfig()
+    optim: OptimConfig = OptimConfig()
+    train: TrainConfig = TrainConfig()
+
+
 # ------------------------------------------------------------------------------------ overrides
 def _field_types(cls) -> dict[str, Any]:
     hints = typing.get_type_hints(cls)

@@ -97,11 +97,53 @@ def write_mp4(path, video, fps: float = 12.0) -> Path:
     return Path(path)
 
 
-def write_frame_grid(path, video, num_frames: int = 4, *, reference=None, min_width: int = 480) -> Path:
+# BEV panel colours (schema.BEV_CLASSES order)
+BEV_COLOURS = ((70, 70, 78), (150, 150, 160), (110, 100, 90), (230, 230, 230), (60, 90, 60), (240, 200, 40),
+               (220, 220, 220), (80, 80, 90))
+PAINT_ORDER = (0, 4, 2, 7, 1, 3, 5, 6)       # areas first, then crossings, stop lines and dividers on top
+PATH_COLOUR, FUTURE_COLOUR, AGENT_COLOUR = (40, 140, 255), (255, 60, 60), (255, 150, 40)
+
+
+def bev_image(bev_map, *, cell, path=None, split: int | None = None, boxes=None, valid=None) -> np.ndarray:
+    """The BEV map ``[Hm, Wm, 8]`` (0 / 1 classes; ego at the centre, x up) as RGB uint8, with the
+    ego's ``path [P, 2]`` (metres in this frame's ego frame) drawn blue up to point ``split`` and
+    red after it (the route or predicted part), and the agents' ``boxes [N, 7]`` where ``valid``
+    as orange dots; ``cell``: metres (x, y) of one BEV cell."""
+    bev = np.asarray(bev_map)
+    hm, wm = bev.shape[:2]
+    img = np.zeros((hm, wm, 3), np.uint8)
+    for ch in PAINT_ORDER:
+        if ch < bev.shape[-1]:
+            img[bev[..., ch] > 0] = BEV_COLOURS[ch]
+
+    def plot(xy, colour, radius=0):
+        r = np.floor(hm / 2 - np.asarray(xy)[:, 0] / cell[0]).astype(int)
+        c = np.floor(wm / 2 - np.asarray(xy)[:, 1] / cell[1]).astype(int)
+        for dr in range(-radius, radius + 1):
+            for dc in range(-radius, radius + 1):
+                ok = (r + dr >= 0) & (r + dr < hm) & (c + dc >= 0) & (c + dc < wm)
+                img[r[ok] + dr, c[ok] + dc] = colour
+    if boxes is not None:
+        plot(np.asarray(boxes)[np.asarray(valid, bool)][:, :2], AGENT_COLOUR, radius=1)
+    if path is not None and len(path) > 1:
+        path = np.asarray(path, np.float64)
+        dense = np.concatenate([p + np.linspace(0, 1, 8, endpoint=False)[:, None] * (q - p)
+                                for p, q in zip(path[:-1], path[1:])] + [path[-1:]])
+        cut = len(dense) if split is None else 8 * max(split - 1, 0)
+        plot(dense[:cut], PATH_COLOUR)
+        plot(dense[cut:], FUTURE_COLOUR)
+    plot(np.zeros((1, 2)), (255, 255, 255), radius=1)                # the ego
+    return img
+
+
+def write_frame_grid(path, video, num_frames: int = 4, *, reference=None, min_width: int = 480,
+                     side=None) -> Path:
     """A PNG with ``num_frames`` evenly spaced frames of ``video``, one mosaic per row. With
     ``reference`` (a video of the same shape, e.g. the recorded clip) each row shows the
     reference's mosaic on the left and ``video``'s on the right. Small frames are enlarged by an
-    integer factor (nearest neighbour) until a row is at least ``min_width`` pixels wide."""
+    integer factor (nearest neighbour) until a row is at least ``min_width`` pixels wide.
+    ``side``: one image per row (uint8 ``[n, h, w, 3]``, e.g. :func:`bev_image`), put first in
+    the row, scaled to the row's height."""
     from PIL import Image
 
     frames = view_mosaic(video)
@@ -114,6 +156,14 @@ def write_frame_grid(path, video, num_frames: int = 4, *, reference=None, min_wi
     picks = np.unique(np.linspace(0, frames.shape[0] - 1, min(num_frames, frames.shape[0])).round().astype(int))
     up = max(1, -(-min_width // frames.shape[2]))
     frames = einops.repeat(frames[picks], "n h w c -> n (h sy) (w sx) c", sy=up, sx=up)   # nearest neighbour
+    if side is not None:
+        side = np.asarray(side, np.uint8)[picks]
+        h = frames.shape[1]
+        rows = np.minimum((np.arange(h) * side.shape[1]) // h, side.shape[1] - 1)
+        width = max(1, round(side.shape[2] * h / side.shape[1]))
+        cols = np.minimum((np.arange(width) * side.shape[2]) // width, side.shape[2] - 1)
+        sep = np.full(frames.shape[:2] + (4, 3), 255, np.uint8)
+        frames = np.concatenate([side[:, rows][:, :, cols], sep, frames], axis=2)
     frames = np.pad(frames, ((0, 0), (0, 2), (0, 0), (0, 0)), constant_values=255)   # a white gap below each
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

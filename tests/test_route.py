@@ -75,25 +75,3 @@ def test_bad_route_files_are_named_with_their_row(tmp_path, name, text, match):
 def test_an_unknown_route_names_the_choices():
     with pytest.raises(ValueError, match=r"route: expected a JSON or CSV file or a manoeuvre \(straight, left turn"):
         load_route("u-turn", duration=1.0)
-
-
-def test_a_route_replaces_the_recorded_path_in_the_sampling_inputs():
-    from jaxdrive.generate.route import apply_route
-    from jaxdrive.models.conditions import Conditions
-    rng = np.random.default_rng(0)
-    start = np.tile(np.eye(4, dtype=np.float32), (2, 5, 1, 1))
-    start[:, :, :3, 3] = rng.normal(size=(2, 1, 3))                # each clip somewhere in its world
-    cond = Conditions(waypoints=rng.normal(size=(2, 5, 2)).astype(np.float32), ego_to_world=start,
-                      fps=np.full((2,), 12.0, np.float32))
-    inputs = {"cond": cond, "warp": {"poses": start, "intrinsics": np.zeros((2, 1, 3, 3)),
-                                     "cam_to_ego": np.zeros((2, 1, 4, 4))}}
-    route = load_route("straight 6 m/s", duration=4 / 12)
-    out = apply_route(inputs, route, 5, 12.0)
-    np.testing.assert_allclose(out["cond"].waypoints[:, :, 0], np.broadcast_to(np.arange(5) * 0.5, (2, 5)), atol=1e-4)
-    np.testing.assert_allclose(out["cond"].waypoints[:, :, 1], 0, atol=1e-6)
-    # the world poses start where the clip starts and move 0.5 m along its heading each frame
-    np.testing.assert_allclose(out["cond"].ego_to_world[:, 0], start[:, 0], atol=1e-6)
-    np.testing.assert_allclose(out["cond"].ego_to_world[:, 4, :3, 3] - start[:, 0, :3, 3],
-                               np.broadcast_to([2.0, 0, 0], (2, 3)), atol=1e-4)
-    np.testing.assert_allclose(out["warp"]["poses"], out["cond"].ego_to_world)
-    assert inputs["cond"] is cond and out["cond"].fps is cond.fps            # the inputs are not changed

@@ -103,7 +103,23 @@ def sample_strategy(args) -> int:
     clips = shards if args.clips is None else check_positive_int("--clips", args.clips)
     if clips % shards:
         raise ValueError(f"--clips: expected a multiple of the mesh's data x fsdp size {shards}, got {clips}")
-    inputs = dataset_inputs(horizon_spec, frames=args.frames, views=views, clips=clips, seed=args.seed)
+    check_choice("--controls", args.controls, ("recorded", "predicted"))
+    predictor = None
+    if args.predictor:
+        from jaxdrive.generate.future import FuturePredictor
+        predictor = FuturePredictor.load(args.predictor)
+    elif args.controls == "predicted":
+        raise ValueError("--controls: 'predicted' needs --predictor RUN (a run of configs/predictor.py), got none")
+    from jaxdrive.data.scene_map import bev_range_of
+    from jaxdrive.data.tfds_io import dataset_info
+    bev_range = bev_range_of(dataset_info(horizon_spec.data.path)["metadata"])
+    hook = None
+    if predictor is not None or args.route:
+        hook = _controls_hook(args, bev_range, predictor, horizon_spec.codec.pixel_frames(given))
+    inputs = dataset_inputs(horizon_spec, frames=args.frames, views=views, clips=clips, seed=args.seed,
+                            controls=hook, scene=True)
+    scene = inputs.pop("scene")
+    scene["cell"] = tuple(r / n for r, n in zip(bev_range, scene["bev_map"].shape[1:3]))
     codec = horizon_spec.codec
     if "latents" in inputs:
         first = np.asarray(inputs["latents"])[:, :, :given]
@@ -114,20 +130,47 @@ def sample_strategy(args) -> int:
     if any(m is not None and m.dit.config.controls.warp for m in (shapes.main, shapes.fine)):
         from jaxdrive.generate.warps import WarpGuide      # LongDWM: each window's first frame warped
         options["warp"] = WarpGuide.from_inputs(inputs, codec, depth=horizon_spec.data.warp_depth)
-    recorded = np.asarray(inputs["video"][0]) if "video" in inputs else None
+    # a driven route is not the recorded clip: its frames are no reference to score against
+    recorded = np.asarray(inputs["video"][0]) if "video" in inputs and not args.route else None
     fps = float(np.asarray(inputs["cond"].fps)[0]) if inputs["cond"].fps is not None else \
         12.0 / horizon_spec.frame_stride
-    if args.route:                   # drive the user's route: waypoints, trajectory and warps follow it
-        from jaxdrive.generate.route import apply_route, load_route
-        route = load_route(args.route, duration=(args.frames - 1) / fps)
-        inputs = apply_route(inputs, route, args.frames, fps)
-        if "warp" in options:
-            options["warp"] = WarpGuide.from_inputs(inputs, codec, depth=horizon_spec.data.warp_depth)
     out = Path(args.out or Path(args.workdir) / "samples" / args.strategy)
+    controls = {"mode": args.controls, "predictor": str(args.predictor) if args.predictor else None,
+                "recorded_frames": scene["predicted_from"]}
     with jax.set_mesh(run.mesh):
         report = sample_long(args.strategy, models, codec, inputs["cond"], first, length, out,
                              key=jax.random.key(args.seed), mesh=run.mesh, fps=fps, recorded=recorded,
-                             route=route.source if args.route else None, **options)
+                             route=_route_name(args.route) if args.route else None, control_source=controls,
+                             scene=scene, **options)
     print(f"report: {out / 'report.json'} ({report['sequential_sampler_calls']} sequential sampler calls, "
           f"{report['seconds']:.1f} s, peak device memory {report['peak_device_bytes'] / 2**20:.1f} MiB)")
     return 0
+
+
+def _route_name(spec: str) -> str:
+    from jaxdrive.generate.route import load_route
+    return load_route(spec, duration=1.0).source
+
+
+def _controls_hook(args, bev_range, predictor, given_pixels: int):
+    """Each sampled clip's controls for ``--frames``: the route driven (``--route``), and the
+    predictor's beyond the recorded frames (``--predictor``; from the given frames on with
+    ``--controls predicted`` or a route)."""
+    from jaxdrive.generate.future import future_controls
+    from jaxdrive.generate.route import load_route
+    routes = {}
+
+    def hook(sample, clip, where):
+        fps = float(sample["fps"])
+        route = None
+        if args.route:
+            if fps not in routes:
+                routes[fps] = load_route(args.route, duration=(args.frames - 1) / fps)
+            route = routes[fps]
+        have = len(sample["ego_to_world"])
+        keep = have
+        if predictor is not None and (args.controls == "predicted" or route is not None):
+            keep = min(given_pixels, have)
+        return future_controls(sample, clip, frames=args.frames, keep=keep, predictor=predictor, route=route,
+                               bev_range=bev_range, where=where)
+    return hook

@@ -44,6 +44,13 @@ def _train(args, rest) -> int:
         extra.append(f"train.checkpoint_every={args.checkpoint_every}")
     config = _config(args.config, args.mesh, args.set, extra)
     start_jax()
+    from jaxdrive.config import PredictorRunConfig
+    if isinstance(config, PredictorRunConfig):        # configs/predictor.py: the future-controls predictor
+        from jaxdrive.train.predictor_run import train_predictor
+        out = train_predictor(config, args.workdir, progress=not args.no_progress)
+        print(f"{out['status']} at step {out['step']} (loss {out['loss']}); run directory "
+              f"{Path(args.workdir).absolute()}")
+        return 0
     from jaxdrive.train.run import train
     out = train(config, args.workdir, progress=not args.no_progress)
     print(f"{out['status']} at step {out['step']} (loss {out['loss']}); run directory {Path(args.workdir).absolute()}")
@@ -55,9 +62,11 @@ def _sample(args, rest) -> int:
     if args.strategy is not None:
         from jaxdrive.cli.sample import sample_strategy
         return sample_strategy(args)
-    for name in ("fine_workdir", "anchor_every", "segment_batch", "overlap", "cond_frames", "route"):
+    for name in ("fine_workdir", "anchor_every", "segment_batch", "overlap", "cond_frames", "route", "predictor"):
         if getattr(args, name) is not None:
             raise ValueError(f"--{name.replace('_', '-')}: expected only with --strategy, got {getattr(args, name)}")
+    if args.controls != "recorded":
+        raise ValueError(f"--controls: expected only with --strategy, got {args.controls!r}")
     from jaxdrive.config import override
     from jaxdrive.generate.samples import write_samples
     from jaxdrive.train.run import Run, load_run_config, restore_params
@@ -184,6 +193,11 @@ def add_commands(sub) -> None:
     sample.add_argument("--route", help="drive this route instead of the recorded one (--strategy): a JSON or CSV "
                                         "file of ego waypoints (x, y[, t]) or a manoeuvre: 'straight 10m/s', "
                                         "'left turn', 'right turn', 'stop'")
+    sample.add_argument("--predictor", help="a run of configs/predictor.py: predicts the controls past the end of "
+                                            "the clip's recorded ones (--frames may exceed the clip), and the other "
+                                            "agents along a --route")
+    sample.add_argument("--controls", default="recorded", help="recorded (default: predicted only beyond the log) "
+                                                               "or predicted (from the given frames on)")
     sample.add_argument("--clips", type=int, help="clips sampled side by side (--strategy; default: the mesh's "
                                                   "data x fsdp size)")
     add_progress(sample, "the sampled windows")

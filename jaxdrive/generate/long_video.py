@@ -37,12 +37,16 @@ GRID_FRAMES = 6
 
 def sample_long(strategy: str, models: Models, codec, controls: Conditions, first, length: int, out, *, key,
                 mesh=None, fps: float = 12.0, recorded=None, log=print, route: str | None = None,
-                **options) -> dict:
+                control_source: dict | None = None, scene: dict | None = None, **options) -> dict:
     """Run ``strategy`` for ``length`` latent frames and write the files of the module docstring;
     returns the report (a dict). ``recorded``: the dataset's own pixel frames ``[V, F, H, W, 3]``
     of the first clip (for the frame grid), when it covers the horizon; ``options`` go to the
     strategy (``overlap``, ``anchor_every``, ``segment_batch``, ``warp``); ``route``: where the
-    driven route came from (``jaxdrive sample --route``), for the report."""
+    driven route came from (``jaxdrive sample --route``), for the report; ``control_source``: where the
+    controls came from (recorded, predicted), for the report; ``scene``: the first clip's
+    ``bev_map``, ``ego_to_world``, ``boxes``, ``box_valid`` per frame and ``predicted_from`` (the
+    first frame not recorded): each frame-grid row then starts with its BEV map, the ego's path drawn on it
+    (:func:`jaxdrive.media.bev_image`)."""
     tracker = Tracker()
     start = time.perf_counter()
     parts = run_strategy(strategy, models, controls, first, length, key=key, tracker=tracker, mesh=mesh, **options)
@@ -97,6 +101,8 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
         report["warp"] = {"depth": options["warp"].depth}
     if route is not None:
         report["route"] = route
+    if control_source is not None:
+        report["controls"] = control_source
     quality = None
     if scores is not None:
         window = codec.pixel_frames((models.fine or models.main).window)
@@ -110,7 +116,8 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
         reference = None
         if recorded is not None and np.shape(recorded)[1] >= frames:
             reference = np.asarray(recorded)[:, picks]
-        write_frame_grid(out / "frames.png", video, num_frames=len(picks), reference=reference)
+        side = None if scene is None else _bev_panels(scene, picks, route is not None)
+        write_frame_grid(out / "frames.png", video, num_frames=len(picks), reference=reference, side=side)
         (out / "report.json").write_text(json.dumps(report, indent=1))
         if quality is not None:
             (out / "quality.json").write_text(json.dumps(quality, indent=1))
@@ -121,3 +128,20 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
             log(f"all generated frames against the recorded clip: PSNR {a['psnr']:.2f} dB, SSIM {a['ssim']:.3f} "
                 f"(repeat the last given frame: {a['repeat_psnr']:.2f} dB, {a['repeat_ssim']:.3f})")
     return report
+
+
+def _bev_panels(scene: dict, picks, routed: bool) -> np.ndarray:
+    """One BEV panel per picked frame: its map, the agents, the ego's whole path in its ego frame
+    (red where driven by a route or predicted, blue where recorded)."""
+    from jaxdrive.media import bev_image
+    e2w = np.asarray(scene["ego_to_world"], np.float64)
+    bev = np.asarray(scene["bev_map"])
+    cell = scene.get("cell", tuple(100.0 / n for n in bev.shape[1:3]))     # default: a 100 m square
+    split = 1 if routed else int(scene.get("predicted_from", len(e2w)))
+    panels = []
+    for p in picks:
+        p = min(int(p), len(e2w) - 1)
+        path = (np.linalg.inv(e2w[p]) @ e2w)[:, :2, 3]
+        panels.append(bev_image(bev[p], cell=cell, path=path, split=split, boxes=scene["boxes"][p],
+                                valid=scene["box_valid"][p]))
+    return np.stack(panels)

@@ -41,6 +41,7 @@ class Route:
     points: np.ndarray
     times: np.ndarray | None = None
     source: str = "route"
+    first_row: int | None = None          # the file row of the first point (None: a manoeuvre)
 
     def frame_times(self, frames: int, fps: float) -> np.ndarray:
         """The frame (a float) at which each point is passed in a clip of ``frames`` at ``fps``."""
@@ -158,7 +159,7 @@ def load_route_file(path) -> Route:
         if len(bad):
             raise ValueError(f"route {path} row {bad[0] + 1 + first_row}: expected times increasing, got "
                              f"{times[bad[0] + 1]} after {times[bad[0]]}")
-    return Route(arr[:, :2].astype(np.float32), times, source=str(path))
+    return Route(arr[:, :2].astype(np.float32), times, source=str(path), first_row=first_row)
 
 
 def load_route(spec: str, *, duration: float) -> Route:
@@ -169,29 +170,25 @@ def load_route(spec: str, *, duration: float) -> Route:
     return load_route_file(spec)
 
 
-def apply_route(inputs: dict, route: Route, frames: int, fps: float) -> dict:
-    """Sampling inputs (:func:`jaxdrive.data.batches.model_inputs` of the horizon) that drive
-    ``route`` instead of the recorded path, for every clip: the ego's ``waypoints`` become the
-    route's positions, ``ego_to_world`` (the trajectory control) the clip's first pose followed by
-    the route's, and so do the poses warped frames follow (``inputs["warp"]``). Other agents'
-    boxes and the map stay the recorded ones."""
-    poses = route.poses(frames, fps).astype(np.float64)                        # [F, 4, 4] from frame 0
-    cond = inputs["cond"]
-    out = dict(inputs)
-    changes = {}
-    if cond.waypoints is not None:
-        w = np.asarray(cond.waypoints)
-        changes["waypoints"] = np.broadcast_to(poses[:, :2, 3], (w.shape[0], frames, 2)).astype(np.float32)
-    start = None
-    if cond.ego_to_world is not None:
-        start = np.asarray(cond.ego_to_world, np.float64)[:, :1]
-    elif "warp" in inputs:
-        start = np.asarray(inputs["warp"]["poses"], np.float64)[:, :1]
-    if start is not None:
-        driven = (start @ poses[None]).astype(np.float32)                      # [B, F, 4, 4]
-        if cond.ego_to_world is not None:
-            changes["ego_to_world"] = driven
-        if "warp" in inputs:
-            out["warp"] = dict(inputs["warp"], poses=driven)
-    out["cond"] = cond.replace(**changes)
-    return out
+def check_on_map(route: Route, start, scene, frames: int, fps: float) -> None:
+    """``ValueError`` naming the route and its first row (a manoeuvre: the time) whose point, or the
+    path leading to it, leaves the seen part of ``scene`` (a
+    :class:`jaxdrive.data.scene_map.SceneMap`) when driven from the ego pose ``start [4, 4]``."""
+    start = np.asarray(start, np.float64)
+    at_rows = route.frame_times(frames, fps)
+    dense = route.poses(frames, fps)[:, :2, 3]
+    pts = np.concatenate([np.asarray(route.points, np.float64), dense])
+    world = pts @ start[:2, :2].T + start[:2, 3]
+    off = ~scene.covers(world)
+    if not off.any():
+        return
+    k = int(np.argmax(off))
+    if k >= len(route.points):        # between rows: name the row the path was heading to
+        frame = k - len(route.points)
+        k = int(min(np.searchsorted(at_rows, frame), len(route.points) - 1))
+    x, y = route.points[k]
+    where = (f"row {k + route.first_row}" if route.first_row is not None else
+             f"at t = {at_rows[k] / fps:.1f} s")
+    raise ValueError(f"route {route.source} {where}: expected a point on the scene's map (the BEV maps the clip "
+                     f"recorded, about {scene.cell[0] * scene.size[0] / 2:.0f} m around its path), got ({x:.1f}, "
+                     f"{y:.1f}) m beyond it: shorten the route or use a longer clip")

@@ -61,13 +61,18 @@ class Sampling:
 
 
 def dataset_inputs(spec: Sampling, *, frames: int, views=None, clips: int = 1, split: str | None = None,
-                   seed: int = 0):
+                   seed: int = 0, controls=None, scene: bool = False):
     """Model inputs of ``clips`` dataset clips of ``frames`` pixel frames (no condition dropped):
     the first frames give the condition latents, every frame its controls. A precomputed dataset
     (``latents.precomputed``) gives its stored windows: ``frames`` at most the window's frame count
     (a prefix of a window; its latents are cut to ``codec.latent_frames(frames)``: exact for
     frame-wise codecs, for the causal VAE the window's encoding, which may differ slightly from
-    encoding the prefix alone where the VAE normalises over a chunk of frames)."""
+    encoding the prefix alone where the VAE normalises over a chunk of frames).
+
+    ``controls(sample, clip, where) -> sample`` (:func:`jaxdrive.generate.future.future_controls`)
+    gives each sample its controls for all ``frames``; the clip then needs to hold only as many
+    frames as it has, and ``video`` holds those. ``scene``: keep the first clip's map, poses and
+    boxes under ``inputs["scene"]`` (the frame grid's BEV panel)."""
     from jaxdrive.data.batches import model_inputs
     from jaxdrive.data.pipeline import CONDITIONS, collate, sample_clip
     from jaxdrive.data.tfds_io import open_source
@@ -83,22 +88,35 @@ def dataset_inputs(spec: Sampling, *, frames: int, views=None, clips: int = 1, s
     views = list(range(d.views)) if views is None else views
     rng = np.random.default_rng(seed)
     samples = []
+    if controls is not None and spec.precomputed:
+        raise ValueError("controls: predicted or routed controls need clips, not the precomputed latent windows "
+                         "of latents.precomputed")
     for i in range(clips):
         clip = source[i % len(source)]
+        where = f"{source.split} clip {i}"
         if spec.precomputed:
             samples.append(_window_prefix(spec.codec, clip, frames, views, f"{source.split} window {i}"))
             continue
         have = int(np.shape(clip["ego_to_world"])[0])
         stride = spec.frame_stride
-        need = 1 + (frames - 1) * stride
-        if need > have:
-            raise ValueError(f"frames: expected at most {1 + (have - 1) // stride} frames (the dataset's clips have "
+        recorded = 1 + (have - 1) // stride
+        if frames > recorded and controls is None:
+            raise ValueError(f"frames: expected at most {recorded} frames (the dataset's clips have "
                              f"{have} at stride {stride}), got {frames}")
-        samples.append(sample_clip(clip, size=(d.height, d.width), frames=frames, stride=stride, views=views,
-                                   rng=rng, where=f"{source.split} clip {i}"))
+        sample = sample_clip(clip, size=(d.height, d.width), frames=min(frames, recorded), stride=stride,
+                             views=views, rng=rng, where=where)
+        samples.append(sample if controls is None else controls(sample, clip, where))
     batch = collate(samples)
+    kept = None
+    if scene:
+        kept = {k: np.asarray(batch[k][0]) for k in ("bev_map", "ego_to_world", "boxes", "box_valid")}
+        kept["predicted_from"] = int(samples[0].get("predicted_from", frames))
+    batch.pop("predicted_from", None)
     batch["drop"] = {n: np.zeros((clips,), bool) for n in CONDITIONS}   # nothing dropped; CFG adds the nulls
-    return model_inputs(batch, spec.model, spec.text_embeddings)
+    inputs = model_inputs(batch, spec.model, spec.text_embeddings)
+    if kept is not None:
+        inputs["scene"] = kept
+    return inputs
 
 
 def _window_prefix(codec, record, frames: int, views, where: str) -> dict:

@@ -101,7 +101,7 @@ class Conditions:
         if "boxes" in on:
             kw.update({k: np.asarray(batch[k]) for k in ("boxes", "box_classes", "box_valid")})
         if "map" in on:
-            kw["bev_map"] = f32("bev_map") / 255.0
+            kw["bev_map"] = f32("bev_map")          # the schema's classes are 0 / 1 already
         if "frame_time" in on:
             kw["frame_times"] = f32("frame_times")
         kw["drop"] = {t: np.asarray(batch["drop"][name], bool) for name, targets in BATCH_DROPS.items()

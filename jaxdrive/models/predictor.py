@@ -1,0 +1,182 @@
+"""The future-controls predictor: what plays MILE's role in STAGE (sec. D), closed-loop future
+conditions for generating past the end of a clip's recorded controls.
+
+A small transformer reads the past ``history`` steps of the ego pose and of every agent's box
+(with its class and track) and the BEV map around the ego, and predicts the next step's ego pose
+and agent poses; rolled forward (:func:`rollout`, a ``lax.scan`` under jit) with the map re-cut
+at each predicted pose (:func:`jaxdrive.data.scene_map.cut`), it gives the controls of any number
+of frames. Sizes, classes and track ids are carried unchanged.
+
+Tokens, all in the current ego frame (so the network never sees world coordinates): one for the
+ego (its past poses), one per agent slot (its past poses where seen, size, class, which past steps
+saw it) and one per ``map_patch`` x ``map_patch`` cells of the BEV map; self-attention over them
+with absent agents masked. Each output is a correction, in metres and radians, to the
+constant-velocity step (the velocity of the last step held, the heading kept): freshly initialised
+(zero heads) the predictor is the constant-velocity baseline it is measured against, and training
+only has to learn where that baseline goes wrong (stopping, following, turning, lanes).
+"""
+
+from __future__ import annotations
+
+import flax.linen as nn
+import flax.struct
+import jax
+import jax.numpy as jnp
+
+from jaxdrive.config import PredictorConfig
+from jaxdrive.data.schema import BEV_CLASSES, OBJECT_CLASSES
+from jaxdrive.data.traffic import wrap
+
+POSITION_SCALE = 10.0      # metres of one unit of a position feature
+STEP_SCALE = 0.5           # metres of one unit of a predicted position correction
+YAW_SCALE = 0.1            # radians of one unit of a predicted heading correction
+
+
+@flax.struct.dataclass
+class Traffic:
+    """The last ``T`` steps of traffic, world frame: ``ego [B, T, 3]`` and ``agents [B, T, N, 3]``
+    poses (x, y, yaw), ``seen [B, T, N]``; per agent ``size [B, N, 3]``, ``z [B, N]`` (box centre
+    height), ``classes [B, N]``, ``ids [B, N]``; an agent is present when seen at the last step."""
+
+    ego: jax.Array
+    agents: jax.Array
+    seen: jax.Array
+    size: jax.Array
+    z: jax.Array
+    classes: jax.Array
+    ids: jax.Array
+
+    def advance(self, ego_next, agents_next) -> "Traffic":
+        """The history one step on: ``ego_next [B, 3]``, ``agents_next [B, N, 3]`` appended."""
+        return self.replace(ego=jnp.concatenate([self.ego[:, 1:], ego_next[:, None]], 1),
+                            agents=jnp.concatenate([self.agents[:, 1:], agents_next[:, None]], 1),
+                            seen=jnp.concatenate([self.seen[:, 1:], self.seen[:, -1:]], 1))
+
+
+def to_frame(poses, frame):
+    """World poses ``[..., 3]`` -> in the frame of ``frame [..., 3]`` (broadcast)."""
+    c, s = jnp.cos(frame[..., 2]), jnp.sin(frame[..., 2])
+    dx, dy = poses[..., 0] - frame[..., 0], poses[..., 1] - frame[..., 1]
+    return jnp.stack([c * dx + s * dy, -s * dx + c * dy, wrap(poses[..., 2] - frame[..., 2])], -1)
+
+
+def _features(rel, axis: int):
+    """Relative poses ``[..., T, ..., 3]`` (time along ``axis``) -> ``(x, y) / POSITION_SCALE``, cos
+    and sin of the heading, and each step's motion, ``(dx, dy) / STEP_SCALE`` and ``dyaw /
+    YAW_SCALE`` (zero at the first step): positions are metres apart, steps centimetres, and the
+    network reads speed and acceleration from the latter."""
+    step = jnp.diff(rel, axis=axis, prepend=jnp.take(rel, jnp.array([0]), axis=axis))
+    step = jnp.concatenate([step[..., :2] / STEP_SCALE, wrap(step[..., 2:]) / YAW_SCALE], -1)
+    return jnp.concatenate([rel[..., :2] / POSITION_SCALE, jnp.cos(rel[..., 2:]), jnp.sin(rel[..., 2:]), step], -1)
+
+
+class _Block(nn.Module):
+    width: int
+    heads: int
+
+    @nn.compact
+    def __call__(self, x, mask):
+        h = nn.LayerNorm()(x)
+        x = x + nn.MultiHeadDotProductAttention(num_heads=self.heads, qkv_features=self.width)(h, h, mask=mask)
+        h = nn.LayerNorm()(x)
+        return x + nn.Dense(self.width)(nn.gelu(nn.Dense(4 * self.width)(h)))
+
+
+class Predictor(nn.Module):
+    """Corrections ``(ego [B, 3], agents [B, N, 3])`` to the constant-velocity step (module
+    docstring) from ``traffic`` and ``bev [B, Hm, Wm, 8]`` in [0, 1] around the current ego."""
+
+    config: PredictorConfig
+
+    @nn.compact
+    def __call__(self, traffic: Traffic, bev):
+        cfg = self.config
+        b, t, n = traffic.seen.shape
+        now = traffic.ego[:, -1]
+        ego = _features(to_frame(traffic.ego, now[:, None]), 1).reshape(b, -1)
+        agents = _features(to_frame(traffic.agents, now[:, None, None]), 1)          # [B, T, N, 7]
+        seen = traffic.seen.astype(jnp.float32)
+        both = seen * jnp.concatenate([seen[:, :1], seen[:, :-1]], 1)                # a step needs both ends
+        agents = jnp.concatenate([agents[..., :4] * seen[..., None], agents[..., 4:] * both[..., None]], -1)
+        agents = agents.transpose(0, 2, 1, 3).reshape(b, n, -1)
+        agents = jnp.concatenate([agents, seen.transpose(0, 2, 1), traffic.size / 5.0,
+                                  jax.nn.one_hot(traffic.classes, len(OBJECT_CLASSES))], -1)
+        embed = lambda x, name: nn.Dense(cfg.width, name=f"{name}_out")(
+            nn.gelu(nn.Dense(cfg.width, name=f"{name}_in")(x)))
+        p = cfg.map_patch
+        hm, wm = bev.shape[1] // p, bev.shape[2] // p
+        cells = bev[:, :hm * p, :wm * p].reshape(b, hm, p, wm, p, len(BEV_CLASSES))
+        cells = cells.transpose(0, 1, 3, 2, 4, 5).reshape(b, hm * wm, -1)
+        map_tokens = nn.Dense(cfg.width, name="map_in")(cells)
+        map_tokens = map_tokens + self.param("map_position", nn.initializers.normal(0.02), (hm * wm, cfg.width))
+        kinds = self.param("kind", nn.initializers.normal(0.02), (3, cfg.width))
+        x = jnp.concatenate([embed(ego, "ego")[:, None] + kinds[0], embed(agents, "agent") + kinds[1],
+                             map_tokens + kinds[2]], 1)
+        present = traffic.seen[:, -1]
+        keys = jnp.concatenate([jnp.ones((b, 1), bool), present, jnp.ones((b, hm * wm), bool)], 1)
+        mask = jnp.broadcast_to(keys[:, None, None, :], (b, 1, x.shape[1], x.shape[1]))
+        for i in range(cfg.depth):
+            x = _Block(cfg.width, cfg.heads, name=f"block_{i}")(x, mask)
+        x = nn.LayerNorm()(x)
+        head = nn.Dense(3, kernel_init=nn.initializers.zeros, name="head")
+        return head(x[:, 0]), head(x[:, 1:1 + n]) * present[..., None]
+
+
+def constant_velocity(traffic: Traffic):
+    """The constant-velocity step: each pose moved by its last step's displacement, heading kept
+    (an agent not seen at both of the last two steps stands). ``(ego [B, 3], agents [B, N, 3])``."""
+    e, a = traffic.ego, traffic.agents
+    ego = e[:, -1].at[:, :2].add(e[:, -1, :2] - e[:, -2, :2])
+    moving = (traffic.seen[:, -1] & traffic.seen[:, -2])[..., None]
+    agents = a[:, -1].at[..., :2].add(jnp.where(moving, a[:, -1, :, :2] - a[:, -2, :, :2], 0.0))
+    return ego, agents
+
+
+def predict_step(model: Predictor, params, traffic: Traffic, bev):
+    """The next step's world poses ``(ego [B, 3], agents [B, N, 3])``: the constant-velocity step
+    plus the model's corrections, which are in the current ego frame."""
+    d_ego, d_agents = model.apply({"params": params}, traffic, bev)
+    cv_ego, cv_agents = constant_velocity(traffic)
+    now = traffic.ego[:, -1]
+    c, s = jnp.cos(now[:, 2]), jnp.sin(now[:, 2])
+
+    def moved(pose, d):                     # d in the ego frame, broadcast over agents
+        cc, ss = (c, s) if d.ndim == 2 else (c[:, None], s[:, None])
+        dx, dy = STEP_SCALE * d[..., 0], STEP_SCALE * d[..., 1]
+        return jnp.stack([pose[..., 0] + cc * dx - ss * dy, pose[..., 1] + ss * dx + cc * dy,
+                          wrap(pose[..., 2] + YAW_SCALE * d[..., 2])], -1)
+    agents = jnp.where(traffic.seen[:, -1, :, None], moved(cv_agents, d_agents), traffic.agents[:, -1])
+    return moved(cv_ego, d_ego), agents
+
+
+def rollout(model: Predictor, params, traffic: Traffic, steps: int, *, bev=None, scene=None, ego_path=None):
+    """Roll ``steps`` steps forward -> ``(ego [B, S, 3], agents [B, S, N, 3], traffic)`` (the
+    final history). The map of each step: ``bev [B, S, Hm, Wm, 8]`` given per step (training), or
+    ``bev [B, Hm, Wm, 8]`` (the newest seen) re-cut from ``scene`` (a
+    :class:`jaxdrive.data.scene_map.SceneMap`, one clip: B = 1) at each pose, or held as it is.
+    ``ego_path [B, S, 3]``: the ego drives it (a user's route) and only the agents are predicted."""
+    from jaxdrive.data.scene_map import cut
+
+    def step(state, k):
+        traffic = state
+        if bev is None or bev.ndim == 4:
+            now = bev
+            if scene is not None:
+                now = jax.vmap(lambda pose, fb: cut(scene, pose, fb))(traffic.ego[:, -1], bev)
+        else:
+            now = bev[:, k]
+        ego, agents = predict_step(model, params, traffic, now)
+        if ego_path is not None:
+            ego = ego_path[:, k]
+        return traffic.advance(ego, agents), (ego, agents)
+    traffic, (ego, agents) = jax.lax.scan(step, traffic, jnp.arange(steps))
+    return ego.swapaxes(0, 1), agents.swapaxes(0, 1), traffic
+
+
+def init_params(config: PredictorConfig, key, *, bev_size=(64, 64)):
+    """Fresh parameters for ``bev_size`` maps (the dataset's BEV grid)."""
+    t, n = config.history, config.max_agents
+    traffic = Traffic(ego=jnp.zeros((1, t, 3)), agents=jnp.zeros((1, t, n, 3)), seen=jnp.ones((1, t, n), bool),
+                      size=jnp.ones((1, n, 3)), z=jnp.zeros((1, n)), classes=jnp.zeros((1, n), jnp.int32),
+                      ids=jnp.zeros((1, n), jnp.int32))
+    return Predictor(config).init(key, traffic, jnp.zeros((1, *bev_size, len(BEV_CLASSES))))["params"]
