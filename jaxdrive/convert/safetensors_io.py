@@ -51,6 +51,11 @@ def _read_file(file: Path) -> dict[str, np.ndarray]:
         raise ValueError(f"{file}: {what} safetensors file ({file.stat().st_size} bytes; {e})") from e
 
 
+def read_tensors(file) -> dict[str, np.ndarray]:
+    """Every tensor of one ``.safetensors`` file, by name (``ValueError`` for a damaged file)."""
+    return _read_file(Path(file))
+
+
 def read_weights(path) -> dict[str, np.ndarray]:
     """All tensors of the diffusers directory ``path``, by their PyTorch names."""
     root = Path(path)
