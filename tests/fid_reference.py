@@ -1,12 +1,15 @@
-"""pytorch-fid's FID Inception, importable beside the CPU torch wheel, for the parity tests.
+"""The reference code of FID and FVD (pytorch-fid's FID Inception and Fréchet distance, cd-fvd's
+I3D), importable beside the CPU torch wheel, for the parity tests.
 
-pytorch-fid builds its network from torchvision's Inception modules, and torchvision's compiled
-extension does not load beside the CPU torch wheel (``operator torchvision::nms does not exist``
-on ``import torchvision``). The modules themselves are pure Python: this loads
-``torchvision/models/inception.py`` from the installed wheel by its path, under a stand-in
-``torchvision`` package that provides the few names it imports (weight enums and logging the
-reference never uses), and then imports ``pytorch_fid.inception`` against it. Nothing of
-jaxdrive is involved.
+torchvision's compiled extension does not load beside the CPU torch wheel (``operator
+torchvision::nms does not exist`` on ``import torchvision``), and with torchvision installed
+diffusers imports it (and fails). So the README's test command installs the reference packages
+into ``.reference/`` with ``pip install --no-deps --target .reference``, off the import path, and
+this module loads them by path: torchvision's pure-Python ``models/inception.py`` under a
+stand-in ``torchvision`` package that provides the few names it imports (weight enums and logging
+the reference never uses), pytorch-fid on top of it, and cd-fvd's pure-torch ``pytorch_i3d.py``.
+The stand-in leaves ``sys.modules`` once pytorch-fid holds what it needs. Nothing of jaxdrive is
+involved.
 """
 
 from __future__ import annotations
@@ -39,32 +42,62 @@ def _decorator_factory(*args, **kwargs):
     return lambda fn: fn
 
 
+REFERENCE = Path(__file__).resolve().parents[1] / ".reference"
+INSTALL = "pip install --no-deps --target .reference torchvision==0.28.0 pytorch-fid==0.3.0 cd-fvd==0.1.1"
+
+
+def _require(relative: str) -> Path:
+    import pytest
+    path = REFERENCE / relative
+    if not path.is_file():
+        pytest.skip(f"the reference code is not installed ({path} missing): run '{INSTALL}' (the README's test "
+                    f"command does)")
+    return path
+
+
 def load_pytorch_fid():
-    """``pytorch_fid.inception`` (its ``InceptionV3``), with torchvision's Inception modules."""
-    if "pytorch_fid.inception" in sys.modules:
+    """``pytorch_fid.inception`` (its ``InceptionV3``) and ``pytorch_fid.fid_score``, with
+    torchvision's Inception modules."""
+    if "pytorch_fid.fid_score" in sys.modules:
         return sys.modules["pytorch_fid.inception"]
-    spec = importlib.util.find_spec("torchvision")         # locates the package without importing it
-    root = Path(spec.submodule_search_locations[0])
-    from importlib.metadata import version
-    tv = _stub("torchvision", __version__=version("torchvision"), __path__=[str(root)])
-    models = _stub("torchvision.models", __path__=[str(root / "models")])
-    tv.models = models
-    _stub("torchvision.transforms", __path__=[])
-    _stub("torchvision.transforms._presets", ImageClassification=object)
-    _stub("torchvision.utils", _log_api_usage_once=lambda *a, **k: None)
-    _stub("torchvision.models._api", register_model=_decorator_factory, Weights=_Weights, WeightsEnum=_WeightsEnum)
-    _stub("torchvision.models._meta", _IMAGENET_CATEGORIES=[])
-    _stub("torchvision.models._utils", _ovewrite_named_param=lambda kw, k, v: kw.setdefault(k, v),
-          handle_legacy_interface=_decorator_factory)
-    file = root / "models" / "inception.py"
-    mod_spec = importlib.util.spec_from_file_location("torchvision.models.inception", file)
-    inception = importlib.util.module_from_spec(mod_spec)
-    sys.modules["torchvision.models.inception"] = inception
-    mod_spec.loader.exec_module(inception)
-    models.inception = inception
-    models.inception_v3 = inception.inception_v3
-    import pytorch_fid.inception as fid_inception
+    root = _require("torchvision/models/inception.py").parents[1]
+    before = set(sys.modules)
+    sys.path.insert(0, str(REFERENCE))
+    try:
+        tv = _stub("torchvision", __version__="0.28.0", __path__=[str(root)])
+        models = _stub("torchvision.models", __path__=[str(root / "models")])
+        tv.models = models
+        tv.transforms = _stub("torchvision.transforms", __path__=[])
+        _stub("torchvision.transforms._presets", ImageClassification=object)
+        _stub("torchvision.utils", _log_api_usage_once=lambda *a, **k: None)
+        _stub("torchvision.models._api", register_model=_decorator_factory, Weights=_Weights,
+              WeightsEnum=_WeightsEnum)
+        _stub("torchvision.models._meta", _IMAGENET_CATEGORIES=[])
+        _stub("torchvision.models._utils", _ovewrite_named_param=lambda kw, k, v: kw.setdefault(k, v),
+              handle_legacy_interface=_decorator_factory)
+        spec = importlib.util.spec_from_file_location("torchvision.models.inception", root / "models" / "inception.py")
+        inception = importlib.util.module_from_spec(spec)
+        sys.modules["torchvision.models.inception"] = inception
+        spec.loader.exec_module(inception)
+        models.inception = inception
+        models.inception_v3 = inception.inception_v3
+        import pytorch_fid.fid_score  # noqa: F401  (its Fréchet distance; it imports the network too)
+        import pytorch_fid.inception as fid_inception
+    finally:
+        sys.path.remove(str(REFERENCE))
+        for name in set(sys.modules) - before:       # the stand-in goes; pytorch-fid keeps its references
+            if name == "torchvision" or name.startswith("torchvision."):
+                del sys.modules[name]
     return fid_inception
+
+
+def load_cd_fvd_i3d():
+    """cd-fvd's ``pytorch_i3d`` module (pure torch), loaded by its path."""
+    path = _require("cdfvd/third_party/i3d/pytorch_i3d.py")
+    spec = importlib.util.spec_from_file_location("cdfvd_pytorch_i3d", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 # pytorch-fid's InceptionV3 wrapper ("blocks.i.j") -> the weights file's names (torchvision's)

@@ -114,14 +114,10 @@ def test_the_converted_safetensors_load_the_same_and_foreign_files_are_refused(w
 
 @pytest.fixture(scope="module")
 def i3d_weights(tmp_path_factory):
-    """cd-fvd's ``InceptionI3d(400)`` (its pure-torch ``pytorch_i3d.py``, loaded by path so that the
-    package's other imports stay out) with random weights and batch-norm statistics."""
-    import importlib.util
-    from pathlib import Path
-    root = Path(importlib.util.find_spec("cdfvd").submodule_search_locations[0])
-    spec = importlib.util.spec_from_file_location("cdfvd_pytorch_i3d", root / "third_party" / "i3d" / "pytorch_i3d.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    """cd-fvd's ``InceptionI3d(400)`` (its pure-torch ``pytorch_i3d.py``, loaded by its path) with
+    random weights and batch-norm statistics."""
+    from fid_reference import load_cd_fvd_i3d
+    module = load_cd_fvd_i3d()
     net = module.InceptionI3d(400, in_channels=3)
     gen = torch.Generator().manual_seed(0)
     with torch.no_grad():
