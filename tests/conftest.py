@@ -32,3 +32,20 @@ import tempfile  # noqa: E402
 jax.config.update("jax_compilation_cache_dir", tempfile.mkdtemp(prefix="jaxdrive-xla-cache-"))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 2.0)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def clips21(tmp_path_factory):
+    """2 training scenes and 1 validation scene of 21 frames, 6 views (a session's shared data)."""
+    from train_fixtures import write_synthetic
+    return write_synthetic(tmp_path_factory.mktemp("clips21") / "data", train=2, frames=21, views=6)
+
+
+@pytest.fixture(scope="session")
+def tiny_dit(clips21, tmp_path_factory):
+    """A tiny 6-view DiT trained 1 step on ``clips21`` (``train_fixtures.tiny_run``)."""
+    from train_fixtures import tiny_run
+    return tiny_run(tmp_path_factory.mktemp("tiny_dit") / "run", clips21)

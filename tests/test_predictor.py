@@ -143,9 +143,8 @@ def test_ade_and_fde_of_constant_velocity_under_constant_acceleration_match_the_
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    from train_fixtures import write_synthetic
-    return write_synthetic(tmp_path_factory.mktemp("predictor") / "data", train=2, frames=21, views=6)
+def data(clips21):
+    return clips21
 
 
 @pytest.fixture(scope="module")
@@ -230,18 +229,12 @@ def test_controls_past_the_log_continue_the_clip_and_a_route_moves_only_the_ego(
         future_controls(s, clip, frames=20, keep=20, route=load_route("straight 300 m/s", duration=19 / 12))
 
 
-def test_a_six_view_generation_runs_past_the_end_of_the_recorded_controls(data, predictor_run, tmp_path, capsys):
+def test_a_six_view_generation_runs_past_the_end_of_the_recorded_controls(tiny_dit, predictor_run, tmp_path, capsys):
     from PIL import Image
 
     from jaxdrive.cli import main as cli
-    args = ["train", "--config", str(ROOT / "configs" / "tiny.py"), "--workdir", str(tmp_path / "dit"), "--steps",
-            "1", "--no-progress"]
-    for s in (f"data.path={data}", "model.controls.boxes=true", "data.frames=5",
-              "data.views=6", "data.batch_size=2", "mesh.data=2", "mesh.seq=4"):
-        args += ["--set", s]
-    assert cli(args) == 0
     out = tmp_path / "long"
-    assert cli(["sample", "--workdir", str(tmp_path / "dit"), "--strategy", "rollout", "--frames", "25", "--steps", "1",
+    assert cli(["sample", "--workdir", str(tiny_dit), "--strategy", "rollout", "--frames", "25", "--steps", "1",
                 "--predictor", str(predictor_run), "--out", str(out), "--no-progress"]) == 0
     report = json.loads((out / "report.json").read_text())
     assert report["frames"] == 25 and report["views"] == 6        # the clip records 21 frames
@@ -250,9 +243,9 @@ def test_a_six_view_generation_runs_past_the_end_of_the_recorded_controls(data, 
     grid = np.asarray(Image.open(out / "frames.png"))
     assert grid.shape[1] > 3 * 56 * 2                         # the BEV panel before the 3 x 2 view mosaic
     capsys.readouterr()
-    assert cli(["sample", "--workdir", str(tmp_path / "dit"), "--strategy", "rollout", "--frames", "9",
+    assert cli(["sample", "--workdir", str(tiny_dit), "--strategy", "rollout", "--frames", "9",
                 "--controls", "predicted", "--out", str(tmp_path / "no")]) == 2
     assert "--controls: 'predicted' needs --predictor RUN" in capsys.readouterr().err
-    assert cli(["sample", "--workdir", str(tmp_path / "dit"), "--strategy", "rollout", "--frames", "33",
+    assert cli(["sample", "--workdir", str(tiny_dit), "--strategy", "rollout", "--frames", "33",
                 "--out", str(tmp_path / "no")]) == 2
     assert "frames: expected at most 21 frames" in capsys.readouterr().err

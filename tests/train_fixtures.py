@@ -35,3 +35,18 @@ def assert_same_state(a, b):
     import numpy as np
     for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def tiny_run(workdir, data, *sets):
+    """A 6-view tiny DiT (``configs/tiny.py``, boxes on, 5-frame windows) trained 1 step on
+    ``data`` in ``workdir``, on the 8 test devices (data 2 x seq 4); returns ``workdir``."""
+    from pathlib import Path
+
+    from jaxdrive.cli import main as cli
+    args = ["train", "--config", str(Path(__file__).resolve().parents[1] / "configs" / "tiny.py"), "--workdir",
+            str(workdir), "--steps", "1", "--no-progress"]
+    for s in (f"data.path={data}", "model.controls.boxes=true", "data.frames=5", "data.views=6",
+              "data.batch_size=2", "mesh.data=2", "mesh.seq=4", *sets):
+        args += ["--set", s]
+    assert cli(args) == 0
+    return workdir

@@ -10,7 +10,7 @@ import logging
 import sys
 
 import jaxdrive
-from jaxdrive.cli import bench, convert, data, train
+from jaxdrive.cli import bench, convert, data, eval as eval_cli, train
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -25,6 +25,7 @@ def build_parser() -> argparse.ArgumentParser:
     data.add_commands(sub)
     convert.add_commands(sub)
     train.add_commands(sub)
+    eval_cli.add_commands(sub)
     return parser
 
 

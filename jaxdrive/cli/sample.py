@@ -32,6 +32,44 @@ def _load(workdir, sets, mesh, *, ema: bool, steps, guidance, role: str):
                                                         guidance=guidance)
 
 
+def load_runs(args):
+    """The runs of ``--workdir`` (and ``--fine-workdir``) for a strategy: ``(run, spec, fine_spec,
+    load_main, load_fine, shapes, length)``; ``shapes`` are the :class:`Models` known from the
+    configs alone (what every check needs, before any parameter is read), ``length`` the latent
+    frames of ``--frames``."""
+    from jaxdrive.generate.strategies import Models
+    from jaxdrive.generate.windows import WindowModel
+    ema = not args.no_ema
+    run, spec, load_main = _load(args.workdir, args.set, args.mesh, ema=ema, steps=args.steps, guidance=args.cfg,
+                                 role="--workdir")
+    fine_spec = load_fine = None
+    if args.fine_workdir:
+        _, fine_spec, load_fine = _load(args.fine_workdir, args.set, args.mesh, ema=ema, steps=args.steps,
+                                        guidance=args.cfg, role="--fine-workdir")
+        for name in ("channels", "spatial", "temporal"):
+            a, b = getattr(spec.codec, name), getattr(fine_spec.codec, name)
+            if a != b:
+                raise ValueError(f"--fine-workdir: expected latents like --workdir's ({name} {a}), got {name} {b}")
+    horizon_spec = fine_spec or spec
+    length = horizon_spec.codec.latent_frames(args.frames)
+    if horizon_spec.codec.temporal > 1 and (args.frames - 1) % horizon_spec.codec.temporal:
+        raise ValueError(f"--frames: expected 1 + {horizon_spec.codec.temporal}k frames for the causal VAE, "
+                         f"got {args.frames}")
+    shape_only = lambda s: WindowModel.from_sampling(s, None, steps=args.steps, guidance=args.cfg)
+    shapes = Models(shape_only(spec), shape_only(fine_spec) if fine_spec else None)
+    return run, spec, fine_spec, load_main, load_fine, shapes, length
+
+
+def first_latents(inputs, codec, window: int, given: int):
+    """The ``given`` latent frames every strategy starts from: the stored latents of a precomputed
+    dataset, else the clip's first pixel frames encoded (a whole window, for a causal VAE)."""
+    import numpy as np
+    if "latents" in inputs:
+        return np.asarray(inputs["latents"])[:, :, :given]
+    pixels = np.asarray(inputs["video"])[:, :, :codec.pixel_frames(max(window, given))]
+    return np.asarray(codec.encode(codec.params, pixels))[:, :, :given]
+
+
 def parse_taps(text):
     """``--taps``: ``"-1,-5,-10"`` -> ``(-1, -5, -10)``; ``"none"`` -> ``()``; None stays None."""
     if text is None:
@@ -61,26 +99,8 @@ def sample_strategy(args) -> int:
     if args.frames is None:
         raise ValueError("--frames: expected the number of frames to generate with --strategy, got none")
     check_positive_int("--frames", args.frames)
-    ema = not args.no_ema
-    run, spec, load_main = _load(args.workdir, args.set, args.mesh, ema=ema, steps=args.steps, guidance=args.cfg,
-                                 role="--workdir")
-    fine_spec = load_fine = None
-    if args.fine_workdir:
-        _, fine_spec, load_fine = _load(args.fine_workdir, args.set, args.mesh, ema=ema, steps=args.steps,
-                                        guidance=args.cfg, role="--fine-workdir")
-        for name in ("channels", "spatial", "temporal"):
-            a, b = getattr(spec.codec, name), getattr(fine_spec.codec, name)
-            if a != b:
-                raise ValueError(f"--fine-workdir: expected latents like --workdir's ({name} {a}), got {name} {b}")
+    run, spec, fine_spec, load_main, load_fine, shapes, length = load_runs(args)
     horizon_spec = fine_spec or spec
-    length = horizon_spec.codec.latent_frames(args.frames)
-    if horizon_spec.codec.temporal > 1 and (args.frames - 1) % horizon_spec.codec.temporal:
-        raise ValueError(f"--frames: expected 1 + {horizon_spec.codec.temporal}k frames for the causal VAE, "
-                         f"got {args.frames}")
-    # check with the configs alone (parameters are not needed to know the windows and patterns)
-    from jaxdrive.generate.windows import WindowModel
-    shape_only = lambda s: WindowModel.from_sampling(s, None, steps=args.steps, guidance=args.cfg)
-    shapes = Models(shape_only(spec), shape_only(fine_spec) if fine_spec else None)
     given = shapes.main.cond_frames if args.cond_frames is None else args.cond_frames
     if args.strategy == "coarse-fine":
         given = min(given, shapes.fine.window - 1)
@@ -121,12 +141,7 @@ def sample_strategy(args) -> int:
     scene = inputs.pop("scene")
     scene["cell"] = tuple(r / n for r, n in zip(bev_range, scene["bev_map"].shape[1:3]))
     codec = horizon_spec.codec
-    if "latents" in inputs:
-        first = np.asarray(inputs["latents"])[:, :, :given]
-    else:
-        window = models.main.window
-        pixels = np.asarray(inputs["video"])[:, :, :codec.pixel_frames(max(window, given))]
-        first = np.asarray(codec.encode(codec.params, pixels))[:, :, :given]
+    first = first_latents(inputs, codec, models.main.window, given)
     if any(m is not None and m.dit.config.controls.warp for m in (shapes.main, shapes.fine)):
         from jaxdrive.generate.warps import WarpGuide      # LongDWM: each window's first frame warped
         options["warp"] = WarpGuide.from_inputs(inputs, codec, depth=horizon_spec.data.warp_depth)

@@ -12,7 +12,7 @@ import os
 import time
 from pathlib import Path
 
-from jaxdrive.cli.options import add_config, add_progress
+from jaxdrive.cli.options import add_config, add_progress, add_sampling
 
 REPO_CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -169,13 +169,8 @@ def add_commands(sub) -> None:
     sample.add_argument("--workdir", required=True)
     sample.add_argument("--frames", type=int, help="pixel frames (longer than training: rolled out in windows)")
     sample.add_argument("--views", nargs="+", help="camera indices (default: the training views)")
-    sample.add_argument("--steps", type=int, help="sampling steps (train.sample_steps)")
-    sample.add_argument("--cfg", type=float, default=2.0, help="classifier-free guidance scale (1: none)")
-    sample.add_argument("--seed", type=int, default=0)
+    add_sampling(sample, cfg=2.0)
     sample.add_argument("--out", help="output directory (default WORKDIR/samples/sample_STEP)")
-    sample.add_argument("--mesh", help="mesh axis sizes for sampling")
-    sample.add_argument("--no-ema", action="store_true", help="sample with the raw parameters, not the EMA")
-    sample.add_argument("--set", action="append", metavar="KEY=VALUE")
     sample.add_argument("--strategy", help="long-video strategy: rollout, coarse-to-refine (MiLA), coarse-fine "
                                            "(LongDWM), window (MagicDrive-V2: one window, models trained on "
                                            "several lengths) or streaming (STAGE: frame by frame with the HTFT "

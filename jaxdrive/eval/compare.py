@@ -1,0 +1,150 @@
+"""Long-video strategies scored side by side on the same clips: ``jaxdrive eval``.
+
+Each strategy runs (:func:`jaxdrive.generate.strategies.run_strategy`) from the same given frames
+and controls; its latents are decoded part by part and scored against the recorded clip per
+horizon bucket (frame ranges of the output clip): PSNR and SSIM always; FID (per view and over all
+views) and FVD (16-frame windows) where feature functions are given (the FID Inception, the I3D:
+:mod:`jaxdrive.eval.inception`, :mod:`jaxdrive.eval.i3d`). Writes ``eval.json``, ``eval.md`` (a
+table of strategies x metrics) and ``quality_vs_horizon.png``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from jaxdrive.eval.fid import FeatureStats
+from jaxdrive.eval.frames import psnr, ssim
+
+FVD_FRAMES = 16
+
+
+def parse_buckets(text: str | None, given: int, frames: int) -> list[tuple[int, int]]:
+    """``--buckets "2-12,13-24"`` (inclusive output frame ranges, after the ``given`` frames) ->
+    ``[(2, 13), (13, 25)]`` (half-open); None: the generated frames in thirds."""
+    if text is None:
+        edges = np.linspace(given, frames, 4).round().astype(int)
+        out = [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+    else:
+        out = []
+        for part in text.split(","):
+            try:
+                a, b = (int(v) for v in part.split("-"))
+            except ValueError:
+                raise ValueError(f"--buckets: expected ranges like 2-12,13-24, got {text!r}") from None
+            out.append((a, b + 1))
+    for a, b in out:
+        if not given <= a < b <= frames:
+            raise ValueError(f"--buckets: expected ranges within the generated frames {given}-{frames - 1}, got "
+                             f"{a}-{b - 1} (clips shorter than the horizon buckets)")
+    return out
+
+
+def _to_255(video):
+    return np.clip((np.asarray(video, np.float32) + 1.0) * 127.5, 0.0, 255.0)
+
+
+def score(video, recorded, buckets, *, fid_features=None, fvd_features=None) -> dict:
+    """Scores of ``video`` against ``recorded`` (both ``[B, V, F, H, W, 3]`` in [-1, 1]) per bucket:
+    ``psnr``, ``ssim``; ``fid`` (over all views) and ``fid_per_view`` with ``fid_features(images
+    [N, H, W, 3] in [0, 255]) -> [N, D]``; ``fvd`` with ``fvd_features(videos [N, 16, H, W, 3])``
+    over the bucket's 16-frame windows (None where the bucket is shorter)."""
+    out = {}
+    for a, b in buckets:
+        g, r = video[:, :, a:b], recorded[:, :, a:b]
+        row = {"frames": [a, b - 1], "psnr": float(np.minimum(np.asarray(psnr(g, r)), 100.0).mean()),
+               "ssim": float(np.asarray(ssim(g, r)).mean())}
+        if fid_features is not None:
+            per_view, both = [], [None, None]
+            for v in range(g.shape[1]):
+                feats = [np.asarray(fid_features(_to_255(x[:, v].reshape(-1, *x.shape[3:])))) for x in (g, r)]
+                stats = [FeatureStats(f.shape[1]).add(f) for f in feats]
+                per_view.append(stats[0].fid(stats[1]))
+                both = [f if acc is None else np.concatenate([acc, f]) for acc, f in zip(both, feats)]
+            row["fid_per_view"] = [round(x, 4) for x in per_view]
+            row["fid"] = FeatureStats(both[0].shape[1]).add(both[0]).fid(FeatureStats(both[1].shape[1]).add(both[1]))
+        if fvd_features is not None:
+            starts = range(a, b - FVD_FRAMES + 1, FVD_FRAMES)
+            if len(starts) * video.shape[0] * video.shape[1] >= 2:
+                def windows(x):
+                    w = np.stack([x[:, :, s:s + FVD_FRAMES] for s in starts], 2)    # [B, V, W, 16, H, W, 3]
+                    return _to_255(w.reshape(-1, *w.shape[3:]))
+                f = [np.asarray(fvd_features(windows(x))) for x in (video, recorded)]
+                row["fvd"] = FeatureStats(f[0].shape[1]).add(f[0]).fid(FeatureStats(f[1].shape[1]).add(f[1]))
+            else:
+                row["fvd"] = None
+        out[f"{a}-{b - 1}"] = row
+    return out
+
+
+def run_strategies(strategies, models, codec, controls, first, length, recorded, buckets, *, key, mesh=None,
+                   options=None, fid_features=None, fvd_features=None, log=print) -> dict:
+    """Every strategy of ``strategies`` (name -> its options) on the same inputs, decoded and
+    scored (:func:`score`); returns ``{name: {"seconds", "sequential_sampler_calls",
+    "peak_device_bytes", "buckets": {...}}}``."""
+    from jaxdrive.generate.strategies import run_strategy
+    from jaxdrive.generate.windows import Tracker
+    results = {}
+    for name, opts in strategies.items():
+        tracker = Tracker()
+        start = time.perf_counter()
+        decoder = codec.stream_decoder(length)
+        parts = []
+        for part in run_strategy(name, models, controls, first, length, key=key, tracker=tracker, mesh=mesh,
+                                 **(opts or {})):
+            video = decoder.push(part)
+            if video is not None and video.shape[2]:
+                parts.append(np.asarray(video))
+            tracker.observe()
+        tail = decoder.flush()
+        if tail is not None and tail.shape[2]:
+            parts.append(np.asarray(tail))
+        seconds = time.perf_counter() - start
+        video = np.concatenate(parts, axis=2)
+        results[name] = {"seconds": round(seconds, 3), "sequential_sampler_calls": tracker.calls,
+                         "peak_device_bytes": int(tracker.peak_bytes),
+                         "buckets": score(video, recorded, buckets, fid_features=fid_features,
+                                          fvd_features=fvd_features)}
+        log(f"{name}: {video.shape[2]} frames x {video.shape[1]} views x {video.shape[0]} clips in {seconds:.1f} s")
+    return results
+
+
+def table(results: dict) -> str:
+    """A markdown table: one row per strategy and bucket."""
+    metrics = [m for m in ("psnr", "ssim", "fid", "fvd") if any(m in row for r in results.values()
+                                                                 for row in r["buckets"].values())]
+    head = ["strategy", "frames", *[m.upper() if m in ("fid", "fvd") else m.upper().replace("SSIM", "SSIM")
+                                    for m in metrics], "seconds", "peak MiB"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, r in results.items():
+        for span, row in r["buckets"].items():
+            cells = [f"{row[m]:.3f}" if row.get(m) is not None else "-" for m in metrics]
+            lines.append(f"| {name} | {span} | " + " | ".join(cells) +
+                         f" | {r['seconds']:.1f} | {r['peak_device_bytes'] / 2**20:.1f} |")
+    return "\n".join(lines)
+
+
+def write_outputs(results: dict, out, *, meta: dict) -> dict:
+    """``eval.json``, ``eval.md`` and ``quality_vs_horizon.png`` under ``out``; returns the paths."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "eval.json").write_text(json.dumps({**meta, "strategies": results}, indent=1))
+    md = table(results)
+    (out / "eval.md").write_text(md + "\n")
+    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=120)
+    for name, r in results.items():
+        mids = [np.mean(row["frames"]) for row in r["buckets"].values()]
+        ax.plot(mids, [row["psnr"] for row in r["buckets"].values()], marker="o", label=name)
+    ax.set(xlabel="frame (bucket centre)", ylabel="PSNR dB against the recorded clip", title="quality vs horizon")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(out / "quality_vs_horizon.png")
+    plt.close(fig)
+    return {"json": out / "eval.json", "md": out / "eval.md", "plot": out / "quality_vs_horizon.png", "table": md}

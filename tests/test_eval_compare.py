@@ -1,0 +1,70 @@
+"""``jaxdrive eval``: horizon buckets, the per-bucket scores (PSNR / SSIM, FID and FVD through
+their feature functions) and the command's outputs on a tiny run."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from jaxdrive.eval.compare import parse_buckets, score
+
+
+def test_horizon_buckets_default_to_thirds_and_must_lie_in_the_generated_frames():
+    assert parse_buckets(None, 2, 26) == [(2, 10), (10, 18), (18, 26)]
+    assert parse_buckets("2-12,13-25", 2, 26) == [(2, 13), (13, 26)]
+    with pytest.raises(ValueError, match=r"--buckets: expected ranges within the generated frames 2-25, got 13-40 "
+                                         r"\(clips shorter than the horizon buckets\)"):
+        parse_buckets("2-12,13-40", 2, 26)
+    with pytest.raises(ValueError, match="--buckets: expected ranges like 2-12,13-24, got 'early'"):
+        parse_buckets("early", 2, 26)
+
+
+def _colour_features(images):
+    """A stand-in feature function: each image's mean colour and spread (what FID needs of one)."""
+    x = np.asarray(images, np.float64).reshape(len(images), -1, 3)
+    return np.concatenate([x.mean(1), x.std(1)], 1)
+
+
+def test_scores_are_perfect_for_the_recorded_clip_and_fall_for_another():
+    rng = np.random.default_rng(0)
+    recorded = np.clip(rng.normal(size=(2, 2, 20, 16, 16, 3)) * 0.3, -1, 1).astype(np.float32)
+    buckets = [(2, 18), (18, 20)]
+    kw = dict(fid_features=_colour_features, fvd_features=lambda v: _colour_features(v.reshape(len(v), -1, 3)))
+    same = score(recorded, recorded, buckets, **kw)
+    assert same["2-17"]["psnr"] == 100.0 and same["2-17"]["ssim"] == pytest.approx(1.0, abs=1e-5)
+    assert same["2-17"]["fid"] == pytest.approx(0.0, abs=1e-6) and same["2-17"]["fvd"] == pytest.approx(0.0, abs=1e-6)
+    assert len(same["2-17"]["fid_per_view"]) == 2
+    assert same["18-19"]["fvd"] is None                                  # 2 frames: no 16-frame window
+    brighter = np.clip(recorded + 0.4, -1, 1)
+    other = score(brighter, recorded, buckets, **kw)
+    assert other["2-17"]["psnr"] < 20 and other["2-17"]["fid"] > 0.05 and other["2-17"]["fvd"] > 0.05
+
+
+def test_eval_scores_strategies_and_writes_its_outputs(tiny_dit, tmp_path, capsys):
+    from jaxdrive.cli import main as cli
+    out = tmp_path / "eval"
+    assert cli(["eval", "--workdir", str(tiny_dit), "--strategies", "rollout", "--clips", "2", "--frames", "13",
+                "--steps", "1", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "| rollout | 2-5 |" in printed and "quality_vs_horizon.png" in printed
+    report = json.loads((out / "eval.json").read_text())
+    buckets = report["strategies"]["rollout"]["buckets"]
+    assert list(buckets) == ["2-5", "6-8", "9-12"] and report["clips"] == 2 and report["views"] == 6
+    assert all(np.isfinite(b["psnr"]) and 0 < b["ssim"] <= 1 for b in buckets.values())
+    assert (out / "eval.md").read_text().startswith("| strategy | frames | PSNR | SSIM |")
+    assert (out / "quality_vs_horizon.png").stat().st_size > 1000
+    for args, message in (
+            (["--clips", "1", "--inception", str(tmp_path / "x.pth")], "--clips: expected at least 2 with --inception"),
+            (["--frames", "40"], "--frames: expected at most 21 frames"),
+            (["--strategies", "rollout,sideways"], "--strategies: expected names from rollout"),
+            (["--inception", str(tmp_path / "missing.pth")], "--inception: expected a weights file")):
+        base = {"--clips": "2", "--frames": "13"}
+        for k, v in zip(args[::2], args[1::2]):
+            base[k] = v
+        argv = ["eval", "--workdir", str(tiny_dit), "--steps", "1", "--out", str(tmp_path / "no")]
+        for k, v in base.items():
+            argv += [k, v]
+        assert cli(argv) == 2, args
+        assert message in capsys.readouterr().err, message
