@@ -177,6 +177,22 @@ def test_the_predictor_trains_resumes_and_scores_its_validation_split(predictor_
     assert [r["step"] for r in rows] == [2, 4, 6, 8]                      # resumed at 6, not restarted
 
 
+def test_a_signal_saves_the_predictor_and_the_same_command_resumes(data, tmp_path):
+    import os
+    import signal
+
+    from jaxdrive.config import load_config
+    from jaxdrive.train.predictor_run import train_predictor
+    config = load_config(str(ROOT / "configs" / "predictor.py") + ":size=tiny",
+                         [f"data.path={data}", "data.batch_size=2", "predictor.width=32", "predictor.history=4",
+                          "predictor.horizon=3", "train.steps=4", "train.checkpoint_every=0"])
+    stop = lambda step, metrics: os.kill(os.getpid(), signal.SIGTERM) if step == 2 else None
+    part = train_predictor(config, tmp_path / "run", progress=False, on_step=stop)
+    assert part["status"] == "interrupted" and part["step"] == 2 and "motion" not in part
+    rest = train_predictor(config, tmp_path / "run", progress=False)
+    assert rest["status"] == "done" and rest["step"] == 4
+
+
 @pytest.mark.parametrize("sets, match", [
     (["predictor.width=30", "predictor.heads=4"], "predictor.width: expected a multiple of predictor.heads = 4, got 30"),
     (["predictor.history=1"], "predictor.history: expected"),

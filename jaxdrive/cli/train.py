@@ -50,7 +50,7 @@ def _train(args, rest) -> int:
         out = train_predictor(config, args.workdir, progress=not args.no_progress)
         print(f"{out['status']} at step {out['step']} (loss {out['loss']}); run directory "
               f"{Path(args.workdir).absolute()}")
-        return 0
+        return {"done": 0, "interrupted": 143, "diverged": 3}[out["status"]]
     from jaxdrive.train.run import train
     out = train(config, args.workdir, progress=not args.no_progress)
     print(f"{out['status']} at step {out['step']} (loss {out['loss']}); run directory {Path(args.workdir).absolute()}")

@@ -111,9 +111,12 @@ def rollout_loss(model: Predictor, params, batch: dict, history: int):
     return e_ego + e_agents, {"ego_error": e_ego, "agent_error": e_agents}
 
 
-def train_predictor(config: PredictorRunConfig, workdir, *, log=print, progress: bool = True) -> dict:
+def train_predictor(config: PredictorRunConfig, workdir, *, log=print, progress: bool = True, on_step=None) -> dict:
     """Train (or resume) the predictor in ``workdir``; returns ``{"step", "status", "loss", "params"}``
-    (and ``"motion"``, the validation scores, when the dataset has a validation split)."""
+    (and ``"motion"``, the validation scores, when the dataset has a validation split). ``status``
+    as a DiT run's: ``"done"``, ``"interrupted"`` (SIGTERM / SIGINT, checkpoint saved) or
+    ``"diverged"`` (``train.max_bad_steps`` non-finite losses in a row). ``on_step(step, metrics)``
+    is called after every step (tests)."""
     from jaxdrive.train.checkpoint import Checkpoints
     from jaxdrive.train.metrics import MetricsWriter
     from jaxdrive.train.optim import make_optimizer
@@ -147,25 +150,39 @@ def train_predictor(config: PredictorRunConfig, workdir, *, log=print, progress:
         state = apply_gradients(state, grads, loss, optimizer, config.optim.ema_decay, state.rng)
         return state, {"loss": loss, **parts}
 
+    from jaxdrive.train.run import _Stop
     writer = MetricsWriter(workdir, total_steps=t.steps, start_step=start, progress=progress)
-    meta = lambda step: {"step": step, "config": to_dict(config)}
-    step, row = start, {}
-    while step < t.steps:
-        batch = windows.batch(d.batch_size, d.shuffle_seed, step)
-        state, metrics = train_step(state, batch)
-        step += 1
-        if step % t.log_every == 0 or step == t.steps:
-            row = writer.write(step, jax.device_get(metrics))
-        if t.checkpoint_every and step % t.checkpoint_every == 0:
-            ckpts.save(step, state, None, meta(step))
-    ckpts.save(step, state, None, meta(step))
+    meta = lambda step, status: {"step": step, "status": status, "config": to_dict(config)}
+    step, row, status = start, {}, "done"
+    with _Stop() as stop:                 # SIGTERM / SIGINT: save, then stop (the same command resumes)
+        while step < t.steps:
+            batch = windows.batch(d.batch_size, d.shuffle_seed, step)
+            state, metrics = train_step(state, batch)
+            step += 1
+            bad = int(state.bad_steps)
+            if on_step is not None:
+                on_step(step, metrics)
+            if step % t.log_every == 0 or step == t.steps or bad:
+                row = writer.write(step, {**jax.device_get(metrics), "bad_steps": bad})
+            if bad >= t.max_bad_steps:
+                status = "diverged"
+                log(f"stopping: {bad} non-finite losses in a row at step {step} (train.max_bad_steps = "
+                    f"{t.max_bad_steps}); the checkpoint holds the last good parameters")
+                break
+            if stop.signum is not None:
+                status = "interrupted"
+                break
+            if t.checkpoint_every and step % t.checkpoint_every == 0:
+                ckpts.save(step, state, None, meta(step, "running"))
+    ckpts.save(step, state, None, meta(step, status))
     ckpts.close()
     writer.close()
     params = state.ema if state.ema is not None else state.params
-    out = {"step": step, "status": "done", "loss": row.get("loss"), "params": params}
-    motion = _validate(config, model, params, workdir, log)
-    if motion is not None:
-        out["motion"] = motion
+    out = {"step": step, "status": status, "loss": row.get("loss"), "params": params}
+    if status == "done":
+        motion = _validate(config, model, params, workdir, log)
+        if motion is not None:
+            out["motion"] = motion
     return out
 
 
