@@ -133,7 +133,7 @@ def test_ade_and_fde_of_constant_velocity_under_constant_acceleration_match_the_
             "box_valid": np.zeros((frames, 2), bool), "bev_map": np.zeros((frames, 32, 32, 8), np.uint8), "fps": 1.0}
     cfg = PredictorConfig(history=2, horizon=1, stride=1, width=16, depth=1, heads=2, map_patch=16, max_agents=2)
     params = init_params(cfg, jax.random.key(0), bev_size=(32, 32))
-    scores = motion_errors(None, params, cfg, [clip], horizons=(1.0, 2.0))
+    scores = motion_errors(params, cfg, [clip], horizons=(1.0, 2.0))
     ego = scores["horizons"]
     assert ego["1s"]["ego"]["cv_fde"] == pytest.approx(0.2, abs=1e-3)
     assert ego["2s"]["ego"]["cv_fde"] == pytest.approx(0.6, abs=1e-3)

@@ -133,9 +133,9 @@ def sample_strategy(args) -> int:
     from jaxdrive.data.scene_map import bev_range_of
     from jaxdrive.data.tfds_io import dataset_info
     bev_range = bev_range_of(dataset_info(horizon_spec.data.path)["metadata"])
-    hook = None
+    hook, routes = None, {}
     if predictor is not None or args.route:
-        hook = _controls_hook(args, bev_range, predictor, horizon_spec.codec.pixel_frames(given))
+        hook = _controls_hook(args, bev_range, predictor, horizon_spec.codec.pixel_frames(given), routes)
     inputs = dataset_inputs(horizon_spec, frames=args.frames, views=views, clips=clips, seed=args.seed,
                             controls=hook, scene=True)
     scene = inputs.pop("scene")
@@ -155,25 +155,19 @@ def sample_strategy(args) -> int:
     with jax.set_mesh(run.mesh):
         report = sample_long(args.strategy, models, codec, inputs["cond"], first, length, out,
                              key=jax.random.key(args.seed), mesh=run.mesh, fps=fps, recorded=recorded,
-                             route=_route_name(args.route) if args.route else None, control_source=controls,
+                             route=next(iter(routes.values())).source if routes else None, control_source=controls,
                              scene=scene, **options)
     print(f"report: {out / 'report.json'} ({report['sequential_sampler_calls']} sequential sampler calls, "
           f"{report['seconds']:.1f} s, peak device memory {report['peak_device_bytes'] / 2**20:.1f} MiB)")
     return 0
 
 
-def _route_name(spec: str) -> str:
-    from jaxdrive.generate.route import load_route
-    return load_route(spec, duration=1.0).source
-
-
-def _controls_hook(args, bev_range, predictor, given_pixels: int):
+def _controls_hook(args, bev_range, predictor, given_pixels: int, routes: dict):
     """Each sampled clip's controls for ``--frames``: the route driven (``--route``), and the
     predictor's beyond the recorded frames (``--predictor``; from the given frames on with
-    ``--controls predicted`` or a route)."""
+    ``--controls predicted`` or a route). ``routes`` collects the routes loaded, by frame rate."""
     from jaxdrive.generate.future import future_controls
     from jaxdrive.generate.route import load_route
-    routes = {}
 
     def hook(sample, clip, where):
         fps = float(sample["fps"])

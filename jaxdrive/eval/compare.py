@@ -116,8 +116,7 @@ def table(results: dict) -> str:
     """A markdown table: one row per strategy and bucket."""
     metrics = [m for m in ("psnr", "ssim", "fid", "fvd") if any(m in row for r in results.values()
                                                                  for row in r["buckets"].values())]
-    head = ["strategy", "frames", *[m.upper() if m in ("fid", "fvd") else m.upper().replace("SSIM", "SSIM")
-                                    for m in metrics], "seconds", "peak MiB"]
+    head = ["strategy", "frames", *[m.upper() for m in metrics], "seconds", "peak MiB"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, r in results.items():
         for span, row in r["buckets"].items():

@@ -12,43 +12,22 @@ every agent present at the window's start and seen at the step scored.
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxdrive.data.scene_map import DEFAULT_RANGE, SceneMap
-from jaxdrive.models.predictor import Predictor, constant_velocity, rollout
+from jaxdrive.models.predictor import constant_velocity_rollout, rollout_program
 
 HORIZONS = (1.0, 2.0, 4.0)
 
 
-@functools.lru_cache(maxsize=8)
-def _programs(config):
-    model = Predictor(config)
-
-    @functools.partial(jax.jit, static_argnums=(2,))
-    def predicted(params, traffic, steps, bev, scene):
-        return rollout(model, params, traffic, steps, bev=bev, scene=scene)[:2]
-
-    @functools.partial(jax.jit, static_argnums=(1,))
-    def constant(traffic, steps):
-        def step(tr, _):
-            ego, agents = constant_velocity(tr)
-            return tr.advance(ego, agents), (ego, agents)
-        _, (ego, agents) = jax.lax.scan(step, traffic, None, length=steps)
-        return ego.swapaxes(0, 1), agents.swapaxes(0, 1)
-    return predicted, constant
-
-
-def motion_errors(model, params, config, clips, *, horizons=HORIZONS, bev_range=DEFAULT_RANGE):
+def motion_errors(params, config, clips, *, horizons=HORIZONS, bev_range=DEFAULT_RANGE):
     """ADE / FDE (module docstring) of ``params`` over ``clips`` (control fields and ``fps``, as
     :func:`jaxdrive.train.predictor_run.load_controls` gives): ``{"horizons": {h: {"ego": {"ade",
     "fde", "cv_ade", "cv_fde"}, "agents": {...}}}, "windows", "agent_tracks"}``, horizons the
     clips are too short for left out; None when none fits."""
     from jaxdrive.train.predictor_run import to_traffic, window_traffic
-    del model                                          # the programs are built from the config
     t, s = config.history, config.stride
     fps = clips[0]["fps"]
     shortest = min(len(c["ego_to_world"]) for c in clips)
@@ -57,7 +36,7 @@ def motion_errors(model, params, config, clips, *, horizons=HORIZONS, bev_range=
     if not steps:
         return None
     total = max(steps.values())
-    predicted, constant = _programs(config)
+    predicted, constant = rollout_program(config), jax.jit(constant_velocity_rollout, static_argnums=(1,))
     sums = {(who, kind, h): 0.0 for who in ("ego", "agents") for kind in ("ade", "fde", "cv_ade", "cv_fde")
             for h in steps}
     counts = {(who, h): 0 for who in ("ego", "agents") for h in steps}
@@ -70,7 +49,7 @@ def motion_errors(model, params, config, clips, *, horizons=HORIZONS, bev_range=
         traffic = to_traffic(batch, t)
         scene = SceneMap.from_clip(clip["bev_map"], clip["ego_to_world"], bev_range).device()
         bev = jnp.asarray(batch["bev"][:, t - 1], jnp.float32)
-        runs = {"": predicted(params, traffic, total, bev, scene), "cv_": constant(traffic, total)}
+        runs = {"": predicted(params, traffic, total, bev, scene, None), "cv_": constant(traffic, total)}
         true_ego, true_agents = batch["ego"][:, t:], batch["agents"][:, t:]
         seen = batch["seen"][:, t:] & batch["seen"][:, t - 1:t]
         windows += len(ws)
@@ -126,7 +105,7 @@ def main(argv=None) -> int:
     config, params, _ = load_predictor(args.workdir)
     path = args.data or config.data.path
     clips = load_controls(path, args.split, max_agents=config.predictor.max_agents)
-    scores = motion_errors(None, params, config.predictor, clips,
+    scores = motion_errors(params, config.predictor, clips,
                            bev_range=bev_range_of(dataset_info(path)["metadata"]))
     if scores is None:
         raise SystemExit(f"--data: the {args.split!r} clips of {path} are too short for a 1 s horizon")

@@ -17,7 +17,6 @@ rolling it window by window.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from typing import Any
 
@@ -28,7 +27,7 @@ import numpy as np
 from jaxdrive.config import PredictorConfig
 from jaxdrive.data.scene_map import DEFAULT_RANGE, SceneMap, cut
 from jaxdrive.data.traffic import clip_fields, clip_tracks, interpolate, planar
-from jaxdrive.models.predictor import Predictor, Traffic, rollout
+from jaxdrive.models.predictor import Traffic, rollout_program
 
 CONTROLS = ("recorded", "predicted")
 BOX_FIELDS = ("boxes", "box_classes", "box_ids", "box_valid")
@@ -49,17 +48,7 @@ class FuturePredictor:
         return cls(config.predictor, params, float(info["step_seconds"]))
 
 
-@functools.lru_cache(maxsize=4)
-def _program(config: PredictorConfig):
-    model = Predictor(config)
-
-    @functools.partial(jax.jit, static_argnums=(2,))
-    def run(params, traffic, steps, bev, scene, ego_path):
-        return rollout(model, params, traffic, steps, bev=bev, scene=scene, ego_path=ego_path)[:2]
-    return run
-
-
-@functools.partial(jax.jit, static_argnums=())
+@jax.jit
 def _cut_all(scene, poses, fallback):
     return jax.vmap(lambda p: cut(scene, p, fallback))(poses)
 
@@ -97,6 +86,7 @@ def future_controls(sample: dict, clip: dict, *, frames: int, keep: int, predict
         raise ValueError(f"frames: expected at most {have} frames (the recorded controls of {where}), got {frames}; "
                          f"pass --predictor RUN to predict the controls beyond them")
     scene = SceneMap.from_clip(clip["bev_map"], clip["ego_to_world"], bev_range)
+    on_device = scene.device()
     times = np.asarray(sample["frame_times"], np.float64)
     times = np.concatenate([times, times[-1] + (np.arange(1, frames - have + 1) / fps)]) if frames > have \
         else times[:frames]
@@ -113,7 +103,7 @@ def future_controls(sample: dict, clip: dict, *, frames: int, keep: int, predict
     agents = np.concatenate([tracks["agents"][:min(have, frames)], np.zeros((max(frames - have, 0), n, 3))])
     seen = np.concatenate([tracks["seen"][:min(have, frames)], np.zeros((max(frames - have, 0), n), bool)])
     if predictor is not None and frames > keep:
-        ego_pred, agents_pred, present = _predict(predictor, tracks, times, keep, frames, scene, sample,
+        ego_pred, agents_pred, present = _predict(predictor, tracks, times, keep, frames, on_device, sample,
                                                   ego if route is not None else None)
         ego[keep:], agents[keep:] = ego_pred, agents_pred
         seen[keep:] = present
@@ -133,7 +123,7 @@ def future_controls(sample: dict, clip: dict, *, frames: int, keep: int, predict
     e2w = out["ego_to_world"].astype(np.float64)
     out["waypoints"] = (np.linalg.inv(e2w[0]) @ e2w)[:, :2, 3].astype(np.float32)
     fallback = jnp.asarray(np.asarray(sample["bev_map"])[min(keep, have) - 1])
-    cut_maps = np.asarray(_cut_all(scene.device(), jnp.asarray(ego[first:], jnp.float32), fallback))
+    cut_maps = np.asarray(_cut_all(on_device, jnp.asarray(ego[first:], jnp.float32), fallback))
     out["bev_map"] = np.concatenate([np.asarray(sample["bev_map"])[:min(first, frames)], cut_maps])
     out["frame_times"] = times.astype(np.float32)
     out["predicted_from"] = keep if predictor is not None and frames > keep else frames
@@ -166,7 +156,7 @@ def _predict(predictor: FuturePredictor, tracks: dict, times, keep: int, frames:
     if ego_path is not None:
         path = jnp.asarray(interpolate(times[:frames], ego_path, step_t), jnp.float32)[None]
     bev = jnp.asarray(np.asarray(sample["bev_map"])[keep - 1], jnp.float32)[None]
-    ego, agents = _program(cfg)(predictor.params, traffic, steps, bev, scene.device(), path)
+    ego, agents = rollout_program(cfg)(predictor.params, traffic, steps, bev, scene, path)
     all_t = np.concatenate([[t_now], step_t])
     ego = np.concatenate([np.asarray(traffic.ego[0, -1:]), np.asarray(ego[0])])
     agents = np.concatenate([np.asarray(traffic.agents[0, -1:]), np.asarray(agents[0])])

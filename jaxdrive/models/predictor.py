@@ -18,6 +18,8 @@ only has to learn where that baseline goes wrong (stopping, following, turning, 
 
 from __future__ import annotations
 
+import functools
+
 import flax.linen as nn
 import flax.struct
 import jax
@@ -171,6 +173,27 @@ def rollout(model: Predictor, params, traffic: Traffic, steps: int, *, bev=None,
         return traffic.advance(ego, agents), (ego, agents)
     traffic, (ego, agents) = jax.lax.scan(step, traffic, jnp.arange(steps))
     return ego.swapaxes(0, 1), agents.swapaxes(0, 1), traffic
+
+
+def constant_velocity_rollout(traffic: Traffic, steps: int):
+    """The constant-velocity baseline rolled ``steps`` steps -> ``(ego [B, S, 3], agents [B, S, N, 3])``."""
+    def step(tr, _):
+        ego, agents = constant_velocity(tr)
+        return tr.advance(ego, agents), (ego, agents)
+    _, (ego, agents) = jax.lax.scan(step, traffic, None, length=steps)
+    return ego.swapaxes(0, 1), agents.swapaxes(0, 1)
+
+
+@functools.lru_cache(maxsize=8)
+def rollout_program(config: PredictorConfig):
+    """:func:`rollout` jitted for ``config`` (``steps`` static), compiled once per config and
+    shapes: ``program(params, traffic, steps, bev, scene, ego_path) -> (ego, agents)``."""
+    model = Predictor(config)
+
+    @functools.partial(jax.jit, static_argnums=(2,))
+    def run(params, traffic, steps, bev, scene, ego_path):
+        return rollout(model, params, traffic, steps, bev=bev, scene=scene, ego_path=ego_path)[:2]
+    return run
 
 
 def init_params(config: PredictorConfig, key, *, bev_size=(64, 64)):

@@ -180,13 +180,13 @@ def train_predictor(config: PredictorRunConfig, workdir, *, log=print, progress:
     params = state.ema if state.ema is not None else state.params
     out = {"step": step, "status": status, "loss": row.get("loss"), "params": params}
     if status == "done":
-        motion = _validate(config, model, params, workdir, log)
+        motion = _validate(config, params, workdir, log)
         if motion is not None:
             out["motion"] = motion
     return out
 
 
-def _validate(config, model, params, workdir, log):
+def _validate(config, params, workdir, log):
     """ADE / FDE on the validation split at the horizons its clips allow, into ``motion.json``."""
     from jaxdrive.data.tfds_io import open_source
     from jaxdrive.eval.motion import format_table, motion_errors
@@ -197,7 +197,7 @@ def _validate(config, model, params, workdir, log):
     clips = load_controls(config.data.path, "validation", max_agents=config.predictor.max_agents)
     from jaxdrive.data.scene_map import bev_range_of
     from jaxdrive.data.tfds_io import dataset_info
-    scores = motion_errors(model, params, config.predictor, clips,
+    scores = motion_errors(params, config.predictor, clips,
                            bev_range=bev_range_of(dataset_info(config.data.path)["metadata"]))
     if scores is None:
         log("validation clips too short for a 1 s horizon: no ADE / FDE")
