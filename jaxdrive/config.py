@@ -212,6 +212,29 @@ class PredictorRunConfig:
     train: TrainConfig = TrainConfig()
 
 
+
+@dataclasses.dataclass(frozen=True)
+class SegmenterConfig:
+    """The segmentation evaluator (:mod:`jaxdrive.eval.segmenter`): a small U-Net that gives every
+    pixel of a frame its object class (background or one of ``schema.OBJECT_CLASSES``)."""
+
+    width: int = 32                    # channels at full resolution, doubled at every level
+    levels: int = 2                    # stride-2 downsamplings (frame sides divisible by 2**levels)
+
+
+@dataclasses.dataclass(frozen=True)
+class SegmenterRunConfig:
+    """A segmenter's training run (``jaxdrive train --config configs/segmenter.py:size=tiny``):
+    ``data`` reads ``path``, ``split``, ``height`` x ``width`` (the DiT's frame size: the
+    segmenter scores frames of that size), ``views``, ``stride`` (every n-th frame of a clip),
+    ``batch_size`` (frames per step) and ``shuffle_seed``; the validation split, when there is
+    one, gives the ceiling mIoU at the end of training."""
+
+    segmenter: SegmenterConfig = SegmenterConfig()
+    data: DataConfig = DataConfig()
+    optim: OptimConfig = OptimConfig()
+    train: TrainConfig = TrainConfig()
+
 # ------------------------------------------------------------------------------------ overrides
 def _field_types(cls) -> dict[str, Any]:
     hints = typing.get_type_hints(cls)

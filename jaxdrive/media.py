@@ -41,6 +41,37 @@ def view_mosaic(video) -> np.ndarray:
     return einops.rearrange(tiles, "(rows cols) f h w c -> f (rows h) (cols w) c", rows=len(layout))
 
 
+
+def split_mosaic(frames, views: int) -> np.ndarray:
+    """Inverse of :func:`view_mosaic`: ``[F, rows * H (+ 1), cols * W (+ 1), 3] -> [V, F, H, W, 3]``
+    (an odd size's padding row or column, as :class:`Mp4Writer` adds it, dropped)."""
+    frames = np.asarray(frames)
+    validate.check_ndim("frames", frames, 4)
+    layout = SIX_VIEW_LAYOUT if views == 6 else (tuple(range(views)),)
+    rows, cols = len(layout), len(layout[0])
+    h, w = frames.shape[1] // rows, frames.shape[2] // cols
+    if views < 1 or not h or not w:
+        raise ValueError(f"views: expected a positive view count whose layout ({rows} x {cols}) fits frames of "
+                         f"{frames.shape[1]} x {frames.shape[2]}, got {views}")
+    tiles = einops.rearrange(frames[:, :rows * h, :cols * w], "f (rows h) (cols w) c -> (rows cols) f h w c",
+                             rows=rows, cols=cols)
+    order = np.argsort([v for row in layout for v in row])           # reading order -> view order
+    return tiles[order]
+
+
+def read_mp4(path, views: int) -> np.ndarray:
+    """The frames of an mp4 as uint8 ``[V, F, H, W, 3]`` (a mosaic of ``views`` views, as
+    :class:`Mp4Writer` writes them; ``views=1``: the whole frame)."""
+    import av
+    try:
+        with av.open(str(path)) as container:
+            frames = [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
+    except (av.error.FFmpegError, OSError) as e:
+        raise ValueError(f"videos: expected a readable mp4 video, got {str(path)!r} ({e})") from None
+    if not frames:
+        raise ValueError(f"videos: expected an mp4 with frames, got {str(path)!r} (none decoded)")
+    return split_mosaic(np.stack(frames), views)
+
 class Mp4Writer:
     """An H.264 mp4 written part by part (views tiled by :func:`view_mosaic`; sizes padded to
     even), so a long video never has to be in memory whole::

@@ -49,3 +49,16 @@ def tiny_dit(clips21, tmp_path_factory):
     """A tiny 6-view DiT trained 1 step on ``clips21`` (``train_fixtures.tiny_run``)."""
     from train_fixtures import tiny_run
     return tiny_run(tmp_path_factory.mktemp("tiny_dit") / "run", clips21)
+
+
+@pytest.fixture(scope="session")
+def segmenter_run(clips21, tmp_path_factory):
+    """The segmentation evaluator (``configs/segmenter.py:size=test``) trained on ``clips21``."""
+    from pathlib import Path
+
+    from jaxdrive.cli import main as cli
+    workdir = tmp_path_factory.mktemp("segmenter") / "run"
+    config = Path(__file__).resolve().parents[1] / "configs" / "segmenter.py"
+    assert cli(["train", "--config", f"{config}:size=test", "--workdir", str(workdir), "--set",
+                f"data.path={clips21}", "--no-progress"]) == 0
+    return workdir

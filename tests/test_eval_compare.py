@@ -68,3 +68,36 @@ def test_eval_scores_strategies_and_writes_its_outputs(tiny_dit, tmp_path, capsy
             argv += [k, v]
         assert cli(argv) == 2, args
         assert message in capsys.readouterr().err, message
+
+
+def test_eval_scores_a_folder_of_mp4s_against_the_dataset(clips21, segmenter_run, tmp_path, capsys):
+    from jaxdrive.cli import main as cli
+    from jaxdrive.data.pipeline import sample_clip
+    from jaxdrive.data.tfds_io import open_source
+    from jaxdrive.media import write_mp4
+    source = open_source(clips21, "train")
+    clips = [sample_clip(source[i], size=(32, 56), frames=13)["video"] for i in range(2)]
+    for i, video in enumerate(clips):                      # the recorded clips themselves, through H.264
+        write_mp4(tmp_path / "same" / f"clip{i}" / "sample.mp4", video)
+        write_mp4(tmp_path / "swapped" / f"clip{i}" / "sample.mp4", clips[1 - i])
+    scores = {}
+    for name in ("same", "swapped"):
+        out = tmp_path / f"eval_{name}"
+        assert cli(["eval", "--videos", str(tmp_path / name), "--data", str(clips21), "--split", "train", "--given",
+                    "2", "--segmenter", str(segmenter_run), "--out", str(out)]) == 0
+        report = json.loads((out / "eval.json").read_text())
+        assert report["clips"] == 2 and report["frames"] == 13 and report["views"] == 6
+        scores[name] = report["strategies"]["videos"]["buckets"]
+        ceiling = report["recorded_controllability"]
+    assert "| videos | 2-5 |" in capsys.readouterr().out
+    for span, row in scores["same"].items():
+        assert row["psnr"] > 30 and row["miou"] > ceiling[span]["miou"] - 0.1, (span, row)
+        assert scores["swapped"][span]["psnr"] < row["psnr"] - 10 and scores["swapped"][span]["miou"] < row["miou"]
+    for args, message in (
+            (["--videos", str(tmp_path / "none"), "--data", str(clips21)], "--videos: expected a folder with .mp4 files"),
+            (["--videos", str(tmp_path / "same"), "--workdir", str(tmp_path)], "--workdir / --videos: expected one"),
+            (["--videos", str(tmp_path / "same"), "--data", str(clips21), "--split", "train", "--given", "13"],
+             "--given: expected fewer than the videos' 13 frames, got 13"),
+            (["--videos", str(tmp_path / "same")], "--data: expected the dataset the videos continue")):
+        assert cli(["eval", *args, "--out", str(tmp_path / "no")]) == 2, args
+        assert message in capsys.readouterr().err, message

@@ -1,13 +1,15 @@
 """``jaxdrive eval``: long-video strategies on the same validation clips, scored side by side.
 
     jaxdrive eval --workdir RUN [--fine-workdir RUN2] --strategies rollout,coarse-to-refine,...
-                  --clips N --frames F [--buckets 2-12,13-24] [--inception FILE] [--i3d FILE] --out DIR
+                  --clips N --frames F [--buckets 2-12,13-24] [--inception FILE] [--i3d FILE]
+                  [--segmenter RUN [--shuffle-boxes]] --out DIR
 
 Every strategy starts from the same given frames and controls of the first N clips of the
 validation split (:mod:`jaxdrive.eval.compare` scores them): PSNR / SSIM per horizon bucket
 always, FID per view and over all views with ``--inception``, FVD on 16-frame windows with
-``--i3d``. Writes ``DIR/eval.json``, ``DIR/eval.md`` and ``DIR/quality_vs_horizon.png`` and
-prints the table. Every check that can fail does so before anything compiles.
+``--i3d``, controllability (the segmenter's mIoU against the class masks of the conditioning
+boxes, and on the recorded frames, its ceiling) with ``--segmenter``. Writes ``DIR/eval.json``,
+``DIR/eval.md`` and ``DIR/quality_vs_horizon.png`` and prints the table. Every check that can fail does so before anything compiles.
 """
 
 from __future__ import annotations
@@ -16,8 +18,13 @@ from pathlib import Path
 
 
 def _eval(args, rest) -> int:
+    if bool(args.videos) == bool(args.workdir):
+        raise ValueError(f"--workdir / --videos: expected one of them (a run to sample, or a folder of generated "
+                         f"mp4s), got {'both' if args.videos else 'neither'}")
     from jaxdrive.cli.train import start_jax
     start_jax()
+    if args.videos:
+        return _eval_videos(args)
     import jax
     import numpy as np
 
@@ -37,9 +44,7 @@ def _eval(args, rest) -> int:
                          f"{args.strategies!r}")
     check_positive_int("--frames", args.frames)
     clips = check_positive_int("--clips", args.clips)
-    if (args.inception or args.i3d) and clips < 2:
-        raise ValueError(f"--clips: expected at least 2 with --inception / --i3d (FID and FVD fit a covariance, "
-                         f"which needs 2 samples per set), got {clips}")
+    _check_common(args, clips)
     args.cond_frames = None
     run, spec, fine_spec, load_main, load_fine, shapes, length = load_runs(args)
     horizon_spec = fine_spec or spec
@@ -55,53 +60,174 @@ def _eval(args, rest) -> int:
     codec = horizon_spec.codec
     given_pixels = codec.pixel_frames(given)
     buckets = parse_buckets(args.buckets, given_pixels, args.frames)
-    from jaxdrive.eval.features import extract
-    features = {}
-    if args.inception:
-        from jaxdrive.eval.inception import load_fid_inception
-        model, params = load_fid_inception(args.inception)
-        features["fid_features"] = lambda x: extract(lambda p, b: model.features(p, b), params, x, mesh=run.mesh)
-    if args.i3d:
-        from jaxdrive.eval.i3d import load_i3d
-        model3, params3 = load_i3d(args.i3d)
-        features["fvd_features"] = lambda x: extract(lambda p, b: model3.logits(p, b), params3, x, batch_size=4,
-                                                     mesh=run.mesh)
+    features = _feature_functions(args, run.mesh)
+    segmenter = _load_segmenter(args, (horizon_spec.data.height, horizon_spec.data.width))
+    if segmenter is not None and horizon_spec.precomputed:
+        raise ValueError("--segmenter: expected a run that reads clips (the class masks come from their instance "
+                         "ids), got one on precomputed latent windows")
     try:
-        inputs = dataset_inputs(horizon_spec, frames=args.frames, clips=clips, seed=args.seed)
+        inputs = dataset_inputs(horizon_spec, frames=args.frames, clips=clips, seed=args.seed, split=args.split,
+                                masks=segmenter is not None, shuffle_boxes=args.shuffle_boxes)
     except ValueError as e:          # the clips are shorter than --frames (or the dataset is unreadable)
         raise ValueError(f"--{e}" if str(e).startswith("frames:") else f"--frames: {e}") from None
     models = Models(load_main(), load_fine() if load_fine else None)
     first = first_latents(inputs, codec, models.main.window, given)
     recorded = np.asarray(inputs["video"]) if "video" in inputs else np.asarray(
         codec.decode(codec.params, inputs["latents"][:, :, :length]))
+    ceiling = None
+    if segmenter is not None:
+        from jaxdrive.eval.compare import controllability
+        features["segment"] = lambda frames: segmenter.classes(frames, mesh=run.mesh)
+        features["masks"] = inputs.get("box_class_masks", inputs["class_masks"])
+        ceiling = controllability(features["segment"], recorded, inputs["class_masks"], buckets)
     out = Path(args.out)
     with jax.set_mesh(run.mesh):
         results = run_strategies({n: {} for n in names}, models, codec, inputs["cond"], first, length, recorded,
                                  buckets, key=jax.random.key(args.seed), mesh=run.mesh, **features)
-    paths = write_outputs(results, out, meta={"workdir": str(args.workdir), "fine_workdir": args.fine_workdir,
-                                              "clips": clips, "frames": args.frames, "given_frames": given_pixels,
-                                              "views": int(recorded.shape[1]), "inception": args.inception,
-                                              "i3d": args.i3d})
+    paths = write_outputs(results, out, ceiling=ceiling,
+                          meta={"workdir": str(args.workdir), "fine_workdir": args.fine_workdir, "clips": clips,
+                                "frames": args.frames, "given_frames": given_pixels, "views": int(recorded.shape[1]),
+                                "inception": args.inception, "i3d": args.i3d, "segmenter": args.segmenter,
+                                "shuffle_boxes": bool(args.shuffle_boxes)})
     print(paths["table"])
     print(f"wrote {paths['json']}, {paths['md']}, {paths['plot']}")
     return 0
+
+
+def _eval_videos(args) -> int:
+    """``--videos DIR --data PATH``: every mp4 under DIR (sorted by path; view mosaics as
+    ``jaxdrive sample`` writes them) against the clip of the same rank in the split."""
+    import numpy as np
+
+    from jaxdrive.data.pipeline import sample_clip
+    from jaxdrive.data.tfds_io import open_source
+    from jaxdrive.eval.compare import controllability, parse_buckets, score, write_outputs
+    from jaxdrive.eval.segmenter import class_masks
+    from jaxdrive.media import read_mp4
+    from jaxdrive.validate import check_positive_int
+    for name in ("strategies", "fine_workdir", "frames"):
+        if getattr(args, name) not in (None, "rollout"):
+            raise ValueError(f"--{name.replace('_', '-')}: expected only with --workdir, got {getattr(args, name)!r}")
+    if not args.data:
+        raise ValueError("--data: expected the dataset the videos continue (with --videos), got none")
+    check_positive_int("--views", args.views)
+    check_positive_int("--stride", args.stride)
+    given = check_positive_int("--given", args.given, minimum=0)
+    folder = Path(args.videos)
+    files = sorted(folder.rglob("*.mp4")) if folder.is_dir() else []
+    if not files:
+        raise ValueError(f"--videos: expected a folder with .mp4 files, got {str(folder)!r} (none found)")
+    _check_common(args, len(files))
+    if args.shuffle_boxes:
+        raise ValueError("--shuffle-boxes: expected with --workdir (generated videos have their boxes already), got "
+                         "--videos")
+    videos = [read_mp4(f, args.views) for f in files]
+    shapes = sorted({v.shape for v in videos})
+    if len(shapes) > 1:
+        raise ValueError(f"--videos: expected videos of one shape [V, F, H, W, 3], got {[list(x) for x in shapes]}")
+    _, frames, height, width, _ = shapes[0]
+    source = open_source(args.data, args.split or "validation")
+    if len(files) > len(source):
+        raise ValueError(f"--videos: expected at most {len(source)} videos (the clips of split {source.split!r}, "
+                         f"matched in order), got {len(files)}")
+    if given >= frames:
+        raise ValueError(f"--given: expected fewer than the videos' {frames} frames, got {given}")
+    buckets = parse_buckets(args.buckets, given, frames)
+    segmenter = _load_segmenter(args, (height, width))
+    recorded, masks = [], []
+    for i in range(len(files)):
+        s = sample_clip(source[i], size=(height, width), frames=frames, stride=args.stride,
+                        views=list(range(args.views)), instances=segmenter is not None,
+                        where=f"--videos: {files[i].name} against {source.split} clip {i}")
+        recorded.append(s["video"])
+        if segmenter is not None:
+            masks.append(class_masks(s["instance_ids"], s["box_ids"], s["box_classes"], s["box_valid"]))
+    recorded = np.stack(recorded)
+    video = np.stack(videos).astype(np.float32) / 127.5 - 1.0
+    features = _feature_functions(args, None)
+    ceiling = None
+    if segmenter is not None:
+        features.update(segment=segmenter.classes, masks=np.stack(masks))
+        ceiling = controllability(segmenter.classes, recorded, features["masks"], buckets)
+    results = {"videos": {"seconds": None, "peak_device_bytes": None, "files": [str(f) for f in files],
+                          "buckets": score(video, recorded, buckets, **features)}}
+    paths = write_outputs(results, Path(args.out), ceiling=ceiling,
+                          meta={"videos": str(folder), "data": args.data, "split": source.split,
+                                "clips": len(files), "frames": int(frames), "given_frames": given,
+                                "views": args.views, "inception": args.inception, "i3d": args.i3d,
+                                "segmenter": args.segmenter})
+    print(paths["table"])
+    print(f"wrote {paths['json']}, {paths['md']}, {paths['plot']}")
+    return 0
+
+
+def _feature_functions(args, mesh) -> dict:
+    """FID / FVD feature functions of ``--inception`` / ``--i3d`` (batch-sharded over ``mesh``)."""
+    from jaxdrive.eval.features import extract
+    features = {}
+    if args.inception:
+        from jaxdrive.eval.inception import load_fid_inception
+        model, params = load_fid_inception(args.inception)
+        features["fid_features"] = lambda x: extract(lambda p, b: model.features(p, b), params, x, mesh=mesh)
+    if args.i3d:
+        from jaxdrive.eval.i3d import load_i3d
+        model3, params3 = load_i3d(args.i3d)
+        features["fvd_features"] = lambda x: extract(lambda p, b: model3.logits(p, b), params3, x, batch_size=4,
+                                                     mesh=mesh)
+    return features
+
+
+def _load_segmenter(args, size):
+    """``--segmenter``'s run, checked against the frame ``size`` it will score (None without one)."""
+    if not args.segmenter:
+        return None
+    from jaxdrive.eval.segmenter import load_segmenter
+    segmenter = load_segmenter(args.segmenter)
+    if segmenter.size != tuple(size):
+        raise ValueError(f"--segmenter: expected a segmenter trained at the frame size {size[0]} x {size[1]}, got "
+                         f"one trained at {segmenter.size[0]} x {segmenter.size[1]}")
+    return segmenter
+
+
+def _check_common(args, clips: int) -> None:
+    if args.shuffle_boxes and not args.segmenter:
+        raise ValueError("--shuffle-boxes: expected with --segmenter (it is the controllability control), got no "
+                         "--segmenter")
+    if args.shuffle_boxes and clips < 2:
+        raise ValueError(f"--clips: expected at least 2 with --shuffle-boxes (each clip gets the next one's boxes), "
+                         f"got {clips}")
+    if (args.inception or args.i3d) and clips < 2:
+        raise ValueError(f"--clips: expected at least 2 with --inception / --i3d (FID and FVD fit a covariance, "
+                         f"which needs 2 samples per set), got {clips}")
 
 
 def add_commands(sub) -> None:
     from jaxdrive.cli.options import add_sampling
     ev = sub.add_parser("eval", help="score long-video strategies side by side on the same validation clips "
                                      "(PSNR / SSIM per horizon; FID / FVD with the weights files)")
-    ev.add_argument("--workdir", required=True, help="the run to sample")
+    ev.add_argument("--workdir", help="the run to sample (or --videos)")
     ev.add_argument("--fine-workdir", help="the fine run (coarse-fine; coarse-to-refine's refiner)")
     ev.add_argument("--strategies", default="rollout", help="comma-separated: rollout, coarse-to-refine, "
                                                             "coarse-fine, window, streaming")
+    ev.add_argument("--split", help="the dataset split the clips come from (default: validation, else the run's)")
     ev.add_argument("--clips", type=int, default=2, help="validation clips (a multiple of the mesh's data x fsdp)")
-    ev.add_argument("--frames", type=int, required=True, help="pixel frames per clip")
+    ev.add_argument("--frames", type=int, help="pixel frames per clip (with --workdir)")
+    ev.add_argument("--videos", help="instead of sampling a run: a folder of generated mp4s (view mosaics, as jaxdrive "
+                                     "sample writes them), scored in path order against the split's clips")
+    ev.add_argument("--data", help="with --videos: the dataset they continue")
+    ev.add_argument("--views", type=int, default=6, help="with --videos: views per mosaic (default 6)")
+    ev.add_argument("--stride", type=int, default=1, help="with --videos: the clips' frame stride (default 1)")
+    ev.add_argument("--given", type=int, default=1, help="with --videos: the given frames each starts with, left out "
+                                                         "of the default buckets (default 1)")
     ev.add_argument("--buckets", help="horizon buckets, inclusive output frame ranges after the given frames "
                                       "(default: the generated frames in thirds), e.g. 2-12,13-24")
     ev.add_argument("--inception", help="pytorch-fid's pt_inception-2015-12-05-6726825d.pth or its safetensors "
                                         "copy: FID")
     ev.add_argument("--i3d", help="cd-fvd's i3d_pretrained_400.pt or its safetensors copy: FVD")
+    ev.add_argument("--segmenter", help="a segmenter run (configs/segmenter.py): controllability mIoU against the "
+                                        "class masks of the conditioning boxes (synthetic data)")
+    ev.add_argument("--shuffle-boxes", action="store_true", help="the control: condition each clip on the next "
+                                                                 "clip's boxes (and score against their masks)")
     add_sampling(ev, cfg=1.0)
     ev.add_argument("--out", required=True, help="output directory")
     ev.set_defaults(run=_eval)

@@ -44,14 +44,13 @@ def _train(args, rest) -> int:
         extra.append(f"train.checkpoint_every={args.checkpoint_every}")
     config = _config(args.config, args.mesh, args.set, extra)
     start_jax()
-    from jaxdrive.config import PredictorRunConfig
+    from jaxdrive.config import PredictorRunConfig, SegmenterRunConfig
     if isinstance(config, PredictorRunConfig):        # configs/predictor.py: the future-controls predictor
-        from jaxdrive.train.predictor_run import train_predictor
-        out = train_predictor(config, args.workdir, progress=not args.no_progress)
-        print(f"{out['status']} at step {out['step']} (loss {out['loss']}); run directory "
-              f"{Path(args.workdir).absolute()}")
-        return {"done": 0, "interrupted": 143, "diverged": 3}[out["status"]]
-    from jaxdrive.train.run import train
+        from jaxdrive.train.predictor_run import train_predictor as train
+    elif isinstance(config, SegmenterRunConfig):      # configs/segmenter.py: the segmentation evaluator
+        from jaxdrive.train.segmenter_run import train_segmenter as train
+    else:
+        from jaxdrive.train.run import train
     out = train(config, args.workdir, progress=not args.no_progress)
     print(f"{out['status']} at step {out['step']} (loss {out['loss']}); run directory {Path(args.workdir).absolute()}")
     return {"done": 0, "interrupted": 143, "diverged": 3}[out["status"]]

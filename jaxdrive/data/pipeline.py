@@ -199,6 +199,18 @@ def resize_crop_video(video: np.ndarray, plan: dict) -> np.ndarray:
     return np.clip(z, -1.0, 1.0).reshape(*lead, H, W, c)
 
 
+
+def resize_crop_labels(labels: np.ndarray, plan: dict) -> np.ndarray:
+    """Integer labels ``[..., h, w]`` (instance or class ids) resized and cropped as
+    :func:`resize_crop_video` resizes the frames, each output pixel taking the label of the input
+    pixel under its centre: labels are not averaged."""
+    labels = np.asarray(labels)
+    h, w = labels.shape[-2:]
+    (oy, ox), (H, W) = plan["offset"], plan["out"]
+    ys = np.minimum(((np.arange(oy, oy + H) + 0.5) / plan["sy"]).astype(np.int64), h - 1)
+    xs = np.minimum(((np.arange(ox, ox + W) + 0.5) / plan["sx"]).astype(np.int64), w - 1)
+    return labels[..., ys[:, None], xs[None, :]]
+
 def _view_indices(views, num_views: int, where: str) -> np.ndarray:
     if views is None:
         return np.arange(num_views)
@@ -211,7 +223,7 @@ def _view_indices(views, num_views: int, where: str) -> np.ndarray:
 
 def sample_clip(clip: Mapping, *, size: tuple[int, int], frames: int, stride: int = 1, start: int = 0,
                 views=None, crop: str = "center", rng: np.random.Generator | None = None,
-                where: str = "clip", head: int = 0, tail_stride: int | None = None) -> dict:
+                where: str = "clip", head: int = 0, tail_stride: int | None = None, instances: bool = False) -> dict:
     """One training sample from a clip: ``frames`` frames from ``start`` every ``stride``, a view
     subset, resized and cropped to ``size`` with intrinsics to match, waypoints re-expressed in
     the ego frame of the first sampled frame.
@@ -219,7 +231,9 @@ def sample_clip(clip: Mapping, *, size: tuple[int, int], frames: int, stride: in
     Mixed rates (:func:`frame_offsets`): frames ``0 .. head - 1`` every ``stride``, then every
     ``tail_stride`` (``head = 0``: ``tail_stride`` throughout; None: ``stride``). ``frame_times``
     ``[F]`` are seconds from the first sampled frame (source index / clip fps); ``fps`` is the
-    clip fps over the stride of the generated part (``tail_stride`` when ``head < frames``)."""
+    clip fps over the stride of the generated part (``tail_stride`` when ``head < frames``).
+    ``instances``: also ``instance_ids [V, F, H, W]`` (the synthetic world's per-pixel track ids,
+    resized by :func:`resize_crop_labels`); a clip without them is refused."""
     stride = check_positive_int("stride", stride)
     head = check_positive_int("head", head, minimum=0)
     tail = stride if tail_stride is None else check_positive_int("tail_stride", tail_stride)
@@ -249,6 +263,11 @@ def sample_clip(clip: Mapping, *, size: tuple[int, int], frames: int, stride: in
     }
     for name in ("boxes", "box_classes", "box_ids", "box_valid", "bev_map"):
         out[name] = np.asarray(clip[name])[t]
+    if instances:
+        if "instance_ids" not in clip:
+            raise ValueError(f"{where}: expected per-pixel instance_ids (synthetic clips have them; nuScenes clips "
+                             f"do not), got a clip without them")
+        out["instance_ids"] = resize_crop_labels(np.asarray(clip["instance_ids"])[v[:, None], t[None, :]], plan)
     for name, value in clip.items():
         if isinstance(value, str):
             out[name] = value

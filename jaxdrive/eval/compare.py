@@ -47,16 +47,32 @@ def _to_255(video):
     return np.clip((np.asarray(video, np.float32) + 1.0) * 127.5, 0.0, 255.0)
 
 
-def score(video, recorded, buckets, *, fid_features=None, fvd_features=None) -> dict:
+def controllability(segment, video, masks, buckets) -> dict:
+    """Per bucket, the segmenter's scores (:func:`jaxdrive.eval.segmenter.summary`: ``miou``,
+    ``per_class``, ``pixel_accuracy``) of ``video [B, V, F, H, W, 3]`` against the class ids
+    ``masks [B, V, F, H, W]`` (and the bucket's ``frames``); ``segment(frames) -> class ids``."""
+    from jaxdrive.eval.segmenter import confusion, summary
+    return {f"{a}-{b - 1}": {"frames": [a, b - 1], **summary(confusion(segment(video[:, :, a:b]), masks[:, :, a:b]))}
+            for a, b in buckets}
+
+
+def score(video, recorded, buckets, *, fid_features=None, fvd_features=None, segment=None, masks=None) -> dict:
     """Scores of ``video`` against ``recorded`` (both ``[B, V, F, H, W, 3]`` in [-1, 1]) per bucket:
     ``psnr``, ``ssim``; ``fid`` (over all views) and ``fid_per_view`` with ``fid_features(images
     [N, H, W, 3] in [0, 255]) -> [N, D]``; ``fvd`` with ``fvd_features(videos [N, 16, H, W, 3])``
-    over the bucket's 16-frame windows (None where the bucket is shorter)."""
+    over the bucket's 16-frame windows (None where the bucket is shorter); ``miou`` and
+    ``miou_per_class`` with ``segment`` and the class ``masks`` of the boxes the video was
+    conditioned on (:func:`controllability`)."""
     out = {}
+    control = controllability(segment, video, masks, buckets) if segment is not None else {}
     for a, b in buckets:
         g, r = video[:, :, a:b], recorded[:, :, a:b]
         row = {"frames": [a, b - 1], "psnr": float(np.minimum(np.asarray(psnr(g, r)), 100.0).mean()),
                "ssim": float(np.asarray(ssim(g, r)).mean())}
+        if control:
+            c = control[f"{a}-{b - 1}"]
+            row["miou"] = c["miou"]
+            row["miou_per_class"] = {k: v for k, v in c["per_class"].items() if k != "background" and v is not None}
         if fid_features is not None:
             per_view, both = [], [None, None]
             for v in range(g.shape[1]):
@@ -81,7 +97,7 @@ def score(video, recorded, buckets, *, fid_features=None, fvd_features=None) -> 
 
 
 def run_strategies(strategies, models, codec, controls, first, length, recorded, buckets, *, key, mesh=None,
-                   options=None, fid_features=None, fvd_features=None, log=print) -> dict:
+                   fid_features=None, fvd_features=None, segment=None, masks=None, log=print) -> dict:
     """Every strategy of ``strategies`` (name -> its options) on the same inputs, decoded and
     scored (:func:`score`); returns ``{name: {"seconds", "sequential_sampler_calls",
     "peak_device_bytes", "buckets": {...}}}``."""
@@ -107,42 +123,57 @@ def run_strategies(strategies, models, codec, controls, first, length, recorded,
         results[name] = {"seconds": round(seconds, 3), "sequential_sampler_calls": tracker.calls,
                          "peak_device_bytes": int(tracker.peak_bytes),
                          "buckets": score(video, recorded, buckets, fid_features=fid_features,
-                                          fvd_features=fvd_features)}
+                                          fvd_features=fvd_features, segment=segment, masks=masks)}
         log(f"{name}: {video.shape[2]} frames x {video.shape[1]} views x {video.shape[0]} clips in {seconds:.1f} s")
     return results
 
 
-def table(results: dict) -> str:
-    """A markdown table: one row per strategy and bucket."""
-    metrics = [m for m in ("psnr", "ssim", "fid", "fvd") if any(m in row for r in results.values()
-                                                                 for row in r["buckets"].values())]
-    head = ["strategy", "frames", *[m.upper() for m in metrics], "seconds", "peak MiB"]
+def table(results: dict, ceiling: dict | None = None) -> str:
+    """A markdown table: one row per strategy and bucket; ``ceiling`` (:func:`controllability` of
+    the recorded frames) adds the segmenter's mIoU on them as rows ``recorded frames``."""
+    metrics = [m for m in ("psnr", "ssim", "fid", "fvd", "miou") if any(m in row for r in results.values()
+                                                                         for row in r["buckets"].values())]
+    head = ["strategy", "frames", *[m.upper() if m != "miou" else "mIoU" for m in metrics], "seconds", "peak MiB"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, r in results.items():
         for span, row in r["buckets"].items():
             cells = [f"{row[m]:.3f}" if row.get(m) is not None else "-" for m in metrics]
-            lines.append(f"| {name} | {span} | " + " | ".join(cells) +
-                         f" | {r['seconds']:.1f} | {r['peak_device_bytes'] / 2**20:.1f} |")
+            seconds = "-" if r.get("seconds") is None else f"{r['seconds']:.1f}"
+            peak = "-" if r.get("peak_device_bytes") is None else f"{r['peak_device_bytes'] / 2**20:.1f}"
+            lines.append(f"| {name} | {span} | " + " | ".join(cells) + f" | {seconds} | {peak} |")
+    for span, row in (ceiling or {}).items():
+        cells = [f"{row['miou']:.3f}" if m == "miou" and row["miou"] is not None else "-" for m in metrics]
+        lines.append(f"| recorded frames | {span} | " + " | ".join(cells) + " | - | - |")
     return "\n".join(lines)
 
 
-def write_outputs(results: dict, out, *, meta: dict) -> dict:
-    """``eval.json``, ``eval.md`` and ``quality_vs_horizon.png`` under ``out``; returns the paths."""
+def write_outputs(results: dict, out, *, meta: dict, ceiling: dict | None = None) -> dict:
+    """``eval.json``, ``eval.md`` and ``quality_vs_horizon.png`` under ``out``; returns the paths.
+    ``ceiling``: the segmenter's scores on the recorded frames (``eval.json``'s
+    ``recorded_controllability`` and the table's ``recorded frames`` rows)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "eval.json").write_text(json.dumps({**meta, "strategies": results}, indent=1))
-    md = table(results)
+    extra = {} if ceiling is None else {"recorded_controllability": ceiling}
+    (out / "eval.json").write_text(json.dumps({**meta, **extra, "strategies": results}, indent=1))
+    md = table(results, ceiling)
     (out / "eval.md").write_text(md + "\n")
-    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=120)
-    for name, r in results.items():
-        mids = [np.mean(row["frames"]) for row in r["buckets"].values()]
-        ax.plot(mids, [row["psnr"] for row in r["buckets"].values()], marker="o", label=name)
-    ax.set(xlabel="frame (bucket centre)", ylabel="PSNR dB against the recorded clip", title="quality vs horizon")
-    ax.grid(alpha=0.3)
-    ax.legend()
+    panels = [("psnr", "PSNR dB against the recorded clip")]
+    if any(row.get("miou") is not None for r in results.values() for row in r["buckets"].values()):
+        panels.append(("miou", "segmenter mIoU against the boxes"))
+    fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 3.5), dpi=120, squeeze=False)
+    for ax, (metric, label) in zip(axes[0], panels):
+        for name, r in results.items():
+            mids = [np.mean(row["frames"]) for row in r["buckets"].values()]
+            ax.plot(mids, [row.get(metric) for row in r["buckets"].values()], marker="o", label=name)
+        if metric == "miou" and ceiling:
+            ax.plot([np.mean(row["frames"]) for row in ceiling.values()], [row["miou"] for row in ceiling.values()],
+                    "k--", label="recorded frames")
+        ax.set(xlabel="frame (bucket centre)", ylabel=label, title=f"{label.split(' ')[0]} vs horizon")
+        ax.grid(alpha=0.3)
+        ax.legend()
     fig.tight_layout()
     fig.savefig(out / "quality_vs_horizon.png")
     plt.close(fig)

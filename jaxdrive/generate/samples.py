@@ -61,7 +61,8 @@ class Sampling:
 
 
 def dataset_inputs(spec: Sampling, *, frames: int, views=None, clips: int = 1, split: str | None = None,
-                   seed: int = 0, controls=None, scene: bool = False):
+                   seed: int = 0, controls=None, scene: bool = False, masks: bool = False,
+                   shuffle_boxes: bool = False):
     """Model inputs of ``clips`` dataset clips of ``frames`` pixel frames (no condition dropped):
     the first frames give the condition latents, every frame its controls. A precomputed dataset
     (``latents.precomputed``) gives its stored windows: ``frames`` at most the window's frame count
@@ -72,7 +73,11 @@ def dataset_inputs(spec: Sampling, *, frames: int, views=None, clips: int = 1, s
     ``controls(sample, clip, where) -> sample`` (:func:`jaxdrive.generate.future.future_controls`)
     gives each sample its controls for all ``frames``; the clip then needs to hold only as many
     frames as it has, and ``video`` holds those. ``scene``: keep the first clip's map, poses and
-    boxes under ``inputs["scene"]`` (the frame grid's BEV panel)."""
+    boxes under ``inputs["scene"]`` (the frame grid's BEV panel). ``masks``: also the recorded
+    frames' exact class ids ``inputs["class_masks"] [B, V, F, H, W]`` (synthetic clips:
+    :func:`jaxdrive.eval.segmenter.class_masks`). ``shuffle_boxes`` (the controllability control
+    of ``jaxdrive eval``): clip ``i`` is conditioned on the boxes of clip ``i + 1`` (cyclically),
+    and ``inputs["box_class_masks"]`` are the class masks of the boxes each clip got."""
     from jaxdrive.data.batches import model_inputs
     from jaxdrive.data.pipeline import CONDITIONS, collate, sample_clip
     from jaxdrive.data.tfds_io import open_source
@@ -91,6 +96,9 @@ def dataset_inputs(spec: Sampling, *, frames: int, views=None, clips: int = 1, s
     if controls is not None and spec.precomputed:
         raise ValueError("controls: predicted or routed controls need clips, not the precomputed latent windows "
                          "of latents.precomputed")
+    if (masks or shuffle_boxes) and spec.precomputed:
+        raise ValueError("masks: class masks need clips with their instance ids, not the precomputed latent windows "
+                         "of latents.precomputed")
     for i in range(clips):
         clip = source[i % len(source)]
         where = f"{source.split} clip {i}"
@@ -104,8 +112,22 @@ def dataset_inputs(spec: Sampling, *, frames: int, views=None, clips: int = 1, s
             raise ValueError(f"frames: expected at most {recorded} frames (the dataset's clips have "
                              f"{have} at stride {stride}), got {frames}")
         sample = sample_clip(clip, size=(d.height, d.width), frames=min(frames, recorded), stride=stride,
-                             views=views, rng=rng, where=where)
+                             views=views, rng=rng, where=where, instances=masks or shuffle_boxes)
         samples.append(sample if controls is None else controls(sample, clip, where))
+    extra = {}
+    if masks or shuffle_boxes:
+        from jaxdrive.eval.segmenter import class_masks
+        own = [class_masks(s.pop("instance_ids"), s["box_ids"], s["box_classes"], s["box_valid"]) for s in samples]
+        extra["class_masks"] = np.stack(own)
+        if shuffle_boxes:
+            if len(samples) < 2 or len(source) < 2:
+                raise ValueError(f"shuffle_boxes: expected at least 2 clips from a split of at least 2 clips to "
+                                 f"shuffle boxes between, got {len(samples)} from a split of {len(source)}")
+            fields = ("boxes", "box_classes", "box_ids", "box_valid")
+            given = [{k: s[k] for k in fields} for s in samples]
+            for i, s in enumerate(samples):
+                s.update(given[(i + 1) % len(samples)])
+            extra["box_class_masks"] = np.roll(extra["class_masks"], -1, axis=0)
     batch = collate(samples)
     kept = None
     if scene:
@@ -116,6 +138,7 @@ def dataset_inputs(spec: Sampling, *, frames: int, views=None, clips: int = 1, s
     inputs = model_inputs(batch, spec.model, spec.text_embeddings)
     if kept is not None:
         inputs["scene"] = kept
+    inputs.update(extra)
     return inputs
 
 

@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdrive.config import PredictorRunConfig, from_dict, to_dict
+from jaxdrive.config import PredictorRunConfig
 from jaxdrive.data.traffic import clip_tracks
 from jaxdrive.models.predictor import Predictor, Traffic, init_params, rollout, wrap
 from jaxdrive.validate import check_positive_int
@@ -117,68 +117,19 @@ def train_predictor(config: PredictorRunConfig, workdir, *, log=print, progress:
     as a DiT run's: ``"done"``, ``"interrupted"`` (SIGTERM / SIGINT, checkpoint saved) or
     ``"diverged"`` (``train.max_bad_steps`` non-finite losses in a row). ``on_step(step, metrics)``
     is called after every step (tests)."""
-    from jaxdrive.train.checkpoint import Checkpoints
-    from jaxdrive.train.metrics import MetricsWriter
-    from jaxdrive.train.optim import make_optimizer
-    from jaxdrive.train.state import apply_gradients, create_state
+    from jaxdrive.train.aux_run import fit
     check_predictor_config(config)
     p, d, t = config.predictor, config.data, config.train
-    workdir = Path(workdir)
     clips = load_controls(d.path, d.split, max_agents=p.max_agents)
     windows = Windows(clips, p.history, p.horizon, p.stride, where=f"split {d.split!r}")
     model = Predictor(p)
     params = init_params(p, jax.random.key(t.seed), bev_size=clips[0]["bev_map"].shape[1:3])
-    optimizer = make_optimizer(config.optim, t.steps, params)
-    state = create_state(params, optimizer, t.seed, ema=config.optim.ema_decay > 0)
-    ckpts = Checkpoints(workdir, keep=t.keep_checkpoints)
-    restored = ckpts.restore_latest(state, log=log)
-    start = 0
-    if restored is not None:
-        start, state = restored[0], restored[1]
-        log(f"resuming from checkpoint {ckpts.directory / str(start)} (step {start})")
-    if jax.process_index() == 0:
-        workdir.mkdir(parents=True, exist_ok=True)
-        (workdir / "config.json").write_text(json.dumps(to_dict(config), indent=1))
-        fps = clips[0]["fps"]          # what generation needs to run it: its map grid and its step in seconds
-        (workdir / INFO_FILE).write_text(json.dumps({"bev_size": list(clips[0]["bev_map"].shape[1:3]), "fps": fps,
-                                                     "step_seconds": p.stride / fps}, indent=1))
-
-    @jax.jit
-    def train_step(state, batch):
-        (loss, parts), grads = jax.value_and_grad(lambda q: rollout_loss(model, q, batch, p.history),
-                                                  has_aux=True)(state.params)
-        state = apply_gradients(state, grads, loss, optimizer, config.optim.ema_decay, state.rng)
-        return state, {"loss": loss, **parts}
-
-    from jaxdrive.train.run import _Stop
-    writer = MetricsWriter(workdir, total_steps=t.steps, start_step=start, progress=progress)
-    meta = lambda step, status: {"step": step, "status": status, "config": to_dict(config)}
-    step, row, status = start, {}, "done"
-    with _Stop() as stop:                 # SIGTERM / SIGINT: save, then stop (the same command resumes)
-        while step < t.steps:
-            batch = windows.batch(d.batch_size, d.shuffle_seed, step)
-            state, metrics = train_step(state, batch)
-            step += 1
-            bad = int(state.bad_steps)
-            if on_step is not None:
-                on_step(step, metrics)
-            if step % t.log_every == 0 or step == t.steps or bad:
-                row = writer.write(step, {**jax.device_get(metrics), "bad_steps": bad})
-            if bad >= t.max_bad_steps:
-                status = "diverged"
-                log(f"stopping: {bad} non-finite losses in a row at step {step} (train.max_bad_steps = "
-                    f"{t.max_bad_steps}); the checkpoint holds the last good parameters")
-                break
-            if stop.signum is not None:
-                status = "interrupted"
-                break
-            if t.checkpoint_every and step % t.checkpoint_every == 0:
-                ckpts.save(step, state, None, meta(step, "running"))
-    ckpts.save(step, state, None, meta(step, status))
-    ckpts.close()
-    writer.close()
-    params = state.ema if state.ema is not None else state.params
-    out = {"step": step, "status": status, "loss": row.get("loss"), "params": params}
+    fps = clips[0]["fps"]          # what generation needs to run it: its map grid and its step in seconds
+    info = {"bev_size": list(clips[0]["bev_map"].shape[1:3]), "fps": fps, "step_seconds": p.stride / fps}
+    out = fit(config, workdir, params, lambda q, batch: rollout_loss(model, q, batch, p.history),
+              lambda step: windows.batch(d.batch_size, d.shuffle_seed, step), files={INFO_FILE: info}, log=log,
+              progress=progress, on_step=on_step)
+    status, params = out["status"], out["params"]
     if status == "done":
         motion = _validate(config, params, workdir, log)
         if motion is not None:
@@ -211,32 +162,14 @@ def _validate(config, params, workdir, log):
 def load_predictor(workdir):
     """``(config, params, info)`` of a predictor run: its newest checkpoint's parameters (EMA when
     kept) and ``info`` (``bev_size``, the ``fps`` of its data and ``step_seconds``)."""
-    from jaxdrive.train.checkpoint import Checkpoints
-    from jaxdrive.train.optim import make_optimizer
-    from jaxdrive.train.state import create_state
-    path = Path(workdir) / "config.json"
-    data = json.loads(path.read_text()) if path.is_file() else {}
-    if "predictor" not in data:
-        raise ValueError(f"--predictor: expected a predictor run directory (config.json of configs/predictor.py), "
-                         f"got {str(workdir)!r}")
-    config = from_dict(PredictorRunConfig, data)
-    meta = Checkpoints(workdir, asynchronous=False)
-    steps = meta.steps()
-    if not steps:
-        meta.close()
-        raise ValueError(f"--predictor: expected checkpoints under {Path(workdir) / 'checkpoints'}, found none")
-    info = json.loads((Path(workdir) / INFO_FILE).read_text())
-    bev_size = tuple(info["bev_size"])
-    p = config.predictor
-    params = jax.eval_shape(lambda: init_params(p, jax.random.key(0), bev_size=bev_size))
-    optimizer = make_optimizer(config.optim, config.train.steps, params)
-    abstract = jax.eval_shape(lambda: create_state(init_params(p, jax.random.key(0), bev_size=bev_size), optimizer,
-                                                   0, ema=config.optim.ema_decay > 0))
-    failures = []
-    restored = meta.restore_latest(abstract, log=failures.append)
-    meta.close()
-    if restored is None:
-        raise ValueError(f"--predictor: expected checkpoints of this predictor ({p}), got none that load under "
-                         f"{Path(workdir) / 'checkpoints'}: {failures[-1] if failures else ''}")
-    state = restored[1]
-    return config, (state.ema if state.ema is not None else state.params), info
+    from jaxdrive.train.aux_run import load_trained
+    path = Path(workdir) / INFO_FILE
+    info = json.loads(path.read_text()) if path.is_file() else None
+
+    def init(c):
+        if info is None:
+            raise ValueError(f"--predictor: expected {path} (written by the predictor's training), found none")
+        return init_params(c.predictor, jax.random.key(0), bev_size=tuple(info["bev_size"]))
+    config, params = load_trained(workdir, PredictorRunConfig, "predictor", init, option="--predictor",
+                                  what="predictor")
+    return config, params, info
