@@ -101,3 +101,30 @@ def test_eval_scores_a_folder_of_mp4s_against_the_dataset(clips21, segmenter_run
             (["--videos", str(tmp_path / "same")], "--data: expected the dataset the videos continue")):
         assert cli(["eval", *args, "--out", str(tmp_path / "no")]) == 2, args
         assert message in capsys.readouterr().err, message
+
+
+def test_eval_merges_strategies_of_different_runs_into_one_table(tmp_path, capsys):
+    from jaxdrive.cli import main as cli
+    from jaxdrive.eval.compare import write_outputs
+    row = lambda psnr, a, b: {"frames": [a, b], "psnr": psnr, "ssim": 0.5, "miou": 0.2}
+    run = lambda psnr: {"seconds": 1.0, "sequential_sampler_calls": 3, "peak_device_bytes": 2**20,
+                        "buckets": {"2-5": row(psnr, 2, 5), "6-8": row(psnr - 1, 6, 8)}}
+    ceiling = {"2-5": {"frames": [2, 5], "miou": 0.6}, "6-8": {"frames": [6, 8], "miou": 0.6}}
+    meta = {"clips": 2, "frames": 9, "views": 6, "segmenter": "seg", "shuffle_boxes": False, "split": None}
+    write_outputs({"rollout": run(20.0)}, tmp_path / "a", meta={**meta, "workdir": "runs/mila3"}, ceiling=ceiling)
+    write_outputs({"rollout": run(18.0), "streaming": run(19.0)}, tmp_path / "b",
+                  meta={**meta, "workdir": "runs/stage1"}, ceiling=ceiling)
+    write_outputs({"rollout": run(18.0)}, tmp_path / "c", meta={**meta, "clips": 4, "workdir": "runs/x"})
+    out = tmp_path / "all"
+    assert cli(["eval", "--merge", f"{tmp_path / 'a'},{tmp_path / 'b'}", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "| rollout (mila3) | 2-5 | 20.000 |" in printed and "| streaming (stage1) | 6-8 | 18.000 |" in printed
+    assert "| recorded frames | 2-5 | - | - | 0.600 | - | - |" in printed
+    merged = json.loads((out / "eval.json").read_text())
+    assert list(merged["strategies"]) == ["rollout (mila3)", "rollout (stage1)", "streaming (stage1)"]
+    assert (out / "quality_vs_horizon.png").stat().st_size > 1000
+    for dirs, message in ((f"{tmp_path / 'a'},{tmp_path / 'c'}", "--merge: expected the same clips in every eval.json"),
+                          (f"{tmp_path / 'a'}", "--merge: expected at least 2 output folders"),
+                          (f"{tmp_path / 'a'},{tmp_path / 'none'}", "--merge: expected eval.json of jaxdrive eval")):
+        assert cli(["eval", "--merge", dirs, "--out", str(tmp_path / "no")]) == 2, dirs
+        assert message in capsys.readouterr().err, message

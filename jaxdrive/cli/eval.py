@@ -3,13 +3,16 @@
     jaxdrive eval --workdir RUN [--fine-workdir RUN2] --strategies rollout,coarse-to-refine,...
                   --clips N --frames F [--buckets 2-12,13-24] [--inception FILE] [--i3d FILE]
                   [--segmenter RUN [--shuffle-boxes]] --out DIR
+    jaxdrive eval --videos DIR --data PATH [...] --out DIR      # a folder of generated mp4s
+    jaxdrive eval --merge OUT1,OUT2,... --out DIR               # strategies of different models, one table
 
 Every strategy starts from the same given frames and controls of the first N clips of the
 validation split (:mod:`jaxdrive.eval.compare` scores them): PSNR / SSIM per horizon bucket
 always, FID per view and over all views with ``--inception``, FVD on 16-frame windows with
 ``--i3d``, controllability (the segmenter's mIoU against the class masks of the conditioning
 boxes, and on the recorded frames, its ceiling) with ``--segmenter``. Writes ``DIR/eval.json``,
-``DIR/eval.md`` and ``DIR/quality_vs_horizon.png`` and prints the table. Every check that can fail does so before anything compiles.
+``DIR/eval.md`` and ``DIR/quality_vs_horizon.png`` and prints the table. Every check that can
+fail does so before anything compiles.
 """
 
 from __future__ import annotations
@@ -18,6 +21,17 @@ from pathlib import Path
 
 
 def _eval(args, rest) -> int:
+    if args.merge:
+        from jaxdrive.eval.compare import merge, write_outputs
+        dirs = [d for d in args.merge.split(",") if d]
+        if args.workdir or args.videos or len(dirs) < 2:
+            raise ValueError(f"--merge: expected at least 2 output folders of jaxdrive eval, without --workdir or "
+                             f"--videos, got {args.merge!r}")
+        results, meta, ceiling = merge(dirs)
+        paths = write_outputs(results, Path(args.out), meta=meta, ceiling=ceiling)
+        print(paths["table"])
+        print(f"wrote {paths['json']}, {paths['md']}, {paths['plot']}")
+        return 0
     if bool(args.videos) == bool(args.workdir):
         raise ValueError(f"--workdir / --videos: expected one of them (a run to sample, or a folder of generated "
                          f"mp4s), got {'both' if args.videos else 'neither'}")
@@ -88,7 +102,7 @@ def _eval(args, rest) -> int:
                           meta={"workdir": str(args.workdir), "fine_workdir": args.fine_workdir, "clips": clips,
                                 "frames": args.frames, "given_frames": given_pixels, "views": int(recorded.shape[1]),
                                 "inception": args.inception, "i3d": args.i3d, "segmenter": args.segmenter,
-                                "shuffle_boxes": bool(args.shuffle_boxes)})
+                                "shuffle_boxes": bool(args.shuffle_boxes), "split": args.split})
     print(paths["table"])
     print(f"wrote {paths['json']}, {paths['md']}, {paths['plot']}")
     return 0
@@ -215,6 +229,8 @@ def add_commands(sub) -> None:
     ev.add_argument("--videos", help="instead of sampling a run: a folder of generated mp4s (view mosaics, as jaxdrive "
                                      "sample writes them), scored in path order against the split's clips")
     ev.add_argument("--data", help="with --videos: the dataset they continue")
+    ev.add_argument("--merge", help="instead: comma-separated output folders of earlier jaxdrive eval runs on the "
+                                    "same clips (strategies of different models), merged into one table")
     ev.add_argument("--views", type=int, default=6, help="with --videos: views per mosaic (default 6)")
     ev.add_argument("--stride", type=int, default=1, help="with --videos: the clips' frame stride (default 1)")
     ev.add_argument("--given", type=int, default=1, help="with --videos: the given frames each starts with, left out "

@@ -178,3 +178,33 @@ def write_outputs(results: dict, out, *, meta: dict, ceiling: dict | None = None
     fig.savefig(out / "quality_vs_horizon.png")
     plt.close(fig)
     return {"json": out / "eval.json", "md": out / "eval.md", "plot": out / "quality_vs_horizon.png", "table": md}
+
+
+def merge(dirs) -> tuple[dict, dict, dict | None]:
+    """``(results, meta, ceiling)`` of several ``eval.json`` (strategies of different models on the
+    same clips: MiLA's, LongDWM's, STAGE's): each strategy named ``"name (run)"`` after the run
+    it sampled. They must agree on the clips, frames, buckets, segmenter and shuffling, or the
+    rows would not compare: a ``ValueError`` names what differs."""
+    results, first, ceiling = {}, None, None
+    same = ("clips", "frames", "segmenter", "shuffle_boxes", "split")
+    for d in dirs:
+        path = Path(d) / "eval.json"
+        try:
+            report = json.loads(path.read_text())
+        except (OSError, ValueError) as e:
+            raise ValueError(f"--merge: expected eval.json of jaxdrive eval under {str(d)!r}, got {e}") from None
+        spans = [list(r["buckets"]) for r in report["strategies"].values()]
+        if first is None:
+            first, ceiling, want = report, report.get("recorded_controllability"), spans[0]
+        for key in same:
+            if report.get(key) != first.get(key):
+                raise ValueError(f"--merge: expected the same {key} in every eval.json, got {first.get(key)!r} in "
+                                 f"{dirs[0]} and {report.get(key)!r} in {d}")
+        if any(s != want for s in spans):
+            raise ValueError(f"--merge: expected the same horizon buckets in every eval.json (give --buckets), got "
+                             f"{want} in {dirs[0]} and {spans[0]} in {d}")
+        run = Path(report.get("workdir") or report.get("videos") or str(d)).name
+        for name, r in report["strategies"].items():
+            results[f"{name} ({run})"] = r
+    meta = {k: first.get(k) for k in ("clips", "frames", "views", "segmenter", "shuffle_boxes", "split")}
+    return results, {**meta, "merged": [str(d) for d in dirs]}, ceiling
