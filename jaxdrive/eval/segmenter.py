@@ -1,7 +1,8 @@
 """Controllability against exact ground truth: a segmentation evaluator and its mIoU.
 
-MagicDrive-V2 (sec. 5.2, table 2) judges how well generations follow their boxes and maps by
-running a perception model on them (BEVFusion's mAP, CVT's road mIoU). jaxdrive's synthetic world
+MagicDrive-V2 (sec. 5.1 "Evaluation Metrics", tables 2-3) judges how well generations follow
+their boxes and maps by running perception models on them (BEVFormer's mAP and BEV mIoU on videos;
+BEVFusion's mAP and CVT's road mIoU on images). jaxdrive's synthetic world
 knows every pixel's object (``instance_ids``, the track id of the box that drew it), so it can do
 better: a small U-Net (:class:`Segmenter`, ~470k parameters at width 32) is trained on recorded
 synthetic frames to give each pixel its class (:data:`CLASSES`: background, then
