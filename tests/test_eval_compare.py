@@ -52,6 +52,8 @@ def test_eval_scores_strategies_and_writes_its_outputs(tiny_dit, tmp_path, capsy
     report = json.loads((out / "eval.json").read_text())
     buckets = report["strategies"]["rollout"]["buckets"]
     assert list(buckets) == ["2-5", "6-8", "9-12"] and report["clips"] == 2 and report["views"] == 6
+    repeat = report["strategies"]["repeat frame 1"]["buckets"]     # the baseline: the last given frame held
+    assert list(repeat) == list(buckets) and all(0 < b["ssim"] <= 1 for b in repeat.values())
     assert all(np.isfinite(b["psnr"]) and 0 < b["ssim"] <= 1 for b in buckets.values())
     assert (out / "eval.md").read_text().startswith("| strategy | frames | PSNR | SSIM |")
     assert (out / "quality_vs_horizon.png").stat().st_size > 1000
@@ -111,8 +113,9 @@ def test_eval_merges_strategies_of_different_runs_into_one_table(tmp_path, capsy
                         "buckets": {"2-5": row(psnr, 2, 5), "6-8": row(psnr - 1, 6, 8)}}
     ceiling = {"2-5": {"frames": [2, 5], "miou": 0.6}, "6-8": {"frames": [6, 8], "miou": 0.6}}
     meta = {"clips": 2, "frames": 9, "views": 6, "segmenter": "seg", "shuffle_boxes": False, "split": None}
-    write_outputs({"rollout": run(20.0)}, tmp_path / "a", meta={**meta, "workdir": "runs/mila3"}, ceiling=ceiling)
-    write_outputs({"rollout": run(18.0), "streaming": run(19.0)}, tmp_path / "b",
+    write_outputs({"rollout": run(20.0), "repeat frame 1": run(15.0)}, tmp_path / "a",
+                  meta={**meta, "workdir": "runs/mila3"}, ceiling=ceiling)
+    write_outputs({"rollout": run(18.0), "streaming": run(19.0), "repeat frame 1": run(15.0)}, tmp_path / "b",
                   meta={**meta, "workdir": "runs/stage1"}, ceiling=ceiling)
     write_outputs({"rollout": run(18.0)}, tmp_path / "c", meta={**meta, "clips": 4, "workdir": "runs/x"})
     out = tmp_path / "all"
@@ -121,7 +124,8 @@ def test_eval_merges_strategies_of_different_runs_into_one_table(tmp_path, capsy
     assert "| rollout (mila3) | 2-5 | 20.000 |" in printed and "| streaming (stage1) | 6-8 | 18.000 |" in printed
     assert "| recorded frames | 2-5 | - | - | 0.600 | - | - |" in printed
     merged = json.loads((out / "eval.json").read_text())
-    assert list(merged["strategies"]) == ["rollout (mila3)", "rollout (stage1)", "streaming (stage1)"]
+    assert list(merged["strategies"]) == ["rollout (mila3)", "rollout (stage1)", "streaming (stage1)",
+                                          "repeat frame 1"]               # the clips' baseline, once
     assert (out / "quality_vs_horizon.png").stat().st_size > 1000
     for dirs, message in ((f"{tmp_path / 'a'},{tmp_path / 'c'}", "--merge: expected the same clips in every eval.json"),
                           (f"{tmp_path / 'a'}", "--merge: expected at least 2 output folders"),

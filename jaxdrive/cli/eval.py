@@ -43,7 +43,7 @@ def _eval(args, rest) -> int:
     import numpy as np
 
     from jaxdrive.cli.sample import first_latents, load_runs
-    from jaxdrive.eval.compare import parse_buckets, run_strategies, write_outputs
+    from jaxdrive.eval.compare import parse_buckets, repeat_baseline, repeat_name, run_strategies, write_outputs
     from jaxdrive.generate.samples import dataset_inputs
     from jaxdrive.generate.strategies import NEEDS_FINE, STRATEGIES, Models, check_strategy
     from jaxdrive.validate import check_positive_int
@@ -98,6 +98,7 @@ def _eval(args, rest) -> int:
     with jax.set_mesh(run.mesh):
         results = run_strategies({n: {} for n in names}, models, codec, inputs["cond"], first, length, recorded,
                                  buckets, key=jax.random.key(args.seed), mesh=run.mesh, **features)
+    results[repeat_name(given_pixels)] = repeat_baseline(recorded, given_pixels, buckets, **features)
     paths = write_outputs(results, out, ceiling=ceiling,
                           meta={"workdir": str(args.workdir), "fine_workdir": args.fine_workdir, "clips": clips,
                                 "frames": args.frames, "given_frames": given_pixels, "views": int(recorded.shape[1]),
@@ -115,7 +116,7 @@ def _eval_videos(args) -> int:
 
     from jaxdrive.data.pipeline import sample_clip
     from jaxdrive.data.tfds_io import open_source
-    from jaxdrive.eval.compare import controllability, parse_buckets, score, write_outputs
+    from jaxdrive.eval.compare import controllability, parse_buckets, repeat_baseline, repeat_name, score, write_outputs
     from jaxdrive.eval.segmenter import class_masks
     from jaxdrive.media import read_mp4
     from jaxdrive.validate import check_positive_int
@@ -165,6 +166,8 @@ def _eval_videos(args) -> int:
         ceiling = controllability(segmenter.classes, recorded, features["masks"], buckets)
     results = {"videos": {"seconds": None, "peak_device_bytes": None, "files": [str(f) for f in files],
                           "buckets": score(video, recorded, buckets, **features)}}
+    if given:
+        results[repeat_name(given)] = repeat_baseline(recorded, given, buckets, **features)
     paths = write_outputs(results, Path(args.out), ceiling=ceiling,
                           meta={"videos": str(folder), "data": args.data, "split": source.split,
                                 "clips": len(files), "frames": int(frames), "given_frames": given,

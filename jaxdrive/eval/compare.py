@@ -96,6 +96,21 @@ def score(video, recorded, buckets, *, fid_features=None, fvd_features=None, seg
     return out
 
 
+REPEAT = "repeat frame "          # the baseline rows: "repeat frame 1" holds frame 1 (2 given frames)
+
+
+def repeat_name(given: int) -> str:
+    return f"{REPEAT}{given - 1}"
+
+
+def repeat_baseline(recorded, given: int, buckets, **features) -> dict:
+    """The baseline row :func:`repeat_name`: the recorded clip's last given frame held for every
+    later frame, scored as a strategy (:func:`score`); what a model that learned no motion gets."""
+    video = np.array(recorded, copy=True)
+    video[:, :, given:] = video[:, :, given - 1:given]
+    return {"seconds": None, "peak_device_bytes": None, "buckets": score(video, recorded, buckets, **features)}
+
+
 def run_strategies(strategies, models, codec, controls, first, length, recorded, buckets, *, key, mesh=None,
                    fid_features=None, fvd_features=None, segment=None, masks=None, log=print) -> dict:
     """Every strategy of ``strategies`` (name -> its options) on the same inputs, decoded and
@@ -185,7 +200,7 @@ def merge(dirs) -> tuple[dict, dict, dict | None]:
     same clips: MiLA's, LongDWM's, STAGE's): each strategy named ``"name (run)"`` after the run
     it sampled. They must agree on the clips, frames, buckets, segmenter and shuffling, or the
     rows would not compare: a ``ValueError`` names what differs."""
-    results, first, ceiling = {}, None, None
+    results, baselines, first, ceiling = {}, {}, None, None
     same = ("clips", "frames", "segmenter", "shuffle_boxes", "split")
     for d in dirs:
         path = Path(d) / "eval.json"
@@ -205,6 +220,10 @@ def merge(dirs) -> tuple[dict, dict, dict | None]:
                              f"{want} in {dirs[0]} and {spans[0]} in {d}")
         run = Path(report.get("workdir") or report.get("videos") or str(d)).name
         for name, r in report["strategies"].items():
-            results[f"{name} ({run})"] = r
+            if name.startswith(REPEAT):     # the recorded clip's, not a model's: once, after the strategies
+                baselines.setdefault(name, r)
+            else:
+                results[f"{name} ({run})"] = r
+    results.update(baselines)
     meta = {k: first.get(k) for k in ("clips", "frames", "views", "segmenter", "shuffle_boxes", "split")}
     return results, {**meta, "merged": [str(d) for d in dirs]}, ceiling
