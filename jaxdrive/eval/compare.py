@@ -175,18 +175,18 @@ def write_outputs(results: dict, out, *, meta: dict, ceiling: dict | None = None
     (out / "eval.json").write_text(json.dumps({**meta, **extra, "strategies": results}, indent=1))
     md = table(results, ceiling)
     (out / "eval.md").write_text(md + "\n")
-    panels = [("psnr", "PSNR dB against the recorded clip")]
+    panels = [("psnr", "PSNR dB against the recorded clip", "PSNR vs horizon")]
     if any(row.get("miou") is not None for r in results.values() for row in r["buckets"].values()):
-        panels.append(("miou", "segmenter mIoU against the boxes"))
+        panels.append(("miou", "segmenter mIoU against the boxes", "controllability vs horizon"))
     fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 3.5), dpi=120, squeeze=False)
-    for ax, (metric, label) in zip(axes[0], panels):
+    for ax, (metric, label, title) in zip(axes[0], panels):
         for name, r in results.items():
             mids = [np.mean(row["frames"]) for row in r["buckets"].values()]
             ax.plot(mids, [row.get(metric) for row in r["buckets"].values()], marker="o", label=name)
         if metric == "miou" and ceiling:
             ax.plot([np.mean(row["frames"]) for row in ceiling.values()], [row["miou"] for row in ceiling.values()],
                     "k--", label="recorded frames")
-        ax.set(xlabel="frame (bucket centre)", ylabel=label, title=f"{label.split(' ')[0]} vs horizon")
+        ax.set(xlabel="frame (bucket centre)", ylabel=label, title=title)
         ax.grid(alpha=0.3)
         ax.legend()
     fig.tight_layout()
