@@ -159,6 +159,9 @@ class TrainConfig:
     init_from: str = ""                    # a run directory or diffusers folder to start from (train/init_from.py)
     init_from_ema: bool = True             # its EMA parameters (False: the raw ones)
     init_map: tuple[str, ...] = ()         # "regex=replacement" renames of the source's parameter paths
+    # JAX's persistent compilation cache (jaxdrive.compile_cache): "default" (under the user's cache
+    # directory), a folder, or "off"
+    compile_cache: str = "default"
 
 
 @dataclasses.dataclass(frozen=True)

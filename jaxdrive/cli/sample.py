@@ -42,6 +42,8 @@ def load_runs(args):
     ema = not args.no_ema
     run, spec, load_main = _load(args.workdir, args.set, args.mesh, ema=ema, steps=args.steps, guidance=args.cfg,
                                  role="--workdir")
+    from jaxdrive import compile_cache
+    compile_cache.enable(run.config.train.compile_cache)      # the run's own setting (default: on)
     fine_spec = load_fine = None
     if args.fine_workdir:
         _, fine_spec, load_fine = _load(args.fine_workdir, args.set, args.mesh, ema=ema, steps=args.steps,

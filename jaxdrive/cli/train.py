@@ -26,6 +26,8 @@ def start_jax() -> str:
         jax.config.update("jax_platforms", "cpu")
         jax.config.update("jax_num_cpu_devices", int(n))
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    from jaxdrive import compile_cache
+    compile_cache.enable("default")        # before anything compiles; a run's train.compile_cache re-points it
     from jaxdrive.parallel import initialize_distributed
     return initialize_distributed()
 
@@ -73,6 +75,8 @@ def _sample(args, rest) -> int:
     for s in args.set or []:
         config = override(config, s)
     config = _config_mesh(config, args.mesh) if args.mesh else config
+    from jaxdrive import compile_cache
+    compile_cache.enable(config.train.compile_cache)
     run = Run(config)
     step, params = restore_params(run, args.workdir, ema=not args.no_ema)
     views = None if args.views is None else [int(v) for v in args.views]

@@ -32,7 +32,9 @@ def fit(config, workdir, params, loss, batch, *, files=None, log=print, progress
     from jaxdrive.train.optim import make_optimizer
     from jaxdrive.train.run import _Stop
     from jaxdrive.train.state import apply_gradients, create_state
+    from jaxdrive import compile_cache
     t, o = config.train, config.optim
+    compile_cache.enable(t.compile_cache)
     workdir = Path(workdir)
     optimizer = make_optimizer(o, t.steps, params)
     state = create_state(params, optimizer, t.seed, ema=o.ema_decay > 0)

@@ -347,7 +347,12 @@ def _save(ckpts, step, state, it, config, **extra):
 def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = True) -> dict:
     """Train (or resume) in ``workdir``; returns ``{"step", "status", "loss", ...}``.
     ``status``: ``"done"``, ``"interrupted"`` (a signal) or ``"diverged"`` (non-finite losses).
-    ``on_step(step, metrics)`` is called after every step (tests)."""
+    ``on_step(step, metrics)`` is called after every step (tests). The returned
+    ``first_step_seconds`` is the time from this call to the end of the first step (compiling
+    included) and ``compile_cache`` what the persistent cache gave (:mod:`jaxdrive.compile_cache`)."""
+    from jaxdrive import compile_cache
+    started = time.perf_counter()
+    cache_dir, cache_before = compile_cache.enable(config.train.compile_cache), compile_cache.counts()
     workdir = Path(workdir)
     run = Run(config)
     cfg = config
@@ -369,7 +374,7 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
     step_fn, frozen = run.step_fn(optimizer, shardings), run.frozen_params()
     writer = MetricsWriter(workdir, total_steps=run.total_steps, start_step=start,
                            tokens_per_step=run.tokens_per_step, progress=progress)
-    status, step, row, tokens = "done", start, {}, 0
+    status, step, row, tokens, first_step = "done", start, {}, 0, None
     with _Stop() as stop, jax.set_mesh(run.mesh):
         while step < run.total_steps:
             batch = run.global_batch([next(it) for _ in range(cfg.optim.grad_accum)])
@@ -377,6 +382,10 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
             state, metrics = step_fn(state, frozen, batch)   # compiled once per bucket shape
             step += 1
             bad = int(metrics["bad_steps"])
+            if first_step is None:
+                first_step = time.perf_counter() - started
+                log(f"first step done {first_step:.1f} s after the start; "
+                    f"{compile_cache.describe(cache_dir, cache_before)}")
             if step % cfg.train.log_every == 0 or step == run.total_steps or bad:
                 row = writer.write(step, jax.device_get(metrics), tokens=tokens)
                 tokens = 0
@@ -406,8 +415,11 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
     writer.close()
     # programs the step compiled: one per bucket shape met since this process started
     compiled = step_fn._cache_size() if hasattr(step_fn, "_cache_size") else None
+    now = compile_cache.counts()
     return {"step": step, "status": status, "loss": row.get("loss"), "state": state, "run": run,
-            "compiled_steps": compiled}
+            "compiled_steps": compiled, "first_step_seconds": first_step,
+            "compile_cache": {"folder": None if cache_dir is None else str(cache_dir),
+                              **{k: now[k] - cache_before[k] for k in now}}}
 
 
 def load_run_config(workdir) -> Config:
