@@ -12,8 +12,9 @@ from jaxdrive.eval.compare import parse_buckets, score
 
 
 def test_horizon_buckets_default_to_thirds_and_must_lie_in_the_generated_frames():
-    assert parse_buckets(None, 2, 26) == [(2, 10), (10, 18), (18, 26)]
-    assert parse_buckets("2-12,13-25", 2, 26) == [(2, 13), (13, 26)]
+    assert parse_buckets(None, 2, 26) == [(2, 10), (10, 18), (18, 26), (2, 26)]        # + the whole span
+    assert parse_buckets("2-12,13-25", 2, 26) == [(2, 13), (13, 26), (2, 26)]
+    assert parse_buckets("2-25", 2, 26) == [(2, 26)]
     with pytest.raises(ValueError, match=r"--buckets: expected ranges within the generated frames 2-25, got 13-40 "
                                          r"\(clips shorter than the horizon buckets\)"):
         parse_buckets("2-12,13-40", 2, 26)
@@ -51,7 +52,7 @@ def test_eval_scores_strategies_and_writes_its_outputs(tiny_dit, tmp_path, capsy
     assert "| rollout | 2-5 |" in printed and "quality_vs_horizon.png" in printed
     report = json.loads((out / "eval.json").read_text())
     buckets = report["strategies"]["rollout"]["buckets"]
-    assert list(buckets) == ["2-5", "6-8", "9-12"] and report["clips"] == 2 and report["views"] == 6
+    assert list(buckets) == ["2-5", "6-8", "9-12", "2-12"] and report["clips"] == 2 and report["views"] == 6
     repeat = report["strategies"]["repeat frame 1"]["buckets"]     # the baseline: the last given frame held
     assert list(repeat) == list(buckets) and all(0 < b["ssim"] <= 1 for b in repeat.values())
     assert all(np.isfinite(b["psnr"]) and 0 < b["ssim"] <= 1 for b in buckets.values())

@@ -24,7 +24,8 @@ FVD_FRAMES = 16
 
 def parse_buckets(text: str | None, given: int, frames: int) -> list[tuple[int, int]]:
     """``--buckets "2-12,13-24"`` (inclusive output frame ranges, after the ``given`` frames) ->
-    ``[(2, 13), (13, 25)]`` (half-open); None: the generated frames in thirds."""
+    ``[(2, 13), (13, 25), (2, 25)]`` (half-open; the last, when there are several, the whole span
+    they cover: the overall scores); None: the generated frames in thirds."""
     if text is None:
         edges = np.linspace(given, frames, 4).round().astype(int)
         out = [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
@@ -40,7 +41,16 @@ def parse_buckets(text: str | None, given: int, frames: int) -> list[tuple[int, 
         if not given <= a < b <= frames:
             raise ValueError(f"--buckets: expected ranges within the generated frames {given}-{frames - 1}, got "
                              f"{a}-{b - 1} (clips shorter than the horizon buckets)")
-    return out
+    whole = (min(a for a, _ in out), max(b for _, b in out))
+    return out + [whole] if len(out) > 1 and whole not in out else out
+
+
+def _horizon_rows(rows: list) -> list:
+    """The per-bucket rows of a result, without the overall one (:func:`parse_buckets`)."""
+    if len(rows) > 2 and rows[-1]["frames"] == [min(r["frames"][0] for r in rows[:-1]),
+                                                max(r["frames"][1] for r in rows[:-1])]:
+        return rows[:-1]
+    return rows
 
 
 def _to_255(video):
@@ -181,11 +191,13 @@ def write_outputs(results: dict, out, *, meta: dict, ceiling: dict | None = None
     fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 3.5), dpi=120, squeeze=False)
     for ax, (metric, label, title) in zip(axes[0], panels):
         for name, r in results.items():
-            mids = [np.mean(row["frames"]) for row in r["buckets"].values()]
-            ax.plot(mids, [row.get(metric) for row in r["buckets"].values()], marker="o", label=name)
+            rows = _horizon_rows(list(r["buckets"].values()))
+            ax.plot([np.mean(row["frames"]) for row in rows], [row.get(metric) for row in rows], marker="o",
+                    label=name)
         if metric == "miou" and ceiling:
-            ax.plot([np.mean(row["frames"]) for row in ceiling.values()], [row["miou"] for row in ceiling.values()],
-                    "k--", label="recorded frames")
+            rows = _horizon_rows(list(ceiling.values()))
+            ax.plot([np.mean(row["frames"]) for row in rows], [row["miou"] for row in rows], "k--",
+                    label="recorded frames")
         ax.set(xlabel="frame (bucket centre)", ylabel=label, title=title)
         ax.grid(alpha=0.3)
         ax.legend()
