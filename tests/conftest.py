@@ -29,7 +29,9 @@ settings.load_profile("jaxdrive")
 # either way; the cache only skips XLA's work.
 import tempfile  # noqa: E402
 
-jax.config.update("jax_compilation_cache_dir", tempfile.mkdtemp(prefix="jaxdrive-xla-cache-"))
+_cache = tempfile.mkdtemp(prefix="jaxdrive-xla-cache-")
+jax.config.update("jax_compilation_cache_dir", _cache)
+os.environ.setdefault("JAXDRIVE_CACHE_DIR", _cache)    # subprocesses (jaxdrive CLI, launch/local.py) too, not ~/.cache
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 2.0)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
