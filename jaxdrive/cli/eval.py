@@ -117,7 +117,7 @@ def _eval_videos(args) -> int:
     from jaxdrive.data.pipeline import sample_clip
     from jaxdrive.data.tfds_io import open_source
     from jaxdrive.eval.compare import controllability, parse_buckets, repeat_baseline, repeat_name, score, write_outputs
-    from jaxdrive.eval.segmenter import class_masks
+    from jaxdrive.eval.segmenter import class_masks_of
     from jaxdrive.media import read_mp4
     from jaxdrive.validate import check_positive_int
     for name in ("strategies", "fine_workdir", "frames"):
@@ -156,7 +156,7 @@ def _eval_videos(args) -> int:
                         where=f"--videos: {files[i].name} against {source.split} clip {i}")
         recorded.append(s["video"])
         if segmenter is not None:
-            masks.append(class_masks(s["instance_ids"], s["box_ids"], s["box_classes"], s["box_valid"]))
+            masks.append(class_masks_of(s))
     recorded = np.stack(recorded)
     video = np.stack(videos).astype(np.float32) / 127.5 - 1.0
     features = _feature_functions(args, None)

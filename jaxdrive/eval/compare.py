@@ -62,7 +62,9 @@ def controllability(segment, video, masks, buckets) -> dict:
     ``per_class``, ``pixel_accuracy``) of ``video [B, V, F, H, W, 3]`` against the class ids
     ``masks [B, V, F, H, W]`` (and the bucket's ``frames``); ``segment(frames) -> class ids``."""
     from jaxdrive.eval.segmenter import confusion, summary
-    return {f"{a}-{b - 1}": {"frames": [a, b - 1], **summary(confusion(segment(video[:, :, a:b]), masks[:, :, a:b]))}
+    lo, hi = min(a for a, _ in buckets), max(b for _, b in buckets)
+    pred = segment(video[:, :, lo:hi])           # once: the buckets overlap (the whole span is one)
+    return {f"{a}-{b - 1}": {"frames": [a, b - 1], **summary(confusion(pred[:, :, a - lo:b - lo], masks[:, :, a:b]))}
             for a, b in buckets}
 
 
@@ -75,6 +77,12 @@ def score(video, recorded, buckets, *, fid_features=None, fvd_features=None, seg
     conditioned on (:func:`controllability`)."""
     out = {}
     control = controllability(segment, video, masks, buckets) if segment is not None else {}
+    lo, hi = min(a for a, _ in buckets), max(b for _, b in buckets)
+    if fid_features is not None:                 # every frame's features once: the buckets overlap
+        def frame_features(x):
+            x = x[:, :, lo:hi]
+            return np.asarray(fid_features(_to_255(x.reshape(-1, *x.shape[3:])))).reshape(*x.shape[:3], -1)
+        frame_feats = [frame_features(x) for x in (video, recorded)]          # [B, V, F, D] each
     for a, b in buckets:
         g, r = video[:, :, a:b], recorded[:, :, a:b]
         row = {"frames": [a, b - 1], "psnr": float(np.minimum(np.asarray(psnr(g, r)), 100.0).mean()),
@@ -84,14 +92,10 @@ def score(video, recorded, buckets, *, fid_features=None, fvd_features=None, seg
             row["miou"] = c["miou"]
             row["miou_per_class"] = {k: v for k, v in c["per_class"].items() if k != "background" and v is not None}
         if fid_features is not None:
-            per_view, both = [], [None, None]
-            for v in range(g.shape[1]):
-                feats = [np.asarray(fid_features(_to_255(x[:, v].reshape(-1, *x.shape[3:])))) for x in (g, r)]
-                stats = [FeatureStats(f.shape[1]).add(f) for f in feats]
-                per_view.append(stats[0].fid(stats[1]))
-                both = [f if acc is None else np.concatenate([acc, f]) for acc, f in zip(both, feats)]
-            row["fid_per_view"] = [round(x, 4) for x in per_view]
-            row["fid"] = FeatureStats(both[0].shape[1]).add(both[0]).fid(FeatureStats(both[1].shape[1]).add(both[1]))
+            fg, fr = (f[:, :, a - lo:b - lo] for f in frame_feats)
+            stats = lambda f: FeatureStats(f.shape[-1]).add(f.reshape(-1, f.shape[-1]))
+            row["fid_per_view"] = [round(stats(fg[:, v]).fid(stats(fr[:, v])), 4) for v in range(fg.shape[1])]
+            row["fid"] = stats(fg).fid(stats(fr))
         if fvd_features is not None:
             starts = range(a, b - FVD_FRAMES + 1, FVD_FRAMES)
             if len(starts) * video.shape[0] * video.shape[1] >= 2:

@@ -12,7 +12,8 @@ conditioned on says how well generation follows the boxes. A generation whose bo
 shuffled between clips (``jaxdrive eval --shuffle-boxes``) scores against the masks of the boxes
 it got; one that ignores its boxes then scores clearly lower.
 
-- :func:`class_masks`: instance ids + the boxes of each frame -> per-pixel class ids;
+- :func:`class_masks` (:func:`class_masks_of` a sample): instance ids + the boxes of each frame
+  -> per-pixel class ids;
 - :class:`Segmenter`, :func:`init_params`, :func:`predict` (jitted, batch-sharded);
 - :func:`confusion` (counts, summed over any number of frames) and :func:`summary` (per-class
   IoU, the mIoU over the object classes, pixel accuracy);
@@ -63,6 +64,12 @@ def class_masks(instance_ids, box_ids, box_classes, box_valid) -> np.ndarray:
             hit = (px >= 0) & (table_ids[at] == px)
             out[b, :, f] = np.where(hit, table_cls[at] + 1, 0)
     return out.reshape(*lead, V, F, H, W)
+
+
+def class_masks_of(sample) -> np.ndarray:
+    """:func:`class_masks` of a sample of :func:`jaxdrive.data.pipeline.sample_clip` taken with
+    ``instances=True``: ``[V, F, H, W]``."""
+    return class_masks(sample["instance_ids"], sample["box_ids"], sample["box_classes"], sample["box_valid"])
 
 
 class _ConvBlock(nn.Module):

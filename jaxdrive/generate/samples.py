@@ -116,8 +116,10 @@ def dataset_inputs(spec: Sampling, *, frames: int, views=None, clips: int = 1, s
         samples.append(sample if controls is None else controls(sample, clip, where))
     extra = {}
     if masks or shuffle_boxes:
-        from jaxdrive.eval.segmenter import class_masks
-        own = [class_masks(s.pop("instance_ids"), s["box_ids"], s["box_classes"], s["box_valid"]) for s in samples]
+        from jaxdrive.eval.segmenter import class_masks_of
+        own = [class_masks_of(s) for s in samples]
+        for s in samples:
+            del s["instance_ids"]                 # not a model input
         extra["class_masks"] = np.stack(own)
         if shuffle_boxes:
             if len(samples) < 2 or len(source) < 2:

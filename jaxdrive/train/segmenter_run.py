@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrive.config import SegmenterRunConfig
-from jaxdrive.eval.segmenter import CLASSES, NUM_CLASSES, Segmenter, class_masks, confusion, init_params, summary
+from jaxdrive.eval.segmenter import CLASSES, NUM_CLASSES, Segmenter, class_masks_of, confusion, init_params, summary
 from jaxdrive.validate import check_positive_int
 
 INFO_FILE = "segmenter.json"
@@ -52,8 +52,7 @@ def load_frames(path, split: str, *, size: tuple[int, int], views: int, stride: 
         s = sample_clip(clip, size=size, frames=1 + (have - 1) // stride, stride=stride, views=list(range(views)),
                         instances=True, where=f"{split} clip {i}")
         frames.append(to_uint8(s["video"]).reshape(-1, *size, 3))
-        masks.append(class_masks(s["instance_ids"], s["box_ids"], s["box_classes"], s["box_valid"])
-                     .astype(np.uint8).reshape(-1, *size))
+        masks.append(class_masks_of(s).astype(np.uint8).reshape(-1, *size))
     return np.concatenate(frames), np.concatenate(masks)
 
 
@@ -76,7 +75,8 @@ def degrade(frames: np.ndarray, masks: np.ndarray, rng: np.random.Generator) -> 
     x = (1 - mix) * x + mix * blur + rng.uniform(0.0, 0.1, (n, 1, 1, 1)).astype(np.float32) * \
         rng.standard_normal(x.shape).astype(np.float32)
     flip = rng.random(n) < 0.5
-    x[flip], masks = x[flip, :, ::-1], masks.copy()
+    x[flip] = x[flip, :, ::-1]
+    masks = masks.copy()                          # the caller's array stays as it was
     masks[flip] = masks[flip, :, ::-1]
     return np.clip(x, -1.0, 1.0), masks
 
