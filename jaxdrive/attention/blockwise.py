@@ -26,7 +26,21 @@ def _tile(x, start, size, axis=1):
 
 
 def _put(x, tile, start, axis=1):
-    return jax.lax.dynamic_update_slice_in_dim(x, tile, start, axis=axis)
+    return jax.lax.dynamic_update_slice_in_dim(x, _as_carry(tile, x), start, axis=axis)
+
+
+def _as_carry(new, old):
+    """``new`` with the sharding type of the loop carry ``old``: under an Explicit mesh a body that
+    mixes operands of other shardings (q batch-replicated, kv_mask batch-sharded) makes a carry of
+    another type than it was given, which ``fori_loop`` refuses."""
+    want = jax.typeof(old).sharding
+    if want.mesh.empty or jax.typeof(new).sharding.spec == want.spec:
+        return new
+    return jax.sharding.reshard(new, want.spec)
+
+
+def _fori(lower, upper, body, init):
+    return jax.lax.fori_loop(lower, upper, lambda i, c: jax.tree_util.tree_map(_as_carry, body(i, c), c), init)
 
 
 # The tile loops slice their operands in place (dynamic_slice) and write results into carried
@@ -63,10 +77,10 @@ def tiled_attend(q, k, v, mask, *, scale, causal_block, bq, bk, q_start=0, k_sta
             return jax.lax.cond(hidden, lambda: acc, attend)
 
         start = (_tile(out[0], i * bq, bq), _tile(out[1], i * bq, bq, axis=2))
-        o, lse = jax.lax.fori_loop(0, nk, key_tile, start)
+        o, lse = _fori(0, nk, key_tile, start)
         return _put(out[0], o, i * bq), _put(out[1], lse, i * bq, axis=2)
 
-    return jax.lax.fori_loop(0, nq, query_tile, sb.empty(q) if acc is None else acc)
+    return _fori(0, nq, query_tile, sb.empty(q) if acc is None else acc)
 
 
 def tiled_grads(q, k, v, mask, lse, delta, do, *, scale, causal_block, bq, bk, q_start=0, k_start=0,
@@ -78,7 +92,7 @@ def tiled_grads(q, k, v, mask, lse, delta, do, *, scale, causal_block, bq, bk, q
     nq, nk = q.shape[1] // bq, k.shape[1] // bk
     k_step = bk if k_step is None else k_step
     if acc is None:
-        acc = tuple(jnp.zeros(x.shape, jnp.float32) for x in (q, k, v))
+        acc = tuple(jnp.zeros_like(x, dtype=jnp.float32) for x in (q, k, v))
 
     def key_tile(j, grads):
         dq, dk, dv = grads
@@ -100,10 +114,10 @@ def tiled_grads(q, k, v, mask, lse, delta, do, *, scale, causal_block, bq, bk, q
             return jax.lax.cond(hidden, lambda: inner, add)
 
         start = (dq, _tile(dk, j * bk, bk), _tile(dv, j * bk, bk))
-        dq, dkj, dvj = jax.lax.fori_loop(0, nq, query_tile, start)
+        dq, dkj, dvj = _fori(0, nq, query_tile, start)
         return dq, _put(dk, dkj, j * bk), _put(dv, dvj, j * bk)
 
-    return jax.lax.fori_loop(0, nk, key_tile, acc)
+    return _fori(0, nk, key_tile, acc)
 
 
 @functools.lru_cache(maxsize=None)

@@ -85,8 +85,10 @@ def merge(o1, lse1, o2, lse2):
 
 def empty(q):
     """The neutral partial result for ``q``'s rows (no keys seen yet)."""
-    b, lq, h, d = q.shape
-    return jnp.zeros((b, lq, h, d), jnp.float32), jnp.full((b, h, lq), NEG_INF, jnp.float32)
+    # *_like keeps q's sharding type: loop carries started from it match what the loop body makes
+    # under an Explicit mesh (a plain jnp.zeros would be unsharded and the carry types would differ)
+    lse = jnp.swapaxes(jnp.full_like(q[..., 0], NEG_INF, dtype=jnp.float32), 1, 2)
+    return jnp.zeros_like(q, dtype=jnp.float32), lse
 
 
 def delta(o, do):
