@@ -21,7 +21,7 @@ def test_train_benchmark_prints_tokens_per_s_and_the_torch_ratio(capsys):
     pytest.importorskip("diffusers")
     from jaxdrive.cli import main
     main(["bench", "train", "--presets", "tiny", "--compare-only", "--repeats", "1", "--frames", "2",
-          "--height", "4", "--width", "4"])
+          "--height", "4", "--width", "4", "--no-ops"])
     rows = _rows(capsys.readouterr().out)
     assert all(r["bench"] == "train" for r in rows)
     tps = {r["impl"]: r["value"] for r in rows if r["figure"] == "tokens_per_s"}
@@ -34,6 +34,32 @@ def test_train_benchmark_prints_tokens_per_s_and_the_torch_ratio(capsys):
     assert mfu["value"] is None and "--peak-tflops" in mfu["reason"]         # a CPU has no known peak
     flops = next(r for r in rows if r["figure"] == "model_flops_per_step")
     assert flops["value"] > 0 and next(r for r in rows if r["figure"] == "compile_time")["value"] > 0
+
+
+def test_json_rows_hold_the_step_and_single_op_comparisons(capsys):
+    pytest.importorskip("torch")
+    pytest.importorskip("diffusers")
+    from jaxdrive.cli import main
+    main(["bench", "train", "--presets", "tiny", "--compare-only", "--repeats", "1", "--frames", "2",
+          "--height", "4", "--width", "4", "--json"])
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.strip()]
+    rows = [json.loads(line) for line in lines]                   # every line is one JSON object
+    steps = {r["impl"]: r for r in rows if r["model"] == "tiny-full/diffusers"}
+    assert set(steps) == {"jaxdrive", "torch"}
+    for r in steps.values():
+        assert {"model", "impl", "step_ms", "tokens_per_s", "ratio_to_torch"} <= set(r) and r["step_ms"] > 0
+    assert steps["jaxdrive"]["ratio_to_torch"] == pytest.approx(
+        steps["jaxdrive"]["tokens_per_s"] / steps["torch"]["tokens_per_s"], rel=2e-2)
+    ops = [r for r in rows if r["model"].startswith("op: ")]
+    names = {r["model"] for r in ops}
+    assert any(n.startswith("op: matmul ") for n in names) and any("softmax" in n for n in names)
+    assert len(ops) == 2 * len(names)                            # each op in both implementations
+    for name in names:
+        pair = {r["impl"]: r for r in ops if r["model"] == name}
+        assert pair["jaxdrive"]["ratio_to_torch"] == pytest.approx(
+            pair["torch"]["step_ms"] / pair["jaxdrive"]["step_ms"], rel=2e-2)
+    matmul = next(r for r in ops if r["model"].startswith("op: matmul ") and r["impl"] == "jaxdrive")
+    assert matmul["gflops"] > 0
 
 
 def _flops(cfg, **shapes):
@@ -50,6 +76,17 @@ def test_full_layout_flops_are_6_params_tokens_plus_attention():
     assert f["matmul_flops"] == 6 * depth * 12 * d * d * 2 * seq               # qkv + out 4 D^2, MLP 8 D^2
     assert f["attention_flops"] == 3 * depth * 4 * seq ** 2 * d * 2
     assert f["flops"] == f["matmul_flops"] + f["attention_flops"]
+
+
+def test_one_layer_flops_are_the_hand_count():
+    """depth 1, width 64 (4 heads x 16), text 8, batch 2, 3 x 4 x 6 latents in 2 x 2 patches: 18
+    video + 8 text = 26 tokens a clip. Matmuls: 12 * 64^2 weights (q, k, v, out 4 D^2; MLP 8 D^2),
+    6 FLOPs per weight and token (forward 2, backward 4): 6 * 49152 * 26 * 2 = 15,335,424.
+    Attention: QK^T and AV, 4 * 26^2 * 64 forward, x 3 with the backward, x 2 clips: 1,038,336."""
+    dcfg = bench.diffusers_config(preset("tiny-full").replace(depth=1), frames=3, height=4, width=6)
+    f = _flops(config_from_diffusers(dcfg), batch=2, frames=3, height=4, width=6)
+    assert f["matmul_flops"] == 15_335_424 and f["attention_flops"] == 1_038_336
+    assert f["flops"] == 16_373_760
 
 
 def test_factorized_flops_count_spatial_temporal_and_text_attention():

@@ -82,6 +82,23 @@ def test_sampler_benchmark_prints_json_figures(capsys):
     assert all(r["bench"] == "sampler" and r["steps"] == 2 for r in rows)
 
 
+def test_sampler_benchmark_compares_the_full_model_with_diffusers(capsys):
+    pytest.importorskip("diffusers")
+    from jaxdrive.cli import main
+    main(["bench", "sampler", "--model", "tiny-full", "--steps", "2", "--frames", "2", "--height", "4",
+          "--width", "4", "--repeats", "1"])
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
+    row = next(r for r in rows if r["figure"] == "ratio_to_torch")
+    assert row["model"] == "tiny-full/diffusers" and row["steps"] == 2 and row["params"] > 0
+    assert row["forward_ms"] > 0 and row["torch_forward_ms"] > 0 and row["loop_ms_per_step"] > 0
+    assert row["value"] == pytest.approx(row["torch_forward_ms"] / row["forward_ms"], rel=5e-2)
+    assert row["loop_overhead"] == pytest.approx(row["loop_ms_per_step"] / row["forward_ms"] - 1, abs=5e-2)
+    assert main(["bench", "sampler", "--model", "tiny", "--steps", "2"]) == 2
+    assert "--model: expected full-layout presets" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["bench", "sampler", "--model", "tiny-full", "--steps", "2", "3"])
+
+
 def test_unknown_benchmark_is_named():
     from jaxdrive.cli import main
     with pytest.raises(SystemExit, match=r"name: expected one of \[.*'sampler'.*\], got 'nope'"):

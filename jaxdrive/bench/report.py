@@ -45,6 +45,20 @@ def best_time(fn, *, repeats: int = 5) -> float:
     return best
 
 
+def median_time(fn, *, repeats: int) -> float:
+    """Median wall time in seconds of ``fn()`` over ``repeats`` calls after one warm-up call;
+    ``fn`` blocks on its own result (a JAX function wrapped in ``jax.block_until_ready``, or a
+    PyTorch CPU call, which returns when done)."""
+    import statistics
+    fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
 def temp_bytes(compiled) -> int | None:
     """Temporary (scratch) memory of a compiled program, or None where the backend has no analysis."""
     analysis = compiled.memory_analysis()

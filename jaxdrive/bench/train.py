@@ -3,7 +3,7 @@ diffusers PyTorch ``CogVideoXTransformer3DModel`` train step on the same CPU at 
 
     python -m jaxdrive.bench.train [--presets tiny small] [--batch 1] [--frames 5] [--height 16]
                                    [--width 16] [--repeats 5] [--no-torch | --compare-only]
-                                   [--torch-threads N] [--peak-tflops T]
+                                   [--torch-threads N] [--peak-tflops T] [--no-ops] [--json]
 
 For each preset the benchmark jits the library's step (:func:`jaxdrive.train.flow_step.make_train_step`:
 noise levels and condition frames, the DiT forward, the flow loss, the backward, global-norm
@@ -22,7 +22,12 @@ the same network (the parameter counts are checked equal). The PyTorch step is w
 training loop does: draw levels, noise, forward, MSE to the velocity ``noise - x``, backward,
 ``clip_grad_norm_(1.0)``, ``AdamW.step()`` with the same hyper-parameters. PyTorch runs with as many
 threads as XLA:CPU uses (the CPUs this process may run on; ``--torch-threads`` to change it).
-``torch_ratio`` = jaxdrive tokens/s / PyTorch tokens/s (above 1: jaxdrive is faster). Run it on
+``ratio_to_torch`` = jaxdrive tokens/s / PyTorch tokens/s (above 1: jaxdrive is faster). After
+each comparison, single operations at the comparison model's width and token count are timed in
+both (:mod:`jaxdrive.bench.ops`: matmuls, a bias-gradient sum, a transpose, layer norm and softmax
+forward + backward) so that the step's ratio can be read against XLA:CPU's own per-op ratios
+(``--no-ops`` skips them). ``--json`` prints one JSON object per row (``model``, ``impl``,
+``step_ms``, ``tokens_per_s``, ``ratio_to_torch``, ...) instead of the figures and the table. Run it on
 an otherwise idle machine: when other processes hold the cores, PyTorch's spinning OpenMP threads
 lose far more than XLA's pool (seen: 10-30x slower steps on 2 busy cores). Every timed figure
 carries ``busy_cpus``, the CPUs other processes kept busy in the half second before it was
@@ -59,9 +64,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import math
 import os
 import statistics
+import sys
 import time
 
 from jaxdrive.models.latents import LatentCodec
@@ -266,10 +273,17 @@ def _cpus() -> int:
 
 
 def run(presets, *, batch: int, frames: int, height: int, width: int, repeats: int, use_torch: bool = True,
-        compare_only: bool = False, peak: float | None = None, torch_threads: int | None = None) -> list[dict]:
+        compare_only: bool = False, peak: float | None = None, torch_threads: int | None = None,
+        micro: bool = True, as_json: bool = False) -> list[dict]:
+    """Measure ``presets`` (module docstring); returns the rows. ``as_json``: print one JSON object
+    per row instead of the figures and the table."""
     import jax
 
+    from jaxdrive.bench.ops import op_rows
     from jaxdrive.bench.report import emit, table
+
+    def figure(*args, **kwargs):
+        return None if as_json else emit(*args, **kwargs)
     from jaxdrive.convert.diffusers_dit import config_from_diffusers
     from jaxdrive.models.dit_presets import PRESETS, preset
     from jaxdrive.parallel import make_mesh
@@ -287,34 +301,37 @@ def run(presets, *, batch: int, frames: int, height: int, width: int, repeats: i
         busy = busy_cpus()
         if busy is not None and busy > 0.5:
             print(f"note: other processes kept {busy} of {os.cpu_count()} CPUs busy just before timing {what}: "
-                  f"its timings (PyTorch's especially) are not those of an idle machine", flush=True)
+                  f"its timings (PyTorch's especially) are not those of an idle machine", file=sys.stderr, flush=True)
         return busy
 
     def report(r, ctx, impl):
         tps = r["video_tokens"] / r["step_s"]
         achieved = None if r["flops"] is None else r["flops"] / r["step_s"] / 1e12
         ctx = dict(ctx, impl=impl, tokens=r["video_tokens"])
-        emit(BENCH, "params", r["params"], "parameters", **ctx)
-        emit(BENCH, "step_time", round(1e3 * r["step_s"], 2), "ms", **ctx)
-        emit(BENCH, "tokens_per_s", round(tps, 1), "tokens/s", **ctx)
-        emit(BENCH, "achieved_tflops", None if achieved is None else round(achieved, 6), "TFLOP/s", **ctx)
+        figure(BENCH, "params", r["params"], "parameters", **ctx)
+        figure(BENCH, "step_time", round(1e3 * r["step_s"], 2), "ms", **ctx)
+        figure(BENCH, "tokens_per_s", round(tps, 1), "tokens/s", **ctx)
+        figure(BENCH, "achieved_tflops", None if achieved is None else round(achieved, 6), "TFLOP/s", **ctx)
         row = dict(model=ctx["model"], impl=impl, params=r["params"], tokens=r["video_tokens"],
                    compile_s=round(r["compile_s"], 1) if "compile_s" in r else "", step_ms=round(1e3 * r["step_s"], 1),
-                   tokens_per_s=round(tps), tflops=None if achieved is None else round(achieved, 4))
+                   tokens_per_s=round(tps), tflops=None if achieved is None else round(achieved, 4),
+                   preset=ctx["preset"], busy_cpus=ctx.get("busy_cpus"), **base)
+        if "torch_threads" in ctx:
+            row["torch_threads"] = ctx["torch_threads"]
         if impl == "jaxdrive":
-            emit(BENCH, "compile_time", round(r["compile_s"], 2), "s", **ctx)
-            emit(BENCH, "model_flops_per_step", r["flops"], "FLOP", block_params=r["block_params"],
+            figure(BENCH, "compile_time", round(r["compile_s"], 2), "s", **ctx)
+            figure(BENCH, "model_flops_per_step", r["flops"], "FLOP", block_params=r["block_params"],
                  matmul_flops=r["matmul_flops"], attention_flops=r["attention_flops"],
                  text_tokens=r["text_tokens"], **ctx)
-            emit(BENCH, "xla_flops_per_step", r["xla_flops"], "FLOP", **ctx)
-            emit(BENCH, "step_memory", None if r["memory"] is None else round(r["memory"] / 2**20, 2), "MiB", **ctx)
+            figure(BENCH, "xla_flops_per_step", r["xla_flops"], "FLOP", **ctx)
+            figure(BENCH, "step_memory", None if r["memory"] is None else round(r["memory"] / 2**20, 2), "MiB", **ctx)
             if achieved is None or peak_t is None:
                 why = peak_note if peak_t is None else "no analytic FLOPs for this layout"
-                emit(BENCH, "mfu", None, "fraction", reason=why, **ctx)
+                figure(BENCH, "mfu", None, "fraction", reason=why, **ctx)
                 row["mfu"] = None
             else:
                 row["mfu"] = round(achieved / peak_t, 4)
-                emit(BENCH, "mfu", row["mfu"], "fraction", peak_tflops=peak_t, peak_source=peak_note, **ctx)
+                figure(BENCH, "mfu", row["mfu"], "fraction", peak_tflops=peak_t, peak_source=peak_note, **ctx)
         rows.append(row)
         return tps
 
@@ -346,12 +363,21 @@ def run(presets, *, batch: int, frames: int, height: int, width: int, repeats: i
         rt = dict(rt, **{k: rj[k] for k in ("flops", "video_tokens")})
         jax_tps = report(rj, rj_ctx, "jaxdrive")
         torch_tps = report(rt, dict(ctx, torch_threads=rt["threads"], busy_cpus=busy), "torch")
-        rows[-1]["torch_ratio"] = rows[-2]["torch_ratio"] = round(jax_tps / torch_tps, 3)
-        emit(BENCH, "torch_ratio", round(jax_tps / torch_tps, 4), "x", preset=name, model=ctx["model"],
+        rows[-1]["ratio_to_torch"] = rows[-2]["ratio_to_torch"] = round(jax_tps / torch_tps, 3)
+        figure(BENCH, "torch_ratio", round(jax_tps / torch_tps, 4), "x", preset=name, model=ctx["model"],
              params=rj["params"], torch_threads=rt["threads"], diffusers_config=dcfg,
              meaning="jaxdrive tokens/s / diffusers PyTorch tokens/s", **base)
+        if micro:
+            for row in op_rows(preset(partner), tokens=batch * (rj["video_tokens"] // batch + dcfg["max_text_seq_length"]),
+                               threads=rt["threads"], repeats=max(20, 4 * repeats)):
+                rows.append(dict(row, preset=name, **base))
+                figure(BENCH, "op_time", row["step_ms"], "ms", **{k: v for k, v in rows[-1].items() if k != "step_ms"})
+    if as_json:
+        for row in rows:
+            print(json.dumps(row, sort_keys=True), flush=True)
+        return rows
     print(table(rows, ["model", "impl", "params", "tokens", "compile_s", "step_ms", "tokens_per_s", "tflops", "mfu",
-                       "torch_ratio"]))
+                       "ratio_to_torch"]))
     if peak_t is None:
         print(f"MFU: {peak_note}")
     return rows
@@ -372,6 +398,11 @@ def main(argv=None):
                         help="PyTorch intra-op threads (default: the CPUs XLA:CPU uses, those of this process)")
     parser.add_argument("--peak-tflops", type=float, default=None,
                         help="peak TFLOP/s of the device for the MFU (default: known accelerators only)")
+    parser.add_argument("--no-ops", action="store_true",
+                        help="skip the single-operation comparison with PyTorch (jaxdrive.bench.ops)")
+    parser.add_argument("--json", action="store_true",
+                        help="print one JSON object per row (model, impl, step_ms, tokens_per_s, ratio_to_torch, "
+                             "...) instead of the figures and the table")
     args = parser.parse_args(argv)
     if args.no_torch and args.compare_only:
         parser.error("--no-torch, --compare-only: expected at most one of them, got both")
@@ -381,7 +412,7 @@ def main(argv=None):
             parser.error(f"--{name.replace('_', '-')}: expected an integer >= 1, got {value}")
     return run(args.presets, batch=args.batch, frames=args.frames, height=args.height, width=args.width,
                repeats=args.repeats, use_torch=not args.no_torch, compare_only=args.compare_only,
-               peak=args.peak_tflops, torch_threads=args.torch_threads)
+               peak=args.peak_tflops, torch_threads=args.torch_threads, micro=not args.no_ops, as_json=args.json)
 
 
 if __name__ == "__main__":
