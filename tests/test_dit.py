@@ -215,8 +215,11 @@ def test_stdit2_layers_patch_spanning_two_frames_and_the_caption_encoder():
     assert max_rel(a, b) > 1e-4                         # the caption reaches the output
 
 
-def test_scan_and_remat_match_the_python_loop():
-    base = preset("tiny", depth=2)
+@pytest.mark.parametrize("dtype", ["float32", "bfloat16"])
+def test_scan_and_remat_match_the_python_loop(dtype):
+    # bfloat16: the float32 parameters promote a layer's output, so the scan carry changed type
+    # (nn.scan refused it) until the residual stream was kept float32 in both paths
+    base = preset("tiny", depth=2, dtype=dtype)
     scanned = dataclasses.replace(base, scan_layers=True, remat="dots")
     shapes = (("batch", 1), ("views", 2), ("frames", 2), ("height", 4), ("width", 4))
     params = params_for(base, shapes)
@@ -232,8 +235,9 @@ def test_scan_and_remat_match_the_python_loop():
         return jax.jit(jax.value_and_grad(lambda p, x: jnp.sum(dit.forward(p, x, sig, conditions(text, kw)) * jnp.sin(x)),
                                           argnums=1))
     (v1, g1), (v2, g2) = loss(base)(params, lat), loss(scanned)(stacked, lat)
-    np.testing.assert_allclose(v2, v1, rtol=1e-5)
-    assert max_rel(g2, g1) < 1e-5
+    tol = 1e-5 if dtype == "float32" else 2e-2
+    np.testing.assert_allclose(v2, v1, rtol=tol)
+    assert max_rel(g2, g1) < tol
 
 
 def test_frame_alignment_with_the_vae():

@@ -101,7 +101,10 @@ class _Body(nn.Module):
     @nn.compact
     def __call__(self, carry, res, ctx):
         cfg = self.cfg
-        carry = layer_class(cfg)(cfg, name="layer")(carry, ctx)
+        # a layer's output keeps its input's dtype (float32 parameters promote a bf16 stream), so a
+        # scan's carry has one type
+        carry = jax.tree_util.tree_map(lambda new, old: new.astype(old.dtype),
+                                       layer_class(cfg)(cfg, name="layer")(carry, ctx), carry)
         video = carry[0] if cfg.layout == "full" else carry
         if res is not None:
             video = video + res
@@ -408,7 +411,10 @@ class DiT(nn.Module):
 
     def _run(self, cfg, carry, ctx, start, end, res, prefix, emit=False):
         """Layers ``start .. end - 1``: one ``nn.scan`` when ``scan_layers`` and more than one
-        layer (params stacked on a leading ``layers`` axis), else a Python loop."""
+        layer (params stacked on a leading ``layers`` axis), else a Python loop. The residual
+        stream between layers is float32 whatever the compute dtype (mixed precision: each layer
+        computes in ``dtype``, the sums of its residual branches are kept in float32)."""
+        carry = jax.tree_util.tree_map(lambda x: x.astype(jnp.float32), carry)
         if cfg.scan_layers and end - start > 1:
             body = nn.scan(_body_class(cfg.remat, True), variable_axes={"params": 0},
                            split_rngs={"params": True, "dropout": True}, in_axes=(0, nn.broadcast),
