@@ -109,7 +109,23 @@ def test_peak_is_known_for_accelerators_and_given_on_cpu():
     assert bench.peak_tflops(Dev(), 1.5) == (1.5, "--peak-tflops")
 
 
+def test_accelerator_settings_reach_the_model_and_the_measured_peak_gives_an_mfu(capsys, monkeypatch):
+    seen, step = [], bench.jax_step
+    monkeypatch.setattr(bench, "jax_step", lambda cfg, *a, **k: seen.append(cfg) or step(cfg, *a, **k))
+    rows = bench.main(["--presets", "tiny", "--no-torch", "--dtype", "bfloat16", "--remat", "full",
+                       "--scan-layers", "--attn-impl", "blockwise", "--measure-peak", "64", "--json",
+                       "--repeats", "1", "--frames", "2", "--height", "4", "--width", "4"])
+    assert [(c.dtype, c.remat, c.scan_layers, c.attn_impl) for c in seen] == [("bfloat16", "full", True, "blockwise")]
+    (row,) = rows
+    assert row["model"] == "tiny" and row["measured_peak_tflops"] > 0
+    assert row["mfu_measured"] == pytest.approx(row["tflops"] / row["measured_peak_tflops"], rel=2e-2)
+    printed = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.strip()]
+    assert [r["model"] for r in printed] == ["tiny"]
+
+
 def test_arguments_are_checked():
+    with pytest.raises(SystemExit):
+        bench.main(["--presets", "tiny", "--dtype", "bfloat16"])               # torch compares float32
     with pytest.raises(SystemExit):
         bench.main(["--no-torch", "--compare-only"])
     with pytest.raises(SystemExit):

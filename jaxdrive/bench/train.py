@@ -164,6 +164,20 @@ def _optim():
     return OptimConfig(ema_decay=0.0)
 
 
+def measured_peak_tflops(size: int, dtype: str = "bfloat16", repeats: int = 5) -> float:
+    """TFLOP/s of one jitted ``[size, size] @ [size, size]`` matmul in ``dtype`` on the default
+    device (median of ``repeats``): the dense matmul peak this device reaches in practice."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxdrive.bench.report import median_time
+
+    a = jax.random.normal(jax.random.key(0), (size, size), dtype)
+    b = jax.random.normal(jax.random.key(1), (size, size), dtype)
+    dot = jax.jit(lambda a, b: jnp.matmul(a, b, preferred_element_type=jnp.float32))
+    return 2 * size ** 3 / median_time(lambda: jax.block_until_ready(dot(a, b)), repeats=repeats) / 1e12
+
+
 def jax_step(cfg, mesh, *, batch: int, frames: int, height: int, width: int, repeats: int) -> dict:
     """Compile and time the library's train step for ``cfg``."""
     import flax.linen as nn
@@ -274,9 +288,12 @@ def _cpus() -> int:
 
 def run(presets, *, batch: int, frames: int, height: int, width: int, repeats: int, use_torch: bool = True,
         compare_only: bool = False, peak: float | None = None, torch_threads: int | None = None,
-        micro: bool = True, as_json: bool = False) -> list[dict]:
+        micro: bool = True, as_json: bool = False, overrides: dict | None = None,
+        peak_size: int | None = None) -> list[dict]:
     """Measure ``presets`` (module docstring); returns the rows. ``as_json``: print one JSON object
-    per row instead of the figures and the table."""
+    per row instead of the figures and the table. ``overrides``: DiT config fields set on every
+    jaxdrive model (``dtype``, ``remat``, ``attn_impl``, ``scan_layers``); ``peak_size``: also
+    measure the bf16 matmul peak at that size and give the MFU against it (``mfu_measured``)."""
     import jax
 
     from jaxdrive.bench.ops import op_rows
@@ -291,6 +308,12 @@ def run(presets, *, batch: int, frames: int, height: int, width: int, repeats: i
     device = jax.devices()[0]
     mesh = make_mesh(devices=[device])
     peak_t, peak_note = peak_tflops(device, peak)
+    measured = None
+    if peak_size:
+        measured = measured_peak_tflops(peak_size)
+        figure(BENCH, "measured_peak_tflops", round(measured, 3), "TFLOP/s", size=peak_size, dtype="bfloat16",
+               device_kind=str(device.device_kind))
+    overrides = overrides or {}
     shapes = dict(batch=batch, frames=frames, height=height, width=width)
     shape = [batch, VIEWS, frames, height, width]
     cpus = _cpus()
@@ -314,7 +337,7 @@ def run(presets, *, batch: int, frames: int, height: int, width: int, repeats: i
         figure(BENCH, "achieved_tflops", None if achieved is None else round(achieved, 6), "TFLOP/s", **ctx)
         row = dict(model=ctx["model"], impl=impl, params=r["params"], tokens=r["video_tokens"],
                    compile_s=round(r["compile_s"], 1) if "compile_s" in r else "", step_ms=round(1e3 * r["step_s"], 1),
-                   tokens_per_s=round(tps), tflops=None if achieved is None else round(achieved, 4),
+                   tokens_per_s=round(tps), tflops=None if achieved is None else float(f"{achieved:.4g}"),
                    preset=ctx["preset"], busy_cpus=ctx.get("busy_cpus"), **base)
         if "torch_threads" in ctx:
             row["torch_threads"] = ctx["torch_threads"]
@@ -332,6 +355,10 @@ def run(presets, *, batch: int, frames: int, height: int, width: int, repeats: i
             else:
                 row["mfu"] = round(achieved / peak_t, 4)
                 figure(BENCH, "mfu", row["mfu"], "fraction", peak_tflops=peak_t, peak_source=peak_note, **ctx)
+            if measured is not None and achieved is not None:
+                row.update(mfu_measured=float(f"{achieved / measured:.4g}"), measured_peak_tflops=float(f"{measured:.4g}"))
+                figure(BENCH, "mfu_measured", row["mfu_measured"], "fraction", peak_tflops=row["measured_peak_tflops"],
+                       peak_source=f"measured bf16 {peak_size}^3 matmul", **ctx)
         rows.append(row)
         return tps
 
@@ -340,7 +367,7 @@ def run(presets, *, batch: int, frames: int, height: int, width: int, repeats: i
         return jax_step(cfg, mesh, repeats=repeats, **shapes), {"busy_cpus": busy}
 
     for name in presets:
-        cfg = preset(name)
+        cfg = preset(name, **overrides)
         partner = name if cfg.layout == "full" else f"{name}-full"
         if compare_only and partner not in PRESETS:
             raise ValueError(f"--presets: expected presets with a full-layout partner for --compare-only, got "
@@ -351,7 +378,7 @@ def run(presets, *, batch: int, frames: int, height: int, width: int, repeats: i
         if not use_torch or partner not in PRESETS:
             continue
         dcfg = diffusers_config(preset(partner), frames=frames, height=height, width=width)
-        jcfg = config_from_diffusers(dcfg)
+        jcfg = config_from_diffusers(dcfg).replace(**overrides)
         rj, how = measure(jcfg, f"{partner}/diffusers (jaxdrive)")
         ctx = dict(base, preset=name, model=f"{partner}/diffusers", layout="full")
         rj_ctx = dict(ctx, **how)
@@ -398,6 +425,13 @@ def main(argv=None):
                         help="PyTorch intra-op threads (default: the CPUs XLA:CPU uses, those of this process)")
     parser.add_argument("--peak-tflops", type=float, default=None,
                         help="peak TFLOP/s of the device for the MFU (default: known accelerators only)")
+    parser.add_argument("--dtype", choices=("float32", "bfloat16"), default=None,
+                        help="compute dtype of the jaxdrive models (params stay float32)")
+    parser.add_argument("--remat", default=None, help="remat policy of the jaxdrive models (DiTConfig.remat)")
+    parser.add_argument("--attn-impl", default=None, help="attention implementation (DiTConfig.attn_impl)")
+    parser.add_argument("--scan-layers", action="store_true", help="lax.scan over the jaxdrive models' layers")
+    parser.add_argument("--measure-peak", type=int, nargs="?", const=8192, default=None, metavar="N",
+                        help="time an N^3 bf16 matmul (default 8192) and give the MFU against it too")
     parser.add_argument("--no-ops", action="store_true",
                         help="skip the single-operation comparison with PyTorch (jaxdrive.bench.ops)")
     parser.add_argument("--json", action="store_true",
@@ -410,9 +444,16 @@ def main(argv=None):
         value = getattr(args, name)
         if value is not None and value < 1:
             parser.error(f"--{name.replace('_', '-')}: expected an integer >= 1, got {value}")
+    overrides = {k: v for k, v in (("dtype", args.dtype), ("remat", args.remat), ("attn_impl", args.attn_impl),
+                                   ("scan_layers", args.scan_layers or None)) if v is not None}
+    if overrides.get("dtype", "float32") != "float32" and not args.no_torch:
+        parser.error(f"--dtype: the PyTorch comparison runs float32; expected float32 or --no-torch, got {args.dtype}")
+    if args.measure_peak is not None and args.measure_peak < 1:
+        parser.error(f"--measure-peak: expected an integer >= 1, got {args.measure_peak}")
     return run(args.presets, batch=args.batch, frames=args.frames, height=args.height, width=args.width,
                repeats=args.repeats, use_torch=not args.no_torch, compare_only=args.compare_only,
-               peak=args.peak_tflops, torch_threads=args.torch_threads, micro=not args.no_ops, as_json=args.json)
+               peak=args.peak_tflops, torch_threads=args.torch_threads, micro=not args.no_ops, as_json=args.json,
+               overrides=overrides, peak_size=args.measure_peak)
 
 
 if __name__ == "__main__":
