@@ -202,3 +202,33 @@ def test_text_embed_command_writes_the_captions_of_a_dataset(fake_transformers, 
     assert 1 <= len(caps) <= 3 and caps == sorted(set(caps)) and caps[0].startswith("This is a driving scene")
     assert got["embeddings"].shape == (len(caps), 40, 3) and got["mask"].shape == (len(caps), 40)
     assert got["mask"][0].sum() == len(caps[0].split())
+
+
+def test_dense_flattens_tokens_and_its_bias_gradient_is_exact_single_and_sharded():
+    """Dense runs its matmul on [tokens, features] when only the batch axis is sharded, and its bias
+    gradient is a contraction with ones: the same output and gradients as the plain 5D formula."""
+    from jax.sharding import AxisType, NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    from jaxdrive.models.layers import Dense
+    x = jax.random.normal(jax.random.key(0), (4, 3, 8, 2, 16))
+    ct = jax.random.normal(jax.random.key(1), (4, 3, 8, 2, 24))
+    layer = Dense(24, ("embed", "mlp"))
+    params = layer.init(jax.random.key(2), x)
+    plain = lambda p, x: jnp.einsum("abcdn,nu->abcdu", x, p["params"]["kernel"]) + p["params"]["bias"]
+    loss = lambda f: jax.jit(jax.value_and_grad(lambda p, x: jnp.sum(f(p, x) * ct), argnums=(0, 1)))
+    want, (wp, wx) = loss(plain)(nn.unbox(params), x)
+    got, (gp, gx) = loss(lambda p, x: layer.apply(p, x))(params, x)
+    assert abs(float(got - want)) <= 1e-4 * abs(float(want))
+    np.testing.assert_allclose(nn.unbox(gp)["params"]["bias"], wp["params"]["bias"], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(nn.unbox(gp)["params"]["kernel"], wp["params"]["kernel"], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(gx, wx, rtol=1e-5, atol=1e-5)
+    for shape, spec in (((4, 1, 2, 1), P(("data", "fsdp"), None, None, None, None)),     # batch only: flat
+                        ((2, 1, 4, 1), P(("data", "fsdp"), None, "seq", None, None))):   # tokens too: 5D
+        mesh = jax.make_mesh(shape, ("data", "fsdp", "seq", "tensor"), axis_types=(AxisType.Explicit,) * 4)
+        with jax.set_mesh(mesh):
+            xs = jax.device_put(x, NamedSharding(mesh, spec))
+            got, (gp, gx) = loss(lambda p, x: layer.apply(p, x))(params, xs)
+        assert abs(float(got - want)) <= 1e-4 * abs(float(want))
+        np.testing.assert_allclose(nn.unbox(gp)["params"]["bias"], wp["params"]["bias"], rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(gx, wx, rtol=1e-5, atol=1e-5)

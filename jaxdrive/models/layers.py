@@ -13,14 +13,44 @@ softmax compute in float32.
 
 from __future__ import annotations
 
+import functools
+
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.sharding import PartitionSpec
 
 from jaxdrive.models.params import ONES, ZEROS, Init, param
 from jaxdrive.parallel.mesh import entry_axes, explicit_mesh, spec_of
 from jaxdrive.parallel.rules import logical_to_spec
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
+def add_bias(y, b, spec=None):
+    """``y + b`` over ``y``'s last ``b.ndim`` axes, its bias gradient a contraction with ones.
+
+    XLA:CPU turns the plain reduction of the gradient over the token axes into a windowed tree
+    reduction that runs several times slower than a matrix-vector product of the same size
+    (``jaxdrive.bench.ops``). ``spec``: the bias's ``PartitionSpec`` under an Explicit mesh (the
+    contraction over batch-sharded tokens sums across devices into it), else None."""
+    return y + b
+
+
+def _add_bias_fwd(y, b, spec):
+    return y + b, jnp.zeros((0,) * b.ndim, b.dtype)       # carries b's rank and dtype, no data
+
+
+def _add_bias_bwd(spec, like, g):
+    lead = g.ndim - like.ndim
+    letters = "".join(chr(ord("a") + i) for i in range(g.ndim))
+    # ones over the token axes, sharded as the gradient's token axes
+    ones = jnp.ones(g.shape[:lead], g.dtype, out_sharding=None if spec is None else PartitionSpec(*spec_of(g)[:lead]))
+    db = jnp.einsum(f"{letters},{letters[:lead]}->{letters[lead:]}", g, ones, out_sharding=spec)
+    return g, db.astype(like.dtype)
+
+
+add_bias.defvjp(_add_bias_fwd, _add_bias_bwd)
 
 
 class Dense(nn.Module):
@@ -48,21 +78,37 @@ class Dense(nn.Module):
         in_shape = x.shape[x.ndim - n_in:]
         init = self.kernel_init or Init("xavier", fan_in_axes=n_in)
         kernel = param(self, "kernel", init, tuple(in_shape) + feats, self.names).astype(self.dtype)
-        lead = "".join(chr(ord("a") + i) for i in range(x.ndim - n_in))
-        cin = "".join(chr(ord("n") + i) for i in range(n_in))
-        cout = "".join(chr(ord("u") + i) for i in range(len(feats)))
-        out_sharding = None
+        lead_shape = x.shape[:x.ndim - n_in]
+        lead_spec, out_spec = (None,) * len(lead_shape), (None,) * len(feats)
         mesh = explicit_mesh()
         if mesh is not None:
             lead_spec = spec_of(x)[:x.ndim - n_in]
             used = {a for e in lead_spec for a in entry_axes(e)}
             out_spec = logical_to_spec(self.names[n_in:], shape=feats, mesh=mesh)
             out_spec = tuple(None if set(entry_axes(e)) & used else e for e in out_spec)
-            out_sharding = PartitionSpec(*lead_spec, *out_spec)
+        # Tokens as one axis where the sharding allows it (only the first leading axis sharded):
+        # XLA:CPU then reduces the bias gradient over a 2D array, several times faster than over the
+        # 5D video layout, and the kernel gradient's transposes are plain 2D ones.
+        size = lambda e: 1 if mesh is None else int(np.prod([mesh.shape[a] for a in entry_axes(e)]))
+        flat = len(lead_shape) > 1 and all(size(e) == 1 for e in lead_spec[1:])
+        if flat:
+            merged = (int(np.prod(lead_shape)), *x.shape[len(lead_shape):])   # major axis sharded: contiguous blocks
+            x = x.reshape(merged) if mesh is None else jax.lax.reshape(
+                x, merged, out_sharding=PartitionSpec(lead_spec[0], *spec_of(x)[len(lead_shape):]))
+        lead = "".join(chr(ord("a") + i) for i in range(1 if flat else len(lead_shape)))
+        cin = "".join(chr(ord("n") + i) for i in range(n_in))
+        cout = "".join(chr(ord("u") + i) for i in range(len(feats)))
+        out_sharding = None
+        if mesh is not None:
+            out_sharding = PartitionSpec(*(lead_spec[:1] if flat else lead_spec), *out_spec)
         y = jnp.einsum(f"{lead}{cin},{cin}{cout}->{lead}{cout}", x.astype(self.dtype), kernel,
                        out_sharding=out_sharding)
         if self.use_bias:
-            y = y + param(self, "bias", self.bias_init, feats, self.names[n_in:]).astype(self.dtype)
+            bias = param(self, "bias", self.bias_init, feats, self.names[n_in:]).astype(self.dtype)
+            y = add_bias(y, bias, None if mesh is None else PartitionSpec(*out_spec))
+        if flat:
+            y = (y.reshape(*lead_shape, *feats) if mesh is None else
+                 jax.lax.reshape(y, (*lead_shape, *feats), out_sharding=PartitionSpec(*lead_spec, *out_spec)))
         return y
 
 
