@@ -77,10 +77,16 @@ def op_rows(cfg, *, tokens: int, threads: int, repeats: int) -> list[dict]:
     rows = []
     with torch.no_grad():
         torch_fns = _torch_ops(w, heads, tokens)
-    for (name, (fn, args, flops)), torch_fn in zip(_jax_ops(w, heads, tokens).items(), torch_fns):
-        jax_s = median_time(lambda: jax.block_until_ready(fn(*args)), repeats=repeats)
+    jax_ops = _jax_ops(w, heads, tokens)
+    # every XLA op first, then every PyTorch op: PyTorch's OpenMP threads spin for a while after
+    # each call and would take cores from an XLA op timed right after
+    jax_times = [median_time(lambda: jax.block_until_ready(fn(*args)), repeats=repeats)
+                 for fn, args, _ in jax_ops.values()]
+    torch_times = []
+    for name, torch_fn in zip(jax_ops, torch_fns):
         with torch.no_grad() if "bwd" not in name else torch.enable_grad():
-            torch_s = median_time(torch_fn, repeats=repeats)
+            torch_times.append(median_time(torch_fn, repeats=repeats))
+    for (name, (_, _, flops)), jax_s, torch_s in zip(jax_ops.items(), jax_times, torch_times):
         for impl, sec in (("jaxdrive", jax_s), ("torch", torch_s)):
             rows.append(dict(model=f"op: {name}", impl=impl, tokens=tokens, step_ms=round(1e3 * sec, 4),
                              gflops=None if flops is None else round(flops / sec / 1e9, 1),

@@ -2,7 +2,7 @@
 diffusers PyTorch ``CogVideoXTransformer3DModel`` train step on the same CPU at the same size.
 
     python -m jaxdrive.bench.train [--presets tiny small] [--batch 1] [--frames 5] [--height 16]
-                                   [--width 16] [--repeats 5] [--no-torch | --compare-only]
+                                   [--width 16] [--repeats 10] [--no-torch | --compare-only]
                                    [--torch-threads N] [--peak-tflops T] [--no-ops] [--json]
 
 For each preset the benchmark jits the library's step (:func:`jaxdrive.train.flow_step.make_train_step`:
@@ -417,7 +417,7 @@ def main(argv=None):
     parser.add_argument("--frames", type=int, default=DEFAULTS["frames"], help="latent frames")
     parser.add_argument("--height", type=int, default=DEFAULTS["height"], help="latent height")
     parser.add_argument("--width", type=int, default=DEFAULTS["width"], help="latent width")
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--no-torch", action="store_true", help="skip the diffusers PyTorch comparison")
     parser.add_argument("--compare-only", action="store_true",
                         help="only the comparison with PyTorch (the full-layout partners), not the presets")
