@@ -428,7 +428,13 @@ def load_run_config(workdir) -> Config:
     path = Path(workdir) / CONFIG_FILE
     if not path.is_file():
         raise ValueError(f"workdir: expected a training run directory with {CONFIG_FILE}, got {str(workdir)!r}")
-    return from_dict(Config, json.loads(path.read_text()))
+    try:
+        data = json.loads(path.read_text())              # data, never executed
+    except json.JSONDecodeError as e:
+        raise ValueError(f"workdir: expected JSON in {path}, got a file that is not ({e})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"workdir: expected a JSON object in {path}, got {type(data).__name__}")
+    return from_dict(Config, data)
 
 
 def restore_params(run: Run, workdir, *, ema: bool = True, log=print):
