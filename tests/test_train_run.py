@@ -125,6 +125,11 @@ def test_non_finite_losses_skip_and_stop_with_the_last_good_state(dataset, tmp_p
     for leaf in jax.tree_util.tree_leaves(state.params):
         assert np.all(np.isfinite(np.asarray(leaf)))
     assert (tmp_path / "nan" / "checkpoints" / "3").is_dir()
+    rows = {r["step"]: r for r in read_metrics(tmp_path / "nan")}
+    assert [(rows[s]["skipped"], rows[s]["bad_steps"], rows[s]["last_good_step"]) for s in (2, 3)] == \
+        [(1, 1, 1), (2, 2, 1)]
+    events = b"".join(p.read_bytes() for p in (tmp_path / "nan" / "tensorboard").rglob("*tfevents*"))
+    assert b"skipped" in events and b"last_good_step" in events
 
 
 @pytest.mark.parametrize("sets, match", [

@@ -387,7 +387,8 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
                 log(f"first step done {first_step:.1f} s after the start; "
                     f"{compile_cache.describe(cache_dir, cache_before)}")
             if step % cfg.train.log_every == 0 or step == run.total_steps or bad:
-                row = writer.write(step, jax.device_get(metrics), tokens=tokens)
+                # skipped (all steps so far) and the last step whose update was applied
+                row = writer.write(step, {**jax.device_get(metrics), "last_good_step": step - bad}, tokens=tokens)
                 tokens = 0
             if on_step is not None:
                 on_step(step, metrics)
