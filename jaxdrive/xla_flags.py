@@ -8,6 +8,11 @@ the first client is created, so these calls must come before the first computati
   about 1 call in 30 on a 2-core machine, and right every time pinned to one core or with these
   fusions off. jax-ml/jax#39741 (open) reports the same symptom. Bit-exact resume and every
   sharded-versus-single-device test rely on a program giving the same numbers on every call.
+  Turning only the dot fusions back on (``--xla_cpu_experimental_ynn_fusion_type=dot``) would make
+  the small train step about 4% faster and the tiny one up to 1.8x, but one test's program (the
+  foreground-weighted loss, ``tests/test_train_losses.py``) then returns NaN on every call, so
+  every YNNPACK fusion stays off. The reduce fusions also crash on some rank-7/8 reductions in this
+  jaxlib (jax-ml/jax#39257, #40412).
   ``jaxdrive`` commands, the benchmarks and the tests call it. Library users on CPU call it first
   thing, or set the flag in ``XLA_FLAGS`` themselves.
 """
