@@ -132,3 +132,45 @@ def test_checkpoints_fall_back_past_a_damaged_one_and_reshard(tmp_path):
     assert state.params["w"].sharding.spec == P("fsdp")
     np.testing.assert_array_equal(state.params["w"], _state_after(2).params["w"])
     ck.close()
+
+
+def _damage(step_dir, how):
+    state = step_dir / "state"
+    if how == "truncated array file":
+        for data in (f for f in state.rglob("*") if f.is_file() and f.parent.name == "d"):   # OCDBT data files
+            data.write_bytes(data.read_bytes()[: data.stat().st_size // 2])
+    elif how == "missing metadata file":
+        (state / "_METADATA").unlink()
+    elif how == "empty step folder":
+        import shutil
+        shutil.rmtree(step_dir)
+        step_dir.mkdir()
+
+
+@pytest.mark.parametrize("how", ["truncated array file", "missing metadata file", "empty step folder"])
+def test_each_kind_of_damaged_checkpoint_is_named_and_the_newest_intact_one_used(tmp_path, how):
+    ck = Checkpoints(tmp_path, keep=3)
+    for step in (1, 2):
+        ck.save(step, _state_after(step), {"next_index": step}, {"step": step})
+    ck.wait()
+    _damage(tmp_path / "checkpoints" / "2", how)
+    ck.close()
+    ck = Checkpoints(tmp_path, keep=3)
+    messages = []
+    step, state, data, _ = ck.restore_latest(jax.eval_shape(lambda: _state_after(0)), log=messages.append)
+    assert (step, data) == (1, {"next_index": 1})
+    np.testing.assert_array_equal(state.params["w"], _state_after(1).params["w"])
+    assert len(messages) == 1 and "checkpoints/2 is incomplete or damaged" in messages[0]
+    ck.close()
+
+
+def test_a_checkpoint_of_another_model_is_a_value_error_saying_what_differs(tmp_path):
+    ck = Checkpoints(tmp_path, keep=3)
+    ck.save(1, _state_after(1), {}, {"step": 1})
+    ck.wait()
+    other = jax.eval_shape(lambda: _state_after(0).replace(params={"w": jnp.zeros((8, 4)), "c": jnp.zeros(2)}))
+    with pytest.raises(ValueError, match=r"workdir: expected checkpoints of this config's model .* got step 1 with "
+                                         r"other parameters \(3 differ: w: expected shape \[8, 4\], got \[4, 4\]; "
+                                         r"c: expected in the checkpoint, missing; b: in the checkpoint, not in this model\)"):
+        ck.restore_latest(other)
+    ck.close()

@@ -50,10 +50,41 @@ class Checkpoints:
             meta=ocp.args.JsonRestore()))
         return out["state"], out["data"], out["meta"]
 
+    def parameter_differences(self, step: int, params) -> list[str]:
+        """How the parameters saved at ``step`` differ from ``params`` (a tree of arrays or
+        shape structs): one line per parameter missing, extra or of another shape; empty when they
+        match. Raises whatever orbax raises when the checkpoint's metadata cannot be read."""
+        import jax
+        from etils import epath
+
+        tree = ocp.StandardCheckpointHandler().metadata(epath.Path(self.directory / str(step) / "state"))
+        saved = getattr(tree, "tree", tree)["params"]
+        shapes = lambda t: {jax.tree_util.keystr(p, simple=True, separator="/"): tuple(x.shape)
+                            for p, x in jax.tree_util.tree_flatten_with_path(t)[0]}
+        have, want = shapes(saved), shapes(params)
+        lines = [f"{k}: expected shape {list(want[k])}, got {list(have[k])}"
+                 for k in sorted(want.keys() & have.keys()) if want[k] != have[k]]
+        lines += [f"{k}: expected in the checkpoint, missing" for k in sorted(want.keys() - have.keys())]
+        lines += [f"{k}: in the checkpoint, not in this model" for k in sorted(have.keys() - want.keys())]
+        return lines
+
     def restore_latest(self, abstract_state, *, log=print):
         """The newest readable checkpoint as ``(step, state, data_state, meta)``, or None when
-        there is none. Unreadable newer ones are reported through ``log`` and skipped."""
+        there is none. Unreadable newer ones (a truncated array file, a missing metadata file, an
+        empty step folder) are reported through ``log`` and skipped. A readable checkpoint of
+        another model (parameter names or shapes differ) is a ``ValueError`` saying what differs,
+        not something to fall back past: the workdir belongs to another config."""
         for step in reversed(self.steps()):
+            try:
+                differences = self.parameter_differences(step, abstract_state.params)
+            except Exception as e:  # orbax raises many types for unreadable metadata
+                log(f"checkpoint {self.directory / str(step)} is incomplete or damaged "
+                    f"({type(e).__name__}: {str(e)[:200]}); using the one before it")
+                continue
+            if differences:
+                raise ValueError(f"workdir: expected checkpoints of this config's model in {self.directory}, got "
+                                 f"step {step} with other parameters ({len(differences)} differ: "
+                                 f"{'; '.join(differences[:4])}); use a new workdir or the config it was trained with")
             try:
                 return (step, *self.restore(step, abstract_state))
             except Exception as e:  # orbax raises many types for a damaged checkpoint
