@@ -155,6 +155,9 @@ class TrainConfig:
     sample_every: int = 0                  # 0: no periodic sample videos
     sample_steps: int = 20
     max_bad_steps: int = 5                 # NaN/Inf losses in a row that stop the run
+    # a checkpoint that cannot be written (disk full, lost mount): "continue" training (the next
+    # save tries again) or "stop" with the previous checkpoint as the last one
+    on_save_error: str = "continue"
     compute_dtype: str = "float32"         # bfloat16 on accelerators
     init_from: str = ""                    # a run directory or diffusers folder to start from (train/init_from.py)
     init_from_ema: bool = True             # its EMA parameters (False: the raw ones)
@@ -419,6 +422,7 @@ def check_sections(config) -> None:
     validate.check_range("optim.lr", o.lr, 0.0, float("inf"), lo_open=True)
     validate.check_range("optim.ema_decay", o.ema_decay, 0.0, 1.0, hi_open=True)
     validate.check_choice("optim.schedule", o.schedule, ("cosine", "linear", "constant"))
+    validate.check_choice("train.on_save_error", t.on_save_error, ("continue", "stop"))
     validate.check_choice("flow.sigma_sampling", f.sigma_sampling, ("logit_normal", "uniform"))
     validate.check_range("flow.jdc_anchor_rate", f.jdc_anchor_rate, 0.0, 1.0)
     validate.check_range("flow.jdc_alpha1", f.jdc_alpha1, 0.0, 1.0, hi_open=True)

@@ -134,6 +134,7 @@ def test_non_finite_losses_skip_and_stop_with_the_last_good_state(dataset, tmp_p
 
 @pytest.mark.parametrize("sets, match", [
     (["mesh.data=3"], r"mesh: expected sizes whose product is the device count 8"),
+    (["train.on_save_error=retry"], r"train.on_save_error: expected one of \['continue', 'stop'\], got 'retry'"),
     (["data.batch_size=3", "mesh.data=2"], r"data.batch_size: expected a multiple of"),
     (["model.heads=3", "mesh.tensor=2", "mesh.seq=2"], r"model.heads: expected a multiple of the mesh axis tensor"),
     (["model.in_channels=16"], r"model.in_channels: expected 48 to match the latents"),
@@ -214,3 +215,32 @@ def test_demo_recipe_learns_a_continuation_not_noise(dataset, tmp_path):
     q = clip_quality(g.video[0], g.recorded[0], cond_frames=g.cond_frames, window=g.window)["first_window"]
     assert q["psnr"] > q["noise_psnr"] + 3.0, q
     assert q["psnr"] > q["repeat_psnr"] - 3.0, q          # the issue's goal for the demo's first window
+
+
+@pytest.mark.parametrize("choice", ["continue", "stop"])
+def test_a_checkpoint_that_cannot_be_written_keeps_the_earlier_ones(dataset, tmp_path, monkeypatch, choice):
+    """Disk full at step 4's save (simulated): the message names it, checkpoint 2 stays readable, and
+    the run goes on to step 6 or stops at 4, as train.on_save_error says."""
+    from jaxdrive.train.checkpoint import Checkpoints
+    cfg = tiny(dataset, "train.steps=6", "train.checkpoint_every=2", f"train.on_save_error={choice}")
+    save = Checkpoints.save
+
+    def full_disk(self, step, *args, **kwargs):
+        if step == 4:
+            raise OSError(28, "No space left on device")
+        return save(self, step, *args, **kwargs)
+    monkeypatch.setattr(Checkpoints, "save", full_disk)
+    messages = []
+    out = train(cfg, tmp_path / choice, progress=False, log=messages.append)
+    assert any("checkpoints/4 could not be written (OSError: [Errno 28] No space left on device); "
+               "checkpoints kept: [2]" in m for m in messages)
+    steps = sorted(int(p.name) for p in (tmp_path / choice / "checkpoints").iterdir() if p.name.isdigit())
+    if choice == "continue":
+        assert (out["status"], out["step"], steps) == ("done", 6, [2, 6])
+    else:
+        assert (out["status"], out["step"], steps) == ("save_failed", 4, [2])
+        assert any("stopping at step 4 (train.on_save_error = 'stop')" in m for m in messages)
+    ck = Checkpoints(tmp_path / choice)
+    state, _, _ = ck.restore(2, out["run"].abstract_state()[0])
+    assert int(state.step) == 2
+    ck.close()

@@ -55,7 +55,7 @@ def _train(args, rest) -> int:
         from jaxdrive.train.run import train
     out = train(config, args.workdir, progress=not args.no_progress)
     print(f"{out['status']} at step {out['step']} (loss {out['loss']}); run directory {Path(args.workdir).absolute()}")
-    return {"done": 0, "interrupted": 143, "diverged": 3}[out["status"]]
+    return {"done": 0, "interrupted": 143, "diverged": 3, "save_failed": 4}[out["status"]]
 
 
 def _sample(args, rest) -> int:

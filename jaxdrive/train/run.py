@@ -339,14 +339,32 @@ class _Stop:
             signal.signal(s, h)
 
 
-def _save(ckpts, step, state, it, config, **extra):
-    ckpts.save(step, state, it.get_state(), {"step": step, "time": time.time(), **extra,
-                                             "config": to_dict(config)})
+def _save(ckpts, step, state, it, config, log=print, **extra) -> bool:
+    """Start saving checkpoint ``step``; False (and a message) when it, or the asynchronous write
+    of an earlier one that surfaces here, fails: orbax commits a checkpoint by renaming its
+    temporary folder, so the ones written before stay intact."""
+    try:
+        ckpts.save(step, state, it.get_state(), {"step": step, "time": time.time(), **extra,
+                                                 "config": to_dict(config)})
+        return True
+    except Exception as e:               # OSError (disk full), or orbax's wrapping of one
+        log(f"checkpoint {ckpts.directory / str(step)} could not be written ({type(e).__name__}: "
+            f"{str(e)[:200]}); checkpoints kept: {_kept(ckpts)}")
+        return False
+
+
+def _kept(ckpts) -> list[int]:
+    try:
+        return ckpts.steps()
+    except Exception:
+        return []
 
 
 def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = True) -> dict:
     """Train (or resume) in ``workdir``; returns ``{"step", "status", "loss", ...}``.
-    ``status``: ``"done"``, ``"interrupted"`` (a signal) or ``"diverged"`` (non-finite losses).
+    ``status``: ``"done"``, ``"interrupted"`` (a signal), ``"diverged"`` (non-finite losses) or
+    ``"save_failed"`` (a checkpoint could not be written: stopped by ``train.on_save_error="stop"``,
+    or the final one).
     ``on_step(step, metrics)`` is called after every step (tests). The returned
     ``first_step_seconds`` is the time from this call to the end of the first step (compiling
     included) and ``compile_cache`` what the persistent cache gave (:mod:`jaxdrive.compile_cache`)."""
@@ -394,25 +412,35 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
                 on_step(step, metrics)
             if bad >= cfg.train.max_bad_steps:
                 status = "diverged"
-                _save(ckpts, step, state, it, cfg, status=status)
+                _save(ckpts, step, state, it, cfg, log=log, status=status)
                 log(f"stopping: {bad} non-finite losses in a row at step {step} (train.max_bad_steps = "
                     f"{cfg.train.max_bad_steps}); checkpoint {ckpts.directory / str(step)} holds the last good "
                     f"parameters")
                 break
             if cfg.train.checkpoint_every and step % cfg.train.checkpoint_every == 0:
-                _save(ckpts, step, state, it, cfg)
+                if not _save(ckpts, step, state, it, cfg, log=log) and cfg.train.on_save_error == "stop":
+                    status = "save_failed"
+                    log(f"stopping at step {step} (train.on_save_error = 'stop'); the last checkpoint is the "
+                        f"newest of {_kept(ckpts)}")
+                    break
             if cfg.train.sample_every and step % cfg.train.sample_every == 0:
                 from jaxdrive.generate.samples import write_samples
                 write_samples(run.sampling(), state, workdir / "samples" / f"step_{step:07d}", log=log)
             if stop.signum is not None:
                 status = "interrupted"
-                _save(ckpts, step, state, it, cfg, status=status)
+                _save(ckpts, step, state, it, cfg, log=log, status=status)
                 log(f"signal {signal.Signals(stop.signum).name}: saved checkpoint "
                     f"{ckpts.directory / str(step)}; run the same command to resume")
                 break
         else:
-            _save(ckpts, step, state, it, cfg, status=status)
-    ckpts.close()
+            if not _save(ckpts, step, state, it, cfg, log=log, status=status):
+                status = "save_failed"
+    try:
+        ckpts.close()                    # waits for the last asynchronous write
+    except Exception as e:
+        status = "save_failed"
+        log(f"the last checkpoint could not be written ({type(e).__name__}: {str(e)[:200]}); "
+            f"checkpoints kept: {_kept(ckpts)}")
     writer.close()
     # programs the step compiled: one per bucket shape met since this process started
     compiled = step_fn._cache_size() if hasattr(step_fn, "_cache_size") else None
