@@ -16,6 +16,8 @@ Each is timed as the median of ``repeats`` calls after a warm-up, blocked on its
 
 from __future__ import annotations
 
+import numpy as np
+
 from jaxdrive.bench.report import median_time
 
 
@@ -26,67 +28,62 @@ def _layer_norm(x, eps=1e-5):
     return (x - mean) / jnp.sqrt(var + eps)
 
 
-def _jax_ops(w: int, heads: int, t: int):
-    """``{name: (fn, args, flops)}``: jitted JAX versions of the module docstring's operations."""
+def _operations(w: int, heads: int, t: int) -> list[tuple[str, int | None, object, object]]:
+    """``(name, matmul FLOPs or None, jax_call, torch_call)`` of the module docstring's operations;
+    each call runs the operation once on fixed random inputs and returns when it is done."""
     import jax
     import jax.numpy as jnp
-
-    keys = iter(jax.random.split(jax.random.key(0), 8))
-    x = jax.random.normal(next(keys), (t, w))
-    w1 = jax.random.normal(next(keys), (w, 4 * w))
-    dy = jax.random.normal(next(keys), (t, 4 * w))
-    s = jax.random.normal(next(keys), (heads, t, t))
-    ds = jax.random.normal(next(keys), (heads, t, t))
-    dx = jax.random.normal(next(keys), (t, w))
-    grad = lambda f: (lambda a, ct: jax.vjp(f, a)[1](ct)[0])
-    return {
-        f"matmul {t}x{w}x{4 * w}": (jax.jit(jnp.matmul), (x, w1), 2 * t * w * 4 * w),
-        f"matmul x^T dy {w}x{t}x{4 * w}": (jax.jit(lambda a, b: a.T @ b), (x, dy), 2 * t * w * 4 * w),
-        f"token sum {t}x{4 * w}": (jax.jit(lambda a: jnp.sum(a, 0)), (dy,), None),
-        f"transpose {t}x{4 * w}": (jax.jit(jnp.transpose), (dy,), None),
-        f"layer norm fwd+bwd {t}x{w}": (jax.jit(grad(_layer_norm)), (x, dx), None),
-        f"softmax fwd+bwd {heads}x{t}x{t}": (jax.jit(grad(lambda a: jax.nn.softmax(a, -1))), (s, ds), None),
-    }
-
-
-def _torch_ops(w: int, heads: int, t: int):
     import torch
 
-    g = torch.Generator().manual_seed(0)
-    r = lambda *shape: torch.randn(*shape, generator=g)
-    x, w1, dy, s, ds, dx = r(t, w), r(w, 4 * w), r(t, 4 * w), r(heads, t, t), r(heads, t, t), r(t, w)
+    keys = iter(jax.random.split(jax.random.key(0), 6))
+    x, w1, dy, s, ds, dx = (jax.random.normal(next(keys), shape) for shape in
+                            ((t, w), (w, 4 * w), (t, 4 * w), (heads, t, t), (heads, t, t), (t, w)))
+    tx, tw1, tdy, ts, tds, tdx = (torch.from_numpy(np.asarray(a)) for a in (x, w1, dy, s, ds, dx))
+    vjp = lambda f: jax.jit(lambda a, ct: jax.vjp(f, a)[1](ct)[0])
 
-    def grad(f, a, ct):
+    def torch_vjp(f, a, ct):
         a = a.detach().requires_grad_(True)
         return torch.autograd.grad(f(a), a, ct)[0]
 
+    def jax_call(fn, *args):
+        return lambda: jax.block_until_ready(fn(*args))
+
+    def torch_call(fn, *args, grad=False):
+        def call():
+            with torch.enable_grad() if grad else torch.no_grad():
+                return fn(*args)
+        return call
+
     layer_norm = lambda a: torch.nn.functional.layer_norm(a, (w,), eps=1e-5)
-    return [lambda: torch.mm(x, w1), lambda: torch.mm(x.t(), dy), lambda: dy.sum(0),
-            lambda: dy.t().contiguous(), lambda: grad(layer_norm, x, dx),
-            lambda: grad(lambda a: torch.softmax(a, -1), s, ds)]
+    mm = 2 * t * w * 4 * w
+    return [
+        (f"matmul {t}x{w}x{4 * w}", mm, jax_call(jax.jit(jnp.matmul), x, w1), torch_call(torch.mm, tx, tw1)),
+        (f"matmul x^T dy {w}x{t}x{4 * w}", mm, jax_call(jax.jit(lambda a, b: a.T @ b), x, dy),
+         torch_call(lambda a, b: torch.mm(a.t(), b), tx, tdy)),
+        (f"token sum {t}x{4 * w}", None, jax_call(jax.jit(lambda a: jnp.sum(a, 0)), dy),
+         torch_call(lambda a: a.sum(0), tdy)),
+        (f"transpose {t}x{4 * w}", None, jax_call(jax.jit(jnp.transpose), dy),
+         torch_call(lambda a: a.t().contiguous(), tdy)),
+        (f"layer norm fwd+bwd {t}x{w}", None, jax_call(vjp(_layer_norm), x, dx),
+         torch_call(torch_vjp, layer_norm, tx, tdx, grad=True)),
+        (f"softmax fwd+bwd {heads}x{t}x{t}", None, jax_call(vjp(lambda a: jax.nn.softmax(a, -1)), s, ds),
+         torch_call(torch_vjp, lambda a: torch.softmax(a, -1), ts, tds, grad=True)),
+    ]
 
 
 def op_rows(cfg, *, tokens: int, threads: int, repeats: int) -> list[dict]:
     """One row per operation and implementation (``model`` = ``"op: <name>"``, ``impl``,
     ``step_ms``, ``gflops`` for the matmuls, ``ratio_to_torch``) at ``cfg``'s width and heads."""
-    import jax
     import torch
 
     torch.set_num_threads(threads)
-    w, heads = cfg.width, cfg.heads
-    rows = []
-    with torch.no_grad():
-        torch_fns = _torch_ops(w, heads, tokens)
-    jax_ops = _jax_ops(w, heads, tokens)
+    ops = _operations(cfg.width, cfg.heads, tokens)
     # every XLA op first, then every PyTorch op: PyTorch's OpenMP threads spin for a while after
     # each call and would take cores from an XLA op timed right after
-    jax_times = [median_time(lambda: jax.block_until_ready(fn(*args)), repeats=repeats)
-                 for fn, args, _ in jax_ops.values()]
-    torch_times = []
-    for name, torch_fn in zip(jax_ops, torch_fns):
-        with torch.no_grad() if "bwd" not in name else torch.enable_grad():
-            torch_times.append(median_time(torch_fn, repeats=repeats))
-    for (name, (_, _, flops)), jax_s, torch_s in zip(jax_ops.items(), jax_times, torch_times):
+    jax_times = [median_time(jax_call, repeats=repeats) for _, _, jax_call, _ in ops]
+    torch_times = [median_time(torch_call, repeats=repeats) for _, _, _, torch_call in ops]
+    rows = []
+    for (name, flops, _, _), jax_s, torch_s in zip(ops, jax_times, torch_times):
         for impl, sec in (("jaxdrive", jax_s), ("torch", torch_s)):
             rows.append(dict(model=f"op: {name}", impl=impl, tokens=tokens, step_ms=round(1e3 * sec, 4),
                              gflops=None if flops is None else round(flops / sec / 1e9, 1),

@@ -16,7 +16,8 @@ config and jaxdrive builds the same network from it (parameter counts checked eq
 - ``forward``: one jitted ``DiT.forward`` (a bare denoising step's model call, ms per call);
 - ``loop``: :func:`jaxdrive.flow.sample` over ``--steps`` Euler steps in one jitted ``lax.scan``
   with that forward as the velocity, in ms per step; ``loop_overhead`` = loop per step / forward
-  - 1, the loop's own cost (the Euler update, the schedule, the carry);
+  - 1, the loop's own cost (the Euler update, the schedule, the carry). The forward figure holds
+  one call's dispatch, which the loop pays once, so the overhead can come out negative;
 - ``torch``: the diffusers forward under ``torch.no_grad()`` on the same inputs and threads;
   ``ratio_to_torch`` = PyTorch ms / jaxdrive forward ms (above 1: jaxdrive is faster).
 """
@@ -106,7 +107,6 @@ def model_rows(presets, *, steps: int, frames: int, height: int, width: int, rep
     threads = threads or _cpus()
     torch.set_num_threads(threads)
 
-    median_s = lambda fn: median_time(fn, repeats=repeats)
     rows = []
     for name in presets:
         if preset(name).layout != "full":
@@ -125,8 +125,8 @@ def model_rows(presets, *, steps: int, frames: int, height: int, width: int, rep
         t0 = time.perf_counter()
         compiled = loop.lower(x, sched, cond).compile()
         compile_s = time.perf_counter() - t0
-        fwd_s = median_s(lambda: jax.block_until_ready(forward(x, sigma, cond)))
-        loop_s = median_s(lambda: jax.block_until_ready(compiled(x, sched, cond))) / steps
+        fwd_s = median_time(lambda: jax.block_until_ready(forward(x, sigma, cond)), repeats=repeats)
+        loop_s = median_time(lambda: jax.block_until_ready(compiled(x, sched, cond)), repeats=repeats) / steps
 
         torch.manual_seed(0)
         model = diffusers.CogVideoXTransformer3DModel(**dcfg).eval()
@@ -136,7 +136,7 @@ def model_rows(presets, *, steps: int, frames: int, height: int, width: int, rep
         text = torch.randn(1, dcfg["max_text_seq_length"], dcfg["text_embed_dim"])
         t = torch.full((1,), 500.0)
         with torch.no_grad():
-            torch_s = median_s(lambda: model(hidden, text, t, return_dict=False)[0])
+            torch_s = median_time(lambda: model(hidden, text, t, return_dict=False)[0], repeats=repeats)
         row = dict(model=f"{name}/diffusers", steps=steps, params=count_params(params), compile_s=round(compile_s, 1),
                    forward_ms=round(1e3 * fwd_s, 2), loop_ms_per_step=round(1e3 * loop_s, 2),
                    loop_overhead=round(loop_s / fwd_s - 1, 4), torch_forward_ms=round(1e3 * torch_s, 2),

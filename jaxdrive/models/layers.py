@@ -14,15 +14,15 @@ softmax compute in float32.
 from __future__ import annotations
 
 import functools
+import math
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax.sharding import PartitionSpec
 
 from jaxdrive.models.params import ONES, ZEROS, Init, param
-from jaxdrive.parallel.mesh import entry_axes, explicit_mesh, spec_of
+from jaxdrive.parallel.mesh import entry_axes, explicit_mesh, mesh_axis_size, spec_of
 from jaxdrive.parallel.rules import logical_to_spec
 
 
@@ -89,10 +89,9 @@ class Dense(nn.Module):
         # Tokens as one axis where the sharding allows it (only the first leading axis sharded):
         # XLA:CPU then reduces the bias gradient over a 2D array, several times faster than over the
         # 5D video layout, and the kernel gradient's transposes are plain 2D ones.
-        size = lambda e: 1 if mesh is None else int(np.prod([mesh.shape[a] for a in entry_axes(e)]))
-        flat = len(lead_shape) > 1 and all(size(e) == 1 for e in lead_spec[1:])
+        flat = len(lead_shape) > 1 and all(math.prod(map(mesh_axis_size, entry_axes(e))) == 1 for e in lead_spec[1:])
         if flat:
-            merged = (int(np.prod(lead_shape)), *x.shape[len(lead_shape):])   # major axis sharded: contiguous blocks
+            merged = (math.prod(lead_shape), *x.shape[len(lead_shape):])   # major axis sharded: contiguous blocks
             x = x.reshape(merged) if mesh is None else jax.lax.reshape(
                 x, merged, out_sharding=PartitionSpec(lead_spec[0], *spec_of(x)[len(lead_shape):]))
         lead = "".join(chr(ord("a") + i) for i in range(1 if flat else len(lead_shape)))

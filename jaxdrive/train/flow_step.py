@@ -170,11 +170,12 @@ def train_step(training: FlowTraining, optimizer, ema_decay: float, state: Train
         (_, metrics), grads = grad_fn(state.params, inp, k)
         return jax.tree_util.tree_map(jnp.add, acc, (grads, metrics)), None
 
+    first = jax.tree_util.tree_map(lambda x: x[0], batch)
     if n == 1:      # no loop: a one-trip scan still costs a zeroed gradient tree and an add per leaf
-        (_, metrics), grads = grad_fn(state.params, jax.tree_util.tree_map(lambda x: x[0], batch), keys[0])
+        (_, metrics), grads = grad_fn(state.params, first, keys[0])
     else:
         zeros = jax.tree_util.tree_map(jnp.zeros_like, state.params)
-        m0 = jax.eval_shape(lambda: grad_fn(state.params, jax.tree_util.tree_map(lambda x: x[0], batch), keys[0])[0][1])
+        m0 = jax.eval_shape(lambda: grad_fn(state.params, first, keys[0])[0][1])
         m0 = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), m0)
         (grads, metrics), _ = jax.lax.scan(micro, (zeros, m0), (batch, keys))
         grads = jax.tree_util.tree_map(lambda g: g / n, grads)
