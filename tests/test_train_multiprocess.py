@@ -1,11 +1,17 @@
-"""``jaxdrive train`` as 2 processes x 4 fake CPU devices (gloo), launched by ``launch/local.py``,
-logs the same losses as 1 process x 8 devices.
+"""``jaxdrive train`` as 2 processes x 4 fake CPU devices (gloo), launched by ``launch/local.py``:
+the same losses as 1 process x 8 devices; a process lost to SIGKILL (after a step, and in the
+middle of an asynchronous checkpoint write) and the run relaunched gives the losses of the run
+that was never killed, bit for bit; a 2 x 4 checkpoint resumes on 1 x 8 and on 1 x 2.
 
 The dataset holds copies of one clip with exactly the training length and no condition drops,
 so every process feeds the same samples whichever clips the data sharding gives it; what is
-compared is the engine: global batches from host-local rows, the sharded step, the collectives.
+compared is the engine: global batches from host-local rows, the sharded step, the collectives,
+the checkpoints.
 """
 
+import json
+import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -14,13 +20,15 @@ import numpy as np
 import pytest
 
 from jaxdrive.config import load_config
+from jaxdrive.train.checkpoint import Checkpoints
 from jaxdrive.train.metrics import read_metrics
 from jaxdrive.train.run import train
 
 ROOT = Path(__file__).resolve().parents[1]
+STEPS = 6
 SETS = ["data.views=2", "data.frames=5", "data.batch_size=2", "data.drop_prob=0.0", "model.depth=1",
-        "train.steps=2", "train.log_every=1", "train.checkpoint_every=100", "optim.warmup_steps=1",
-        "mesh.data=2", "mesh.seq=4"]
+        f"train.steps={STEPS}", "train.log_every=1", "train.checkpoint_every=2", "train.keep_checkpoints=10",
+        "optim.warmup_steps=1", "mesh.data=2", "mesh.seq=4"]
 
 
 @pytest.fixture(scope="module")
@@ -33,19 +41,95 @@ def same_clips(tmp_path_factory):
     return out
 
 
-def test_two_processes_match_one(same_clips, tmp_path):
-    sets = [f"data.path={same_clips}", *SETS]
-    cmd = [sys.executable, str(ROOT / "launch" / "local.py"), "--processes", "2", "--cpu-devices", "4", "--",
-           sys.executable, "-m", "jaxdrive.cli", "train", "--config", str(ROOT / "configs" / "tiny.py"),
-           "--workdir", str(tmp_path / "two"), "--no-progress"]
-    for s in sets:
+def launch(data, workdir, *, kill: str | None = None, processes: int = 2, devices: int = 4, sets=()):
+    """``jaxdrive train`` under ``launch/local.py`` (``kill``: ``tests/fault_train.py``'s fault)."""
+    train_cmd = [sys.executable, str(ROOT / "tests" / "fault_train.py")] if kill else \
+        [sys.executable, "-m", "jaxdrive.cli"]
+    cmd = [sys.executable, str(ROOT / "launch" / "local.py"), "--processes", str(processes), "--cpu-devices",
+           str(devices), "--grace", "5", "--", *train_cmd, "train", "--config", str(ROOT / "configs" / "tiny.py"),
+           "--workdir", str(workdir), "--no-progress"]
+    for s in [f"data.path={data}", *SETS, *sets]:
         cmd += ["--set", s]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900, cwd=ROOT)
-    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-4000:]
-    two = read_metrics(tmp_path / "two")
-    one = train(load_config(ROOT / "configs" / "tiny.py", sets), tmp_path / "one", progress=False)
+    env = dict(os.environ, JAXDRIVE_TEST_KILL=kill or "")
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=900, cwd=ROOT, env=env)
+
+
+def output(proc) -> str:
+    return proc.stdout[-6000:] + proc.stderr[-3000:]
+
+
+def committed(workdir) -> list[int]:
+    return Checkpoints(workdir, asynchronous=False).steps()
+
+
+def resumed_from(proc) -> set[int]:
+    """The steps the processes said they resumed from."""
+    return {int(line.rsplit("(step ", 1)[1].rstrip(")")) for line in proc.stdout.splitlines()
+            if "resuming from checkpoint" in line}
+
+
+def losses(workdir, key="loss"):
+    return [r[key] for r in read_metrics(workdir)]
+
+
+@pytest.fixture(scope="module")
+def never_killed(same_clips, tmp_path_factory):
+    """The 2 x 4 run of ``STEPS`` steps, checkpointed every 2, that nothing interrupts."""
+    workdir = tmp_path_factory.mktemp("never_killed") / "run"
+    proc = launch(same_clips, workdir)
+    assert proc.returncode == 0, output(proc)
+    assert [r["step"] for r in read_metrics(workdir)] == list(range(1, STEPS + 1))
+    return workdir
+
+
+def test_two_processes_match_one(same_clips, never_killed, tmp_path):
+    one = train(load_config(ROOT / "configs" / "tiny.py", [f"data.path={same_clips}", *SETS, "train.steps=2"]),
+                tmp_path / "one", progress=False)
     assert one["status"] == "done"
-    ref = read_metrics(tmp_path / "one")
-    assert [r["step"] for r in two] == [r["step"] for r in ref] == [1, 2]
+    two, ref = read_metrics(never_killed)[:2], read_metrics(tmp_path / "one")
+    assert [r["step"] for r in ref] == [1, 2]
     np.testing.assert_allclose([r["loss"] for r in two], [r["loss"] for r in ref], rtol=1e-5)
     np.testing.assert_allclose([r["grad_norm"] for r in two], [r["grad_norm"] for r in ref], rtol=1e-4)
+
+
+def test_sigkill_of_one_process_then_relaunch_is_bit_exact(same_clips, never_killed, tmp_path):
+    workdir = tmp_path / "run"
+    # 1. process 1 dies after step 3 (checkpoint 2 was started after step 2)
+    first = launch(same_clips, workdir, kill="1:step:3")
+    assert first.returncode == 137, output(first)                  # 128 + SIGKILL, from the launcher
+    assert "[launcher] process 1 was killed by SIGKILL; stopping the others" in first.stdout
+    kept = committed(workdir)
+    assert set(kept) <= {2}, kept
+
+    # 2. relaunched; process 1 dies again as soon as checkpoint 4's asynchronous write has started
+    second = launch(same_clips, workdir, kill="1:save:4")
+    assert second.returncode == 137, output(second)
+    assert resumed_from(second) == set(kept[-1:]), output(second)
+    assert committed(workdir) == [2], "checkpoint 4 must not be committed: one process never finished it"
+    assert any(p.name.startswith("4.") for p in (workdir / "checkpoints").iterdir()), \
+        "expected the killed write of checkpoint 4 to have left its temporary folder"
+
+    # 3. relaunched once more: resumes from 2 and finishes; every logged loss equals the unkilled run's
+    third = launch(same_clips, workdir)
+    assert third.returncode == 0, output(third)
+    assert resumed_from(third) == {2}, output(third)
+    assert committed(workdir) == [2, 4, 6]
+    assert [r["step"] for r in read_metrics(workdir)] == list(range(1, STEPS + 1))
+    for key in ("loss", "grad_norm"):
+        assert losses(workdir, key) == losses(never_killed, key), key     # bit for bit
+
+
+@pytest.mark.parametrize("devices, mesh", [(8, ["mesh.data=2", "mesh.seq=4"]), (2, ["mesh.data=2", "mesh.seq=1"])])
+def test_a_two_process_checkpoint_resumes_on_one_process(same_clips, never_killed, tmp_path, devices, mesh):
+    workdir = tmp_path / "run"
+    shutil.copytree(never_killed, workdir, ignore=shutil.ignore_patterns("tensorboard"))
+    for step in (4, 6):                                            # as if the 2 x 4 job stopped after step 2
+        shutil.rmtree(workdir / "checkpoints" / str(step))
+    rows = [r for r in read_metrics(workdir) if r["step"] <= 2]
+    (workdir / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    proc = launch(same_clips, workdir, processes=1, devices=devices, sets=mesh)
+    assert proc.returncode == 0, output(proc)
+    assert resumed_from(proc) == {2}, output(proc)
+    assert [r["step"] for r in read_metrics(workdir)] == list(range(1, STEPS + 1))
+    for key, rtol in (("loss", 1e-5), ("grad_norm", 1e-4)):
+        np.testing.assert_allclose(losses(workdir, key)[2:], losses(never_killed, key)[2:], rtol=rtol, err_msg=key)

@@ -173,3 +173,15 @@ def initialize_distributed(coordinator_address: str | None = None,
         kwargs["local_device_ids"] = list(local_device_ids)
     jax.distributed.initialize(**kwargs)
     return source
+
+
+def wait_for_all_processes(name: str, *, timeout_s: float = 3600.0) -> None:
+    """Block until every process of a multi-process job reaches the barrier ``name`` (the same
+    name on all processes); nothing with one process. It runs on the coordination service, not
+    as a collective, so it waits as long as ``timeout_s`` whereas a CPU collective's first call
+    gives up when its peers are 30 s late (gloo's fixed connect timeout)."""
+    from jax._src import distributed
+    client = distributed.global_state.client
+    if jax.process_count() == 1 or client is None:
+        return
+    client.wait_at_barrier(name, int(timeout_s * 1000))

@@ -37,7 +37,8 @@ from jax.sharding import PartitionSpec as P
 from jaxdrive.config import Config, check_sections, to_dict
 from jaxdrive.data.batches import TextEmbeddings, model_inputs, stack_micro_batches
 from jaxdrive.models.latents import LatentCodec
-from jaxdrive.parallel import host_local_to_global, make_mesh, param_shardings, shard_params
+from jaxdrive.parallel import (host_local_to_global, make_mesh, param_shardings, shard_params,
+                               wait_for_all_processes)
 from jaxdrive.train import flow_step
 from jaxdrive.train.checkpoint import Checkpoints
 from jaxdrive.train.encode import check_dataset
@@ -360,6 +361,19 @@ def _kept(ckpts) -> list[int]:
         return []
 
 
+def _compile_together(step_fn, compiled: set, *args) -> None:
+    """Several processes: compile the step for a new batch shape, then wait for the others before
+    running it, so that its collectives start together: a process that compiles slower (a busy
+    host) would otherwise make the first collective of the faster ones time out."""
+    if jax.process_count() == 1:
+        return
+    shapes = tuple((x.shape, str(x.dtype)) for x in jax.tree_util.tree_leaves(args[-1]))
+    if shapes not in compiled:
+        compiled.add(shapes)
+        step_fn.lower(*args).compile()          # jit reuses this executable for the call that follows
+        wait_for_all_processes(f"jaxdrive.train: step compiled for batch shape {len(compiled)}")
+
+
 def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = True) -> dict:
     """Train (or resume) in ``workdir``; returns ``{"step", "status", "loss", ...}``.
     ``status``: ``"done"``, ``"interrupted"`` (a signal), ``"diverged"`` (non-finite losses) or
@@ -393,10 +407,12 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
     writer = MetricsWriter(workdir, total_steps=run.total_steps, start_step=start,
                            tokens_per_step=run.tokens_per_step, progress=progress)
     status, step, row, tokens, first_step = "done", start, {}, 0, None
+    compiled_shapes = set()
     with _Stop() as stop, jax.set_mesh(run.mesh):
         while step < run.total_steps:
             batch = run.global_batch([next(it) for _ in range(cfg.optim.grad_accum)])
             tokens += run.batch_tokens(batch)          # buckets differ in tokens per step
+            _compile_together(step_fn, compiled_shapes, state, frozen, batch)
             state, metrics = step_fn(state, frozen, batch)   # compiled once per bucket shape
             step += 1
             bad = int(metrics["bad_steps"])
