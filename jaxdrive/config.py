@@ -53,6 +53,10 @@ class DataConfig:
     # LongDWM's warp-guided control (models with controls.warp): the one depth, in metres, at which
     # the first frame is warped along the clip's poses (jaxdrive.warp); beyond the clip's travel
     warp_depth: float = 20.0
+    # an unreadable clip (corrupt or truncated ArrayRecord shard): False raises a ValueError naming the
+    # shard file; True fills its slot with another clip of the shard's plan, logs the file once and
+    # counts it (bad_records in metrics.jsonl; jaxdrive.data.pipeline says how)
+    skip_bad_records: bool = False
 
 
 @dataclasses.dataclass(frozen=True)

@@ -71,3 +71,30 @@ def test_info_messages_reach_stderr_unless_quiet(tmp_path, capsys):
     # the level and handler are the CLI's only while it runs
     import logging
     assert logging.getLogger("jaxdrive").level == logging.NOTSET and not logging.getLogger("jaxdrive").handlers
+
+
+def test_nuscenes_faults_are_named_or_skipped(tmp_path, capsys):
+    import os
+
+    from nuscenes_fixture import write_fixture
+
+    from jaxdrive.data import nuscenes
+    root = write_fixture(str(tmp_path / "nus"))
+    first = next(nuscenes.read_clips(root, frames=4))["meta"]["sample_data_tokens"][3][0]   # CAM_BACK
+    image = tmp_path / "nus" / nuscenes.load_tables(root)["sample_data"][first]["filename"]
+    image.write_bytes(b"not a jpeg")
+    argv = ["data", "nuscenes", "--dataroot", root, "--frames", "4"]
+    assert main([*argv, "--out", str(tmp_path / "a")]) == 2
+    assert f"{image}: expected a readable image" in capsys.readouterr().err
+    assert not (tmp_path / "a").exists()
+    assert main([*argv, "--out", str(tmp_path / "b"), "--skip-bad-records"]) == 0
+    out = capsys.readouterr()
+    assert "1 clips left out for unreadable images (1 files, named in the log)" in out.out
+    assert [str(image) in line for line in out.err.splitlines()].count(True) == 1     # one line names it
+    assert len(open_source(tmp_path / "b", "train")) + len(open_source(tmp_path / "b", "validation")) == 5
+    # a missing table: no dataset without it, so nothing to skip
+    table = os.path.join(root, "v1.0-mini", "sample_annotation.json")
+    os.remove(table)
+    assert main([*argv, "--out", str(tmp_path / "c"), "--skip-bad-records"]) == 2
+    assert f"{table}: expected the nuScenes table 'sample_annotation', got no such file" in capsys.readouterr().err
+    assert not (tmp_path / "c").exists()

@@ -260,3 +260,31 @@ def test_against_the_devkit(root, clips):
                 assert abs((b[6] - yaw + np.pi) % (2 * np.pi) - np.pi) < 1e-5
                 checked += 1
     assert checked == FRAMES + (FRAMES - STEP) + 2 * FRAMES  # car, ped from keyframe 1 on, truck, cone
+
+
+def test_an_unreadable_image_is_named_or_its_clip_skipped_and_counted(root, tmp_path, caplog):
+    bad = _copy(root, tmp_path)
+    clean = list(ns.read_clips(root, frames=4))             # 3 clips per scene
+    tables = ns.load_tables(root)
+    token = clean[1]["meta"]["sample_data_tokens"][2][0]     # scene 1, clip 2, third view, first frame
+    path = os.path.join(bad, tables["sample_data"][token]["filename"])
+    with open(path, "rb") as f:
+        jpeg = f.read()
+    with open(path, "wb") as f:
+        f.write(jpeg[:len(jpeg) // 2])                       # a truncated JPEG
+    with pytest.raises(ValueError, match=rf"^{path}: expected a readable image"):
+        list(ns.read_clips(bad, frames=4))
+    uses = [any(token in row for row in c["meta"]["sample_data_tokens"]) for c in clean]
+    skipped = []
+    with caplog.at_level(logging.WARNING, logger="jaxdrive.data.nuscenes"):
+        got = list(ns.read_clips(bad, frames=4, skip_bad_records=True, skipped=skipped))
+    assert skipped == [("scene-0001", 4 * i, path) for i, u in enumerate(uses[:3]) if u] and len(skipped) >= 1
+    kept = [c for c, u in zip(clean, uses) if not u]         # every other clip, unchanged
+    assert [c["meta"]["scene"] for c in got] == [c["meta"]["scene"] for c in kept]
+    for a, b in zip(got, kept):
+        np.testing.assert_array_equal(a["video"], b["video"])
+        np.testing.assert_array_equal(a["boxes"], b["boxes"])
+    assert caplog.text.count(path) == 1
+    assert f"{len(skipped)} clips left out: a camera image could not be read" in caplog.text
+    with pytest.raises(ValueError, match="skip_bad_records: expected True or False, got 'yes'"):
+        next(ns.read_clips(root, frames=4, skip_bad_records="yes"))

@@ -1,3 +1,5 @@
+import re
+
 import numpy as np
 import pytest
 
@@ -269,3 +271,34 @@ def test_clip_lengths_count_the_mixed_rate_span(caplog):
         pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1}, rate_strides=(2, 0), **kw)
     with pytest.raises(ValueError, match=r"rate_head: expected an integer >= 0, got -2"):
         pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1}, rate_head=-2, **kw)
+
+
+@pytest.mark.parametrize("how", ["overwrite", "truncate"])
+def test_unreadable_clips_are_named_or_replaced_and_counted(tmp_path, how, caplog):
+    import logging
+
+    from shard_faults import damaged_dataset
+    path, clips, bad, shard = damaged_dataset(tmp_path / "clips", how)
+    src = tfds_io.open_source(path, "train")
+    kw = dict(seed=1, shard_index=0, shard_count=1, num_threads=2, stride=1)
+    with pytest.raises(ValueError, match=rf"{re.escape(str(shard))}: record \d \(clip [345] "):
+        list(pipeline.make_pipeline(src, {(8, 16, 5): 2}, num_epochs=1, **kw))
+
+    with caplog.at_level(logging.WARNING, logger="jaxdrive.data.pipeline"):
+        got = list(pipeline.make_pipeline(src, {(8, 16, 5): 2}, num_epochs=2, skip_bad_records=True, **kw))
+    assert len(got) == 12 and all(b["video"].shape == (2, 2, 5, 8, 16, 3) for b in got)   # 6 full batches an epoch
+    for epoch in (got[:6], got[6:]):
+        seen = np.concatenate([b["index"] for b in epoch])
+        assert set(seen) == set(range(12)) - bad           # every readable clip, none of the others
+        assert sum(int(b["bad_records"]) for b in epoch) == len(bad)
+    assert caplog.text.count(str(shard)) == 1               # one line for the file, not one per record
+    # resumed mid-epoch: the same stand-ins and counts
+    ds = pipeline.make_pipeline(src, {(8, 16, 5): 2}, num_epochs=2, skip_bad_records=True, **kw)
+    it = iter(ds)
+    for _ in range(3):
+        next(it)
+    fresh = iter(pipeline.make_pipeline(src, {(8, 16, 5): 2}, num_epochs=2, skip_bad_records=True, **kw))
+    fresh.set_state(it.get_state())
+    assert_batches_equal(list(fresh), got[3:])
+    with pytest.raises(ValueError, match="skip_bad_records: expected True or False"):
+        pipeline.make_pipeline(src, {(8, 16, 5): 2}, skip_bad_records="yes", **kw)

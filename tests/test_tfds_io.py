@@ -1,3 +1,4 @@
+import re
 import sys
 
 import numpy as np
@@ -131,3 +132,21 @@ def test_errors_name_the_path(tmp_path):
     (out / "dataset_info.json").write_text("{ truncated")
     with pytest.raises(ValueError, match=str(out)):
         tfds_io.open_source(out, "train")
+
+
+@pytest.mark.parametrize("how", ["overwrite", "truncate"])
+def test_a_damaged_shard_names_its_file_and_keeps_the_other_records(tmp_path, how):
+    from shard_faults import damaged_dataset
+
+    from jaxdrive.data.faults import BadRecordError
+    path, clips, bad, shard = damaged_dataset(tmp_path / "clips", how)
+    src = tfds_io.open_source(path, "train")
+    for i, clip in enumerate(clips):
+        if i in bad:
+            position = i - 3
+            where = rf"^{re.escape(str(shard))}: record {position} \(clip {i} of split 'train'"
+            with pytest.raises(BadRecordError, match=where) as e:
+                src[i]
+            assert isinstance(e.value, ValueError) and e.value.path == str(shard)
+        else:   # nothing else lost: the other shards and, when only overwritten, the shard's intact record
+            assert_clip_equal(src[i], clip)

@@ -244,3 +244,34 @@ def test_a_checkpoint_that_cannot_be_written_keeps_the_earlier_ones(dataset, tmp
     state, _, _ = ck.restore(2, out["run"].abstract_state()[0])
     assert int(state.step) == 2
     ck.close()
+
+
+def test_a_corrupt_shard_stops_the_run_or_is_skipped_and_counted(dataset, tmp_path):
+    """Two of the three training clips in truncated shards: without data.skip_bad_records the run
+    stops with a ValueError naming the first shard it meets; with it the run trains to the end, every
+    batch full, and metrics.jsonl counts the clips replaced (kept by the checkpoint for a resume)."""
+    import re
+
+    from shard_faults import shard_files, truncate
+
+    from jaxdrive.data.tfds_io import open_source, write_dataset
+    splits = {s: [open_source(dataset, s)[i] for i in range(len(open_source(dataset, s)))]
+              for s in ("train", "validation")}
+    data = write_dataset(tmp_path / "data", splits, shard_bytes=1)           # one clip per shard
+    shards = shard_files(data)
+    for shard in shards[1:]:
+        truncate(shard)
+    cfg = tiny(data)
+    with pytest.raises(ValueError, match="|".join(re.escape(f"{s}: record 0 (clip") for s in shards[1:])):
+        train(cfg, tmp_path / "strict", progress=False)
+
+    cfg = tiny(data, "data.skip_bad_records=true")     # the step of the other tests: compiled once per module
+    it = iter(Run(cfg).dataset())
+    expected = np.cumsum([int(next(it)["bad_records"]) for _ in range(4)])
+    assert expected[-1] >= 4                                  # >= 1 unreadable clip in every batch of 2
+    out = train(cfg, tmp_path / "run", progress=False)
+    assert out["status"] == "done" and out["step"] == 4
+    assert [r["bad_records"] for r in read_metrics(tmp_path / "run")] == list(expected)
+    assert out["bad_records"] == expected[-1]
+    again = train(cfg, tmp_path / "run", progress=False)       # resumed at its end: the count comes back
+    assert again["step"] == 4 and again["bad_records"] == expected[-1]

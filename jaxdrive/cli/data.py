@@ -44,10 +44,12 @@ def _data_nuscenes(args, rest) -> int:
     names = scene_names(tables)
     n_train, n_val = _split_counts(len(names), args.val_fraction)
     image_hw = None if args.height is None else (args.height, args.width)
+    skipped = []                # (scene, first frame, image file) of each clip left out
 
     def clips(scenes):
         for clip in read_clips(args.dataroot, args.version, frames=args.frames, stride=args.stride,
-                               image_hw=image_hw, scenes=scenes, tables=tables):
+                               image_hw=image_hw, scenes=scenes, tables=tables,
+                               skip_bad_records=args.skip_bad_records, skipped=skipped):
             meta = clip.pop("meta")  # keep what a dataset row can hold: names and arrays
             yield {**clip, "scene": meta["scene"],
                    "timestamps": np.asarray(meta["timestamps"], np.int64)}
@@ -55,7 +57,9 @@ def _data_nuscenes(args, rest) -> int:
                          name="jaxdrive_nuscenes", overwrite=args.overwrite,
                          metadata={"source": "nuscenes", "version": args.version, "frames": args.frames,
                                    "stride": args.stride})
-    print(f"wrote nuScenes {args.version} ({n_train} train / {n_val} validation scenes) to {path}")
+    left_out = (f"; {len(skipped)} clips left out for unreadable images ({len({f for _, _, f in skipped})} "
+                f"files, named in the log)") if args.skip_bad_records else ""
+    print(f"wrote nuScenes {args.version} ({n_train} train / {n_val} validation scenes) to {path}{left_out}")
     return 0
 
 
@@ -121,6 +125,9 @@ def add_commands(sub) -> None:
     nus.add_argument("--width", type=int, default=None)
     nus.add_argument("--val-fraction", type=float, default=0.15)
     nus.add_argument("--overwrite", action="store_true")
+    nus.add_argument("--skip-bad-records", action="store_true",
+                     help="leave out a clip whose camera image is missing or unreadable (each file named once in "
+                          "the log, the count in the summary) instead of stopping with an error naming it")
     nus.set_defaults(run=_data_nuscenes)
     text = dsub.add_parser("text-embed", help="precompute T5 embeddings of a dataset's captions "
                                               "(needs the t5 extra, pip install \"jaxdrive[t5]\", and local T5 weights)")

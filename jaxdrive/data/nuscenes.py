@@ -45,6 +45,7 @@ from collections.abc import Iterator, Sequence
 import numpy as np
 
 from jaxdrive.data.bev import LINE_LAYERS, POLYGON_LAYERS, rasterize_map
+from jaxdrive.data.faults import BadRecordError, OncePerFile
 from jaxdrive.data.schema import BEV_CLASSES, CAMERAS, OBJECT_CLASSES, caption
 from jaxdrive.validate import check_positive_int
 
@@ -315,7 +316,7 @@ def _load_image(path: str, hw):
     except ImportError as e:  # pragma: no cover
         raise ImportError("jaxdrive.data.nuscenes needs Pillow to decode JPEGs: pip install Pillow") from e
     if not os.path.isfile(path):
-        raise ValueError(f"{path}: expected a camera image, got no such file")
+        raise BadRecordError(path, "expected a camera image, got no such file")
     try:
         with Image.open(path) as im:
             im = im.convert("RGB")
@@ -323,8 +324,8 @@ def _load_image(path: str, hw):
             if hw is not None and (im.height, im.width) != tuple(hw):
                 im = im.resize((hw[1], hw[0]), Image.BILINEAR)
             return np.asarray(im, np.uint8), size
-    except OSError as e:
-        raise ValueError(f"{path}: expected a readable image, got {e}") from None
+    except OSError as e:            # PIL: truncated data, or not an image at all
+        raise BadRecordError(path, f"expected a readable image, got {e}") from None
 
 
 def _season(date: str) -> str:
@@ -337,7 +338,8 @@ def read_clips(dataroot: str, version: str = "v1.0-mini", *, frames: int = 33, s
                scenes: Sequence[str] | None = None, clip_step: int | None = None,
                max_boxes: int | None = None, bev_size: tuple[int, int] = (200, 200),
                bev_resolution: float = 0.5, trim_to_keyframes: bool = True,
-               tables: dict | None = None) -> Iterator[dict]:
+               tables: dict | None = None, skip_bad_records: bool = False,
+               skipped: list | None = None) -> Iterator[dict]:
     """Yield schema clips (:func:`jaxdrive.data.schema.check_clip`) of ``frames`` frames.
 
     A clip takes every ``stride``-th frame of a scene, so it spans ``(frames - 1) * stride + 1``
@@ -348,9 +350,18 @@ def read_clips(dataroot: str, version: str = "v1.0-mini", *, frames: int = 33, s
     N (boxes beyond it are logged); ``None`` uses the clip's largest per-frame count. Padding slots
     have ``box_valid`` False, zeros, class 0 and id -1. Extra key ``meta``: scene name,
     CAM_FRONT timestamps [F] (us), sample_data tokens [V][F], instance tokens (by box id).
+
+    A camera image that is missing, unreadable (truncated, not a JPEG) or of another size than the
+    clip's first raises :class:`jaxdrive.data.faults.BadRecordError` (a ``ValueError``) naming the
+    file. With ``skip_bad_records`` the clip is left out instead: each such file is named once in
+    a warning, the count in one at the end, and ``(scene, first frame, file)`` is appended to
+    ``skipped`` when it is given. Tables cannot be skipped (without one there is no dataset):
+    :func:`load_tables` raises naming the file.
     """
     frames = check_positive_int("frames", frames)
     stride = check_positive_int("stride", stride)
+    if not isinstance(skip_bad_records, bool):
+        raise ValueError(f"skip_bad_records: expected True or False, got {skip_bad_records!r}")
     views = tuple(views)
     for v in views:
         if v not in CAMERAS:
@@ -363,7 +374,8 @@ def read_clips(dataroot: str, version: str = "v1.0-mini", *, frames: int = 33, s
     span = (frames - 1) * stride + 1
     step = span if clip_step is None else check_positive_int("clip_step", clip_step)
     by_name = {s["name"]: s for s in tables["scene"].values()}
-    maps, skipped = {}, 0
+    maps, short, bad = {}, 0, 0
+    bad_files = OncePerFile(log, "its clips are left out (skip_bad_records)")
     for name in names:
         ref, grid = _scene_grid(tables, idx, name, views, trim_to_keyframes)
         if len(grid) < span:
@@ -372,7 +384,7 @@ def read_clips(dataroot: str, version: str = "v1.0-mini", *, frames: int = 33, s
             if scenes is not None:
                 raise ValueError(msg)
             log.warning("%s; scene left out", msg)
-            skipped += 1
+            short += 1
             continue
         starts = range(0, len(grid) - span + 1, step)
         rest = len(grid) - (starts[-1] + span)
@@ -387,11 +399,23 @@ def read_clips(dataroot: str, version: str = "v1.0-mini", *, frames: int = 33, s
             if maps[location] is None:
                 log.warning("%s: no map expansion, bev_map is zeros for %s", path, location)
         for s in starts:
-            yield _clip(tables, idx, scene, ref[s:s + span:stride], grid[s:s + span:stride], views, image_hw, dataroot,
-                        maps[location], location, log_rec["date_captured"], max_boxes, bev_size,
-                        bev_resolution)
-    if skipped:
-        log.warning("%d of %d scenes left out as shorter than a clip (%d frames)", skipped, len(names), span)
+            try:
+                clip = _clip(tables, idx, scene, ref[s:s + span:stride], grid[s:s + span:stride], views, image_hw,
+                             dataroot, maps[location], location, log_rec["date_captured"], max_boxes, bev_size,
+                             bev_resolution)
+            except BadRecordError as e:
+                if not skip_bad_records:
+                    raise
+                bad_files.note(e)
+                bad += 1
+                if skipped is not None:
+                    skipped.append((name, s, e.path))
+                continue
+            yield clip
+    if short:
+        log.warning("%d of %d scenes left out as shorter than a clip (%d frames)", short, len(names), span)
+    if bad:
+        log.warning("%d clips left out: a camera image could not be read (skip_bad_records)", bad)
 
 
 def _clip(tables, idx, scene, ref, grid, views, image_hw, dataroot, layers, location, date, max_boxes,
@@ -405,7 +429,7 @@ def _clip(tables, idx, scene, ref, grid, views, image_hw, dataroot, layers, loca
             path = os.path.join(dataroot, sds[row[v]]["filename"])
             img, size = _load_image(path, image_hw)
             if size0 is not None and size != size0:
-                raise ValueError(f"{path}: expected image size {size0} like the clip's first, got {size}")
+                raise BadRecordError(path, f"expected image size {size0} like the clip's first, got {size}")
             size0 = size
             imgs.append(img)
         video.append(np.stack(imgs))

@@ -13,7 +13,8 @@ the ego frame of the first sampled frame; ``fps [B]`` = source fps / stride (of 
 frames, the stride after the head in a mixed-rate clip); ``frame_times [B, F]`` float32 seconds
 from the first sampled frame; ``caption`` (list of
 str, as other text fields of the clips); ``drop`` {condition: [B] bool} for classifier-free
-guidance; ``index [B]`` the source indices. ``instance_ids`` is not carried.
+guidance; ``index [B]`` the source indices; with ``skip_bad_records``, ``bad_records`` (int: the clips
+of the batch that stood in for unreadable ones). ``instance_ids`` is not carried.
 
 A source of latent windows (``jaxdrive data encode``, ``source.kind == "windows"``) gives the same
 batches with ``latents [B, V, F', h, w, C]`` float32 in place of ``video``: each record is one
@@ -37,6 +38,16 @@ Choices:
 - Resize: scale to cover (H, W) keeping the aspect ratio, then crop (centre or random); an
   antialiased triangle filter in the pixel-centre convention (pixel c covers [c, c + 1), centre
   c + 0.5), so ``fx' = fx * sx``, ``cx' = cx * sx - crop_x`` exactly match the resampled image.
+- Unreadable clips (``skip_bad_records``; a corrupt or truncated ArrayRecord shard): dropping
+  one would leave a short batch, or a shard one batch behind the others, and break the invariant
+  above; so the slot is filled by the next readable clip of the same shard and bucket in the
+  epoch's planned order (:meth:`_BatchPlan.substitutes`: the clips after it, the epoch's leftovers,
+  then the first ones, wrapping round), sampled with the draws of the slot it fills (start frame,
+  crop, drops), so it is not an exact repeat. The choice depends on the plan and on which records
+  are unreadable, nothing else: the same on resume and for any number of read threads. Each batch
+  carries ``bad_records`` (int, its slots filled so: a count per process), and every unreadable
+  file is named once in a warning (:class:`jaxdrive.data.faults.OncePerFile`), not once per
+  record. Without it, an unreadable clip raises :class:`BadRecordError` naming the shard file.
 - Clip frame counts come from ``source.frame_counts`` (the TFDS source stores them) or the
   ``frame_counts`` argument; otherwise every clip is read once at construction (logged).
 """
@@ -52,6 +63,7 @@ import grain
 import numpy as np
 
 from jaxdrive.data import schema
+from jaxdrive.data.faults import BadRecordError, OncePerFile
 from jaxdrive.validate import check_positive_int
 
 log = logging.getLogger(__name__)
@@ -354,7 +366,7 @@ class _BatchPlan:
         self.eligible = self.counts[:, None] >= need[None, :]  # [N, buckets]
         self._lock = threading.Lock()
         self._lengths: list[int] = []
-        self._cache: dict[int, list] = {}
+        self._cache: dict[int, tuple] = {}
         self._check()
 
     def needed(self, bucket: Bucket, tail_stride: int | None = None) -> int:
@@ -410,6 +422,11 @@ class _BatchPlan:
         return min(int(((bucket == b) & (order % self.shard_count == s)).sum()) for s in range(self.shard_count))
 
     def _epoch(self, epoch: int) -> list:
+        return self._schedule(epoch)[0]
+
+    def _schedule(self, epoch: int) -> tuple[list, list]:
+        """``(batches, mine)``: the epoch's batch specs and, per bucket, this shard's clips in
+        planned order (the batches take consecutive runs of it; the leftovers are its tail)."""
         if epoch in self._cache:
             return self._cache[epoch]
         order, bucket = self._assign(epoch)
@@ -435,8 +452,18 @@ class _BatchPlan:
                 epoch, self.shard_index, self.shard_count, dropped)
         if len(self._cache) > 4:
             self._cache.pop(min(self._cache))
-        self._cache[epoch] = batches
-        return batches
+        self._cache[epoch] = batches, mine
+        return batches, mine
+
+    def substitutes(self, epoch: int, bucket: int, index: int) -> np.ndarray:
+        """The clips that may stand in for an unreadable clip ``index`` of ``bucket`` in ``epoch``:
+        the other clips this shard holds for that bucket in that epoch, in planned order from the one
+        after ``index`` (the epoch's leftovers, then its first batches), so the choice depends on
+        the plan alone."""
+        with self._lock:
+            mine = self._schedule(epoch)[1][bucket]
+        at = int(np.flatnonzero(mine == index)[0])
+        return np.concatenate([mine[at + 1:], mine[:at]])
 
     def __len__(self) -> int:
         if self.num_epochs is None:
@@ -480,36 +507,66 @@ def clip_warp(sample: Mapping, depth: float) -> np.ndarray:
 
 
 class _LoadBatch:
-    """Loads, transforms and collates the clips of one batch spec (picklable for grain workers)."""
+    """Loads, transforms and collates the clips of one batch spec (picklable for grain workers).
 
-    def __init__(self, source, plan: _BatchPlan, *, views, crop, drop_probs, max_boxes, warp_depth=0.0):
+    With ``skip_bad_records``, a clip that cannot be read (:class:`BadRecordError`) is replaced by
+    the first readable clip of :meth:`_BatchPlan.substitutes`, sampled with the draws of the slot
+    it fills; the batch carries ``bad_records``, the number of its slots so filled."""
+
+    def __init__(self, source, plan: _BatchPlan, *, views, crop, drop_probs, max_boxes, warp_depth=0.0,
+                 skip_bad_records=False):
         self.source, self.plan, self.views, self.crop = source, plan, views, crop
         self.drop_probs, self.max_boxes, self.warp_depth = dict(drop_probs), max_boxes, warp_depth
+        self.skip_bad_records = skip_bad_records
+        self.bad_files = OncePerFile(log, "its records are skipped and counted in bad_records "
+                                          "(data.skip_bad_records)")
+
+    def _read(self, epoch: int, b: int, idx: int) -> tuple[int, dict, bool]:
+        """``(index read, clip, whether it stands in for idx)``."""
+        try:
+            return idx, self.source[idx], False
+        except BadRecordError as e:
+            if not self.skip_bad_records:
+                raise
+            self.bad_files.note(e)
+            first = e
+        for other in self.plan.substitutes(epoch, b, idx):
+            try:
+                return int(other), self.source[int(other)], True
+            except BadRecordError as e:
+                self.bad_files.note(e)
+        raise ValueError(f"data.skip_bad_records: no readable clip left to stand in for clip {idx} of bucket "
+                         f"{self.plan.buckets[b].key} on shard {self.plan.shard_index}/{self.plan.shard_count} "
+                         f"in epoch {epoch}: every one is unreadable (the first: {first})")
 
     def __call__(self, spec) -> dict:
         epoch, b, indices = spec
         bucket = self.plan.buckets[b]
-        samples = []
-        for idx in indices:
-            rng = _rng(self.plan.seed, epoch, int(idx), _TAG_SAMPLE)
-            clip = self.source[int(idx)]
+        samples, replaced = [], 0
+        for planned in indices:
+            rng = _rng(self.plan.seed, epoch, int(planned), _TAG_SAMPLE)
+            idx, clip, stand_in = self._read(epoch, b, int(planned))
+            replaced += stand_in
             T = int(np.shape(clip["ego_to_world"])[0])
             strides = self.plan.rate_strides       # no draw without them: the same samples as before
             tail = int(strides[rng.integers(len(strides))]) if strides else None
             start = int(rng.integers(0, T - self.plan.needed(bucket, tail) + 1))
             if "latents" in clip:
-                s = take_window(clip, frames=bucket.frames, views=self.views, where=f"source window {int(idx)}")
+                s = take_window(clip, frames=bucket.frames, views=self.views, where=f"source window {idx}")
             else:
                 s = sample_clip(clip, size=(bucket.height, bucket.width), frames=bucket.frames,
                                 stride=self.plan.stride, start=start, views=self.views, crop=self.crop,
-                                rng=rng, where=f"source clip {int(idx)}", head=self.plan.rate_head,
+                                rng=rng, where=f"source clip {idx}", head=self.plan.rate_head,
                                 tail_stride=tail)
             if self.warp_depth > 0:
                 s["warp_video"] = clip_warp(s, self.warp_depth)
             s["drop"] = {n: bool(rng.random() < p) for n, p in sorted(self.drop_probs.items())}
             s["index"] = np.int64(idx)
             samples.append(s)
-        return collate(samples, max_boxes=self.max_boxes)
+        batch = collate(samples, max_boxes=self.max_boxes)
+        if self.skip_bad_records:
+            batch["bad_records"] = np.int64(replaced)
+        return batch
 
 
 def make_pipeline(source, buckets, *, stride: int = 1, views=None, crop: str = "center",
@@ -517,7 +574,8 @@ def make_pipeline(source, buckets, *, stride: int = 1, views=None, crop: str = "
                   seed: int = 0, num_epochs: int | None = None, shard_index: int | None = None,
                   shard_count: int | None = None, frame_counts: Sequence[int] | None = None,
                   num_threads: int = 4, prefetch: int = 8, compression: int = 4, rate_head: int = 0,
-                  rate_strides: Sequence[int] = (), warp_depth: float = 0.0) -> grain.IterDataset:
+                  rate_strides: Sequence[int] = (), warp_depth: float = 0.0,
+                  skip_bad_records: bool = False) -> grain.IterDataset:
     """A grain ``IterDataset`` of training batches from a random-access clip ``source``.
 
     ``buckets``: ``{(H, W, F): batch_size}`` or ``{(H, W, F): (batch_size, prob)}`` with
@@ -528,7 +586,9 @@ def make_pipeline(source, buckets, *, stride: int = 1, views=None, crop: str = "
     ``rate_head`` / ``rate_strides``: mixed frame rates (module docstring; ``sample_clip``'s
     ``head`` and ``tail_stride``, one tail stride per clip drawn from ``rate_strides``; empty:
     ``stride`` throughout). ``warp_depth`` > 0: each sample also gets ``warp_video``
-    (:func:`clip_warp`, LongDWM's warp-guided control).
+    (:func:`clip_warp`, LongDWM's warp-guided control). ``skip_bad_records``: an unreadable clip
+    (a corrupt or truncated shard) is replaced, not raised, and each batch carries ``bad_records``
+    (module docstring); False: it raises :class:`BadRecordError` naming the shard file.
     """
     parsed = parse_buckets(buckets, compression=compression)
     stride = check_positive_int("stride", stride)
@@ -570,7 +630,9 @@ def make_pipeline(source, buckets, *, stride: int = 1, views=None, crop: str = "
         raise ValueError(f"frame_counts: expected {len(source)} counts (one per clip), got {len(frame_counts)}")
     plan = _BatchPlan(frame_counts, parsed, stride=stride, seed=seed, shard_index=int(shard_index),
                       shard_count=shard_count, num_epochs=num_epochs, rate_head=rate_head, rate_strides=rate_strides)
+    if not isinstance(skip_bad_records, bool):
+        raise ValueError(f"skip_bad_records: expected True or False, got {skip_bad_records!r}")
     load = _LoadBatch(source, plan, views=views, crop=crop, drop_probs=drop_probs, max_boxes=max_boxes,
-                      warp_depth=float(warp_depth))
+                      warp_depth=float(warp_depth), skip_bad_records=skip_bad_records)
     return grain.MapDataset.source(plan).map(load).to_iter_dataset(
         grain.ReadOptions(num_threads=num_threads, prefetch_buffer_size=prefetch))

@@ -46,6 +46,7 @@ from array_record.python.array_record_module import ArrayRecordWriter
 
 from jaxdrive.atomic import move_into_place
 from jaxdrive.data import schema
+from jaxdrive.data.faults import BadRecordError
 
 log = logging.getLogger(__name__)
 
@@ -213,6 +214,12 @@ class ClipSource:
     ``str``, ``fps`` as ``float``. ``frame_counts[i]`` is clip i's frame count, read from the
     metadata without decoding the clip; ``kind`` is the record kind (``"clips"`` or ``"windows"``).
     Picklable (reopens lazily), so grain workers can use it.
+
+    A record that cannot be read or decoded (a corrupt or truncated shard file: array_record
+    raises ``RuntimeError`` for a hash mismatch or a file shorter than its index says, and a
+    truncated file may give no record at all) raises
+    :class:`jaxdrive.data.faults.BadRecordError` naming the shard file, the record's position in
+    it and the clip index; :meth:`shard_of` says where clip i lives.
     """
 
     def __init__(self, path, split: str):
@@ -227,6 +234,9 @@ class ClipSource:
         counts = ours.get("frame_counts", {}).get(split)
         self.frame_counts = None if counts is None else np.asarray(counts, np.int64)
         self._len = int(builder.info.splits[split].num_examples)
+        files = builder.info.splits[split].file_instructions
+        self._shards = [(str(f.filename), int(f.skip)) for f in files]
+        self._starts = np.cumsum([0] + [int(f.take) for f in files])
         self._builder = builder
         self._source = None
 
@@ -246,11 +256,21 @@ class ClipSource:
     def __getitem__(self, index: int) -> dict:
         if not -self._len <= index < self._len:
             raise IndexError(f"index: expected in [0, {self._len}) for {self.path} {self.split!r}, got {index}")
+        index = int(index) % self._len
+        source = self._open()
         try:
-            raw = self._open()[int(index) % self._len]
-        except Exception as e:
-            raise ValueError(f"{self.path} split {self.split!r} clip {index}: could not read it: {e}") from e
-        return self._decode(raw)
+            return self._decode(source[index])
+        except Exception as e:       # array_record / TFDS raise RuntimeError, TypeError, ... for damage
+            shard, position = self.shard_of(index)
+            raise BadRecordError(shard, f"record {position} (clip {index} of split {self.split!r} of {self.path}) "
+                                        f"could not be read: the shard file is corrupt or truncated "
+                                        f"({type(e).__name__}: {str(e)[:300]})") from e
+
+    def shard_of(self, index: int) -> tuple[str, int]:
+        """``(shard file, record position in it)`` of clip ``index``."""
+        i = int(np.searchsorted(self._starts, index, side="right")) - 1
+        path, skip = self._shards[i]
+        return path, skip + int(index - self._starts[i])
 
     def _decode(self, raw) -> dict:
         clip = {}
@@ -265,7 +285,8 @@ class ClipSource:
 
     def __getstate__(self):
         return {"path": self.path, "split": self.split, "kind": self.kind, "_texts": self._texts,
-                "frame_counts": self.frame_counts, "_len": self._len, "_builder": None, "_source": None}
+                "frame_counts": self.frame_counts, "_len": self._len, "_shards": self._shards,
+                "_starts": self._starts, "_builder": None, "_source": None}
 
     def __repr__(self):
         return f"ClipSource({str(self.path)!r}, {self.split!r}, len={self._len})"

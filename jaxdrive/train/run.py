@@ -308,7 +308,8 @@ class Run:
                              seed=d.shuffle_seed, num_threads=d.threads, prefetch=2 if d.threads else 0,
                              compression=max(self.codec.temporal, 1), rate_head=d.rate_head,
                              rate_strides=d.rate_strides,
-                             warp_depth=d.warp_depth if self.training.model.controls.warp else 0.0)
+                             warp_depth=d.warp_depth if self.training.model.controls.warp else 0.0,
+                             skip_bad_records=d.skip_bad_records)
 
     def global_batch(self, micro_batches: list[dict]):
         """Host micro-batches (this process's samples) -> one global ``[A, b, ...]`` tree."""
@@ -338,6 +339,27 @@ class _Stop:
     def __exit__(self, *exc):
         for s, h in self._old.items():
             signal.signal(s, h)
+
+
+class _BadRecords:
+    """The clips the data pipeline skipped as unreadable (``data.skip_bad_records``), summed over
+    processes. Each process counts the ``bad_records`` of its own batches; the sum (a host
+    all-gather) is taken only where every process stands at the same step: when metrics are
+    logged and when a checkpoint is saved, whose metadata keeps it for a resumed run."""
+
+    def __init__(self, total: int = 0):
+        self.total, self.pending = int(total), 0
+
+    def add(self, micro_batches: list[dict]) -> None:
+        self.pending += sum(int(b.pop("bad_records", 0)) for b in micro_batches)
+
+    def sync(self) -> int:
+        n = self.pending
+        if jax.process_count() > 1:
+            from jax.experimental import multihost_utils
+            n = int(np.sum(multihost_utils.process_allgather(np.int64(n))))
+        self.total, self.pending = self.total + n, 0
+        return self.total
 
 
 def _save(ckpts, step, state, it, config, log=print, **extra) -> bool:
@@ -379,6 +401,9 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
     ``status``: ``"done"``, ``"interrupted"`` (a signal), ``"diverged"`` (non-finite losses) or
     ``"save_failed"`` (a checkpoint could not be written: stopped by ``train.on_save_error="stop"``,
     or the final one).
+    ``bad_records``: with ``data.skip_bad_records``, the unreadable clips the pipeline replaced since
+    the run began (resumes included), all processes together, as every metrics row also says;
+    None without it.
     ``on_step(step, metrics)`` is called after every step (tests). The returned
     ``first_step_seconds`` is the time from this call to the end of the first step (compiling
     included) and ``compile_cache`` what the persistent cache gave (:mod:`jaxdrive.compile_cache`)."""
@@ -394,12 +419,18 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
     abstract, optimizer = run.abstract_state()
     restored = ckpts.restore_latest(abstract, log=log)
     if restored is not None:
-        start, state, data_state, _ = restored
+        start, state, data_state, meta = restored
         it.set_state(data_state)
         shardings = jax.tree_util.tree_map(lambda x: x.sharding, abstract)
         log(f"resuming from checkpoint {ckpts.directory / str(start)} (step {start})")
     else:
         state, optimizer, shardings = run.init_state(log=log)
+        meta = {}
+    skipping = cfg.data.skip_bad_records
+    bad_records = _BadRecords(meta.get("bad_records", 0))
+
+    def counts() -> dict:               # what metrics rows and checkpoint metadata add
+        return {"bad_records": bad_records.sync()} if skipping else {}
     if jax.process_index() == 0:
         workdir.mkdir(parents=True, exist_ok=True)
         (workdir / CONFIG_FILE).write_text(json.dumps(to_dict(cfg), indent=1))
@@ -410,7 +441,9 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
     compiled_shapes = set()
     with _Stop() as stop, jax.set_mesh(run.mesh):
         while step < run.total_steps:
-            batch = run.global_batch([next(it) for _ in range(cfg.optim.grad_accum)])
+            micro = [next(it) for _ in range(cfg.optim.grad_accum)]
+            bad_records.add(micro)
+            batch = run.global_batch(micro)
             tokens += run.batch_tokens(batch)          # buckets differ in tokens per step
             _compile_together(step_fn, compiled_shapes, state, frozen, batch)
             state, metrics = step_fn(state, frozen, batch)   # compiled once per bucket shape
@@ -422,19 +455,20 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
                     f"{compile_cache.describe(cache_dir, cache_before)}")
             if step % cfg.train.log_every == 0 or step == run.total_steps or bad:
                 # skipped (all steps so far) and the last step whose update was applied
-                row = writer.write(step, {**jax.device_get(metrics), "last_good_step": step - bad}, tokens=tokens)
+                row = writer.write(step, {**jax.device_get(metrics), "last_good_step": step - bad, **counts()},
+                                   tokens=tokens)
                 tokens = 0
             if on_step is not None:
                 on_step(step, metrics)
             if bad >= cfg.train.max_bad_steps:
                 status = "diverged"
-                _save(ckpts, step, state, it, cfg, log=log, status=status)
+                _save(ckpts, step, state, it, cfg, log=log, status=status, **counts())
                 log(f"stopping: {bad} non-finite losses in a row at step {step} (train.max_bad_steps = "
                     f"{cfg.train.max_bad_steps}); checkpoint {ckpts.directory / str(step)} holds the last good "
                     f"parameters")
                 break
             if cfg.train.checkpoint_every and step % cfg.train.checkpoint_every == 0:
-                if not _save(ckpts, step, state, it, cfg, log=log) and cfg.train.on_save_error == "stop":
+                if not _save(ckpts, step, state, it, cfg, log=log, **counts()) and cfg.train.on_save_error == "stop":
                     status = "save_failed"
                     log(f"stopping at step {step} (train.on_save_error = 'stop'); the last checkpoint is the "
                         f"newest of {_kept(ckpts)}")
@@ -444,12 +478,12 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
                 write_samples(run.sampling(), state, workdir / "samples" / f"step_{step:07d}", log=log)
             if stop.signum is not None:
                 status = "interrupted"
-                _save(ckpts, step, state, it, cfg, log=log, status=status)
+                _save(ckpts, step, state, it, cfg, log=log, status=status, **counts())
                 log(f"signal {signal.Signals(stop.signum).name}: saved checkpoint "
                     f"{ckpts.directory / str(step)}; run the same command to resume")
                 break
         else:
-            if not _save(ckpts, step, state, it, cfg, log=log, status=status):
+            if not _save(ckpts, step, state, it, cfg, log=log, status=status, **counts()):
                 status = "save_failed"
     try:
         ckpts.close()                    # waits for the last asynchronous write
@@ -462,6 +496,7 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
     compiled = step_fn._cache_size() if hasattr(step_fn, "_cache_size") else None
     now = compile_cache.counts()
     return {"step": step, "status": status, "loss": row.get("loss"), "state": state, "run": run,
+            "bad_records": bad_records.total if skipping else None,     # summed by the last save
             "compiled_steps": compiled, "first_step_seconds": first_step,
             "compile_cache": {"folder": None if cache_dir is None else str(cache_dir),
                               **{k: now[k] - cache_before[k] for k in now}}}
