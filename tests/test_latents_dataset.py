@@ -220,3 +220,76 @@ def test_train_on_precomputed_latents(datasets, tmp_path):
     assert (tmp_path / "run" / "checkpoints" / "2").is_dir()
     rows = read_metrics(tmp_path / "run")
     assert [r["step"] for r in rows] == [1, 2] and all(np.isfinite(r["loss"]) for r in rows)
+
+
+# ------------------------------------------------------------------------- sharded encoding
+def records(path):
+    """Every split's records of a dataset, in order, and its metadata."""
+    info = dataset_info(path)
+    return {s: [open_source(path, s)[i] for i in range(n["num_examples"])] for s, n in info["splits"].items()}, \
+        info["metadata"]
+
+
+def assert_same_datasets(got_path, want_path):
+    (got, got_meta), (want, want_meta) = records(got_path), records(want_path)
+    assert got_meta == want_meta and list(got) == list(want)
+    for split in want:
+        assert len(got[split]) == len(want[split]), split
+        for a, b in zip(got[split], want[split]):
+            assert sorted(a) == sorted(b)
+            for k in b:
+                np.testing.assert_array_equal(a[k], b[k], err_msg=f"{split} {k}")
+    for split in want:
+        np.testing.assert_array_equal(open_source(got_path, split).frame_counts,
+                                      open_source(want_path, split).frame_counts)
+
+
+def test_encode_shards_the_batch_over_the_mesh(datasets, tmp_path, monkeypatch):
+    from jaxdrive.train import encode
+    clips_path, latents_path = datasets
+    one = encode.encode_dataset(config(clips_path, "mesh.data=-1", "mesh.seq=1", precomputed=False),
+                                tmp_path / "one", every=EVERY, batch=1, devices=jax.devices()[:1])
+    seen = []
+    gather = encode.global_to_host_local
+    monkeypatch.setattr(encode, "global_to_host_local",
+                        lambda x: seen.append((len(x.sharding.device_set), x.sharding.spec[0])) or gather(x))
+    eight = encode.encode_dataset(config(clips_path, "mesh.data=2", "mesh.fsdp=4", "mesh.seq=1", precomputed=False),
+                                  tmp_path / "eight", every=EVERY, batch=8)
+    assert seen == [(8, ("data", "fsdp"))] * 2                # one padded call per split, all 8 devices
+    assert_same_datasets(eight, one)
+    assert_same_datasets(latents_path, one)                    # the CLI's data 2 x seq 4 in batches of 4
+
+
+@pytest.mark.parametrize("sets, kwargs, match", [
+    (["mesh.data=8", "mesh.seq=1"], dict(batch=4), r"batch: expected a multiple of the mesh's batch axes data x "
+                                                   r"fsdp \(8\), got 4"),
+    ([], dict(batch=0), r"batch: expected"),
+    ([], dict(every=0), r"every: expected"),
+    ([], dict(splits=["test"]), r"splits: expected splits of .* got 'test'"),
+    (["data.frames=12"], {}, r"data.frames: 12 frames at stride 1 need 12 source frames, but the longest clip"),
+])
+def test_encode_rejects_bad_arguments(datasets, tmp_path, sets, kwargs, match):
+    from jaxdrive.train.encode import encode_dataset
+    with pytest.raises(ValueError, match=match):
+        encode_dataset(config(datasets[0], *sets, precomputed=False), tmp_path / "out", **kwargs)
+    assert not (tmp_path / "out").exists() and not list(tmp_path.iterdir())
+
+
+def test_two_processes_write_the_one_process_dataset(datasets, tmp_path):
+    """2 processes x 4 fake devices (launch/local.py), the batch over data = 8 across both: each
+    encodes its clips and writes its shards; together they are the one-process dataset."""
+    import subprocess
+    import sys
+    root = Path(__file__).resolve().parents[1]
+    cmd = [sys.executable, str(root / "launch" / "local.py"), "--processes", "2", "--cpu-devices", "4", "--",
+           sys.executable, "-m", "jaxdrive.cli", "data", "encode", "--config", str(TINY), "--out",
+           str(tmp_path / "two"), "--every", str(EVERY), "--batch", "8", "--mesh", "data=8", "--no-progress"]
+    for s in [f"data.path={datasets[0]}", *SMALLER]:
+        cmd += ["--set", s]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=root)
+    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-4000:]
+    assert_same_datasets(tmp_path / "two", datasets[1])
+    # process 0 encoded clips 0-1 (4 windows) and the validation clip, process 1 clip 2: a shard each
+    assert len(list((tmp_path / "two").glob("*-train.array_record-*"))) == 2
+    assert len(list((tmp_path / "two").glob("*-validation.array_record-*"))) == 1
+    assert [p.name for p in tmp_path.iterdir()] == ["two"]      # no temporary directory left

@@ -60,12 +60,22 @@ def mesh_from_config(config: Config, devices=None):
     return make_mesh(**sizes, devices=devices)
 
 
+def batch_axes(mesh) -> tuple[str, ...]:
+    """The mesh axes a batch is sharded over (``data``, ``fsdp``), those the mesh has."""
+    return tuple(a for a in ("data", "fsdp") if a in mesh.axis_names)
+
+
+def batch_shards(mesh) -> int:
+    """How many parts a batch is split into: the product of the mesh's batch axes."""
+    sizes = dict(zip(mesh.axis_names, mesh.axis_sizes))
+    return int(np.prod([sizes[a] for a in batch_axes(mesh)]))
+
+
 def check_batch(config: Config, mesh, batch: int | None = None, name: str = "data.batch_size") -> tuple[int, int]:
     """``(micro-batch per process, micro-batch global)`` of the global ``batch`` (default
     ``data.batch_size``); ``ValueError`` naming ``name`` when it does not divide over processes,
     accumulation steps and the mesh's batch axes."""
-    sizes = dict(zip(mesh.axis_names, mesh.axis_sizes))
-    shards = sizes.get("data", 1) * sizes.get("fsdp", 1)
+    shards = batch_shards(mesh)
     b = config.data.batch_size if batch is None else batch
     a, procs = config.optim.grad_accum, jax.process_count()
     micro = b // a if b % a == 0 else None
@@ -144,8 +154,7 @@ def check_warp(config: Config) -> None:
 def global_micro_batches(inputs: list[dict], mesh):
     """This process's micro-batches (host model inputs) -> one global ``[A, b, ...]`` tree with
     ``b`` over the mesh's batch axes (``data``/``fsdp``) and the rest replicated."""
-    axes = tuple(a for a in ("data", "fsdp") if a in mesh.axis_names)
-    return host_local_to_global(stack_micro_batches(inputs), mesh, P(None, axes or None))
+    return host_local_to_global(stack_micro_batches(inputs), mesh, P(None, batch_axes(mesh) or None))
 
 
 class Run:
