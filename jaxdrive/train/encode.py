@@ -18,6 +18,11 @@ compares it with a run's config before anything compiles.
 Scale: each encoder call is one global batch sharded over the mesh's batch axes (``data``,
 ``fsdp``); with several processes each encodes a contiguous range of every split's clips and
 writes its own shards, which together read as the one-process output (:func:`encode_dataset`).
+
+Distillation (LongDWM, :mod:`jaxdrive.train.distill_step`) reads such windows as it reads clips:
+its latents are frame-wise, so a dense window's latents are every frame both the coarse model
+(every ``(K - 1)``-th) and the frozen fine model (each K-frame segment) take, and its poses and
+controls are stored with it.
 """
 
 from __future__ import annotations
@@ -184,10 +189,6 @@ def check_dataset(config, codec: LatentCodec) -> None:
     if lat.precomputed and info["kind"] != "windows":
         raise ValueError(f"data.path: expected latent windows written by 'jaxdrive data encode' (latents.precomputed "
                          f"is true), got {d.path} holding {info['kind']}: encode it, or set latents.precomputed=false")
-    if lat.precomputed and config.flow.distill_teacher:
-        # the teacher's own Run and the coarse sampling stride read clips, not stored windows
-        raise ValueError(f"flow.distill_teacher: expected '' with latents.precomputed=true (distillation reads "
-                         f"clip datasets), got {config.flow.distill_teacher!r}")
     if not lat.precomputed:
         if info["kind"] == "windows":
             raise ValueError(f"latents.precomputed: expected true for {d.path} (latent windows written by "
