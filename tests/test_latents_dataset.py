@@ -22,7 +22,7 @@ from jaxdrive.train import flow_step
 from jaxdrive.train.metrics import read_metrics
 from jaxdrive.train.run import Run, train
 
-from train_fixtures import write_synthetic
+from train_fixtures import save_run, write_same_clips, write_synthetic
 
 TINY = Path(__file__).resolve().parents[1] / "configs" / "tiny.py"
 SMALLER = ["data.views=2", "data.frames=5", "data.batch_size=2", "model.depth=1", "optim.warmup_steps=2",
@@ -120,8 +120,6 @@ def test_latent_batch_gives_the_video_batch_loss(datasets):
     ("latents", ["data.frames=9"], r"data.frames: expected 5 .* got 9"),
     ("latents", ["data.views=1"], r"data.views: expected 2 .* got 1"),
     ("latents", ["data.stride=2"], r"data.stride: expected 1 .* got 2"),
-    ("latents", ["flow.distill_teacher=runs/fine", "flow.distill_segment_len=3", "flow.tpd=false"],
-     r"flow.distill_teacher: expected '' with latents.precomputed"),
 ])
 def test_run_rejects_a_dataset_that_does_not_match(datasets, which, sets, match):
     path = dict(zip(("clips", "latents"), datasets))[which]
@@ -220,3 +218,128 @@ def test_train_on_precomputed_latents(datasets, tmp_path):
     assert (tmp_path / "run" / "checkpoints" / "2").is_dir()
     rows = read_metrics(tmp_path / "run")
     assert [r["step"] for r in rows] == [1, 2] and all(np.isfinite(r["loss"]) for r in rows)
+
+
+# ------------------------------------------------------------------------- sharded encoding
+def records(path):
+    """Every split's records of a dataset, in order, and its metadata."""
+    info = dataset_info(path)
+    return {s: [open_source(path, s)[i] for i in range(n["num_examples"])] for s, n in info["splits"].items()}, \
+        info["metadata"]
+
+
+def assert_same_datasets(got_path, want_path):
+    (got, got_meta), (want, want_meta) = records(got_path), records(want_path)
+    assert got_meta == want_meta and list(got) == list(want)
+    for split in want:
+        assert len(got[split]) == len(want[split]), split
+        for a, b in zip(got[split], want[split]):
+            assert sorted(a) == sorted(b)
+            for k in b:
+                np.testing.assert_array_equal(a[k], b[k], err_msg=f"{split} {k}")
+    for split in want:
+        np.testing.assert_array_equal(open_source(got_path, split).frame_counts,
+                                      open_source(want_path, split).frame_counts)
+
+
+def test_encode_shards_the_batch_over_the_mesh(datasets, tmp_path, monkeypatch):
+    from jaxdrive.train import encode
+    clips_path, latents_path = datasets
+    one = encode.encode_dataset(config(clips_path, "mesh.data=-1", "mesh.seq=1", precomputed=False),
+                                tmp_path / "one", every=EVERY, batch=1, devices=jax.devices()[:1])
+    seen = []
+    gather = encode.global_to_host_local
+    monkeypatch.setattr(encode, "global_to_host_local",
+                        lambda x: seen.append((len(x.sharding.device_set), x.sharding.spec[0])) or gather(x))
+    eight = encode.encode_dataset(config(clips_path, "mesh.data=2", "mesh.fsdp=4", "mesh.seq=1", precomputed=False),
+                                  tmp_path / "eight", every=EVERY, batch=8)
+    assert seen == [(8, ("data", "fsdp"))] * 2                # one padded call per split, all 8 devices
+    assert_same_datasets(eight, one)
+    assert_same_datasets(latents_path, one)                    # the CLI's data 2 x seq 4 in batches of 4
+
+
+@pytest.mark.parametrize("sets, kwargs, match", [
+    (["mesh.data=8", "mesh.seq=1"], dict(batch=4), r"batch: expected a multiple of the mesh's batch axes data x "
+                                                   r"fsdp \(8\), got 4"),
+    ([], dict(batch=0), r"batch: expected"),
+    ([], dict(every=0), r"every: expected"),
+    ([], dict(splits=["test"]), r"splits: expected splits of .* got 'test'"),
+    (["data.frames=12"], {}, r"data.frames: 12 frames at stride 1 need 12 source frames, but the longest clip"),
+])
+def test_encode_rejects_bad_arguments(datasets, tmp_path, sets, kwargs, match):
+    from jaxdrive.train.encode import encode_dataset
+    with pytest.raises(ValueError, match=match):
+        encode_dataset(config(datasets[0], *sets, precomputed=False), tmp_path / "out", **kwargs)
+    assert not (tmp_path / "out").exists() and not list(tmp_path.iterdir())
+
+
+def test_two_processes_write_the_one_process_dataset(datasets, tmp_path):
+    """2 processes x 4 fake devices (launch/local.py), the batch over data = 8 across both: each
+    encodes its clips and writes its shards; together they are the one-process dataset."""
+    import subprocess
+    import sys
+    root = Path(__file__).resolve().parents[1]
+    cmd = [sys.executable, str(root / "launch" / "local.py"), "--processes", "2", "--cpu-devices", "4", "--",
+           sys.executable, "-m", "jaxdrive.cli", "data", "encode", "--config", str(TINY), "--out",
+           str(tmp_path / "two"), "--every", str(EVERY), "--batch", "8", "--mesh", "data=8", "--no-progress"]
+    for s in [f"data.path={datasets[0]}", *SMALLER]:
+        cmd += ["--set", s]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=root)
+    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-4000:]
+    assert_same_datasets(tmp_path / "two", datasets[1])
+    # process 0 encoded clips 0-1 (4 windows) and the validation clip, process 1 clip 2: a shard each
+    assert len(list((tmp_path / "two").glob("*-train.array_record-*"))) == 2
+    assert len(list((tmp_path / "two").glob("*-validation.array_record-*"))) == 1
+    assert [p.name for p in tmp_path.iterdir()] == ["two"]      # no temporary directory left
+
+
+# ------------------------------------------------------------------------- distillation
+LONGDWM = Path(__file__).resolve().parents[1] / "configs" / "longdwm.py"
+DISTILL = ["data.views=2", "data.batch_size=2", "data.drop_prob=0.0", "model.depth=1", "mesh.data=-1", "mesh.seq=1"]
+
+
+@pytest.fixture(scope="module")
+def same_dense_clips(tmp_path_factory):
+    """Copies of one 9-frame clip: a clip run and a latent-window run then feed the same samples."""
+    return write_same_clips(tmp_path_factory.mktemp("dense") / "clips", seed=11, frames=9, copies=2)
+
+
+def test_distillation_on_precomputed_latents_matches_encoding_in_the_step(same_dense_clips, tmp_path):
+    """LongDWM's fine-to-coarse distillation (configs/longdwm.py:size=tiny,role=distill, 9 dense
+    frames, segments of 5): the windows hold the dense clip's frame-wise latents, which is what both
+    the coarse student (every 4th frame) and the fine teacher (each segment) read. A run on them
+    gives the losses of the same run encoding the clips in the step (same batch, parameters, key)."""
+    from jaxdrive.train.encode import encode_dataset
+    one = jax.devices()[:1]
+    fine = load_config(f"{LONGDWM}:size=tiny,role=fine", [f"data.path={same_dense_clips}", *DISTILL,
+                                                          "data.frames=5", "train.seed=7"])
+    save_run(fine, tmp_path / "fine", devices=one)
+    sets = [*DISTILL, "data.frames=9", "flow.distill_segment_len=5", f"flow.distill_teacher={tmp_path / 'fine'}"]
+    on_the_fly = load_config(f"{LONGDWM}:size=tiny,role=distill", [f"data.path={same_dense_clips}", *sets])
+    encode_dataset(on_the_fly, tmp_path / "latents", devices=one)
+    stored = load_config(f"{LONGDWM}:size=tiny,role=distill", [f"data.path={tmp_path / 'latents'}", *sets,
+                                                               "latents.precomputed=true"])
+    clip_run, window_run = Run(on_the_fly, devices=one), Run(stored, devices=one)
+    params = clip_run.init_state()[0].params
+    metrics = []
+    for run in (clip_run, window_run):
+        batch = jax.tree_util.tree_map(lambda x: x[0], run.global_batch([next(iter(run.dataset()))]))
+        frozen = run.frozen_params()                   # the fine model restored from its run directory
+        loss = jax.jit(lambda p, f, inp, k, r=run: flow_step.flow_loss_fn(r.training, p, f["codec"], inp, k,
+                                                                         f["teacher"])[1])
+        with jax.set_mesh(run.mesh):
+            metrics.append(jax.device_get(loss(params, frozen, batch, jax.random.key(5))))
+    a, b = metrics
+    assert "video" in clip_run.global_batch([next(iter(clip_run.dataset()))])
+    for key in ("loss", "flow_loss", "distill_loss"):
+        assert a[key] > 0, key
+        np.testing.assert_allclose(b[key], a[key], rtol=1e-5, err_msg=key)
+
+    # sampling reads the coarse frames of the stored dense windows: every 4th, at a quarter of the rate
+    want = dataset_inputs(clip_run.sampling(), frames=3)
+    got = dataset_inputs(window_run.sampling(), frames=3)
+    np.testing.assert_array_equal(got["latents"], window_run.codec.encode(None, want["video"]))
+    np.testing.assert_allclose(got["cond"].fps, want["cond"].fps)
+    np.testing.assert_allclose(got["cond"].waypoints, want["cond"].waypoints, atol=1e-6)
+    with pytest.raises(ValueError, match=r"frames: expected at most the 3 frames of the dataset's latent windows"):
+        dataset_inputs(window_run.sampling(), frames=4)

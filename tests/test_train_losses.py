@@ -1,8 +1,6 @@
 """The losses the train step adds to MiLA eq. 15: STAGE's foreground-weighted map W_aux and
 LongDWM's fine-to-coarse distillation from a frozen fine model (eq. 7-8)."""
 
-import dataclasses
-import json
 from pathlib import Path
 
 import jax
@@ -11,14 +9,13 @@ import numpy as np
 import pytest
 
 from jaxdrive import flow
-from jaxdrive.config import load_config, to_dict
+from jaxdrive.config import load_config
 from jaxdrive.models.conditions import Conditions
 from jaxdrive.models.dit import DiT
 from jaxdrive.train import distill_step, flow_step
-from jaxdrive.train.checkpoint import Checkpoints
-from jaxdrive.train.run import CONFIG_FILE, Run
+from jaxdrive.train.run import Run
 
-from train_fixtures import write_synthetic
+from train_fixtures import save_run, write_synthetic
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "configs" / "tiny.py"
@@ -191,14 +188,7 @@ def test_teacher_segments_one_at_a_time_match_the_folded_batch():
 
 def write_teacher(dataset, workdir):
     """A fine model's run directory: its config and one checkpoint (no training needed)."""
-    cfg = config(dataset, "data.frames=5", "train.seed=7")
-    run = Run(cfg)
-    state = run.init_state()[0]
-    ckpts = Checkpoints(workdir, asynchronous=False)
-    ckpts.save(0, state, {}, {"step": 0})
-    ckpts.close()
-    (Path(workdir) / CONFIG_FILE).write_text(json.dumps(to_dict(cfg)))
-    return state
+    return save_run(config(dataset, "data.frames=5", "train.seed=7"), workdir)
 
 
 def test_distillation_trains_the_coarse_model_against_the_fine_one(dataset, tmp_path):

@@ -24,6 +24,8 @@ from jaxdrive.train.checkpoint import Checkpoints
 from jaxdrive.train.metrics import read_metrics
 from jaxdrive.train.run import train
 
+from train_fixtures import write_same_clips
+
 ROOT = Path(__file__).resolve().parents[1]
 STEPS = 6
 SETS = ["data.views=2", "data.frames=5", "data.batch_size=2", "data.drop_prob=0.0", "model.depth=1",
@@ -33,12 +35,7 @@ SETS = ["data.views=2", "data.frames=5", "data.batch_size=2", "data.drop_prob=0.
 
 @pytest.fixture(scope="module")
 def same_clips(tmp_path_factory):
-    from jaxdrive.data.synthetic import generate_clip
-    from jaxdrive.data.tfds_io import write_dataset
-    out = tmp_path_factory.mktemp("same") / "data"
-    write_dataset(out, {"train": (generate_clip(7, views=6, frames=5, height=32, width=56) for _ in range(4))},
-                  name="jaxdrive_synthetic")
-    return out
+    return write_same_clips(tmp_path_factory.mktemp("same") / "data", seed=7, frames=5, copies=4)
 
 
 def launch(data, workdir, *, kill: str | None = None, processes: int = 2, devices: int = 4, sets=()):

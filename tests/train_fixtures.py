@@ -14,6 +14,33 @@ def write_synthetic(out, *, first: int = 0, train: int = 3, frames: int = 9, vie
     return out
 
 
+def write_same_clips(out, *, seed: int, frames: int, copies: int):
+    """``copies`` copies of one synthetic clip (6 views of 32 x 56) as the train split at ``out``:
+    whichever clips a pipeline picks, in whatever order, it feeds the same samples. Returns ``out``."""
+    from jaxdrive.data.synthetic import generate_clip
+    from jaxdrive.data.tfds_io import write_dataset
+    write_dataset(out, {"train": (generate_clip(seed, views=6, frames=frames, height=32, width=56)
+                                  for _ in range(copies))}, name="jaxdrive_synthetic")
+    return out
+
+
+def save_run(config, workdir, devices=None):
+    """A run directory for ``config`` (its config.json and one checkpoint of the initial state on
+    ``devices``, no training): e.g. the frozen fine model of a distillation. Returns the state saved."""
+    import json
+    from pathlib import Path
+
+    from jaxdrive.config import to_dict
+    from jaxdrive.train.checkpoint import Checkpoints
+    from jaxdrive.train.run import CONFIG_FILE, Run
+    state = Run(config, devices=devices).init_state()[0]
+    ckpts = Checkpoints(workdir, asynchronous=False)
+    ckpts.save(0, state, {}, {"step": 0})
+    ckpts.close()
+    (Path(workdir) / CONFIG_FILE).write_text(json.dumps(to_dict(config)))
+    return state
+
+
 def train_with_a_stop(config, workdir, *, stop_at: int):
     """Train in ``workdir``, SIGTERM after step ``stop_at``, then run the same command again;
     returns ``(interrupted summary, resumed summary)``."""

@@ -90,10 +90,11 @@ def _data_text_embed(args, rest) -> int:
 
 
 def _data_encode(args, rest) -> int:
-    from jaxdrive.config import load_config
+    from jaxdrive.cli.train import _config, start_jax
     from jaxdrive.train.encode import encode_dataset
 
-    config = load_config(args.config, args.set or [])
+    config = _config(args.config, args.mesh, args.set)
+    start_jax()                 # several processes (launch/local.py, SLURM, a TPU pod) share the work
     path = encode_dataset(config, args.out, splits=args.split, every=args.every, batch=args.batch,
                           overwrite=args.overwrite, progress=not args.no_progress)
     print(f"wrote the latent windows of {config.data.path} to {path}; train on them with "
@@ -145,7 +146,10 @@ def add_commands(sub) -> None:
     enc.add_argument("--split", nargs="+", help="splits to encode (default: all of the dataset's)")
     enc.add_argument("--every", type=int, help="source frames between window starts (default: the window's "
                                                "span, no overlap)")
-    enc.add_argument("--batch", type=int, default=8, help="windows per encoder call")
+    enc.add_argument("--batch", type=int, default=8, help="windows per encoder call, all processes together (a "
+                                                          "multiple of the mesh's batch axes data x fsdp)")
+    enc.add_argument("--mesh", help="mesh axis sizes, e.g. data=8 (default: the config's mesh; the batch is "
+                                    "sharded over data and fsdp)")
     enc.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config field (repeatable)")
     enc.add_argument("--overwrite", action="store_true")
     add_progress(enc, "the encoded windows")

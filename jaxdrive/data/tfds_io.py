@@ -28,11 +28,14 @@ Choices:
   Shards roll over every ``shard_bytes``.
 - Atomic: the dataset is built in a hidden temporary directory beside ``out_dir`` and renamed into
   place, so a crash never leaves a partial dataset under the final name.
+- Several processes can write one dataset (``write_dataset(..., processes=...)``): each writes
+  its records as its own shards, process 0 numbers them in process order and writes the metadata,
+  so the dataset reads as the concatenation of the processes' records.
 """
 
 from __future__ import annotations
 
-import itertools
+import json
 import logging
 import os
 import shutil
@@ -84,24 +87,39 @@ def _features(first: Mapping, compression: str, kind: str) -> tuple[tfds.feature
     return tfds.features.FeaturesDict(feats), texts
 
 
-def _write_split(tmp: Path, template, split: str, clips: Iterable[dict], features, keys: set,
-                 shard_bytes: int, kind: str) -> tuple[tfds.core.SplitInfo, list[int]]:
-    """Stream one split into ArrayRecord shards (TFDS serialisation, written in order)."""
-    lengths, frames, parts, total = [], [], [], 0
+class _Features:
+    """The FeaturesDict of a dataset, decided by the first record written (whichever split holds it)."""
+
+    def __init__(self, compression: str, kind: str):
+        self.compression, self.kind, self.dict, self.keys = compression, kind, None, None
+
+    def of(self, clip: Mapping):
+        if self.dict is None:
+            self.dict, _ = _features(clip, self.compression, self.kind)
+            self.keys = set(self.dict.keys())
+        return self.dict
+
+
+def _write_split(tmp: Path, prefix: str, split: str, clips: Iterable[dict], features: _Features,
+                 shard_bytes: int) -> dict:
+    """Stream one split into ArrayRecord parts ``<split>.<prefix>.partN`` (TFDS serialisation,
+    written in order); returns the parts' record counts, the records' frame counts and bytes."""
+    lengths, frames, total = [], [], 0
     writer, size = None, 0
     try:
         for i, clip in enumerate(clips):
             where = f"split {split!r} clip {i}"
-            sizes = schema.check_clip(clip, source=where, kind=kind)
-            if set(clip.keys()) != keys:
-                raise ValueError(f"{where}: expected the fields of the first clip {sorted(keys)}, "
+            sizes = schema.check_clip(clip, source=where, kind=features.kind)
+            feats = features.of(clip)
+            if set(clip.keys()) != features.keys:
+                raise ValueError(f"{where}: expected the fields of the first clip {sorted(features.keys)}, "
                                  f"got {sorted(clip.keys())}")
-            data = features.serialize_example({k: (float(v) if k == "fps" else v) for k, v in clip.items()})
+            data = feats.serialize_example({k: (float(v) if k == "fps" else v) for k, v in clip.items()})
             if writer is None or size >= shard_bytes:
                 if writer is not None:
                     writer.close()
-                parts.append(tmp / f"{split}.part{len(parts)}")
-                writer, size = ArrayRecordWriter(os.fspath(parts[-1]), "group_size:1"), 0
+                writer, size = ArrayRecordWriter(os.fspath(tmp / f"{split}.{prefix}.part{len(lengths)}"),
+                                                 "group_size:1"), 0
                 lengths.append(0)
             writer.write(data)
             size += len(data)
@@ -111,25 +129,84 @@ def _write_split(tmp: Path, template, split: str, clips: Iterable[dict], feature
     finally:
         if writer is not None:
             writer.close()
-    named = template.replace(split=split)
-    for i, part in enumerate(parts):
-        os.rename(part, named.sharded_filepath(shard_index=i, num_shards=len(parts)))
-    return tfds.core.SplitInfo(name=split, shard_lengths=lengths, num_bytes=total,
-                               filename_template=named), frames
+    return {"lengths": lengths, "frames": frames, "num_bytes": total}
+
+
+def _write_part(tmp: Path, index: int, splits: Mapping[str, Iterable[dict]], features: _Features,
+                shard_bytes: int) -> None:
+    """Process ``index``'s records of every split, in split order, and ``p<index>.json``: what
+    :func:`_assemble` needs of them (the features its first record gave, per split its parts)."""
+    prefix = f"p{index:05d}"
+    written = {split: _write_split(tmp, prefix, split, clips, features, shard_bytes)
+               for split, clips in splits.items()}
+    summary = {"features": None if features.dict is None else features.dict.to_json(), "splits": written}
+    (tmp / f"{prefix}.json").write_text(json.dumps(summary))
+
+
+def _assemble(tmp: Path, out_dir: Path, count: int, splits: list[str], *, name: str, description: str,
+              metadata: dict, kind: str) -> dict:
+    """The parts of processes ``0..count-1`` (:func:`_write_part`), in process order, as the
+    TFDS dataset in ``tmp``: shards renamed ``<name>-<split>.array_record-NNNNN-of-NNNNN``, TFDS
+    metadata written; returns the per-split frame counts."""
+    summaries = [json.loads((tmp / f"p{i:05d}.json").read_text()) for i in range(count)]
+    given = [s["features"] for s in summaries if s["features"] is not None]
+    if not given:
+        raise ValueError(f"splits: expected at least one clip for {out_dir}, got none")
+    for i, f in enumerate(s["features"] for s in summaries):
+        if f is not None and f != given[0]:
+            raise ValueError(f"splits: expected the fields of the first clip in every process, got others in "
+                             f"process {i}")
+    features = tfds.features.FeatureConnector.from_json(given[0])
+    template = tfds.core.ShardedFileTemplate(
+        data_dir=tmp, template="{DATASET}-{SPLIT}.{FILEFORMAT}-{SHARD_X_OF_Y}", dataset_name=name,
+        filetype_suffix="array_record")
+    infos, counts = [], {}
+    for split in splits:
+        rows = [s["splits"][split] for s in summaries]
+        parts = [(i, k) for i, r in enumerate(rows) for k in range(len(r["lengths"]))]
+        if not parts:
+            raise ValueError(f"splits[{split!r}]: expected at least one clip for {out_dir}, got none")
+        named = template.replace(split=split)
+        for shard, (i, k) in enumerate(parts):
+            os.rename(tmp / f"{split}.p{i:05d}.part{k}", named.sharded_filepath(shard_index=shard,
+                                                                              num_shards=len(parts)))
+        counts[split] = [n for r in rows for n in r["frames"]]
+        infos.append(tfds.core.SplitInfo(name=split, shard_lengths=[n for r in rows for n in r["lengths"]],
+                                         num_bytes=sum(r["num_bytes"] for r in rows), filename_template=named))
+    for i in range(count):
+        (tmp / f"p{i:05d}.json").unlink()
+    metadata[_RESERVED_METADATA] = {"kind": kind, "frame_counts": counts,
+                                    "schema_fields": sorted(features.keys())}
+    tfds.folder_dataset.write_metadata(
+        data_dir=tmp, features=features, split_infos=infos, version=VERSION,
+        filename_template=template, check_data=False, description=description,
+        metadata=tfds.core.MetadataDict(metadata), disable_shuffling=True)
+    return counts
 
 
 def write_dataset(out_dir, splits: Mapping[str, Iterable[dict]], *, name: str = "jaxdrive_clips",
                   description: str = "jaxdrive driving clips (see jaxdrive.data.schema).",
                   metadata: Mapping | None = None, compression: str = "bytes",
-                  overwrite: bool = False, shard_bytes: int = 1 << 30, kind: str = "clips") -> Path:
+                  overwrite: bool = False, shard_bytes: int = 1 << 30, kind: str = "clips",
+                  processes=None) -> Path:
     """Write clip iterables as one TFDS ArrayRecord dataset at ``out_dir``; return its path.
 
     ``splits`` maps split names (e.g. ``"train"``, ``"validation"``) to iterables of clip dicts
-    (consumed once, streamed: the clips never all sit in memory). All clips must carry the same
-    fields; the first clip decides the features. ``kind``: ``"clips"`` (:data:`schema.CLIP_FIELDS`)
-    or ``"windows"`` (:data:`schema.WINDOW_FIELDS`). ``metadata`` is a JSON-serialisable dict saved in
-    ``metadata.json``. ``out_dir`` must not exist unless ``overwrite`` is set (the old dataset is
-    replaced only after the new one is complete).
+    (consumed once, split after split, streamed: the clips never all sit in memory). All clips must
+    carry the same fields; the first clip decides the features. ``kind``: ``"clips"``
+    (:data:`schema.CLIP_FIELDS`) or ``"windows"`` (:data:`schema.WINDOW_FIELDS`). ``metadata`` is a
+    JSON-serialisable dict saved in ``metadata.json``. ``out_dir`` must not exist unless
+    ``overwrite`` is set (the old dataset is replaced only after the new one is complete).
+
+    ``processes``: written by several processes together (each passes its own records, the same
+    splits in the same order, and the same other arguments), an object with ``index``, ``count``
+    and ``gather(int) -> list[int]`` (an all-gather of one integer per process, which is also a
+    barrier; :class:`jaxdrive.parallel.Processes`). Every process writes its records as its own
+    shards into one temporary directory beside ``out_dir`` (a filesystem all of them see); then
+    process 0 numbers the shards in process order, writes the metadata and moves the dataset into
+    place. The dataset reads as the records of process 0, then 1, ...; a process may hold none. A
+    process that fails while writing raises at once (the others stop at their next collective)
+    and leaves the hidden temporary directory; nothing ever appears under ``out_dir``.
     """
     out_dir = Path(out_dir)
     if compression not in ("bytes", "zlib"):
@@ -143,45 +220,43 @@ def write_dataset(out_dir, splits: Mapping[str, Iterable[dict]], *, name: str = 
     metadata = dict(metadata or {})
     if _RESERVED_METADATA in metadata:
         raise ValueError(f"metadata: the key {_RESERVED_METADATA!r} is reserved, got it in {sorted(metadata)}")
-    iters, first = {}, None
-    for split, clips in splits.items():
-        it = iter(clips)
-        head = next(it, None)
-        if head is None:
-            raise ValueError(f"splits[{split!r}]: expected at least one clip for {out_dir}, got none")
-        first = head if first is None else first
-        iters[split] = itertools.chain([head], it)
-    features, _ = _features(first, compression, kind)
-    metadata[_RESERVED_METADATA] = {"kind": kind, "frame_counts": {}, "schema_fields": sorted(features.keys())}
-
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_dir.parent / f".{out_dir.name}.tmp-{uuid.uuid4().hex[:8]}"
-    counts = metadata[_RESERVED_METADATA]["frame_counts"]
+    index, count = (0, 1) if processes is None else (processes.index, processes.count)
+    gather = (lambda v: [v]) if processes is None else processes.gather
+    token = gather(uuid.uuid4().int % (1 << 31))[0]         # process 0's: one temporary directory for all
+    tmp = out_dir.parent / f".{out_dir.name}.tmp-{token:08x}"
+    error = None
     try:
-        tmp.mkdir()
-        template = tfds.core.ShardedFileTemplate(
-            data_dir=tmp, template="{DATASET}-{SPLIT}.{FILEFORMAT}-{SHARD_X_OF_Y}", dataset_name=name,
-            filetype_suffix="array_record")
-        infos = []
-        for split, clips in iters.items():
-            info, counts[split] = _write_split(tmp, template, split, clips, features, set(features.keys()),
-                                               shard_bytes, kind)
-            infos.append(info)
-        tfds.folder_dataset.write_metadata(
-            data_dir=tmp, features=features, split_infos=infos, version=VERSION,
-            filename_template=template, check_data=False, description=description,
-            metadata=tfds.core.MetadataDict(metadata), disable_shuffling=True)
-        move_into_place(tmp, out_dir)
-    except ValueError as e:
-        raise ValueError(f"writing dataset {out_dir}: {e}") from e
+        tmp.mkdir(parents=True, exist_ok=True)
+        _write_part(tmp, index, splits, _Features(compression, kind), shard_bytes)
     except Exception as e:
-        e.add_note(f"while writing dataset {out_dir} (nothing was left under that name)")
-        raise
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    log.info("wrote dataset %s: %s", out_dir,
-             {s: len(c) for s, c in metadata[_RESERVED_METADATA]["frame_counts"].items()})
+        if count > 1:       # stop now: the others may be inside a collective of their records' making
+            _reraise(e, out_dir, "the others stop at their next collective; the temporary directory stays")
+        error = e
+    gather(1)                                                       # every part is written here
+    if index == 0:
+        try:
+            if error is None:
+                counts = _assemble(tmp, out_dir, count, list(splits), name=name, description=description,
+                                   metadata=metadata, kind=kind)
+                move_into_place(tmp, out_dir)
+                log.info("wrote dataset %s: %s", out_dir, {s: len(c) for s, c in counts.items()})
+        except Exception as e:
+            error = e
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+    if not gather(int(error is None))[0] and error is None:        # process 0 has finished (or failed)
+        error = ValueError("process 0 could not finish it (its error says why)")
+    if error is not None:
+        _reraise(error, out_dir, "nothing was left under that name")
     return out_dir
+
+
+def _reraise(error: Exception, out_dir: Path, note: str):
+    """``error`` naming the dataset: a ``ValueError`` with it in the message, others with a note."""
+    if isinstance(error, ValueError):
+        raise ValueError(f"writing dataset {out_dir}: {error}") from error
+    error.add_note(f"while writing dataset {out_dir} ({note})")
+    raise error
 
 
 def _dataset_dir(path) -> Path:

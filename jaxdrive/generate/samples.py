@@ -103,7 +103,7 @@ def dataset_inputs(spec: Sampling, *, frames: int, views=None, clips: int = 1, s
         clip = source[i % len(source)]
         where = f"{source.split} clip {i}"
         if spec.precomputed:
-            samples.append(_window_prefix(spec.codec, clip, frames, views, f"{source.split} window {i}"))
+            samples.append(_window_prefix(spec, clip, frames, views, f"{source.split} window {i}"))
             continue
         have = int(np.shape(clip["ego_to_world"])[0])
         stride = spec.frame_stride
@@ -144,19 +144,29 @@ def dataset_inputs(spec: Sampling, *, frames: int, views=None, clips: int = 1, s
     return inputs
 
 
-def _window_prefix(codec, record, frames: int, views, where: str) -> dict:
+def _window_prefix(spec: Sampling, record, frames: int, views, where: str) -> dict:
     """The first ``frames`` frames of a stored latent window as a sample (its latents cut to
-    ``codec.latent_frames(frames)``)."""
+    ``codec.latent_frames(frames)``), at the sampling stride: a distilled coarse model reads every
+    ``(K - 1)``-th frame of the dense windows it was trained on (frame-wise latents)."""
     from jaxdrive.data.pipeline import take_window
     from jaxdrive.data.schema import WINDOW_FIELDS
+    codec = spec.codec
+    step, rest = divmod(spec.frame_stride, spec.data.stride)
+    if rest or (step > 1 and codec.temporal != 1):
+        raise ValueError(f"stride: expected a multiple of the windows' stride {spec.data.stride} (and frame-wise "
+                         f"latents to skip frames), got {spec.frame_stride} with temporal compression "
+                         f"{codec.temporal}")
     have, temporal = int(np.shape(record["ego_to_world"])[0]), codec.temporal
-    if frames > have or (frames - 1) % temporal:
+    recorded = 1 + (have - 1) // step
+    if frames > recorded or (frames - 1) % temporal:
         form = f"1 + {temporal}k frames, " if temporal > 1 else ""
-        raise ValueError(f"frames: expected {form}at most the {have} frames of the dataset's latent windows "
+        raise ValueError(f"frames: expected {form}at most the {recorded} frames of the dataset's latent windows "
                          f"(latents.precomputed fixes the length), got {frames}")
     s = take_window(record, frames=have, views=views, where=where)
-    s.update({k: s[k][:frames] for k, (_, spec) in WINDOW_FIELDS.items() if spec[0] == "F"},
-             latents=s["latents"][:, :codec.latent_frames(frames)], frame_times=s["frame_times"][:frames])
+    picked = slice(0, step * (frames - 1) + 1, step)
+    s.update({k: s[k][picked] for k, (_, spec_) in WINDOW_FIELDS.items() if spec_[0] == "F"},
+             latents=s["latents"][:, :codec.latent_frames(step * (frames - 1) + 1)][:, ::step],
+             frame_times=s["frame_times"][picked], fps=np.float32(s["fps"] / step))
     return s
 
 

@@ -108,6 +108,22 @@ def global_to_host_local(global_tree):
     return jax.tree_util.tree_map(_local_block, global_tree)
 
 
+class Processes:
+    """The processes of this JAX job, for work they share outside a jitted program (e.g. one
+    dataset written by all of them, :func:`jaxdrive.data.tfds_io.write_dataset`): ``index``,
+    ``count`` and :meth:`gather`."""
+
+    def __init__(self):
+        self.index, self.count = jax.process_index(), jax.process_count()
+
+    def gather(self, value: int) -> list[int]:
+        """Every process's ``value`` (an int32), in process order; returns when all have called it."""
+        from jax.experimental import multihost_utils
+        if self.count == 1:
+            return [int(value)]
+        return [int(v) for v in multihost_utils.process_allgather(np.int32(value))]
+
+
 def _first_host(nodelist: str) -> str:
     """``'node[001-004,007],other'`` -> ``'node001'``; ``'a,b'`` -> ``'a'``."""
     m = re.match(r"([^,\[]+)(?:\[([^\],\-]+))?", nodelist.strip())

@@ -20,10 +20,12 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+from jax.sharding import PartitionSpec
 
 from jaxdrive import flow
 from jaxdrive.data.batches import POSES
 from jaxdrive.models.conditions import Conditions
+from jaxdrive.parallel.mesh import explicit_mesh, spec_of
 
 
 def coarse_conditions(cond: Conditions, segment_len: int) -> Conditions:
@@ -77,12 +79,22 @@ def teacher_coarse_estimate(teacher, params, x, x_t, levels, cond, inputs: dict,
         c = teacher.config
         v = flow.velocity_from_output(teacher.forward(params, xs, ls, seg_cond), xs, ls, c.prediction,
                                       c.prediction_min_sigma)
-        d = flow.data_from_velocity(xs, v, ls)
+        d = unsharded_axis(flow.data_from_velocity(xs, v, ls), axis)
         return jnp.take(d, 0, axis=axis), jnp.take(d, segment_len - 1, axis=axis)
 
     first, last = jax.lax.map(segment, jnp.arange(n))                 # [n, B, V, h, w, C] each
     coarse = flow.coarse_from_ends(jnp.moveaxis(first, 0, 1), jnp.moveaxis(last, 0, 1), boundary=boundary)
     return jax.lax.stop_gradient(jnp.moveaxis(coarse, 1, axis))        # [B, n+1, V, ...] -> frame axis
+
+
+def unsharded_axis(x, axis: int):
+    """``x`` with dimension ``axis`` gathered under an Explicit mesh, where picking frames from an
+    axis sharded over ``seq`` (even of size 1) is refused; ``x`` as it is otherwise."""
+    spec = list(spec_of(x))
+    if explicit_mesh() is None or spec[axis] is None:
+        return x
+    spec[axis] = None
+    return jax.reshard(x, PartitionSpec(*spec))
 
 
 def dense_levels(sigma, cond, frames: int, segment_len: int):

@@ -21,7 +21,6 @@ stopped and resumed run ends with the same parameters as one that never stopped.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import signal
@@ -61,12 +60,22 @@ def mesh_from_config(config: Config, devices=None):
     return make_mesh(**sizes, devices=devices)
 
 
+def batch_axes(mesh) -> tuple[str, ...]:
+    """The mesh axes a batch is sharded over (``data``, ``fsdp``), those the mesh has."""
+    return tuple(a for a in ("data", "fsdp") if a in mesh.axis_names)
+
+
+def batch_shards(mesh) -> int:
+    """How many parts a batch is split into: the product of the mesh's batch axes."""
+    sizes = dict(zip(mesh.axis_names, mesh.axis_sizes))
+    return int(np.prod([sizes[a] for a in batch_axes(mesh)]))
+
+
 def check_batch(config: Config, mesh, batch: int | None = None, name: str = "data.batch_size") -> tuple[int, int]:
     """``(micro-batch per process, micro-batch global)`` of the global ``batch`` (default
     ``data.batch_size``); ``ValueError`` naming ``name`` when it does not divide over processes,
     accumulation steps and the mesh's batch axes."""
-    sizes = dict(zip(mesh.axis_names, mesh.axis_sizes))
-    shards = sizes.get("data", 1) * sizes.get("fsdp", 1)
+    shards = batch_shards(mesh)
     b = config.data.batch_size if batch is None else batch
     a, procs = config.optim.grad_accum, jax.process_count()
     micro = b // a if b % a == 0 else None
@@ -145,8 +154,7 @@ def check_warp(config: Config) -> None:
 def global_micro_batches(inputs: list[dict], mesh):
     """This process's micro-batches (host model inputs) -> one global ``[A, b, ...]`` tree with
     ``b`` over the mesh's batch axes (``data``/``fsdp``) and the rest replicated."""
-    axes = tuple(a for a in ("data", "fsdp") if a in mesh.axis_names)
-    return host_local_to_global(stack_micro_batches(inputs), mesh, P(None, axes or None))
+    return host_local_to_global(stack_micro_batches(inputs), mesh, P(None, batch_axes(mesh) or None))
 
 
 class Run:
@@ -182,7 +190,7 @@ class Run:
         if config.train.init_map:
             from jaxdrive.train.init_from import parse_name_map
             parse_name_map(config.train.init_map)
-        teacher = self._teacher_model(devices) if config.flow.distill_teacher else None
+        teacher = self._teacher_model() if config.flow.distill_teacher else None
         self.training = flow_step.FlowTraining(model, config.flow, self.codec, teacher, config.stream)
         # frames the trained model sees, and the source-frame stride between them
         self.latent_frames = self.codec.latent_frames(d.frames)
@@ -212,7 +220,7 @@ class Run:
             (x.shape[4], x.shape[5])
         return self.tokens(x.shape[0] * x.shape[1], h, w, frames)
 
-    def _teacher_model(self, devices):
+    def _teacher_model(self):
         """The fine model of LongDWM's distillation, from the config of the run directory
         ``flow.distill_teacher`` (its parameters: :meth:`frozen_params`)."""
         cfg, path = self.config, self.config.flow.distill_teacher
@@ -231,11 +239,7 @@ class Run:
         except ValueError as e:
             raise ValueError(f"flow.distill_teacher: the fine model of {path} does not read this run's latents: "
                              f"{e}") from e
-        # the teacher's own run, on this run's mesh and data, only to restore its parameters
-        self._teacher_config = dataclasses.replace(
-            tcfg, mesh=cfg.mesh, data=dataclasses.replace(cfg.data, frames=cfg.flow.distill_segment_len),
-            flow=dataclasses.replace(tcfg.flow, distill_teacher=""))
-        self._devices = devices
+        self._teacher_config = tcfg
         return model
 
     def frozen_params(self) -> dict:
@@ -243,9 +247,11 @@ class Run:
         the VAE's and, when distilling, the fine model's (EMA) parameters, restored from its run
         directory (call once per run; nothing is cached here)."""
         teacher = None
-        if self.training.teacher is not None:
-            run = Run(self._teacher_config, devices=self._devices)
-            _, teacher = restore_params(run, self.config.flow.distill_teacher)
+        if self.training.teacher is not None:       # restored on this run's mesh; its own data plays no part
+            t = self._teacher_config
+            abstract, _ = abstract_train_state(t.model, t.optim, t.train.steps, self.mesh, seed=t.train.seed)
+            _, teacher = restore_latest_params(abstract, self.config.flow.distill_teacher,
+                                               keep=t.train.keep_checkpoints)
         return {"codec": self.codec.params, "teacher": teacher}
 
     def sampling(self):
@@ -519,8 +525,15 @@ def load_run_config(workdir) -> Config:
 
 def restore_params(run: Run, workdir, *, ema: bool = True, log=print):
     """``(step, params)`` of the newest readable checkpoint of ``workdir`` (EMA when kept)."""
-    ckpts = Checkpoints(workdir, keep=run.config.train.keep_checkpoints, asynchronous=False)
-    restored = ckpts.restore_latest(run.abstract_state()[0], log=log)
+    return restore_latest_params(run.abstract_state()[0], workdir, keep=run.config.train.keep_checkpoints,
+                                 ema=ema, log=log)
+
+
+def restore_latest_params(abstract, workdir, *, keep: int, ema: bool = True, log=print):
+    """``(step, params)`` of the newest readable checkpoint of ``workdir`` restored into the
+    abstract train state ``abstract`` (:func:`abstract_train_state`; EMA when kept)."""
+    ckpts = Checkpoints(workdir, keep=keep, asynchronous=False)
+    restored = ckpts.restore_latest(abstract, log=log)
     ckpts.close()
     if restored is None:
         raise ValueError(f"workdir: expected checkpoints under {Path(workdir) / 'checkpoints'}, found none")
