@@ -36,7 +36,7 @@ from jax.sharding import PartitionSpec as P
 from jaxdrive.config import Config, check_sections, to_dict
 from jaxdrive.data.batches import TextEmbeddings, model_inputs, stack_micro_batches
 from jaxdrive.models.latents import LatentCodec
-from jaxdrive.parallel import (host_local_to_global, make_mesh, param_shardings, shard_params,
+from jaxdrive.parallel import (Processes, host_local_to_global, make_mesh, param_shardings, shard_params,
                                wait_for_all_processes)
 from jaxdrive.train import flow_step
 from jaxdrive.train.checkpoint import Checkpoints
@@ -360,10 +360,7 @@ class _BadRecords:
         self.pending += sum(int(b.pop("bad_records", 0)) for b in micro_batches)
 
     def sync(self) -> int:
-        n = self.pending
-        if jax.process_count() > 1:
-            from jax.experimental import multihost_utils
-            n = int(np.sum(multihost_utils.process_allgather(np.int64(n))))
+        n = sum(Processes().gather(self.pending))
         self.total, self.pending = self.total + n, 0
         return self.total
 
