@@ -1,7 +1,7 @@
 """``jaxdrive train`` as 2 processes x 4 fake CPU devices (gloo), launched by ``launch/local.py``:
-the same losses as 1 process x 8 devices; a process lost to SIGKILL (after a step, and in the
-middle of an asynchronous checkpoint write) and the run relaunched gives the losses of the run
-that was never killed, bit for bit; a 2 x 4 checkpoint resumes on 1 x 8 and on 1 x 2.
+a process lost to SIGKILL (after a step, and in the middle of an asynchronous checkpoint write)
+and the run relaunched gives the losses of the run that was never killed, bit for bit; a 2 x 4
+checkpoint resumes on 1 x 8 and on 1 x 2 with the same losses (so 2 processes compute what 1 does).
 
 The dataset holds copies of one clip with exactly the training length and no condition drops,
 so every process feeds the same samples whichever clips the data sharding gives it; what is
@@ -19,10 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxdrive.config import load_config
 from jaxdrive.train.checkpoint import Checkpoints
 from jaxdrive.train.metrics import read_metrics
-from jaxdrive.train.run import train
 
 from train_fixtures import write_same_clips
 
@@ -77,16 +75,6 @@ def never_killed(same_clips, tmp_path_factory):
     assert proc.returncode == 0, output(proc)
     assert [r["step"] for r in read_metrics(workdir)] == list(range(1, STEPS + 1))
     return workdir
-
-
-def test_two_processes_match_one(same_clips, never_killed, tmp_path):
-    one = train(load_config(ROOT / "configs" / "tiny.py", [f"data.path={same_clips}", *SETS, "train.steps=2"]),
-                tmp_path / "one", progress=False)
-    assert one["status"] == "done"
-    two, ref = read_metrics(never_killed)[:2], read_metrics(tmp_path / "one")
-    assert [r["step"] for r in ref] == [1, 2]
-    np.testing.assert_allclose([r["loss"] for r in two], [r["loss"] for r in ref], rtol=1e-5)
-    np.testing.assert_allclose([r["grad_norm"] for r in two], [r["grad_norm"] for r in ref], rtol=1e-4)
 
 
 def test_sigkill_of_one_process_then_relaunch_is_bit_exact(same_clips, never_killed, tmp_path):
