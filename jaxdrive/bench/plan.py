@@ -52,9 +52,9 @@ def measure(config) -> dict:
     import jax
     import jax.numpy as jnp
 
-    from jaxdrive.bench.report import footprint_bytes
     from jaxdrive.config import MeshConfig
-    from jaxdrive.train.plan import abstract_batch, accelerator_attention, plan_memory, planned_bucket
+    from jaxdrive.train.plan import (abstract_batch, accelerator_attention, plan_memory, planned_bucket,
+                                     resident_bytes, transient_bytes)
     from jaxdrive.train.run import Run
     config = accelerator_attention(dataclasses.replace(config, mesh=MeshConfig(data=1)), {})
     device = jax.devices()[:1]
@@ -72,11 +72,10 @@ def measure(config) -> dict:
         Path("/proc/self/clear_refs").write_text("5")           # VmHWM := VmRSS
         jax.block_until_ready(compiled(state, frozen, batch))
         transient = _vm("VmHWM") - before
-    planned_resident = sum(plan[k] for k in ("params", "opt_state", "ema", "state_other", "frozen", "batch"))
-    return {"planned_resident": planned_resident, "measured_resident": resident,
-            "planned_transient": int(a.temp_size_in_bytes + a.output_size_in_bytes - a.alias_size_in_bytes),
-            "measured_transient": transient, "planned_total": footprint_bytes(compiled),
-            "measured_total": resident + transient}
+    planned = {"resident": resident_bytes(plan), "transient": transient_bytes(a)}
+    return {"planned_resident": planned["resident"], "measured_resident": resident,
+            "planned_transient": planned["transient"], "measured_transient": transient,
+            "planned_total": sum(planned.values()), "measured_total": resident + transient}
 
 
 def main(argv=None):

@@ -15,7 +15,7 @@ COLUMNS = (("params", "params", "parameters (float32)"),
            ("frozen", "frozen", "parameters read, not trained (the VAE)"),
            ("batch", "batch", "the step's input batch"),
            ("temp", "temp", "activations kept for the backward pass and scratch"),
-           ("total", "total", "all of it while the step runs (arguments + outputs + temp - donated)"))
+           ("total", "total", "all of it while the step runs (state + frozen + batch + temp + outputs - donated)"))
 
 
 def gib(n) -> str:
@@ -64,10 +64,10 @@ def _plan(args, rest) -> int:
 
 def table(out: dict) -> str:
     """The plan as text: one row of per-device GiB, then the largest clips that fit."""
-    mesh = ",".join(f"{k}={v}" for k, v in out["mesh"].items())
+    mesh = ",".join(f"{k}={v}" for k, v in out["mesh"].items() if v > 1) or "one device"
     pd = out["per_device"]
-    head = f"{'mesh':28s} {'bucket':14s} {'batch':>5s} " + " ".join(f"{c:>9s}" for c, _, _ in COLUMNS)
-    row = f"{mesh:28s} {out['bucket']:14s} {out['batch']:5d} " + " ".join(f"{gib(pd[k]):>9s}" for _, k, _ in COLUMNS)
+    head = f"{'mesh':20s} {'bucket':14s} {'batch':>5s} " + " ".join(f"{c:>9s}" for c, _, _ in COLUMNS)
+    row = f"{mesh:20s} {out['bucket']:14s} {out['batch']:5d} " + " ".join(f"{gib(pd[k]):>9s}" for _, k, _ in COLUMNS)
     compiled = "not compiled" if out["compile_seconds"] is None else f"compiled in {out['compile_seconds']} s"
     lines = [f"{out['config']}: per-device GiB of one train step on {out['devices']} fake CPU devices "
              f"(latents: {out['codec']}; {compiled})", head, row]

@@ -14,7 +14,10 @@ the one ``latents.vae_path`` describes (only its ``model.json`` is read) or, whe
 none, CogVideoX-2B's (:class:`~jaxdrive.models.vae.VAEConfig`'s defaults), its parameters shapes
 only. The jitted train step (:meth:`Run.step_fn`) is lowered on these shapes and compiled, and
 ``compiled.memory_analysis()`` gives its arguments, outputs (less those aliasing the donated
-state) and temporaries: activations kept for the backward pass and scratch.
+state) and temporaries: activations kept for the backward pass and scratch. ``total`` is what
+stays on a device (state, frozen parameters, batch: :func:`resident_bytes`) plus what the step
+adds (:func:`transient_bytes`); a VAE the step does not read (stored latents) is no argument of
+the compiled program, but it is on the device all the same.
 
 The attention is the one an accelerator runs (:func:`accelerator_attention`). The figures are
 XLA:CPU's buffer assignment for the mesh's devices. An accelerator's compiler
@@ -40,7 +43,6 @@ import numpy as np
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from jaxdrive.bench.report import footprint_bytes
 from jaxdrive.parallel.mesh import MESH_AXES, parse_mesh_spec
 
 UNITS = {"": 1, "b": 1, "kb": 10 ** 3, "mb": 10 ** 6, "gb": 10 ** 9, "tb": 10 ** 12,
@@ -96,6 +98,17 @@ def device_bytes(tree) -> int:
         shape = sharding.shard_shape(x.shape) if sharding is not None else x.shape
         total += math.prod(shape) * np.dtype(x.dtype).itemsize
     return total
+
+
+def resident_bytes(per_device: dict) -> int:
+    """What lives on a device between steps: the state, the frozen parameters and the batch."""
+    return sum(per_device[k] for k in (*STATE_PARTS, "state_other", "frozen", "batch"))
+
+
+def transient_bytes(analysis) -> int:
+    """What a compiled step adds while it runs: temporaries and the outputs that do not reuse a
+    donated argument's buffer (``memory_analysis()``)."""
+    return int(analysis.temp_size_in_bytes + analysis.output_size_in_bytes - analysis.alias_size_in_bytes)
 
 
 def abstract_codec(latents):
@@ -230,8 +243,8 @@ def plan_memory(config, mesh, *, device_memory: int | None = None, devices=None,
         seconds = round(time.perf_counter() - t, 1)
         a = compiled.memory_analysis()
         per_device.update(arguments=int(a.argument_size_in_bytes), outputs=int(a.output_size_in_bytes),
-                          aliased=int(a.alias_size_in_bytes), temp=int(a.temp_size_in_bytes),
-                          total=footprint_bytes(compiled))
+                          aliased=int(a.alias_size_in_bytes), temp=int(a.temp_size_in_bytes))
+        per_device["total"] = resident_bytes(per_device) + transient_bytes(a)
     return {"mesh": sizes, "devices": n, "bucket": "x".join(map(str, bucket.key)), "batch": bucket.batch_size,
             "tokens": run.tokens(bucket.batch_size, bucket.height, bucket.width, run.codec.latent_frames(bucket.frames)),
             "codec": what or codec.source, "per_device": per_device, "compile_seconds": seconds,
