@@ -146,3 +146,25 @@ def test_cli_prints_the_plan_as_json(capsys):
 def test_cli_bad_input_is_exit_code_2(args, match, capsys):
     assert cli(["plan", "--config", TINY, *args]) == 2
     assert match in capsys.readouterr().err
+
+
+def test_largest_fit_searches_frames_at_each_resolution(config, monkeypatch):
+    """The search (doubling, then bisecting the clip length) on a stand-in plan whose total is
+    frames x height x width bytes: at 32 x 64, 20 frames fit 20 x 32 x 64 bytes; at half the
+    resolution four times as many; a budget below the shortest clip fits none."""
+    import jaxdrive.train.plan as plan
+
+    def total(probe, sizes, devices=None, codec=None):
+        d = probe.data
+        return {"per_device": {"total": d.frames * d.height * d.width}}
+    monkeypatch.setattr(plan, "plan_memory", total)
+    fit = plan.largest_fit(config, {"fsdp": 2}, 20 * 32 * 64, scales=(1.0, 0.5))
+    rows = {(r["height"], r["width"]): r for r in fit["resolutions"]}
+    assert rows[32, 64]["frames"] == 20 and rows[16, 32]["frames"] == 80
+    assert rows[32, 64]["total"] == 20 * 32 * 64 and not rows[32, 64]["capped"]
+    big = fit["largest"]                   # the most pixels x frames (here both: the budget is their product)
+    assert big in fit["resolutions"] and big["frames"] * big["height"] * big["width"] == 20 * 32 * 64
+    assert fit["bucket_batch"] == 8
+    assert plan.largest_fit(config, {"fsdp": 2}, 100, scales=(1.0,))["resolutions"][0]["frames"] is None
+    with pytest.raises(ValueError, match="scales: expected positive"):
+        plan.largest_fit(config, {"fsdp": 2}, 100, scales=(0.0,))
