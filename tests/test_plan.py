@@ -142,6 +142,7 @@ def test_cli_prints_the_plan_as_json(capsys):
     (["--mesh", "fsdp=2", "--device-memory", "lots"], "--device-memory"),
     (["--mesh", "fsdp=2", "--devices", "8"], "--mesh: expected axis sizes whose product is the device count 8"),
     (["--mesh", "fsdp=2", "--scales", "0,1"], "--scales"),
+    (["--mesh", "fsdp=2", "--scales", "nan"], "--scales"),
 ])
 def test_cli_bad_input_is_exit_code_2(args, match, capsys):
     assert cli(["plan", "--config", TINY, *args]) == 2
@@ -168,3 +169,5 @@ def test_largest_fit_searches_frames_at_each_resolution(config, monkeypatch):
     assert plan.largest_fit(config, {"fsdp": 2}, 100, scales=(1.0,))["resolutions"][0]["frames"] is None
     with pytest.raises(ValueError, match="scales: expected positive"):
         plan.largest_fit(config, {"fsdp": 2}, 100, scales=(0.0,))
+    with pytest.raises(ValueError, match="device_memory: expected a positive number of bytes, got 0"):
+        plan.largest_fit(config, {"fsdp": 2}, 0)

@@ -44,7 +44,7 @@ def _plan(args, rest) -> int:
         scales = tuple(float(s) for s in args.scales.split(","))
     except ValueError:
         scales = ()
-    if not scales or min(scales) <= 0:
+    if not scales or not all(math.isfinite(s) and s > 0 for s in scales):
         raise ValueError(f"--scales: expected positive numbers separated by commas, e.g. 0.5,1,2, got {args.scales!r}")
     if args.devices is not None and args.devices < 1:
         raise ValueError(f"--devices: expected a positive integer, got {args.devices}")

@@ -259,7 +259,9 @@ def largest_fit(config, mesh, device_memory: int, *, scales=(1.0,), devices=None
     "probes"}, ...], "largest": the entry with the most tokens}``; ``frames`` is None where not even
     the shortest clip fits."""
     from jaxdrive.train.run import Run
-    if not scales or any(not (isinstance(s, (int, float)) and s > 0) for s in scales):
+    if isinstance(device_memory, bool) or not isinstance(device_memory, (int, np.integer)) or device_memory <= 0:
+        raise ValueError(f"device_memory: expected a positive number of bytes, got {device_memory!r}")
+    if not scales or any(not (isinstance(s, (int, float)) and math.isfinite(s) and s > 0) for s in scales):
         raise ValueError(f"scales: expected positive resolution scales, got {scales!r}")
     codec, _ = abstract_codec(config.latents)
     sizes = parse_mesh(mesh, None, name="mesh")
