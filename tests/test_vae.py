@@ -148,6 +148,19 @@ def test_views_fold_into_the_batch_and_shard(tiny):
     assert tuple(zs.sharding.spec)[:2] == ("data", "fsdp")   # [B, V] = the folded 8-way split
 
 
+def test_frame_wise_mode_on_a_sharded_batch(tiny):
+    """Frame-wise encoding folds frames into the sharded clip axis (MiLA's, LongDWM's and STAGE's
+    latents on a data x fsdp mesh): the single-device numbers, the batch still sharded."""
+    vae, params = tiny
+    x = _video((4, 3, 8, 8, 3), seed=2)
+    z = vae.encode(params, x, mode="frame_wise")
+    mesh = make_mesh(data=2, fsdp=2, devices=jax.devices()[:4])
+    with jax.set_mesh(mesh):
+        zs = vae.encode(params, jax.device_put(x, NamedSharding(mesh, P(("data", "fsdp")))), mode="frame_wise")
+    np.testing.assert_allclose(zs, z, rtol=1e-5, atol=1e-5)
+    assert tuple(zs.sharding.spec)[0] == ("data", "fsdp")
+
+
 @pytest.mark.parametrize("shape,match", [
     ((1, 8, 8, 8, 3), r"video: expected 1 \+ 4k frames, got 8"),
     ((1, 5, 8, 8, 4), "video: expected 3 channels"),

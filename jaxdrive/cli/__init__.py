@@ -1,5 +1,5 @@
 """The ``jaxdrive`` command: the parser and :func:`main`; one module per command group
-(:mod:`.train` for train / sample / demo, :mod:`.data`, :mod:`.convert`, :mod:`.bench`).
+(:mod:`.train` for train / sample / demo, :mod:`.data`, :mod:`.convert`, :mod:`.bench`, :mod:`.plan`).
 Subcommands appear here as the parts behind them land."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import logging
 import sys
 
 import jaxdrive
-from jaxdrive.cli import bench, convert, data, eval as eval_cli, train
+from jaxdrive.cli import bench, convert, data, eval as eval_cli, plan, train
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -26,6 +26,7 @@ def build_parser() -> argparse.ArgumentParser:
     convert.add_commands(sub)
     train.add_commands(sub)
     eval_cli.add_commands(sub)
+    plan.add_commands(sub)
     return parser
 
 

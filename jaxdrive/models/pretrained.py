@@ -72,12 +72,9 @@ def save_pretrained(path, model, params, *, overwrite: bool = False) -> Path:
     return path
 
 
-def load_pretrained(path, *, shardings=None, **config_overrides):
-    """``(model, params)`` from a directory written by :func:`save_pretrained`.
-
-    ``config_overrides`` change inference settings (e.g. a VAE's ``mode`` or ``tiling``)."""
-    import orbax.checkpoint as ocp
-
+def load_pretrained_model(path, **config_overrides):
+    """The model (no parameters) of a directory written by :func:`save_pretrained`: what
+    ``model.json`` describes, with ``config_overrides`` applied."""
     path = Path(path).absolute()
     meta_file = path / MODEL_FILE
     if not meta_file.is_file():
@@ -89,7 +86,17 @@ def load_pretrained(path, *, shardings=None, **config_overrides):
         config = {k: tuple(v) if isinstance(v, list) else v for k, v in meta["config"].items() if k in fields}
     except (json.JSONDecodeError, KeyError, TypeError) as e:
         raise ValueError(f"{meta_file}: not a valid saved-model description ({e!r})") from e
-    model = cls(config_cls(**{**config, **config_overrides}))
+    return cls(config_cls(**{**config, **config_overrides}))
+
+
+def load_pretrained(path, *, shardings=None, **config_overrides):
+    """``(model, params)`` from a directory written by :func:`save_pretrained`.
+
+    ``config_overrides`` change inference settings (e.g. a VAE's ``mode`` or ``tiling``)."""
+    import orbax.checkpoint as ocp
+
+    path = Path(path).absolute()
+    model = load_pretrained_model(path, **config_overrides)
     abstract = jax.eval_shape(model.init, jax.random.PRNGKey(0))
     if shardings is not None:
         abstract = jax.tree_util.tree_map(lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s),

@@ -44,6 +44,7 @@ from jaxdrive import validate
 from jaxdrive.models import vae_layers as L
 from jaxdrive.models.layers import GroupNorm
 from jaxdrive.models.params import abstract_params, host_params_for_key
+from jaxdrive.models.tokens import merge, split
 from jaxdrive.parallel.rules import constrain
 
 MODES = ("chunked", "whole", "frame_wise")
@@ -358,9 +359,9 @@ class CausalVAE:
         module, chunk, tile_key = ((Encoder3D(c), c.encode_chunk_frames, "tile_sample") if kind == "encode"
                                    else (Decoder3D(c), c.decode_chunk_latents, "tile_latent"))
         if mode == "frame_wise":
-            n, f = x.shape[:2]
-            out = self._run(kind, params, x.reshape(n * f, 1, *x.shape[2:]), "whole", tiled)
-            return out.reshape(n, f, *out.shape[2:])
+            # one merge / split at a time: under an Explicit mesh the clips' axis stays sharded
+            out = self._run(kind, params, merge(x, 0)[:, None], "whole", tiled)
+            return split(out[:, 0], 0, x.shape[0])
         weights = {"params": params["encoder" if kind == "encode" else "decoder"]}
         apply = lambda t, cache: module.apply(weights, t, cache)
         run = (lambda t: apply(t, None)[0]) if mode == "whole" else (lambda t: _run_chunks(apply, t, chunk))

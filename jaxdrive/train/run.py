@@ -160,17 +160,22 @@ def global_micro_batches(inputs: list[dict], mesh):
 class Run:
     """Everything a run builds from its config (see the module docstring)."""
 
-    def __init__(self, config: Config, *, devices=None, total_steps: int | None = None):
+    def __init__(self, config: Config, *, devices=None, total_steps: int | None = None,
+                 codec: LatentCodec | None = None, check_data: bool = True):
+        """``codec``: the latents' codec in place of the one ``config.latents`` loads, and
+        ``check_data=False``: ``data.path`` is not read (the memory planner's run: its VAE
+        parameters are shapes only, and it needs no data)."""
         check_sections(config)
         self.config = config
         self.total_steps = int(total_steps or config.train.steps)
         self.mesh = mesh_from_config(config, devices)
         check_batch(config, self.mesh)
-        self.codec = LatentCodec.from_config(config.latents)
+        self.codec = LatentCodec.from_config(config.latents) if codec is None else codec
         self.buckets = training_buckets(config, max(self.codec.temporal, 1))
         for b in self.buckets if config.data.buckets else ():      # the default bucket is data.batch_size's
             check_batch(config, self.mesh, b.batch_size, name=f"data.buckets {'x'.join(map(str, b.key))}")
-        check_dataset(config, self.codec)           # latent windows or clips, as latents.precomputed says
+        if check_data:
+            check_dataset(config, self.codec)       # latent windows or clips, as latents.precomputed says
         model = config.model
         if config.train.compute_dtype != model.dtype:
             model = model.replace(dtype=config.train.compute_dtype)

@@ -1,0 +1,315 @@
+"""Will it fit? Per-device memory of a config's train step on a mesh, with nothing allocated.
+
+    plan = plan_memory(config, {"fsdp": 4, "seq": 2})        # needs 8 devices (fake CPU ones do)
+    plan["per_device"]["total"]                              # bytes one device holds during a step
+    fit = largest_fit(config, {"fsdp": 4, "seq": 2}, parse_bytes("80GiB"))
+
+How: :meth:`Run.abstract_state` gives the train state as ``jax.ShapeDtypeStruct`` leaves with
+their shardings (``jax.eval_shape``: no parameter exists), so parameters, optimizer state and
+EMA are counted per device from each leaf's shard shape. The batch is the abstract global batch of
+the config's bucket with the most tokens, built by :func:`~jaxdrive.data.batches.model_inputs`
+from a pipeline batch of zero-stride NumPy views (the tree the loop feeds, at no memory), sharded
+over ``data`` x ``fsdp`` as :meth:`Run.global_batch` shards it. A VAE that encodes in the step is
+the one ``latents.vae_path`` describes (only its ``model.json`` is read) or, where that path holds
+none, CogVideoX-2B's (:class:`~jaxdrive.models.vae.VAEConfig`'s defaults), its parameters shapes
+only. The jitted train step (:meth:`Run.step_fn`) is lowered on these shapes and compiled, and
+``compiled.memory_analysis()`` gives its arguments, outputs (less those aliasing the donated
+state) and temporaries: activations kept for the backward pass and scratch. ``total`` is what
+stays on a device (state, frozen parameters, batch: :func:`resident_bytes`) plus what the step
+adds (:func:`transient_bytes`); a VAE the step does not read (stored latents) is no argument of
+the compiled program, but it is on the device all the same.
+
+The attention is the one an accelerator runs (:func:`accelerator_attention`). The figures are
+XLA:CPU's buffer assignment for the mesh's devices. An accelerator's compiler
+fuses and schedules differently, and XLA:CPU computes some bfloat16 operations in float32, so the
+temporaries are an estimate of the accelerator's (the state, batch and frozen parameters are
+exact); the README compares the estimate with measured runs.
+
+:func:`largest_fit`: for each resolution (the planned bucket's, scaled by ``scales`` with its
+aspect ratio, rounded to the latent patch grid) the longest clip ``1 + temporal k`` frames whose
+planned total fits ``device_memory``: doubling ``k`` from the config's clip, then bisecting (one
+compile per probe; memory grows with the tokens, so the search assumes it is monotonic in ``k``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+import time
+
+import jax
+import numpy as np
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
+
+from jaxdrive.parallel.mesh import MESH_AXES, parse_mesh_spec
+
+UNITS = {"": 1, "b": 1, "kb": 10 ** 3, "mb": 10 ** 6, "gb": 10 ** 9, "tb": 10 ** 12,
+         "kib": 2 ** 10, "mib": 2 ** 20, "gib": 2 ** 30, "tib": 2 ** 40}
+STATE_PARTS = ("params", "opt_state", "ema")
+
+
+def parse_bytes(text, name: str = "--device-memory") -> int:
+    """``"80GiB"``, ``"16GB"``, ``"512MiB"``, ``"1e9"`` -> bytes (``ValueError`` naming ``name``)."""
+    m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:e[0-9]+)?)\s*([a-z]*)\s*", str(text), re.IGNORECASE)
+    unit = m and m.group(2).lower()
+    if not m or unit not in UNITS or float(m.group(1)) <= 0:
+        raise ValueError(f"{name}: expected a positive size like 80GiB, 16GB or 512MiB (units "
+                         f"{', '.join(u for u in UNITS if u)}), got {text!r}")
+    return int(float(m.group(1)) * UNITS[unit])
+
+
+def parse_mesh(spec, devices: int | None = None, name: str = "--mesh") -> dict[str, int]:
+    """``"data=2,fsdp=2,seq=2"`` (or a dict) -> sizes of all four mesh axes. ``-1`` (the rest)
+    only with ``devices``; with ``devices`` the product must equal it. ``ValueError`` naming ``name``."""
+    try:
+        sizes = parse_mesh_spec(spec) if isinstance(spec, str) else dict(spec)
+    except (ValueError, TypeError) as e:
+        raise ValueError(f"{name}: {e}") from None
+    for axis, n in sizes.items():
+        if axis not in MESH_AXES:
+            raise ValueError(f"{name}: expected axes from {list(MESH_AXES)}, got {axis!r}")
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or (n < 1 and not (n == -1 and devices)):
+            raise ValueError(f"{name}: expected {axis} to be a positive integer"
+                             f"{' or -1' if devices else ''}, got {n!r}")
+    sizes = {a: int(sizes.get(a, 1)) for a in MESH_AXES}
+    known = math.prod(n for n in sizes.values() if n != -1)
+    rest = [a for a, n in sizes.items() if n == -1]
+    if len(rest) > 1:
+        raise ValueError(f"{name}: expected at most one axis of size -1, got {rest}")
+    if rest:
+        if devices % known:
+            raise ValueError(f"{name}: expected the other axes' product {known} to divide {devices} devices, "
+                             f"got {spec!r}")
+        sizes[rest[0]] = devices // known
+    elif devices is not None and known != devices:
+        raise ValueError(f"{name}: expected axis sizes whose product is the device count {devices}, got "
+                         f"{spec!r} (product {known})")
+    return sizes
+
+
+def device_bytes(tree) -> int:
+    """Bytes one device holds of the ``jax.ShapeDtypeStruct`` / ``jax.Array`` leaves of ``tree``
+    (each leaf's shard shape under its sharding; a leaf without one counts whole)."""
+    total = 0
+    for x in jax.tree_util.tree_leaves(tree):
+        sharding = getattr(x, "sharding", None)
+        shape = sharding.shard_shape(x.shape) if sharding is not None else x.shape
+        total += math.prod(shape) * np.dtype(x.dtype).itemsize
+    return total
+
+
+def resident_bytes(per_device: dict) -> int:
+    """What lives on a device between steps: the state, the frozen parameters and the batch."""
+    return sum(per_device[k] for k in (*STATE_PARTS, "state_other", "frozen", "batch"))
+
+
+def transient_bytes(analysis) -> int:
+    """What a compiled step adds while it runs: temporaries and the outputs that do not reuse a
+    donated argument's buffer (``memory_analysis()``)."""
+    return int(analysis.temp_size_in_bytes + analysis.output_size_in_bytes - analysis.alias_size_in_bytes)
+
+
+def abstract_codec(latents):
+    """The :class:`~jaxdrive.models.latents.LatentCodec` of ``latents`` (a ``LatentConfig``) with a
+    VAE's parameters as shapes: the VAE of ``latents.vae_path`` (its ``model.json``) or, where that
+    holds none, CogVideoX-2B's. Returns ``(codec, what)``, ``what`` naming the VAE used."""
+    from pathlib import Path
+
+    from jaxdrive.models.latents import LatentCodec
+    from jaxdrive.models.pretrained import MODEL_FILE, load_pretrained_model
+    from jaxdrive.models.vae import CausalVAE, VAEConfig
+    if latents.source != "vae":
+        return LatentCodec.from_config(latents), latents.source
+    if (Path(latents.vae_path) / MODEL_FILE).is_file():
+        vae, what = load_pretrained_model(latents.vae_path, mode=latents.vae_mode), latents.vae_path
+    else:
+        vae, what = CausalVAE(VAEConfig(mode=latents.vae_mode)), f"CogVideoX-2B ({latents.vae_path!r} has none)"
+    params = jax.eval_shape(vae.init, jax.random.PRNGKey(0))
+    return LatentCodec("vae", 1, 1.0, vae, params), f"vae {what}"
+
+
+def _zeros(shape, dtype=np.float32):
+    return np.broadcast_to(np.zeros((), dtype), shape)     # a view: no memory at any shape
+
+
+def pipeline_batch(run, batch: int, height: int, width: int, frames: int) -> dict:
+    """A pipeline batch (:func:`jaxdrive.data.pipeline.collate`'s fields) of ``batch`` clips whose
+    arrays are zero-stride views; the box count and BEV grid are nuScenes' (64 slots, 200 x 200)."""
+    from jaxdrive.data.pipeline import CONDITIONS
+    d, n_box, bev = run.config.data, 64, (200, 200)
+    v, f = d.views, frames
+    out = {"intrinsics": _zeros((batch, v, 3, 3)), "cam_to_ego": _zeros((batch, v, 4, 4)),
+           "ego_to_world": _zeros((batch, f, 4, 4)), "waypoints": _zeros((batch, f, 2)), "fps": _zeros((batch,)),
+           "frame_times": _zeros((batch, f)), "boxes": _zeros((batch, f, n_box, 7)),
+           "box_classes": _zeros((batch, f, n_box), np.int32), "box_ids": _zeros((batch, f, n_box), np.int32),
+           "box_valid": _zeros((batch, f, n_box), bool), "bev_map": _zeros((batch, f, *bev, 8)),
+           "caption": ["a driving scene"] * batch, "drop": {c: _zeros((batch,), bool) for c in CONDITIONS}}
+    video = (batch, v, f, height, width, 3)
+    if run.config.latents.precomputed:
+        sp = run.codec.spatial
+        out["latents"] = _zeros((batch, v, run.codec.latent_frames(f), height // sp, width // sp, run.codec.channels))
+    else:
+        out["video"] = _zeros(video)
+    if run.training.model.controls.warp:
+        out["warp_video"] = _zeros(video)
+    return out
+
+
+def abstract_batch(run, bucket):
+    """The global ``[A, b, ...]`` batch the step takes for ``bucket``, as ``jax.ShapeDtypeStruct``
+    leaves sharded like :meth:`Run.global_batch`'s (``b`` over ``data`` x ``fsdp``)."""
+    from jaxdrive.data.batches import model_inputs
+    from jaxdrive.train.run import check_batch
+    _, micro = check_batch(run.config, run.mesh, bucket.batch_size)
+    model = run.training.model
+    text = run.text
+    if model.controls.text == "embeddings" and text is None:       # T5 embeddings: their shape is all that counts
+        text = lambda captions: (_zeros((len(captions), model.text_len, model.text_dim)),
+                                 _zeros((len(captions), model.text_len), bool))
+    inputs = model_inputs(pipeline_batch(run, micro, bucket.height, bucket.width, bucket.frames), model, text,
+                          foreground=run.training.flow.foreground_k > 0, teacher=run.training.teacher)
+    axes = tuple(a for a in ("data", "fsdp") if a in run.mesh.axis_names)
+    sharding = NamedSharding(run.mesh, P(None, axes or None))
+    a = run.config.optim.grad_accum
+    return jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct((a, *np.shape(x)), np.asarray(x).dtype,
+                                                                 sharding=sharding), inputs)
+
+
+def planned_bucket(run):
+    """The bucket whose micro-batch has the most tokens (ties: the first)."""
+    return max(run.buckets, key=lambda b: run.tokens(b.batch_size, b.height, b.width, run.codec.latent_frames(b.frames)))
+
+
+def accelerator_attention(config, sizes: dict):
+    """``config`` with the attention an accelerator runs: where ``model.attn_impl`` is "auto" and
+    ``seq`` does not split the tokens, "blockwise" (O(L) memory, as the cuDNN / splash kernels that
+    "auto" picks on a GPU / TPU), not the dense XLA attention "auto" picks on a CPU for sequences
+    under 4096^2 pairs, whose scores ``remat="dots"`` would keep for every layer. On a ``seq`` mesh
+    "auto" is the ring kernel everywhere."""
+    if config.model.attn_impl != "auto" or sizes.get("seq", 1) > 1:
+        return config
+    return dataclasses.replace(config, model=config.model.replace(attn_impl="blockwise"))
+
+
+def _with_mesh(config, sizes: dict):
+    from jaxdrive.config import MeshConfig
+    return dataclasses.replace(config, mesh=MeshConfig(**sizes))
+
+
+def plan_memory(config, mesh, *, device_memory: int | None = None, devices=None, codec=None,
+                compile_step: bool = True) -> dict:
+    """Per-device bytes of ``config``'s train step on ``mesh`` (``{"fsdp": 4, ...}`` or
+    ``"fsdp=4,..."``; its product devices of ``devices``, default ``jax.devices()``): see the
+    module docstring. Returns ``{"mesh", "devices", "bucket", "batch", "tokens", "codec",
+    "per_device": {...}, "compile_seconds", "device_memory", "fits"}``; ``per_device`` holds
+    ``params``, ``opt_state``, ``ema``, ``state_other`` (step, key, counters), ``replicated`` (the
+    bytes of the first three whose leaves the mesh does not split), ``frozen`` (a VAE's
+    parameters), ``batch``, and from the compiled step ``arguments``, ``outputs``, ``aliased``,
+    ``temp`` and ``total`` (None with ``compile_step=False``, which compiles nothing)."""
+    from jaxdrive.train.run import Run
+    devices = list(jax.devices() if devices is None else devices)
+    sizes = parse_mesh(mesh, None, name="mesh")
+    n = math.prod(sizes.values())
+    if n > len(devices):
+        raise ValueError(f"mesh: expected at most {len(devices)} devices (those there are), got {sizes} (product {n})")
+    if device_memory is not None and (isinstance(device_memory, bool) or not isinstance(device_memory, (int, np.integer))
+                                      or device_memory <= 0):
+        raise ValueError(f"device_memory: expected a positive number of bytes, got {device_memory!r}")
+    what = None
+    if codec is None:
+        codec, what = abstract_codec(config.latents)
+    config = accelerator_attention(config, sizes)
+    run = Run(_with_mesh(config, sizes), devices=devices[:n], codec=codec, check_data=False)
+    state, optimizer = run.abstract_state()
+    shardings = jax.tree_util.tree_map(lambda x: x.sharding, state)
+    bucket = planned_bucket(run)
+    batch = abstract_batch(run, bucket)
+    replicated = NamedSharding(run.mesh, P())
+    frozen = {"codec": jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=replicated),
+                                              codec.params), "teacher": None}
+    parts = {k: device_bytes(getattr(state, k)) for k in STATE_PARTS}
+    whole = [x for k in STATE_PARTS for x in jax.tree_util.tree_leaves(getattr(state, k))
+             if x.sharding.is_fully_replicated]
+    per_device = {**parts, "state_other": device_bytes(state) - sum(parts.values()), "replicated": device_bytes(whole),
+                  "frozen": device_bytes(frozen), "batch": device_bytes(batch),
+                  **dict.fromkeys(("arguments", "outputs", "aliased", "temp", "total"))}
+    seconds = None
+    if compile_step:
+        t = time.perf_counter()
+        with jax.set_mesh(run.mesh):
+            compiled = run.step_fn(optimizer, shardings).lower(state, frozen, batch).compile()
+        seconds = round(time.perf_counter() - t, 1)
+        a = compiled.memory_analysis()
+        per_device.update(arguments=int(a.argument_size_in_bytes), outputs=int(a.output_size_in_bytes),
+                          aliased=int(a.alias_size_in_bytes), temp=int(a.temp_size_in_bytes))
+        per_device["total"] = resident_bytes(per_device) + transient_bytes(a)
+    return {"mesh": sizes, "devices": n, "bucket": "x".join(map(str, bucket.key)), "batch": bucket.batch_size,
+            "tokens": run.tokens(bucket.batch_size, bucket.height, bucket.width, run.codec.latent_frames(bucket.frames)),
+            "codec": what or codec.source, "per_device": per_device, "compile_seconds": seconds,
+            "device_memory": device_memory,
+            "fits": None if device_memory is None or not compile_step else per_device["total"] <= device_memory}
+
+
+def largest_fit(config, mesh, device_memory: int, *, scales=(1.0,), devices=None, max_doublings: int = 6,
+                log=None) -> dict:
+    """The longest clip at each resolution that fits ``device_memory`` bytes per device (module
+    docstring). Returns ``{"device_memory", "resolutions": [{"height", "width", "frames", "total",
+    "probes"}, ...], "largest": the entry with the most tokens}``; ``frames`` is None where not even
+    the shortest clip fits."""
+    from jaxdrive.train.run import Run
+    if isinstance(device_memory, bool) or not isinstance(device_memory, (int, np.integer)) or device_memory <= 0:
+        raise ValueError(f"device_memory: expected a positive number of bytes, got {device_memory!r}")
+    if not scales or any(not (isinstance(s, (int, float)) and math.isfinite(s) and s > 0) for s in scales):
+        raise ValueError(f"scales: expected positive resolution scales, got {scales!r}")
+    codec, _ = abstract_codec(config.latents)
+    sizes = parse_mesh(mesh, None, name="mesh")
+    devices = list(jax.devices() if devices is None else devices)[:math.prod(sizes.values())]
+    run = Run(_with_mesh(config, sizes), devices=devices, codec=codec, check_data=False)
+    bucket, temporal = planned_bucket(run), max(codec.temporal, 1)
+    m = run.training.model
+    gh, gw = codec.spatial * m.patch[1], codec.spatial * m.patch[2]
+    k0 = (bucket.frames - 1) // temporal
+    k_min = max(1, -(-run.config.flow.cond_frames // temporal))   # a clip longer than its given frames
+    rows = []
+    for s in scales:
+        h, w = max(gh, round(bucket.height * s / gh) * gh), max(gw, round(bucket.width * s / gw) * gw)
+        totals: dict[int, int | None] = {}
+
+        def total(k):
+            if k not in totals:
+                probe = dataclasses.replace(config, data=dataclasses.replace(
+                    config.data, buckets=(), height=h, width=w, frames=1 + temporal * k, batch_size=bucket.batch_size))
+                try:
+                    totals[k] = plan_memory(probe, sizes, devices=devices, codec=codec)["per_device"]["total"]
+                except ValueError:          # a clip length the config rules out (e.g. its anchor spacing)
+                    totals[k] = None
+                if log:
+                    log(f"  {h}x{w}x{1 + temporal * k}: {totals[k]}")
+            return totals[k]
+
+        fits = lambda k: total(k) is not None and total(k) <= device_memory
+        lo, hi = None, None                 # largest k known to fit, smallest known not to
+        k = max(k0, k_min)
+        if fits(k):
+            lo = k
+            for _ in range(max_doublings):
+                k = 2 * k
+                if not fits(k):
+                    hi = k
+                    break
+                lo = k
+        else:
+            hi = k
+            lo = k_min if k_min < hi and fits(k_min) else None
+        while lo is not None and hi is not None and hi - lo > 1:
+            mid = (lo + hi) // 2
+            lo, hi = (mid, hi) if fits(mid) else (lo, mid)
+        rows.append({"height": h, "width": w, "frames": None if lo is None else 1 + temporal * lo,
+                     "total": None if lo is None else totals[lo], "probes": len(totals),
+                     "capped": lo is not None and hi is None})
+    found = [r for r in rows if r["frames"]]
+    largest = max(found, key=lambda r: r["height"] * r["width"] * r["frames"]) if found else None
+    return {"device_memory": device_memory, "bucket_batch": bucket.batch_size, "resolutions": rows,
+            "largest": largest}
