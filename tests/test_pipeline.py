@@ -3,7 +3,7 @@ import re
 import numpy as np
 import pytest
 
-from jaxdrive.data import pipeline, schema, tfds_io
+from jaxdrive.data import pipeline, resize, schema, tfds_io
 from test_tfds_io import random_clip
 
 
@@ -94,16 +94,16 @@ def test_intrinsics_follow_resize_and_crop():
     video = np.zeros((1, 1, h, w, 3), np.uint8)
     video[..., int(v) - 1:int(v) + 1, int(u) - 1:int(u) + 1, :] = 255  # 2x2 block centred on (u, v)
     for crop, seed in (("center", 0), ("random", 1), ("random", 2)):
-        plan = pipeline.resize_plan((h, w), (16, 20), crop=crop, rng=np.random.default_rng(seed))
-        img = (pipeline.resize_crop_video(video, plan)[0, 0, ..., 0] + 1) / 2
-        K2 = pipeline.adjust_intrinsics(K, plan)
+        plan = resize.resize_plan((h, w), (16, 20), crop=crop, rng=np.random.default_rng(seed))
+        img = (resize.resize_crop_video(video, plan)[0, 0, ..., 0] + 1) / 2
+        K2 = resize.adjust_intrinsics(K, plan)
         u2, v2 = (K2 @ P)[:2] / P[2]
         rows, cols = np.mgrid[:16, :20] + 0.5
         cu, cv = (img * cols).sum() / img.sum(), (img * rows).sum() / img.sum()
         assert abs(cu - u2) < 0.05 and abs(cv - v2) < 0.05, (crop, cu, u2, cv, v2)
     # worked example: cover scale 0.54 along x (50 -> 27), 16/30 along y, centre crop 3 px in x
-    plan = pipeline.resize_plan((h, w), (16, 20))
-    np.testing.assert_allclose(pipeline.adjust_intrinsics(K, plan),
+    plan = resize.resize_plan((h, w), (16, 20))
+    np.testing.assert_allclose(resize.adjust_intrinsics(K, plan),
                                [[40 * 0.54, 0, 25 * 0.54 - 3], [0, 40 * 16 / 30, 15 * 16 / 30], [0, 0, 1]], rtol=1e-6)
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxdrive.data.pipeline import resize_crop_labels, resize_plan
+from jaxdrive.data.resize import resize_crop_labels, resize_plan
 from jaxdrive.eval.segmenter import CLASSES, class_masks, confusion, summary
 
 CONFIG = str(Path(__file__).resolve().parents[1] / "configs" / "segmenter.py")   # segmenter_run: conftest
