@@ -24,10 +24,21 @@ def _data_synth(args, rest) -> int:
     from jaxdrive.data.synthetic import write_synthetic_dataset
 
     n_train, n_val = _split_counts(args.scenes, args.val_fraction)
+    from jaxdrive.data.synthetic import COUNTERFACTUAL_START, read_counterfactuals
+
+    if args.counterfactuals is not None and not n_val:
+        raise ValueError(f"--counterfactuals: expected a dataset with validation clips (--scenes >= 2 and "
+                         f"--val-fraction > 0), got {n_val} validation clips")
     path = write_synthetic_dataset(args.out, train=n_train, validation=n_val, seed=args.seed,
                                    overwrite=args.overwrite, views=args.views, frames=args.frames,
-                                   height=args.height, width=args.width)
-    print(f"wrote {n_train} train and {n_val} validation clips to {path}")
+                                   height=args.height, width=args.width,
+                                   counterfactuals=args.counterfactuals or (),
+                                   counterfactual_start=(COUNTERFACTUAL_START if args.counterfactual_start is None
+                                                         else args.counterfactual_start),
+                                   skip_undrivable=args.skip_undrivable)
+    routes = read_counterfactuals(path).get("routes", {})
+    extra = "".join(f"; {name}: {len(r['clips'])} of {n_val} validation clips" for name, r in routes.items())
+    print(f"wrote {n_train} train and {n_val} validation clips to {path}{extra}")
     return 0
 
 
@@ -115,6 +126,14 @@ def add_commands(sub) -> None:
     synth.add_argument("--val-fraction", type=float, default=0.125)
     synth.add_argument("--seed", type=int, default=0)
     synth.add_argument("--overwrite", action="store_true")
+    synth.add_argument("--counterfactuals", metavar="ROUTES",
+                       help="store each validation clip's re-render along these routes (comma-separated: stop, "
+                            "slower, faster, lane-left, lane-right, branch) in splits validation_route_<route>")
+    synth.add_argument("--counterfactual-start", type=int, default=None,
+                       help="the first frame a counterfactual route changes (default 8: after the given frames)")
+    synth.add_argument("--skip-undrivable", action="store_true",
+                       help="leave out a validation clip that cannot drive a route (off the road, into an agent, "
+                            "no intersection to branch at) instead of stopping with an error naming it")
     synth.set_defaults(run=_data_synth)
     nus = dsub.add_parser("nuscenes", help="convert a local nuScenes dataroot")
     nus.add_argument("--dataroot", required=True)

@@ -77,15 +77,30 @@ def sample_agents(rng, count, xc, route_xy):
     return out
 
 
-def simulate(agents, ego_xy, ego_yaw, fps):
-    """Roll the agents out over the ego's frames -> ``(xy [F, N, 2], yaw [N])`` world frame."""
+def simulate(agents, ego_xy, ego_yaw, fps, *, driver=None):
+    """Roll the agents out over the ego's frames -> ``(xy [F, N, 2], yaw [N])`` world frame.
+
+    ``driver`` (optional, a :class:`jaxdrive.data.synth_routes.EgoDriver`) drives the ego from its
+    frame ``driver.start`` on, reacting to the agents, instead of replaying ``ego_xy`` / ``ego_yaw``;
+    from then on every agent (pedestrians aside) treats the ego as an obstacle in its lane whatever
+    the ego's heading, so that traffic brakes for an ego that changes lanes or turns across it.
+    Before ``driver.start`` the arithmetic is exactly the recorded run's. Returns the ego's
+    driven ``(xy, yaw)`` too when a driver is given."""
     frames, n = len(ego_xy), len(agents)
+    if driver is not None:
+        ego_xy, ego_yaw = np.array(ego_xy, np.float64), np.array(ego_yaw, np.float64)
     if n == 0:
-        return np.zeros((frames, 0, 2)), np.zeros((0,))
+        xy, yaw = np.zeros((frames, 0, 2)), np.zeros((0,))
+        if driver is None:
+            return xy, yaw
+        for f in range(driver.start, frames):
+            ego_xy[f], ego_yaw[f] = driver.step(f, xy[f - 1], yaw, np.zeros((0, 2)))
+        return xy, yaw, ego_xy, ego_yaw
     dt = 1.0 / fps
     origin = np.stack([a["origin"] for a in agents])
     direction = np.stack([a["direction"] for a in agents])
     length = np.array([a["size"][0] for a in agents])
+    sizes = np.stack([a["size"][:2] for a in agents])
     cruise = np.array([a["cruise"] for a in agents])
     stop_s = np.array([a["stop_s"] for a in agents])
     window = np.array([a["stop_window"] for a in agents])
@@ -96,11 +111,15 @@ def simulate(agents, ego_xy, ego_yaw, fps):
     # Lane identity: same origin line and direction.
     key = np.round(np.concatenate([origin * (1 - np.abs(direction)), direction], 1), 3)
     same = (key[:, None, :] == key[None, :, :]).all(-1) & ~np.eye(n, dtype=bool)
+    yaw = np.arctan2(direction[:, 1], direction[:, 0])
     s = np.array([a["s0"] for a in agents], np.float64)
     v = np.array([a["v0"] for a in agents], np.float64)
     xy = np.zeros((frames, n, 2))
     for f in range(frames):
         xy[f] = origin + s[:, None] * direction
+        driven = driver is not None and f >= driver.start
+        if driven:
+            ego_xy[f], ego_yaw[f] = driver.step(f, xy[f - 1], yaw, sizes)
         t = f * dt
         # Leaders: agents in the same lane ahead, and the ego when it drives in this lane.
         ahead = s[None, :] - s[:, None]
@@ -111,6 +130,8 @@ def simulate(agents, ego_xy, ego_yaw, fps):
         s_e = (rel * direction).sum(1)
         lat = np.abs(rel[:, 0] * direction[:, 1] - rel[:, 1] * direction[:, 0])
         aligned = np.cos(ego_yaw[f]) * direction[:, 0] + np.sin(ego_yaw[f]) * direction[:, 1] > 0.7
+        if driven:
+            aligned = np.ones_like(aligned)
         in_lane = (lat < 1.6) & aligned & (s_e > s) & ~ped
         gap = np.where(in_lane, np.minimum(gap, s_e - s - 0.5 * (length + EGO_SIZE[0])), gap)
         target = np.where((t >= window[:, 0]) & (t < window[:, 1]), 0.0, cruise)
@@ -121,11 +142,12 @@ def simulate(agents, ego_xy, ego_yaw, fps):
         v = np.clip(v + np.clip((target - v) / 0.6, -brake, accel) * dt, 0.0, None)
         s = s + v * dt
         s = np.where(np.isfinite(gap), np.minimum(s, s + np.maximum(gap, 0.0) - 0.3), s)
-    yaw = np.arctan2(direction[:, 1], direction[:, 0])
-    return xy, yaw
+    if driver is None:
+        return xy, yaw
+    return xy, yaw, ego_xy, ego_yaw
 
 
-def _rect_corners(xy, yaw, length, width):
+def rect_corners(xy, yaw, length, width):
     c, s = np.cos(yaw), np.sin(yaw)
     fx, fy = c * length / 2, s * length / 2
     lx, ly = -s * width / 2, c * width / 2
@@ -152,9 +174,9 @@ def colliding(agents, xy, yaw, ego_xy, ego_yaw, margin=0.4):
     if n == 0:
         return np.zeros(0, int)
     size = np.stack([a["size"] for a in agents])
-    rects = _rect_corners(xy, np.broadcast_to(yaw, xy.shape[:2]), size[:, 0] + margin, size[:, 1] + margin)
+    rects = rect_corners(xy, np.broadcast_to(yaw, xy.shape[:2]), size[:, 0] + margin, size[:, 1] + margin)
     ego_c = ego_xy + EGO_CENTRE * np.stack([np.cos(ego_yaw), np.sin(ego_yaw)], -1)
-    ego = _rect_corners(ego_c, ego_yaw, np.full_like(ego_yaw, EGO_SIZE[0] + 1.0),
+    ego = rect_corners(ego_c, ego_yaw, np.full_like(ego_yaw, EGO_SIZE[0] + 1.0),
                         np.full_like(ego_yaw, EGO_SIZE[1] + 0.8))
     bad = overlaps(rects, ego[:, None]).any(0)
     pair = overlaps(rects[:, :, None], rects[:, None, :]).any(0) & ~np.eye(n, dtype=bool)

@@ -12,6 +12,8 @@ centre, length along the heading.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 LANE = 3.5
@@ -70,11 +72,60 @@ def _arc(cx, cy, radius, a0, a1, n=48):
     return np.stack([cx + radius * np.cos(a), cy + radius * np.sin(a)], -1)
 
 
-def ego_route(rng, frames: int, fps: float):
-    """The ego's smooth route and speed profile.
+def turn_path(start: float, lane_y: float, turn: str, radius: float):
+    """The polyline of a turn off the main street (heading +x in the lane at ``lane_y``) that
+    leaves it at ``x = start`` on a circular arc of ``radius``, then drives 1 km along the cross
+    street -> ``(points [P, 2], heading [P])``, the first point ``(0, lane_y)``."""
+    if turn == "left":
+        arc = _arc(start, lane_y + radius, radius, -np.pi / 2, 0.0)
+        end = arc[-1] + np.array([0.0, 1000.0])
+        arc_heading = np.linspace(0.0, np.pi / 2, len(arc))
+        end_heading = np.pi / 2
+    else:
+        arc = _arc(start, lane_y - radius, radius, np.pi / 2, 0.0)
+        end = arc[-1] + np.array([0.0, -1000.0])
+        arc_heading = np.linspace(0.0, -np.pi / 2, len(arc))
+        end_heading = -np.pi / 2
+    pts = np.concatenate([[[0.0, lane_y]], arc, [end]])
+    heading = np.concatenate([[0.0], arc_heading, [end_heading]])
+    return pts, heading
 
-    Returns ``(xy [F, 2], yaw [F], crosses [C], turn)``: ego (rear axle) positions and headings in
-    the world frame, the cross streets' x, and the manoeuvre ("straight", "left" or "right").
+
+def straight_path(lane_y: float, length: float):
+    """The main street's lane at ``lane_y`` as a polyline from x = 0 -> ``(points [2, 2], heading [2])``."""
+    return np.array([[0.0, lane_y], [length + 1000.0, lane_y]]), np.zeros(2)
+
+
+def along_path(pts, heading, dist):
+    """Positions ``[..., 2]`` and headings ``[...]`` at arc lengths ``dist`` along a polyline."""
+    seglen = np.linalg.norm(np.diff(pts, axis=0), axis=-1)
+    cum = np.concatenate([[0.0], np.cumsum(seglen)])
+    xy = np.stack([np.interp(dist, cum, pts[:, 0]), np.interp(dist, cum, pts[:, 1])], -1)
+    return xy, np.interp(dist, cum, heading)
+
+
+@dataclasses.dataclass(frozen=True)
+class EgoRoute:
+    """The ego's recorded drive: per-frame ``xy [F, 2]`` and ``yaw [F]`` (world frame), the cross
+    streets' x (``crosses [C]``), the manoeuvre (``turn``: "straight", "left", "right"), the path
+    it follows (``points [P, 2]``, ``heading [P]``), the distance driven along it at each frame
+    (``dist [F]``), the main-street lane it starts in (``lane_y``) and, for a turn, the x where it
+    leaves the main street (``turn_start``, None when straight)."""
+
+    xy: np.ndarray
+    yaw: np.ndarray
+    crosses: np.ndarray
+    turn: str
+    points: np.ndarray
+    heading: np.ndarray
+    dist: np.ndarray
+    lane_y: float
+    turn_start: float | None
+
+
+def ego_route(rng, frames: int, fps: float) -> EgoRoute:
+    """The ego's smooth route and speed profile (an :class:`EgoRoute`).
+
     The speed follows random key speeds every ~2 s (cosine-blended, sometimes stopping); a turn
     happens at the first cross street when the clip is long enough to reach it.
     """
@@ -99,37 +150,25 @@ def ego_route(rng, frames: int, fps: float):
     total = dist[-1]
     if total < 12.0:
         turn = "straight"
+    start = None
     if turn == "straight":
         lane_y = -LANE / 2 if rng.random() < 0.5 else -1.5 * LANE
         xc = rng.uniform(15.0, 70.0)
-        pts = np.array([[0.0, lane_y], [total + 1000.0, lane_y]])
-        heading = np.zeros(2)
+        pts, heading = straight_path(lane_y, total)
     else:
         lane_y = -LANE / 2
         start = rng.uniform(0.25, 0.6) * total
         if turn == "left":
             radius = rng.uniform(ROAD + LANE / 2, ROAD + LANE / 2 + 2.0)
             xc = start + radius - LANE / 2
-            arc = _arc(start, lane_y + radius, radius, -np.pi / 2, 0.0)
-            end = arc[-1] + np.array([0.0, 1000.0])
-            arc_heading = np.linspace(0.0, np.pi / 2, len(arc))
-            end_heading = np.pi / 2
         else:
             radius = rng.uniform(ROAD - LANE / 2, ROAD - LANE / 2 + 1.5)
             xc = start + radius + LANE / 2
-            arc = _arc(start, lane_y - radius, radius, np.pi / 2, 0.0)
-            end = arc[-1] + np.array([0.0, -1000.0])
-            arc_heading = np.linspace(0.0, -np.pi / 2, len(arc))
-            end_heading = -np.pi / 2
-        pts = np.concatenate([[[0.0, lane_y]], arc, [end]])
-        heading = np.concatenate([[0.0], arc_heading, [end_heading]])
-    seglen = np.linalg.norm(np.diff(pts, axis=0), axis=-1)
-    cum = np.concatenate([[0.0], np.cumsum(seglen)])
-    xy = np.stack([np.interp(dist, cum, pts[:, 0]), np.interp(dist, cum, pts[:, 1])], -1)
-    yaw = np.interp(dist, cum, heading)
+        pts, heading = turn_path(start, lane_y, turn, radius)
+    xy, yaw = along_path(pts, heading, dist)
     spacing = rng.uniform(80.0, 120.0)
     crosses = np.array([xc - spacing, xc, xc + spacing])
-    return xy, yaw, crosses, turn
+    return EgoRoute(xy, yaw, crosses, turn, pts, heading, dist, float(lane_y), start)
 
 
 # ------------------------------------------------------------------------------ static scenery

@@ -20,10 +20,12 @@ import numpy as np
 
 from jaxdrive.data import schema
 from jaxdrive.data.bev import cell_centres
-from jaxdrive.data.synth_agents import traffic
+from jaxdrive.data import synth_routes as routes
+from jaxdrive.data.synth_agents import simulate, traffic
 from jaxdrive.data.synth_render import camera_rig, pixel_rays, raycast, yaw_matrix
 from jaxdrive.data.synth_shade import (DAYTIME, LOOKS, box_colour, ego_headlights, fog, ground_colour,
                                       lamp_light, rain_streaks, sky_colour)
+from jaxdrive.data.synth_routes import ROUTES
 from jaxdrive.data.synth_world import AGENT_KIND, LAMP, ego_route, road_classes, static_scenery
 from jaxdrive.validate import check_choice, check_positive_int, check_range
 
@@ -31,6 +33,7 @@ TOWNS = ("synthtown-harbour", "synthtown-old-quarter", "gridville-centre", "boxf
          "raycast-bay")
 SEASONS = ("spring", "summer", "autumn", "winter")
 MAX_AGENTS = 20
+COUNTERFACTUAL_START = 8   # the first frame a counterfactual route changes (after the given frames)
 
 
 def _pose(xy, yaw):
@@ -109,20 +112,10 @@ def _check_args(seed, views, frames, height, width, fps, num_agents, look, max_b
         raise ValueError(f"bev_range: expected two positive extents in metres (x, y), got {bev_range!r}")
 
 
-def generate_clip(seed, *, views=6, frames=33, height=64, width=112, fps=12.0, num_agents=None,
-                  look=None, max_boxes=MAX_AGENTS, bev_size=(64, 64), bev_range=(100.0, 100.0),
-                  scenery=True) -> dict:
-    """One clip of the synthetic town, a dict per :data:`jaxdrive.data.schema.CLIP_FIELDS`.
-
-    seed: non-negative int; the same seed gives identical arrays. views: 6 (the CAMERAS rig) or 1
-    (CAM_FRONT). frames >= 1 at ``fps``. height, width >= 8 pixels. num_agents: 0..max_boxes other
-    road users (default: 3-20 drawn by the seed). look: "day", "night" or "rain" (default: drawn by
-    the seed). max_boxes: N, the box slots. bev_size (Hm, Wm) cells over bev_range (x, y) metres,
-    ego at the centre, x up. scenery=False leaves out buildings, trees and lamps (tests use it to
-    check agent occlusion alone).
-    """
-    _check_args(seed, views, frames, height, width, fps, num_agents, look, max_boxes, bev_size, bev_range)
-    fps = float(fps)
+def _draw_scene(seed, views, frames, height, width, fps, num_agents, look, max_boxes, scenery):
+    """Every random draw of a clip, in the order the recorded clip makes them: the look, the town,
+    the ego's route, the scenery, the traffic (simulated against the recorded ego), colours, track
+    ids and the sun. Returns the scene dict and the generator (rain streaks draw from it last)."""
     rng = np.random.default_rng(int(seed))
     if look is None:
         look = ("day", "night", "rain")[rng.choice(3, p=[0.55, 0.25, 0.2])]
@@ -131,12 +124,12 @@ def generate_clip(seed, *, views=6, frames=33, height=64, width=112, fps=12.0, n
     if num_agents is None:
         num_agents = int(rng.integers(3, min(MAX_AGENTS, max_boxes) + 1))
 
-    ego_xy, ego_yaw, crosses, _ = ego_route(rng, frames, fps)
+    route = ego_route(rng, frames, fps)
     if scenery:
-        s_boxes, s_colours, s_kinds = static_scenery(rng, crosses, ego_xy, season=season)
+        s_boxes, s_colours, s_kinds = static_scenery(rng, route.crosses, route.xy, season=season)
     else:
         s_boxes, s_colours, s_kinds = np.zeros((0, 7)), np.zeros((0, 3)), np.zeros(0, np.int32)
-    agents, a_xy, a_yaw = traffic(rng, num_agents, crosses[1], ego_xy, ego_yaw, fps)
+    agents, a_xy, a_yaw = traffic(rng, num_agents, route.crosses[1], route.xy, route.yaw, fps)
     n_agents = len(agents)
     a_size = np.array([a["size"] for a in agents]).reshape(-1, 3)
     a_cls = np.array([a["cls"] for a in agents], np.int32)
@@ -146,27 +139,34 @@ def generate_clip(seed, *, views=6, frames=33, height=64, width=112, fps=12.0, n
     sun_az = rng.uniform(0, 2 * np.pi)
     light = np.array([np.cos(sun_az) * 0.5, np.sin(sun_az) * 0.5, 0.75])
     light /= np.linalg.norm(light)
+    n_static = len(s_boxes)
+    scene = dict(colours=np.concatenate([s_colours, a_col]), kinds=np.concatenate([s_kinds, AGENT_KIND + a_cls]),
+                 classes=np.concatenate([np.full(n_static, -1, np.int32), a_cls]),
+                 box_key=np.arange(n_static + n_agents, dtype=np.float64), crosses=route.crosses,
+                 lamps=s_boxes[s_kinds == LAMP, :2])
+    return dict(views=views, frames=frames, height=height, width=width, fps=fps, look=look, season=season,
+                town=town, route=route, s_boxes=s_boxes, agents=agents, a_xy=a_xy, a_yaw=a_yaw, a_size=a_size,
+                a_cls=a_cls, track_ids=track_ids, light=light, scene=scene, max_boxes=max_boxes), rng
 
+
+def _render_clip(d, rng, ego_xy, ego_yaw, a_xy, a_yaw, bev_size, bev_range) -> dict:
+    """Ray cast the scene ``d`` with the ego at ``ego_xy`` / ``ego_yaw`` and the agents at
+    ``a_xy`` / ``a_yaw`` -> the clip record."""
+    views, frames, height, width, look = d["views"], d["frames"], d["height"], d["width"], d["look"]
+    max_boxes, a_size, track_ids = d["max_boxes"], d["a_size"], d["track_ids"]
+    n_static, n_agents = len(d["s_boxes"]), len(d["agents"])
     ego_to_world = _pose(ego_xy, ego_yaw)
     intrinsics, cam_to_ego = camera_rig(views, height, width)
     rays = pixel_rays(intrinsics, height, width)                             # [V, H, W, 3]
-    n_static = len(s_boxes)
-    colours = np.concatenate([s_colours, a_col])
-    kinds = np.concatenate([s_kinds, AGENT_KIND + a_cls])
-    classes = np.concatenate([np.full(n_static, -1, np.int32), a_cls])
-    box_key = np.arange(n_static + n_agents, dtype=np.float64)
-    scene = dict(colours=colours, kinds=kinds, classes=classes, box_key=box_key, crosses=crosses,
-                 lamps=s_boxes[s_kinds == LAMP, :2])
-
     video = np.empty((views, frames, height, width, 3), np.float32)
     instance = np.full((views, frames, height, width), -1, np.int32)
     boxes_ego = np.zeros((frames, max_boxes, 7), np.float32)
     for f in range(frames):
         a_boxes = np.concatenate([a_xy[f], 0.5 * a_size[:, 2:3], a_size, a_yaw[:, None]], 1)
-        world_boxes = np.concatenate([s_boxes, a_boxes])
+        world_boxes = np.concatenate([d["s_boxes"], a_boxes])
         cam_to_world = ego_to_world[f] @ cam_to_ego                           # [V, 4, 4]
-        img, owner = _render_frame(cam_to_world, intrinsics, rays, world_boxes, scene, look, season, light,
-                                   ego_xy[f], ego_yaw[f])
+        img, owner = _render_frame(cam_to_world, intrinsics, rays, world_boxes, d["scene"], look, d["season"],
+                                   d["light"], ego_xy[f], ego_yaw[f])
         video[:, f] = img
         agent = owner >= n_static
         instance[:, f][agent] = track_ids[owner[agent] - n_static]
@@ -180,12 +180,12 @@ def generate_clip(seed, *, views=6, frames=33, height=64, width=112, fps=12.0, n
     valid = np.zeros((frames, max_boxes), bool)
     valid[:, :n_agents] = True
     classes_out = np.zeros((frames, max_boxes), np.int32)
-    classes_out[:, :n_agents] = a_cls
+    classes_out[:, :n_agents] = d["a_cls"]
     ids_out = np.full((frames, max_boxes), -1, np.int32)
     ids_out[:, :n_agents] = track_ids
     first = np.linalg.inv(ego_to_world[0])
     waypoints = np.einsum("ij,fj->fi", first, ego_to_world[:, :, 3])[:, :2]
-    clip = {
+    return {
         "video": np.clip(np.round(video * 255.0), 0, 255).astype(np.uint8),
         "intrinsics": intrinsics.astype(np.float32),
         "cam_to_ego": cam_to_ego.astype(np.float32),
@@ -194,28 +194,149 @@ def generate_clip(seed, *, views=6, frames=33, height=64, width=112, fps=12.0, n
         "box_classes": classes_out,
         "box_ids": ids_out,
         "box_valid": valid,
-        "bev_map": bev_maps(ego_to_world, crosses, tuple(bev_size), tuple(map(float, bev_range))),
+        "bev_map": bev_maps(ego_to_world, d["route"].crosses, tuple(bev_size), tuple(map(float, bev_range))),
         "waypoints": waypoints.astype(np.float32),
         "instance_ids": instance,
-        "fps": fps,
+        "fps": d["fps"],
         "caption": schema.caption(sensor="CAM_FRONT" if views == 1 else "6 surround cameras",
-                                  location=town, season=season, daytime=DAYTIME[look]),
+                                  location=d["town"], season=d["season"], daytime=DAYTIME[look]),
     }
-    return clip
+
+
+def generate_clip(seed, *, views=6, frames=33, height=64, width=112, fps=12.0, num_agents=None,
+                  look=None, max_boxes=MAX_AGENTS, bev_size=(64, 64), bev_range=(100.0, 100.0),
+                  scenery=True) -> dict:
+    """One clip of the synthetic town, a dict per :data:`jaxdrive.data.schema.CLIP_FIELDS`.
+
+    seed: non-negative int; the same seed gives identical arrays. views: 6 (the CAMERAS rig) or 1
+    (CAM_FRONT). frames >= 1 at ``fps``. height, width >= 8 pixels. num_agents: 0..max_boxes other
+    road users (default: 3-20 drawn by the seed). look: "day", "night" or "rain" (default: drawn by
+    the seed). max_boxes: N, the box slots. bev_size (Hm, Wm) cells over bev_range (x, y) metres,
+    ego at the centre, x up. scenery=False leaves out buildings, trees and lamps (tests use it to
+    check agent occlusion alone).
+    """
+    return counterfactual_clip(seed, "recorded", views=views, frames=frames, height=height, width=width, fps=fps,
+                               num_agents=num_agents, look=look, max_boxes=max_boxes, bev_size=bev_size,
+                               bev_range=bev_range, scenery=scenery)
+
+
+def counterfactual_clip(seed, route: str, *, start: int = COUNTERFACTUAL_START, views=6, frames=33, height=64,
+                        width=112, fps=12.0, num_agents=None, look=None, max_boxes=MAX_AGENTS, bev_size=(64, 64),
+                        bev_range=(100.0, 100.0), scenery=True) -> dict:
+    """The clip of :func:`generate_clip` with the same arguments, its ego driven along ``route``
+    (one of :data:`jaxdrive.data.synth_routes.ROUTES`) from frame ``start`` on: the same town,
+    scenery, look and agents, re-rendered; frames before ``start`` are the recorded clip's.
+    ``recorded`` gives :func:`generate_clip`'s clip bit for bit. A route the scene cannot drive (off
+    the road, out of the map, into an agent, no intersection to branch at) is a ``ValueError``
+    (:class:`~jaxdrive.data.synth_routes.UndrivableRoute`) naming the route and the clip's seed. See
+    :mod:`jaxdrive.data.synth_routes` for the routes and how traffic reacts.
+    """
+    _check_args(seed, views, frames, height, width, fps, num_agents, look, max_boxes, bev_size, bev_range)
+    if route not in ROUTES:
+        raise ValueError(f"route: expected one of {', '.join(ROUTES)}, got {route!r}")
+    if route != "recorded" and not (isinstance(start, (int, np.integer)) and 1 <= start < frames):
+        raise ValueError(f"start: expected a frame in [1, {frames - 1}] for a clip of {frames} frames, got {start!r}")
+    kw = dict(views=views, frames=frames, height=height, width=width, fps=fps, num_agents=num_agents, look=look,
+              max_boxes=max_boxes, scenery=scenery)
+    d, rng, ego_xy, ego_yaw, a_xy, a_yaw = _drive(seed, route, start, kw)
+    return _render_clip(d, rng, ego_xy, ego_yaw, a_xy, a_yaw, bev_size, bev_range)
+
+
+def _drive(seed, route, start, kw):
+    """The scene of ``seed`` and the ego's and agents' paths along ``route`` (no rendering):
+    ``(scene, rng, ego_xy, ego_yaw, agents_xy, agents_yaw)``; UndrivableRoute when it cannot."""
+    d, rng = _draw_scene(seed, kw.get("views", 6), kw.get("frames", 33), kw.get("height", 64), kw.get("width", 112),
+                         float(kw.get("fps", 12.0)), kw.get("num_agents"), kw.get("look"),
+                         kw.get("max_boxes", MAX_AGENTS), kw.get("scenery", True))
+    rec = d["route"]
+    driver = routes.plan(route, rec, d["fps"], int(start), clip=f"seed {seed}")
+    if driver is None:
+        return d, rng, rec.xy, rec.yaw, d["a_xy"], d["a_yaw"]
+    a_xy, a_yaw, ego_xy, ego_yaw = simulate(d["agents"], rec.xy, rec.yaw, d["fps"], driver=driver)
+    routes.check_drivable(route, f"seed {seed}", rec, driver, ego_xy, ego_yaw, a_xy, a_yaw,
+                          d["a_size"][:, :2], d["track_ids"])
+    return d, rng, ego_xy, ego_yaw, a_xy, a_yaw
+
+
+def counterfactual_split(route: str) -> str:
+    """The dataset split that holds the validation clips' counterfactual renders along ``route``."""
+    return "validation_route_" + route.replace("-", "_")
+
+
+def _parse_routes(counterfactuals) -> tuple[str, ...]:
+    names = tuple(counterfactuals.split(",") if isinstance(counterfactuals, str) else counterfactuals)
+    names = tuple(n.strip() for n in names if n.strip())
+    for name in names:
+        if name not in ROUTES or name == "recorded":
+            raise ValueError(f"counterfactuals: expected routes from {', '.join(ROUTES[1:])}, got {name!r}")
+    if len(set(names)) != len(names):
+        raise ValueError(f"counterfactuals: expected each route once, got {list(names)}")
+    return names
 
 
 def write_synthetic_dataset(out, *, train: int, validation: int = 0, seed: int = 0, overwrite: bool = False,
-                            **clip_kwargs):
+                            counterfactuals=(), counterfactual_start: int = COUNTERFACTUAL_START,
+                            skip_undrivable: bool = False, **clip_kwargs):
     """A TFDS dataset of ``train`` (+ ``validation``) synthetic scenes under ``out``, one seed per
     scene (``seed + i``: reproducible, disjoint splits); ``clip_kwargs`` go to :func:`generate_clip`.
-    Returns the dataset path."""
+    Returns the dataset path.
+
+    ``counterfactuals`` (routes of :data:`jaxdrive.data.synth_routes.ROUTES`, a list or a
+    comma-separated string) stores, beside the validation split, each validation clip's
+    counterfactual render along each route from frame ``counterfactual_start`` on, in the split
+    :func:`counterfactual_split` (same record schema). The metadata's ``counterfactuals`` says which
+    validation clip each row belongs to (see :func:`read_counterfactuals`). Every route is driven
+    before anything is rendered: a route some validation clip cannot drive is a ``ValueError``
+    naming the route and the clip, and nothing is written; with ``skip_undrivable`` that clip is
+    left out of that route's split instead (a route no clip can drive is still an error).
+    """
     from jaxdrive.data.tfds_io import write_dataset
+
+    names = _parse_routes(counterfactuals)
+    if names and not validation:
+        raise ValueError(f"counterfactuals: expected validation clips to re-render, got validation={validation}")
+    frames = clip_kwargs.get("frames", 33)
+    if names and not (isinstance(counterfactual_start, (int, np.integer)) and 1 <= counterfactual_start < frames):
+        raise ValueError(f"counterfactual_start: expected a frame in [1, {frames - 1}] for clips of {frames} "
+                         f"frames, got {counterfactual_start!r}")
+    drivable = {}
+    for name in names:
+        rows = []
+        for i in range(train, train + validation):
+            try:
+                _drive(seed + i, name, int(counterfactual_start), clip_kwargs)
+                rows.append(i - train)
+            except routes.UndrivableRoute as e:
+                if not skip_undrivable:
+                    raise ValueError(f"{e} (validation clip {i - train}; skip_undrivable leaves it out)") from None
+        if not rows:
+            raise ValueError(f"counterfactuals: expected route {name!r} to be drivable by at least one of the "
+                             f"{validation} validation clips, got none")
+        drivable[name] = rows
 
     def clips(first, count):
         for i in range(first, first + count):
             yield generate_clip(seed + i, **clip_kwargs)
+
+    def counterfactual(name):
+        for row in drivable[name]:
+            yield counterfactual_clip(seed + train + row, name, start=int(counterfactual_start), **clip_kwargs)
     splits = {"train": clips(0, train)}
     if validation:
         splits["validation"] = clips(train, validation)
-    return write_dataset(out, splits, name="jaxdrive_synthetic", overwrite=overwrite,
-                         metadata={"source": "synthetic", "seed": seed, **clip_kwargs})
+    for name in names:
+        splits[counterfactual_split(name)] = counterfactual(name)
+    meta = {"source": "synthetic", "seed": seed, **clip_kwargs}
+    if names:
+        meta["counterfactuals"] = {"start": int(counterfactual_start),
+                                   "routes": {n: {"split": counterfactual_split(n), "clips": drivable[n]}
+                                              for n in names}}
+    return write_dataset(out, splits, name="jaxdrive_synthetic", overwrite=overwrite, metadata=meta)
+
+
+def read_counterfactuals(path) -> dict:
+    """What a dataset holds of counterfactual routes: ``{"start": frame, "routes": {route: {"split":
+    name, "clips": [validation clip index of each row]}}}``; ``{}`` when it holds none."""
+    from jaxdrive.data.tfds_io import dataset_info
+
+    return dict(dataset_info(path).get("metadata", {}).get("counterfactuals", {}))

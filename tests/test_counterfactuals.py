@@ -1,0 +1,129 @@
+"""Counterfactual ground truth: the synthetic world re-rendered along another ego route."""
+
+import numpy as np
+import pytest
+
+from jaxdrive.cli import main
+from jaxdrive.data.synth_routes import ROUTES
+from jaxdrive.data.synthetic import (counterfactual_clip, counterfactual_split, generate_clip, read_counterfactuals,
+                                     write_synthetic_dataset)
+from jaxdrive.data.tfds_io import open_source
+from test_synthetic import instances_inside_projected_boxes
+
+KW = dict(views=6, frames=25, height=32, width=56)
+START = 8
+SEED = 5            # inner lane, straight on: stop, slower, faster and both lane changes are drivable
+
+
+@pytest.fixture(scope="module")
+def recorded():
+    return generate_clip(SEED, **KW)
+
+
+def _ego_xy(clip):
+    """The ego's positions in the frame of its first pose (waypoints)."""
+    return np.asarray(clip["waypoints"], np.float64)
+
+
+def test_recorded_route_is_the_stored_clip_bit_for_bit(recorded):
+    again = counterfactual_clip(SEED, "recorded", start=START, **KW)
+    assert set(again) == set(recorded)
+    for key, value in recorded.items():
+        assert np.array_equal(np.asarray(again[key]), np.asarray(value)), key
+
+
+@pytest.mark.parametrize("route", ["stop", "faster", "lane-left"])
+def test_routes_share_the_given_frames_and_then_drive_their_way(recorded, route):
+    clip = counterfactual_clip(SEED, route, start=START, **KW)
+    for key in ("video", "instance_ids", "boxes", "ego_to_world", "bev_map", "waypoints"):
+        assert np.array_equal(_first(clip[key], key), _first(recorded[key], key)), key
+    for key in ("intrinsics", "cam_to_ego", "box_ids", "box_classes", "box_valid", "caption", "fps"):
+        assert np.array_equal(np.asarray(clip[key]), np.asarray(recorded[key])), key
+    ego, rec = _ego_xy(clip), _ego_xy(recorded)
+    assert not np.array_equal(clip["video"], recorded["video"])
+    if route == "stop":
+        assert ego[-1, 0] < rec[-1, 0] - 0.5
+        steps = np.linalg.norm(np.diff(ego[START - 1:], axis=0), axis=-1)
+        assert np.all(np.diff(steps) <= 1e-6) and steps[-1] < 0.5 * steps[0]    # braking all the way
+    elif route == "faster":
+        assert ego[-1, 0] > rec[-1, 0] + 0.5
+    else:                                                        # one lane (3.5 m) to the left, x forward y left
+        assert 1.0 < ego[-1, 1] - rec[-1, 1] <= 3.5 + 1e-6
+
+
+def _first(x, key):
+    """The frames before START of a clip field (frame axis 1 for video / instance ids, else 0)."""
+    x = np.asarray(x)
+    return x[:, :START] if key in ("video", "instance_ids") else x[:START]
+
+
+def test_counterfactual_boxes_project_onto_their_own_instance_ids():
+    clip = counterfactual_clip(SEED, "faster", start=START, views=6, frames=25, height=48, width=84)
+    assert instances_inside_projected_boxes(clip, (START + 4, 24)) > 0
+
+
+def test_agents_the_ego_never_meets_keep_their_recorded_paths(recorded):
+    clip = counterfactual_clip(SEED, "stop", start=START, **KW)
+
+    def world(c):      # agent centres in the world frame [F, N, 2]
+        b = np.asarray(c["boxes"], np.float64)[..., :3]
+        pts = np.concatenate([b, np.ones(b.shape[:-1] + (1,))], -1)
+        return np.einsum("fij,fnj->fni", np.asarray(c["ego_to_world"]), pts)[..., :2]
+    valid = recorded["box_valid"][0]
+    a, r = world(clip)[:, valid], world(recorded)[:, valid]
+    ego = np.asarray(clip["ego_to_world"])[:, None, :2, 3]
+    far = (np.linalg.norm(r - ego, axis=-1).min(0) > 15.0)
+    assert far.any()
+    np.testing.assert_allclose(a[:, far], r[:, far], atol=1e-4)
+
+
+def test_a_route_the_scene_cannot_drive_names_the_route_and_the_clip():
+    # seed 0 drives in the outer lane: one lane to the right is the kerb
+    with pytest.raises(ValueError, match=r"route 'lane-right'.*seed 0.*off the drivable area"):
+        counterfactual_clip(0, "lane-right", start=START, **KW)
+    with pytest.raises(ValueError, match=r"route 'branch'.*seed 0.*intersection"):
+        counterfactual_clip(0, "branch", start=START, **KW)
+    with pytest.raises(ValueError, match="route: expected one of"):
+        counterfactual_clip(0, "reverse", **KW)
+    with pytest.raises(ValueError, match=r"start: expected a frame in \[1, 24\]"):
+        counterfactual_clip(0, "stop", start=25, **KW)
+
+
+def test_branch_takes_the_other_way_at_the_intersection():
+    rec = generate_clip(10, **KW)                                # turns right at the first cross street
+    clip = counterfactual_clip(10, "branch", start=START, **KW)
+    yaw_rec = np.arctan2(rec["ego_to_world"][-1, 1, 0], rec["ego_to_world"][-1, 0, 0])
+    yaw = np.arctan2(clip["ego_to_world"][-1, 1, 0], clip["ego_to_world"][-1, 0, 0])
+    assert yaw_rec < -0.3 and abs(yaw) < 1e-6                    # straight on instead
+
+
+def test_dataset_stores_counterfactual_splits(tmp_path, capsys):
+    out = tmp_path / "cf"
+    assert main(["data", "synth", "--out", str(out), "--scenes", "4", "--val-fraction", "0.5", "--views", "1",
+                 "--frames", "13", "--height", "16", "--width", "28", "--seed", "3",
+                 "--counterfactuals", "stop,lane-left", "--skip-undrivable"]) == 0
+    assert "stop: 2 of 2 validation clips" in capsys.readouterr().out
+    meta = read_counterfactuals(out)
+    assert meta["start"] == START and set(meta["routes"]) == {"stop", "lane-left"}
+    validation = open_source(out, "validation")
+    for route, row in meta["routes"].items():
+        split = open_source(out, counterfactual_split(route))
+        assert row["split"] == counterfactual_split(route) and len(split) == len(row["clips"])
+        for i, clip_index in enumerate(row["clips"]):
+            cf, rec = split[i], validation[clip_index]
+            assert set(cf) == set(rec)
+            assert np.array_equal(cf["video"][:, :START], rec["video"][:, :START])
+            assert not np.array_equal(cf["waypoints"], rec["waypoints"])
+
+
+def test_undrivable_routes_write_nothing(tmp_path, capsys):
+    with pytest.raises(ValueError, match=r"route 'lane-right'.*validation clip"):
+        write_synthetic_dataset(tmp_path / "x", train=1, validation=2, seed=0, counterfactuals="lane-right",
+                                views=1, frames=13, height=16, width=28)
+    assert not any(tmp_path.iterdir())
+    with pytest.raises(ValueError, match="counterfactuals: expected routes from"):
+        write_synthetic_dataset(tmp_path / "y", train=1, validation=1, counterfactuals="recorded", views=1, frames=13)
+    assert main(["data", "synth", "--out", str(tmp_path / "z"), "--scenes", "1", "--counterfactuals", "stop"]) == 2
+    assert "--counterfactuals: expected a dataset with validation clips" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
+    assert ROUTES[0] == "recorded"
