@@ -127,3 +127,56 @@ def test_undrivable_routes_write_nothing(tmp_path, capsys):
     assert "--counterfactuals: expected a dataset with validation clips" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())
     assert ROUTES[0] == "recorded"
+
+
+@pytest.fixture(scope="module")
+def routes21(tmp_path_factory):
+    """One training and two validation scenes of 21 frames (6 views, 32 x 56, as ``clips21``) with
+    their ``stop`` and ``lane-left`` renders."""
+    return write_synthetic_dataset(tmp_path_factory.mktemp("routes21") / "data", train=1, validation=2, seed=7,
+                                   counterfactuals="stop,lane-left", views=6, frames=21, height=32, width=56)
+
+
+def test_eval_scores_every_route_against_its_render(tiny_dit, routes21, tmp_path, capsys):
+    import json
+    out = tmp_path / "eval"
+    argv = ["eval", "--workdir", str(tiny_dit), "--strategies", "rollout", "--clips", "2", "--frames", "13",
+            "--steps", "1", "--set", f"data.path={routes21}"]
+    assert main([*argv, "--routes", "recorded,stop,lane-left", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "| rollout @ stop | 2-5 |" in printed and "| warp @ lane-left | 2-5 |" in printed
+    assert "| stop | rollout | 2-5 |" in printed                    # the route-effect table
+    report = json.loads((out / "eval.json").read_text())
+    rows = report["strategies"]
+    assert report["routes"] == ["recorded", "stop", "lane-left"] and report["route_clips"] == [0, 1]
+    for name in ("rollout", "repeat frame 1", "warp @ recorded", "rollout @ stop", "repeat frame 1 @ stop",
+                 "warp @ stop", "rollout @ lane-left", "warp @ lane-left"):
+        assert list(rows[name]["buckets"]) == ["2-5", "6-8", "9-12", "2-12"], name
+    # the baselines are scored against each route's own render: holding frame 1 against the stopping
+    # ego's frames differs from holding it against the recorded ones
+    assert rows["repeat frame 1 @ stop"]["buckets"]["9-12"]["psnr"] != rows["repeat frame 1"]["buckets"]["9-12"]["psnr"]
+    effect = report["route_effect"]
+    assert set(effect) == {"stop", "lane-left"} and set(effect["stop"]) == {"rollout"}
+    for route in ("stop", "lane-left"):
+        for span, row in effect[route]["rollout"].items():
+            # by definition: the route's score minus the recorded-route generation's on the same render
+            assert np.isfinite(row["psnr"]) and abs(row["ssim"]) <= 2.0
+    assert "Route effect" in (out / "eval.md").read_text()
+    # merged with itself as another model's run: the effects follow the renamed strategies
+    merged = tmp_path / "merged"
+    assert main(["eval", "--merge", f"{out},{out}", "--out", str(merged)]) == 0
+    capsys.readouterr()
+    assert set(json.loads((merged / "eval.json").read_text())["route_effect"]["stop"]) == {"rollout (run)"}
+    # bad input, before anything compiles
+    for extra, message in ((["--routes", "recorded,reverse"], "--routes: expected distinct comma-separated routes"),
+                           (["--routes", "stop,branch"], "--routes: expected routes stored in"),
+                           (["--routes", "stop", "--clips", "4"], "--clips: expected at most 2"),
+                           (["--routes", "stop", "--split", "train"], "--split: expected none with --routes")):
+        assert main([*argv, *extra, "--out", str(tmp_path / "no")]) == 2, extra
+        assert message in capsys.readouterr().err, message
+
+
+def test_eval_routes_on_a_dataset_without_counterfactuals(tiny_dit, tmp_path, capsys):
+    assert main(["eval", "--workdir", str(tiny_dit), "--clips", "2", "--frames", "13", "--steps", "1",
+                 "--routes", "recorded,stop", "--out", str(tmp_path / "no")]) == 2
+    assert "--routes: expected a dataset with counterfactual routes" in capsys.readouterr().err

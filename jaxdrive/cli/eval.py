@@ -27,8 +27,8 @@ def _eval(args, rest) -> int:
         if args.workdir or args.videos or len(dirs) < 2:
             raise ValueError(f"--merge: expected at least 2 output folders of jaxdrive eval, without --workdir or "
                              f"--videos, got {args.merge!r}")
-        results, meta, ceiling = merge(dirs)
-        paths = write_outputs(results, Path(args.out), meta=meta, ceiling=ceiling)
+        results, meta, ceiling, effects = merge(dirs)
+        paths = write_outputs(results, Path(args.out), meta=meta, ceiling=ceiling, effects=effects or None)
         print(paths["table"])
         print(f"wrote {paths['json']}, {paths['md']}, {paths['plot']}")
         return 0
@@ -59,6 +59,13 @@ def _eval(args, rest) -> int:
     check_positive_int("--frames", args.frames)
     clips = check_positive_int("--clips", args.clips)
     _check_common(args, clips)
+    if args.routes:
+        from jaxdrive.eval.routes import parse_routes
+        args.routes = parse_routes(args.routes)
+        for option, value in (("--shuffle-boxes", args.shuffle_boxes), ("--split", args.split)):
+            if value:
+                raise ValueError(f"{option}: expected none with --routes (each route has its own boxes; the routes "
+                                 f"are the validation clips'), got {value!r}")
     args.cond_frames = None
     run, spec, fine_spec, load_main, load_fine, shapes, length = load_runs(args)
     horizon_spec = fine_spec or spec
@@ -79,6 +86,9 @@ def _eval(args, rest) -> int:
     if segmenter is not None and horizon_spec.precomputed:
         raise ValueError("--segmenter: expected a run that reads clips (the class masks come from their instance "
                          "ids), got one on precomputed latent windows")
+    if args.routes:
+        return _eval_routes(args, names, run, horizon_spec, load_main, load_fine, codec, given, given_pixels,
+                            length, buckets, features, segmenter, clips)
     try:
         inputs = dataset_inputs(horizon_spec, frames=args.frames, clips=clips, seed=args.seed, split=args.split,
                                 masks=segmenter is not None, shuffle_boxes=args.shuffle_boxes)
@@ -109,6 +119,50 @@ def _eval(args, rest) -> int:
     return 0
 
 
+def _eval_routes(args, names, run, spec, load_main, load_fine, codec, given, given_pixels, length, buckets,
+                 features, segmenter, clips) -> int:
+    """``--routes``: every strategy under every route, against each route's render
+    (:mod:`jaxdrive.eval.routes`)."""
+    import jax
+
+    from jaxdrive.cli.sample import first_latents
+    from jaxdrive.eval.compare import write_outputs
+    from jaxdrive.eval.routes import evaluate_routes, route_clips
+    from jaxdrive.generate.samples import dataset_inputs
+    from jaxdrive.generate.strategies import Models
+    if spec.precomputed:
+        raise ValueError("--routes: expected a run that reads clips (each route's controls come from its render), got "
+                         "one on precomputed latent windows")
+    plan = route_clips(spec.data.path, args.routes, clips, given_pixels, spec.frame_stride)
+
+    def load_inputs(split, indices):
+        try:
+            return dataset_inputs(spec, frames=args.frames, clips=len(indices), seed=args.seed,
+                                  split=split or "validation", indices=indices, poses=True,
+                                  masks=segmenter is not None)
+        except ValueError as e:      # the clips are shorter than --frames
+            raise ValueError(f"--{e}" if str(e).startswith("frames:") else f"--frames: {e}") from None
+    models = Models(load_main(), load_fine() if load_fine else None)
+    segment = None
+    if segmenter is not None:
+        segment = lambda frames: segmenter.classes(frames, mesh=run.mesh)
+    with jax.set_mesh(run.mesh):
+        results, effects = evaluate_routes(
+            args.routes, plan, load_inputs=load_inputs, strategies=names, models=models, codec=codec, length=length,
+            first_latents=lambda inp: first_latents(inp, codec, models.main.window, given), buckets=buckets,
+            key=jax.random.key(args.seed), given=given_pixels, depth=spec.data.warp_depth, mesh=run.mesh,
+            segment=segment, **features)
+    paths = write_outputs(results, Path(args.out), effects=effects,
+                          meta={"workdir": str(args.workdir), "fine_workdir": args.fine_workdir, "clips": clips,
+                                "frames": args.frames, "given_frames": given_pixels, "views": spec.data.views,
+                                "inception": args.inception, "i3d": args.i3d, "segmenter": args.segmenter,
+                                "shuffle_boxes": False, "split": "validation", "routes": args.routes,
+                                "route_clips": plan["indices"]})
+    print(paths["table"])
+    print(f"wrote {paths['json']}, {paths['md']}, {paths['plot']}")
+    return 0
+
+
 def _eval_videos(args) -> int:
     """``--videos DIR --data PATH``: every mp4 under DIR (sorted by path; view mosaics as
     ``jaxdrive sample`` writes them) against the clip of the same rank in the split."""
@@ -120,7 +174,7 @@ def _eval_videos(args) -> int:
     from jaxdrive.eval.segmenter import class_masks_of
     from jaxdrive.media import read_mp4
     from jaxdrive.validate import check_positive_int
-    for name in ("strategies", "fine_workdir", "frames"):
+    for name in ("strategies", "fine_workdir", "frames", "routes"):
         if getattr(args, name) not in (None, "rollout"):
             raise ValueError(f"--{name.replace('_', '-')}: expected only with --workdir, got {getattr(args, name)!r}")
     if not args.data:
@@ -247,6 +301,10 @@ def add_commands(sub) -> None:
                                         "class masks of the conditioning boxes (synthetic data)")
     ev.add_argument("--shuffle-boxes", action="store_true", help="the control: condition each clip on the next "
                                                                  "clip's boxes (and score against their masks)")
+    ev.add_argument("--routes", help="score control on a dataset with counterfactual routes (jaxdrive data synth "
+                                     "--counterfactuals): comma-separated, e.g. recorded,stop,lane-left; every "
+                                     "strategy under each route against that route's render, with repeat and warp "
+                                     "rows and the route effect")
     add_sampling(ev, cfg=1.0)
     ev.add_argument("--out", required=True, help="output directory")
     ev.set_defaults(run=_eval)

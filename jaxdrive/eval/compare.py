@@ -126,10 +126,12 @@ def repeat_baseline(recorded, given: int, buckets, **features) -> dict:
 
 
 def run_strategies(strategies, models, codec, controls, first, length, recorded, buckets, *, key, mesh=None,
-                   fid_features=None, fvd_features=None, segment=None, masks=None, log=print) -> dict:
+                   fid_features=None, fvd_features=None, segment=None, masks=None, targets=None, log=print) -> dict:
     """Every strategy of ``strategies`` (name -> its options) on the same inputs, decoded and
     scored (:func:`score`); returns ``{name: {"seconds", "sequential_sampler_calls",
-    "peak_device_bytes", "buckets": {...}}}``."""
+    "peak_device_bytes", "buckets": {...}}}``. ``targets`` (label -> ``(video, masks)``): each
+    generation is also scored against these other videos (the counterfactual renders of
+    ``jaxdrive eval --routes``), under the result's ``"against": {label: buckets}``."""
     from jaxdrive.generate.strategies import run_strategy
     from jaxdrive.generate.windows import Tracker
     results = {}
@@ -153,6 +155,9 @@ def run_strategies(strategies, models, codec, controls, first, length, recorded,
                          "peak_device_bytes": int(tracker.peak_bytes),
                          "buckets": score(video, recorded, buckets, fid_features=fid_features,
                                           fvd_features=fvd_features, segment=segment, masks=masks)}
+        if targets:
+            results[name]["against"] = {label: score(video, target, buckets, segment=segment, masks=target_masks)
+                                        for label, (target, target_masks) in targets.items()}
         log(f"{name}: {video.shape[2]} frames x {video.shape[1]} views x {video.shape[0]} clips in {seconds:.1f} s")
     return results
 
@@ -176,23 +181,32 @@ def table(results: dict, ceiling: dict | None = None) -> str:
     return "\n".join(lines)
 
 
-def write_outputs(results: dict, out, *, meta: dict, ceiling: dict | None = None) -> dict:
+def write_outputs(results: dict, out, *, meta: dict, ceiling: dict | None = None, effects: dict | None = None) -> dict:
     """``eval.json``, ``eval.md`` and ``quality_vs_horizon.png`` under ``out``; returns the paths.
     ``ceiling``: the segmenter's scores on the recorded frames (``eval.json``'s
-    ``recorded_controllability`` and the table's ``recorded frames`` rows)."""
+    ``recorded_controllability`` and the table's ``recorded frames`` rows). ``effects``: the
+    route effects of ``--routes`` (:func:`jaxdrive.eval.routes.route_effect`), ``eval.json``'s
+    ``route_effect``, a second table in ``eval.md`` and a panel of the plot."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     extra = {} if ceiling is None else {"recorded_controllability": ceiling}
+    if effects:
+        extra["route_effect"] = effects
     (out / "eval.json").write_text(json.dumps({**meta, **extra, "strategies": results}, indent=1))
     md = table(results, ceiling)
+    if effects:
+        from jaxdrive.eval.routes import effect_table
+        md += "\n\nRoute effect (the generation under the route minus the recorded-route generation, both " \
+              "against the route's render; 0: the route was ignored):\n\n" + effect_table(effects)
     (out / "eval.md").write_text(md + "\n")
     panels = [("psnr", "PSNR dB against the recorded clip", "PSNR vs horizon")]
     if any(row.get("miou") is not None for r in results.values() for row in r["buckets"].values()):
         panels.append(("miou", "segmenter mIoU against the boxes", "controllability vs horizon"))
-    fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 3.5), dpi=120, squeeze=False)
+    count = len(panels) + bool(effects)
+    fig, axes = plt.subplots(1, count, figsize=(6 * count, 3.5), dpi=120, squeeze=False)
     for ax, (metric, label, title) in zip(axes[0], panels):
         for name, r in results.items():
             rows = _horizon_rows(list(r["buckets"].values()))
@@ -205,19 +219,36 @@ def write_outputs(results: dict, out, *, meta: dict, ceiling: dict | None = None
         ax.set(xlabel="frame (bucket centre)", ylabel=label, title=title)
         ax.grid(alpha=0.3)
         ax.legend()
+    if effects:
+        _effect_panel(axes[0][-1], effects)
     fig.tight_layout()
     fig.savefig(out / "quality_vs_horizon.png")
     plt.close(fig)
     return {"json": out / "eval.json", "md": out / "eval.md", "plot": out / "quality_vs_horizon.png", "table": md}
 
 
-def merge(dirs) -> tuple[dict, dict, dict | None]:
-    """``(results, meta, ceiling)`` of several ``eval.json`` (strategies of different models on the
-    same clips: MiLA's, LongDWM's, STAGE's): each strategy named ``"name (run)"`` after the run
-    it sampled. They must agree on the clips, frames, buckets, segmenter and shuffling, or the
-    rows would not compare: a ``ValueError`` names what differs."""
-    results, baselines, first, ceiling = {}, {}, None, None
-    same = ("clips", "frames", "segmenter", "shuffle_boxes", "split")
+def _effect_panel(ax, effects):
+    """The PSNR route effect per horizon on ``ax``, a line per route and strategy."""
+    for route, by_strategy in effects.items():
+        for name, spans in by_strategy.items():
+            rows = _horizon_rows([{"frames": [int(v) for v in k.split("-")], **row} for k, row in spans.items()])
+            ax.plot([np.mean(r["frames"]) for r in rows], [r.get("psnr") for r in rows], marker="o",
+                    label=f"{name} @ {route}")
+    ax.axhline(0.0, color="k", lw=0.8)
+    ax.set(xlabel="frame (bucket centre)", ylabel="PSNR dB, route minus recorded route", title="route effect")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+
+
+def merge(dirs) -> tuple[dict, dict, dict | None, dict]:
+    """``(results, meta, ceiling, effects)`` of several ``eval.json`` (strategies of different
+    models on the same clips: MiLA's, LongDWM's, STAGE's): each strategy named ``"name (run)"``
+    after the run it sampled, in the results and in the route effects of ``--routes``. They must
+    agree on the clips, frames, buckets, segmenter, shuffling and routes, or the rows would not
+    compare: a ``ValueError`` names what differs. The baselines (repeat, warp) are the recorded
+    data's, kept once."""
+    results, baselines, first, ceiling, effects = {}, {}, None, None, {}
+    same = ("clips", "frames", "segmenter", "shuffle_boxes", "split", "routes")
     for d in dirs:
         path = Path(d) / "eval.json"
         try:
@@ -236,10 +267,13 @@ def merge(dirs) -> tuple[dict, dict, dict | None]:
                              f"{want} in {dirs[0]} and {spans[0]} in {d}")
         run = Path(report.get("workdir") or report.get("videos") or str(d)).name
         for name, r in report["strategies"].items():
-            if name.startswith(REPEAT):     # the recorded clip's, not a model's: once, after the strategies
+            if name.startswith(REPEAT) or name.startswith("warp @ "):   # the data's, not a model's: once, last
                 baselines.setdefault(name, r)
             else:
                 results[f"{name} ({run})"] = r
+        for route, by_strategy in report.get("route_effect", {}).items():
+            for name, spans in by_strategy.items():
+                effects.setdefault(route, {})[f"{name} ({run})"] = spans
     results.update(baselines)
-    meta = {k: first.get(k) for k in ("clips", "frames", "views", "segmenter", "shuffle_boxes", "split")}
-    return results, {**meta, "merged": [str(d) for d in dirs]}, ceiling
+    meta = {k: first.get(k) for k in ("clips", "frames", "views", "segmenter", "shuffle_boxes", "split", "routes")}
+    return results, {**meta, "merged": [str(d) for d in dirs]}, ceiling, effects

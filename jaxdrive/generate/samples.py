@@ -62,7 +62,7 @@ class Sampling:
 
 def dataset_inputs(spec: Sampling, *, frames: int, views=None, clips: int = 1, split: str | None = None,
                    seed: int = 0, controls=None, scene: bool = False, masks: bool = False,
-                   shuffle_boxes: bool = False):
+                   shuffle_boxes: bool = False, indices=None, poses: bool = False):
     """Model inputs of ``clips`` dataset clips of ``frames`` pixel frames (no condition dropped):
     the first frames give the condition latents, every frame its controls. A precomputed dataset
     (``latents.precomputed``) gives its stored windows: ``frames`` at most the window's frame count
@@ -77,7 +77,10 @@ def dataset_inputs(spec: Sampling, *, frames: int, views=None, clips: int = 1, s
     frames' exact class ids ``inputs["class_masks"] [B, V, F, H, W]`` (synthetic clips:
     :func:`jaxdrive.eval.segmenter.class_masks`). ``shuffle_boxes`` (the controllability control
     of ``jaxdrive eval``): clip ``i`` is conditioned on the boxes of clip ``i + 1`` (cyclically),
-    and ``inputs["box_class_masks"]`` are the class masks of the boxes each clip got."""
+    and ``inputs["box_class_masks"]`` are the class masks of the boxes each clip got. ``indices``:
+    the split's clips to take (default ``0 .. clips - 1``). ``poses``: also ``inputs["poses"]``,
+    the samples' ``ego_to_world [B, F, 4, 4]``, ``intrinsics [B, V, 3, 3]`` (of the sampled frame
+    size) and ``cam_to_ego [B, V, 4, 4]`` (the warp baseline of ``jaxdrive eval --routes``)."""
     from jaxdrive.data.batches import model_inputs
     from jaxdrive.data.pipeline import CONDITIONS, collate, sample_clip
     from jaxdrive.data.tfds_io import open_source
@@ -99,7 +102,7 @@ def dataset_inputs(spec: Sampling, *, frames: int, views=None, clips: int = 1, s
     if (masks or shuffle_boxes) and spec.precomputed:
         raise ValueError("masks: class masks need clips with their instance ids, not the precomputed latent windows "
                          "of latents.precomputed")
-    for i in range(clips):
+    for i in (range(clips) if indices is None else indices):
         clip = source[i % len(source)]
         where = f"{source.split} clip {i}"
         if spec.precomputed:
@@ -131,6 +134,8 @@ def dataset_inputs(spec: Sampling, *, frames: int, views=None, clips: int = 1, s
                 s.update(given[(i + 1) % len(samples)])
             extra["box_class_masks"] = np.roll(extra["class_masks"], -1, axis=0)
     batch = collate(samples)
+    if poses:
+        extra["poses"] = {k: np.asarray(batch[k], np.float32) for k in ("ego_to_world", "intrinsics", "cam_to_ego")}
     kept = None
     if scene:
         kept = {k: np.asarray(batch[k][0]) for k in ("bev_map", "ego_to_world", "boxes", "box_valid")}

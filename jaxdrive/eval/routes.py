@@ -1,0 +1,152 @@
+"""Scoring control with counterfactual ground truth: ``jaxdrive eval --routes recorded,stop,...``.
+
+A dataset written with ``jaxdrive data synth --counterfactuals`` holds, beside each validation
+clip, the same scene rendered along other ego routes (:mod:`jaxdrive.data.synth_routes`); their
+frames before the route's ``start`` are the recorded clip's. Every strategy starts from the same
+given frames and is conditioned on each route's controls in turn (its waypoints, trajectory, warp
+poses, and the boxes and map re-rendered along it), then scored against that route's render.
+Two baselines per route: ``repeat`` (the last given frame held) and ``warp`` (the last given frame
+warped along the route's ego poses with LongDWM's depth-free warp and inpainted: the classical
+baseline, :func:`jaxdrive.warp.warp_views`). And one figure per route and strategy:
+
+    route effect = score(generation under the route, against the route's render)
+                 - score(generation under the recorded route, against the same render)
+
+per horizon bucket and metric (PSNR, SSIM, mIoU): 0 means the model ignored the route, and a
+model that follows its controls scores above 0 on every route that changes the future.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from jaxdrive.eval.compare import score
+
+RECORDED = "recorded"
+SEP = " @ "                       # result names: "rollout @ stop", "repeat frame 1 @ stop", "warp @ stop"
+WARP = "warp"
+EFFECT_METRICS = ("psnr", "ssim", "miou")
+
+
+def parse_routes(text: str) -> list[str]:
+    """``--routes "recorded,stop"`` -> the route names (checked against the synthetic world's)."""
+    from jaxdrive.data.synth_routes import ROUTES
+    names = [r.strip() for r in str(text).split(",") if r.strip()]
+    if not names or any(r not in ROUTES for r in names) or len(set(names)) != len(names):
+        raise ValueError(f"--routes: expected distinct comma-separated routes from {', '.join(ROUTES)}, got {text!r}")
+    return names
+
+
+def route_clips(dataset, routes, clips: int, given_frames: int, stride: int = 1) -> dict:
+    """Which clips every route is scored on: ``{"indices": [validation clip of each sample],
+    "rows": {route: [row of its split for each sample]}, "splits": {route: split}}``, the first
+    ``clips`` validation clips that have every route. ``ValueError`` naming ``--routes`` when the
+    dataset has no counterfactuals, lacks a route, has too few clips with all of them, or when
+    its routes change before the given frames end (``given_frames`` pixel frames at ``stride``)."""
+    from jaxdrive.data.synthetic import read_counterfactuals
+    meta = read_counterfactuals(dataset)
+    others = [r for r in routes if r != RECORDED]
+    if others and not meta:
+        raise ValueError(f"--routes: expected a dataset with counterfactual routes (jaxdrive data synth "
+                         f"--counterfactuals ...), got {dataset} without any")
+    stored = meta.get("routes", {})
+    missing = [r for r in others if r not in stored]
+    if missing:
+        raise ValueError(f"--routes: expected routes stored in {dataset} ({', '.join(stored) or 'none'}), got "
+                         f"{', '.join(missing)}")
+    if others and (given_frames - 1) * stride >= meta["start"]:
+        raise ValueError(f"--routes: expected the given frames to end before the routes change (source frame "
+                         f"{meta['start']}), got {given_frames} given frames at stride {stride}")
+    have = [set(stored[r]["clips"]) for r in others]
+    common = sorted(set.intersection(*have)) if have else None
+    indices = list(range(clips)) if common is None else common[:clips]
+    if len(indices) < clips:
+        raise ValueError(f"--clips: expected at most {len(indices)} (the validation clips that have every route of "
+                         f"--routes {','.join(routes)}), got {clips}")
+    rows = {r: list(range(clips)) if r == RECORDED else [stored[r]["clips"].index(i) for i in indices]
+            for r in routes}
+    splits = {r: None if r == RECORDED else stored[r]["split"] for r in routes}
+    return {"indices": indices, "rows": rows, "splits": splits}
+
+
+def warp_baseline(render, poses, given: int, depth: float, buckets, **features) -> dict:
+    """The ``warp`` row: frame ``given - 1`` of every view warped along the route's ego poses
+    (``poses``: ``ego_to_world``, ``intrinsics``, ``cam_to_ego`` of :func:`dataset_inputs`), holes
+    inpainted, scored against the route's ``render [B, V, F, H, W, 3]``."""
+    from jaxdrive.warp import warp_views
+    video = np.array(render, copy=True)
+    for b in range(video.shape[0]):
+        e2w = np.asarray(poses["ego_to_world"][b], np.float64)
+        rel = (np.linalg.inv(e2w[given - 1]) @ e2w[given - 1:]).astype(np.float32)
+        video[b, :, given:] = warp_views(video[b, :, given - 1], poses["intrinsics"][b], poses["cam_to_ego"][b],
+                                         rel, depth)[:, 1:]
+    return {"seconds": None, "peak_device_bytes": None, "buckets": score(video, render, buckets, **features)}
+
+
+def route_effect(results: dict, against: dict, routes) -> dict:
+    """``{route: {strategy: {bucket: {metric: difference}}}}``: each strategy's score under the
+    route minus the recorded-route generation's score against the same render (``against``:
+    strategy -> route -> buckets, from :func:`jaxdrive.eval.compare.run_strategies`'s
+    ``targets``)."""
+    out = {}
+    for route in routes:
+        if route == RECORDED:
+            continue
+        for name, by_route in against.items():
+            mine = results[f"{name}{SEP}{route}"]["buckets"]
+            base = by_route[route]
+            out.setdefault(route, {})[name] = {
+                span: {m: round(mine[span][m] - base[span][m], 4) for m in EFFECT_METRICS
+                       if mine[span].get(m) is not None and base[span].get(m) is not None}
+                for span in mine}
+    return out
+
+
+def effect_table(effects: dict) -> str:
+    """A markdown table of :func:`route_effect`: one row per route, strategy and bucket."""
+    metrics = [m for m in EFFECT_METRICS if any(m in row for r in effects.values() for s in r.values()
+                                                for row in s.values())]
+    head = ["route", "strategy", "frames", *[f"{m.upper() if m != 'miou' else 'mIoU'} effect" for m in metrics]]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for route, by_strategy in effects.items():
+        for name, spans in by_strategy.items():
+            for span, row in spans.items():
+                cells = [f"{row[m]:+.3f}" if m in row else "-" for m in metrics]
+                lines.append(f"| {route} | {name} | {span} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def evaluate_routes(routes, plan, *, load_inputs, first_latents, strategies, models, codec, length, buckets, key,
+                    given: int, depth: float, mesh=None, segment=None, log=print, **features) -> tuple[dict, dict]:
+    """Every strategy under every route of ``routes`` (:func:`route_clips`'s ``plan``), scored
+    against each route's render, with the ``repeat`` and ``warp`` rows per route; returns
+    ``(results, effects)`` for :func:`jaxdrive.eval.compare.write_outputs`.
+
+    ``load_inputs(split, indices)`` gives :func:`jaxdrive.generate.samples.dataset_inputs` of those
+    clips (with ``poses``, and ``class_masks`` with a ``segment`` function);
+    ``first_latents(inputs)`` the given latents every strategy starts from. Every route's
+    generation draws the same noise (``key``), so what differs between routes is the controls."""
+    from jaxdrive.eval.compare import repeat_baseline, repeat_name, run_strategies
+    base = load_inputs(None, plan["indices"])
+    inputs = {r: base if r == RECORDED else load_inputs(plan["splits"][r], plan["rows"][r]) for r in routes}
+    first = first_latents(base)
+    masks = lambda inp: inp.get("class_masks") if segment is not None else None
+    targets = {r: (np.asarray(inp["video"]), masks(inp)) for r, inp in inputs.items() if r != RECORDED}
+    run = lambda inp, **kw: run_strategies({n: {} for n in strategies}, models, codec, inp["cond"], first, length,
+                                           np.asarray(inp["video"]), buckets, key=key, mesh=mesh, segment=segment,
+                                           masks=masks(inp), log=log, **features, **kw)
+    recorded = run(base, targets=targets)
+    against = {name: r.pop("against") for name, r in recorded.items()}
+    results = {}
+    for route in routes:
+        inp = inputs[route]
+        video = np.asarray(inp["video"])
+        runs = recorded if route == RECORDED else run(inp)
+        for name, r in runs.items():
+            results[name if route == RECORDED else f"{name}{SEP}{route}"] = {**r, "route": route}
+        label = "" if route == RECORDED else f"{SEP}{route}"
+        results[repeat_name(given) + label] = {**repeat_baseline(video, given, buckets, segment=segment,
+                                                                 masks=masks(inp), **features), "route": route}
+        results[f"{WARP}{SEP}{route}"] = {**warp_baseline(video, inp["poses"], given, depth, buckets, segment=segment,
+                                                          masks=masks(inp), **features), "route": route}
+    return results, route_effect(results, against, routes)
