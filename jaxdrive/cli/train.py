@@ -99,6 +99,25 @@ def _config_mesh(config, mesh: str):
     return config
 
 
+def _demo_mesh(config, sets):
+    """The demo runs on whatever devices the host has: unless ``--set mesh.*`` says otherwise, the
+    batch goes over ``data = gcd(data.batch_size, devices)`` and the rest of the devices split the
+    sequence (``seq``), so 1, 2, 8 or 6 devices all divide the tiny batch."""
+    import math
+
+    import jax
+
+    from jaxdrive.config import override
+    if any(s.split("=", 1)[0].strip().startswith("mesh.") for s in sets or []):
+        return config
+    devices = jax.device_count()
+    data = math.gcd(config.data.batch_size, devices)
+    print(f"mesh: data={data} x seq={devices // data} over the {devices} {jax.default_backend()} devices")
+    for key, value in (("data", data), ("fsdp", 1), ("seq", devices // data), ("tensor", 1)):
+        config = override(config, f"mesh.{key}={value}")
+    return config
+
+
 def _demo(args, rest) -> int:
     """Synthesise a dataset, train the tiny DiT on frame-wise latents, sample a long clip."""
     workdir = Path(args.workdir)
@@ -114,6 +133,7 @@ def _demo(args, rest) -> int:
         raise ValueError(f"--scenes: expected at least data.batch_size + 1 = {config.data.batch_size + 1} "
                          f"(a batch of training scenes and one for validation), got {args.scenes}")
     start_jax()
+    config = _demo_mesh(config, args.set)
     t0 = time.perf_counter()
     if not data.exists():
         from jaxdrive.data.synthetic import write_synthetic_dataset
