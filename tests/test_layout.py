@@ -32,12 +32,12 @@ def _front_camera(size=90, focal=90.0):
 
 def test_layout_matches_the_synthetic_worlds_instance_ids():
     """Each box's drawn silhouette (nearest box in front) against its instance mask, one ray per
-    stored pixel. Measured over seeds 0-1 (2 frames, 6 views, 64 x 112, no scenery): IoU 1.000
-    mean and min over all 31 (box, frame, view) masks of >= 10 pixels, and every pixel's box id
+    stored pixel. Measured over seeds 0-2 (2 frames, 6 views, 64 x 112, no scenery): IoU 1.000
+    mean and min over all 30 (box, frame, view) masks of >= 10 pixels, and every pixel's box id
     equal to the instance id: the world's renderer ray casts the same boxes, so the two agree up
-    to float rounding at silhouette edges (a hull of projected corners would reach ~0.9)."""
+    to float rounding at silhouette edges."""
     ious, agree = [], []
-    for seed in (0, 1):
+    for seed in (0, 1, 2):
         clip = generate_clip(seed, views=6, frames=2, height=64, width=112, scenery=False)
         origin, dirs = camera_rays(clip["intrinsics"][None], clip["cam_to_ego"][None], (64, 112), (64, 112))
         _, owner = box_hits(clip["boxes"][None], clip["box_valid"][None], origin, dirs)
@@ -50,7 +50,7 @@ def test_layout_matches_the_synthetic_worlds_instance_ids():
             for f, v in zip(*np.nonzero((inst == i).sum((2, 3)) >= 10)):
                 a, b = ids[f, v] == i, inst[f, v] == i
                 ious.append((a & b).sum() / (a | b).sum())
-    assert len(ious) >= 20
+    assert len(ious) == 30
     assert np.mean(ious) > 0.99 and np.min(ious) > 0.95, (np.mean(ious), np.min(ious))
     assert min(agree) > 0.999
 
@@ -173,3 +173,52 @@ def test_layout_gate_starts_closed_gradients_reach_the_encoder_and_guidance_drop
     np.testing.assert_allclose(dropped[0], alone[0], atol=1e-6)
     np.testing.assert_allclose(dropped[1], live[1], atol=1e-6)
     assert max_rel(dropped[0], live[0]) > 1e-4
+
+
+def test_the_layout_pathway_learns_where_the_boxes_are():
+    """A toy where the layout alone decides the content: one latent frame of one front camera
+    whose latents are +1 where a box covers the cell and -1 elsewhere (a box 8-16 m ahead, up to
+    4 m to either side); the model has no other input. 60 Adam steps (lr 1e-2, 8 clips a step)
+    on a one-layer DiT with only the layout control; then on 8 held-out clips with the same noise
+    and levels the flow loss with the true boxes is below half that with the boxes shuffled
+    between the clips (measured: 0.066 against 0.218, a ratio of 0.30; 0.66 after 40 steps). It
+    fails if the pathway is cut: the gate, the convolutions or the canvas."""
+    import optax
+
+    from jaxdrive import flow
+    from jaxdrive.models.conditions import Conditions
+    from jaxdrive.models.dit_inputs import example_cameras
+
+    cfg = preset("tiny", depth=1, heads=2, head_dim=16,
+                 controls=dict(text=None, fps=False, layout=True, layout_hidden=16))
+    dit, b, h = DiT(cfg), 8, 8
+    cams = example_cameras(b, 1, 8 * h, 8 * h)
+
+    def clips(rng):
+        boxes = np.zeros((b, 1, 1, 7), np.float32)
+        boxes[..., 0], boxes[..., 1] = rng.uniform(8, 16, (b, 1, 1)), rng.uniform(-4, 4, (b, 1, 1))
+        boxes[..., 2:6] = (1.0, 3.0, 2.0, 2.0)
+        cond = Conditions(boxes=boxes, box_classes=np.zeros((b, 1, 1), np.int32),
+                          box_valid=np.ones((b, 1, 1), bool), **cams)
+        cover = layout_canvas(boxes, cond.box_classes, cond.box_valid, cond.intrinsics, cond.cam_to_ego,
+                              (8 * h, 8 * h), (h, h), num_classes=10, samples=2)[..., :1]   # [B, 1, 1, h, w, 1]
+        return jnp.broadcast_to(2 * cover - 1, (b, 1, 1, h, h, cfg.in_channels)), cond
+
+    def loss(p, x, cond, noise, sig):
+        return flow.flow_loss(dit.forward(p, flow.add_noise(x, noise, sig), sig, cond), x, noise)
+
+    grad = jax.jit(jax.value_and_grad(loss))
+    opt = optax.adam(1e-2)
+    update = jax.jit(lambda g, s, p: (lambda u, s: (optax.apply_updates(p, u), s))(*opt.update(g, s, p)))
+    params = dit.init_params(0, batch=b, views=1, frames=1, height=h, width=h)
+    state, rng, key = opt.init(params), np.random.default_rng(0), jax.random.PRNGKey(0)
+    for i in range(60):
+        x, cond = clips(rng)
+        k1, k2 = jax.random.split(jax.random.fold_in(key, i))
+        _, g = grad(params, x, cond, jax.random.normal(k1, x.shape), jax.random.uniform(k2, (b,), minval=0.2))
+        params, state = update(g, state, params)
+    x, cond = clips(np.random.default_rng(99))
+    noise, sig = jax.random.normal(jax.random.PRNGKey(5), x.shape), jnp.linspace(0.3, 0.9, b)
+    true = float(grad(params, x, cond, noise, sig)[0])
+    shuffled = float(grad(params, x, cond.replace(boxes=np.roll(cond.boxes, 1, 0)), noise, sig)[0])
+    assert true < 0.5 * shuffled, (true, shuffled)

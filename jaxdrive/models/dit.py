@@ -317,7 +317,7 @@ class DiT(nn.Module):
         the control. The caller adds nothing when the boxes are absent."""
         c, dt = cfg.controls, cfg.compute_dtype
         image_hw = (hw[0] * cfg.vae_spatial, hw[1] * cfg.vae_spatial)
-        feats = LayoutEncoder(c.num_classes, c.layout_hidden, c.layout_samples, tuple(c.layout_bev_range),
+        feats = LayoutEncoder(c.num_classes, c.map_channels, c.layout_hidden, c.layout_samples, tuple(c.layout_bev_range),
                               cfg.vae_temporal, dt, name="layout_embed")(
             cond.boxes, cond.box_classes, cond.box_valid, cond.intrinsics, cond.cam_to_ego, cond.bev_map, image_hw,
             hw, nf)                                                         # [B, V, F', h, w, hidden]

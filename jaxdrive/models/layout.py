@@ -203,9 +203,11 @@ class LayoutEncoder(nn.Module):
     ``[B, V, F', h, w, hidden]``: two 3x3 convolutions (SiLU) per frame and view, then the VAE's
     temporal alignment (:func:`jaxdrive.models.dit_controls._align`: pixel-frame canvases are
     grouped as the causal VAE groups frames and mapped by a learned linear layer). The DiT
-    patchifies the result and adds it to the tokens through a zero-initialised projection."""
+    patchifies the result and adds it to the tokens through a zero-initialised projection.
+    Without ``bev_map`` the ``map_channels`` road channels are zero (no road anywhere)."""
 
     num_classes: int
+    map_channels: int
     hidden: int
     samples: int
     bev_range: tuple[float, float]
@@ -218,6 +220,8 @@ class LayoutEncoder(nn.Module):
         canvas = jax.lax.stop_gradient(layout_canvas(
             boxes, box_classes, box_valid, intrinsics, cam_to_ego, image_hw, grid_hw, num_classes=self.num_classes,
             bev_map=bev_map, bev_range=self.bev_range, samples=self.samples))    # [B, F, V, h, w, K]
+        if bev_map is None:                                  # no map: no road anywhere, same channels
+            canvas = jnp.pad(canvas, [(0, 0)] * 5 + [(0, self.map_channels)])
         b, f, nv = canvas.shape[:3]
         x = merge(merge(canvas, 0), 0).astype(self.dtype)                     # [B F V, h, w, K]
         x = jax.nn.silu(Conv3x3(self.hidden, 1, self.dtype, name="conv_in")(x))
