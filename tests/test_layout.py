@@ -3,19 +3,25 @@ corners' normalised range (``model.box_range``, ``model.box_freqs``): the raster
 the synthetic world's instance ids and worked numbers, the zero-initialised gate, guidance's drop,
 and bad input."""
 
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 from dit_fixtures import conditions, forward_fn, max_rel, params_for, perturb, split_inputs
 
-from jaxdrive.config import Config, override
+from jaxdrive import flow, geometry
+from jaxdrive.config import Config, override, to_dict
 from jaxdrive.data.synthetic import generate_clip
+from jaxdrive.models.conditions import Conditions
 from jaxdrive.models.dit import DiT
 from jaxdrive.models.dit_controls import box_corner_features
-from jaxdrive.models.dit_inputs import example_inputs
+from jaxdrive.models.dit_inputs import example_cameras, example_inputs
 from jaxdrive.models.dit_presets import preset
 from jaxdrive.models.layout import box_hits, camera_rays, layout_canvas
+from jaxdrive.train.run import CONFIG_FILE, load_run_config
 
 LAYOUT = preset("tiny", depth=1, controls=dict(layout=True))
 SHAPES = (("batch", 2), ("views", 2), ("frames", 2), ("height", 8), ("width", 8))
@@ -68,7 +74,6 @@ def test_one_box_and_one_road_cell_worked_numbers():
     rows, cols = np.nonzero(mask)
     assert mask.sum() == 400 and (rows.min(), rows.max(), cols.min(), cols.max()) == (35, 54, 35, 54)
     np.testing.assert_allclose(np.asarray(depth[0, 0, 0])[mask], 9.0, rtol=1e-5)
-    from jaxdrive import geometry
     px, _ = geometry.project_to_image(geometry.ego_to_camera(geometry.box_corners(box[0, 0]), pose[0]), k[0])
     np.testing.assert_allclose([px[..., 0].min(), px[..., 0].max()], [35.0, 55.0], atol=1e-4)
     turned = np.array([[[[11.0, 0.0, 1.5, 4.0, 2.0, 2.0, np.pi / 2]]]], np.float32)
@@ -183,12 +188,6 @@ def test_the_layout_pathway_learns_where_the_boxes_are():
     and levels the flow loss with the true boxes is below half that with the boxes shuffled
     between the clips (measured: 0.066 against 0.218, a ratio of 0.30; 0.66 after 40 steps). It
     fails if the pathway is cut: the gate, the convolutions or the canvas."""
-    import optax
-
-    from jaxdrive import flow
-    from jaxdrive.models.conditions import Conditions
-    from jaxdrive.models.dit_inputs import example_cameras
-
     cfg = preset("tiny", depth=1, heads=2, head_dim=16,
                  controls=dict(text=None, fps=False, layout=True, layout_hidden=16))
     dit, b, h = DiT(cfg), 8, 8
@@ -222,3 +221,22 @@ def test_the_layout_pathway_learns_where_the_boxes_are():
     true = float(grad(params, x, cond, noise, sig)[0])
     shuffled = float(grad(params, x, cond.replace(boxes=np.roll(cond.boxes, 1, 0)), noise, sig)[0])
     assert true < 0.5 * shuffled, (true, shuffled)
+
+
+def test_batches_feed_the_layout_and_old_runs_keep_raw_metres(tmp_path):
+    """A pipeline batch gives a layout-only model the boxes, the cameras and the BEV map, and the
+    batch's box drop; a run config saved before ``model.box_range`` existed loads with raw metres."""
+    ex = example_inputs(LAYOUT, **dict(SHAPES))["cond"]
+    batch = {k: np.asarray(v) for k, v in ex.given().items()}
+    batch["drop"] = {n: np.array([True, False]) for n in ("text", "camera", "trajectory", "boxes", "map")}
+    cond = Conditions.from_batch(batch, LAYOUT)
+    assert all(getattr(cond, k) is not None for k in ("boxes", "box_valid", "intrinsics", "cam_to_ego", "bev_map"))
+    assert sorted(cond.drop) == ["boxes", "text"]
+    np.testing.assert_array_equal(cond.drop["boxes"], [True, False])
+
+    saved = to_dict(Config())
+    (tmp_path / CONFIG_FILE).write_text(json.dumps(saved))
+    assert load_run_config(tmp_path).model.box_range == 51.2
+    del saved["model"]["box_range"]
+    (tmp_path / CONFIG_FILE).write_text(json.dumps(saved))
+    assert load_run_config(tmp_path).model.box_range is None

@@ -202,9 +202,10 @@ def _check(cfg: DiTConfig, latents, sigma, cond: Conditions) -> None:
     if kw.get("bev_map") is not None:
         check_shape("bev_map", kw["bev_map"], [b, None, None, None, c.map_channels])
         frame_mode("bev_map", np.shape(kw["bev_map"])[1], nf, r)
-        if c.layout and kw.get("boxes") is not None and np.shape(kw["bev_map"])[1] != np.shape(kw["boxes"])[1]:
+        fb, fm = np.shape(kw.get("boxes"))[1:2], np.shape(kw["bev_map"])[1]
+        if c.layout and fb and fb[0] != fm:
             raise ValueError(f"bev_map: the layout (controls.layout) draws each frame's boxes and map together, "
-                             f"expected {np.shape(kw['boxes'])[1]} frames as the boxes, got {np.shape(kw['bev_map'])[1]}")
+                             f"expected {fb[0]} frames as the boxes, got {fm}")
     for name in ("cond_latents", "cond_mask"):
         if kw.get(name) is not None and c.cond_frames is None:
             raise ValueError(f"{name}: this DiT takes no condition frames (controls.cond_frames is None)")

@@ -33,6 +33,8 @@ droppable for classifier-free guidance by ``cond.drop={name: [B] bool}``:
   for every sample;
 - a dropped or absent ``frame_times`` adds nothing (its embedding's last layer starts at zero,
   so the "null" is the model without the control);
+- the projected layout (``controls.layout``) is dropped with ``boxes`` (absent boxes: likewise)
+  and then adds nothing;
 - a dropped ``map`` is the all-zero map (MagicDrive-V2 appendix E, after MagicDrive); leaving
   ``bev_map`` out switches the ControlNet branch off;
 - condition frames are set by ``cond_latents``/``cond_mask`` (interpolation = first and last frame
@@ -317,8 +319,8 @@ class DiT(nn.Module):
         the control. The caller adds nothing when the boxes are absent."""
         c, dt = cfg.controls, cfg.compute_dtype
         image_hw = (hw[0] * cfg.vae_spatial, hw[1] * cfg.vae_spatial)
-        feats = LayoutEncoder(c.num_classes, c.map_channels, c.layout_hidden, c.layout_samples, tuple(c.layout_bev_range),
-                              cfg.vae_temporal, dt, name="layout_embed")(
+        feats = LayoutEncoder(c.num_classes, c.map_channels, c.layout_hidden, c.layout_samples,
+                              tuple(c.layout_bev_range), cfg.vae_temporal, dt, name="layout_embed")(
             cond.boxes, cond.box_classes, cond.box_valid, cond.intrinsics, cond.cam_to_ego, cond.bev_map, image_hw,
             hw, nf)                                                         # [B, V, F', h, w, hidden]
         tokens = constrain(patchify(feats, cfg.patch), VIDEO[:-1] + ("channels",))

@@ -120,7 +120,8 @@ class Controls:
         names the box inputs and their drop, which both box pathways read (cross-attention with
         ``boxes``, the canvas with ``layout``)."""
         on = {"text": self.text is not None, "fps": self.fps, "camera": self.camera, "waypoints": self.waypoints,
-              "trajectory": self.trajectory, "boxes": self.boxes or self.layout, "map": self.map, "warp": self.warp, "frame_time": self.frame_time}
+              "trajectory": self.trajectory, "boxes": self.boxes or self.layout, "map": self.map, "warp": self.warp,
+              "frame_time": self.frame_time}
         return tuple(name for name in CONDITIONS if on[name])
 
 
