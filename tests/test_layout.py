@@ -130,13 +130,16 @@ def test_box_range_worked_numbers_and_bad_input():
 
 
 def test_layout_bad_input():
+    """Refused by the checks the DiT runs first (``Conditions.check``), before anything compiles."""
     lat, sig, text, kw = split_inputs(example_inputs(LAYOUT, **dict(SHAPES)))
-    fwd = forward_fn(LAYOUT)
-    params = params_for(LAYOUT, SHAPES)
+    check = lambda kw: conditions(text, kw).check(LAYOUT, lat, sig)
+    check(kw)
     with pytest.raises(ValueError, match=r"intrinsics: the projected layout .* expected intrinsics and cam_to_ego"):
-        fwd(params, lat, sig, text, {k: v for k, v in kw.items() if k not in ("intrinsics", "cam_to_ego")})
+        check({k: v for k, v in kw.items() if k not in ("intrinsics", "cam_to_ego")})
     with pytest.raises(ValueError, match=r"bev_map: the layout .* expected 5 frames as the boxes, got 2"):
-        fwd(params, lat, sig, text, dict(kw, bev_map=kw["bev_map"][:, :2]))
+        check(dict(kw, bev_map=kw["bev_map"][:, :2]))
+    with pytest.raises(ValueError, match=r"bev_map: this DiT takes no map"):
+        conditions(text, kw).check(preset("tiny", depth=1, controls=dict(boxes=True)), lat, sig)
     with pytest.raises(ValueError, match=r"grid_hw: expected \(height, width\)"):
         camera_rays(kw["intrinsics"], kw["cam_to_ego"], (64, 64), (8,))
     with pytest.raises(ValueError, match=r"cam_to_ego: expected shape \[2, 2, 4, 4\]"):
