@@ -54,7 +54,8 @@ def camera_rays(intrinsics, cam_to_ego, image_hw, grid_hw, samples: int = 1):
     ``j`` of a row sits at ``u = (j + 0.5) W / (gw samples)``, so one sample per stored pixel is
     the pixel centres). ``intrinsics [..., V, 3, 3]``, ``cam_to_ego [..., V, 4, 4]`` ->
     ``(origin [..., V, 3], dirs [..., V, gh s, gw s, 3])`` in the ego frame; each direction is the
-    camera-frame ray with z = 1 rotated, so the ray parameter of a point is its camera depth."""
+    camera-frame ray with z = 1 rotated, so the ray parameter of a point is its camera depth.
+    ``K`` is read as ``fx, fy, cx, cy`` (skew taken as 0, as calibrated cameras have it)."""
     if np.ndim(intrinsics) < 3 or tuple(np.shape(intrinsics)[-2:]) != (3, 3):
         raise ValueError(f"intrinsics: expected shape [..., V, 3, 3], got {list(np.shape(intrinsics))}")
     if tuple(np.shape(cam_to_ego)) != tuple(np.shape(intrinsics)[:-2]) + (4, 4):
