@@ -19,7 +19,8 @@ from jaxdrive.models.dit import DiT
 
 # Zero-initialised projections of the control branches (they must leave the output unchanged).
 # "out" is a ControlNet branch layer's output projection (distinct from attention's "to_out").
-BRANCH_ZERO = ("warp_proj", "map_in", "cond_embed", "reference_embed", "linear_out", "cross_view", "out")
+BRANCH_ZERO = ("warp_proj", "map_in", "cond_embed", "reference_embed", "linear_out", "cross_view", "out",
+               "layout_gate")
 
 
 def split_inputs(ex: dict):

@@ -1,7 +1,7 @@
 """The DiT sharded over (data, fsdp, seq, tensor) meshes of 8 fake CPU devices matches the
 single-device model: outputs and gradients (parameters and latents), for the factorized layout
 with spatial attention over all views, the MVDiT layout with cross-view attention, the map
-ControlNet, box tokens, condition frames and HTFT, and the full layout with scanned,
+ControlNet, box tokens, condition frames and HTFT, the projected layout, and the full layout with scanned,
 rematerialised layers. Parameters are sharded by their logical names
 (FSDP over ``embed``, tensor parallel over heads and MLP features) and the spatial patches over
 ``seq``, so every sequence-sharded attention runs as a ring."""
@@ -22,6 +22,9 @@ CASES = {
     # ControlNet, box tokens (per-frame-and-view cross-attention), condition frames and HTFT
     "mvdit-controls": (preset("tiny-mv", depth=1, controls=dict(trajectory=False, warp=False, waypoints=False,
                                                                 camera=False)), dict(fsdp=2, seq=2, tensor=2), 3),
+    # the projected layout: ray casting, the BEV map's gather and the canvas's convolutions per
+    # (frame, view) with the batch over data and the tokens over seq
+    "layout": (preset("tiny", depth=1, controls=dict(layout=True)), dict(data=2, seq=2, tensor=2), 2),
     "full-scan-remat": (preset("tiny-full", scan_layers=True, remat="full"), dict(seq=8), 2),
     # the per-frame output head (U-ViT's final convolutions over output, input and given frame)
     # with its frames over seq

@@ -45,6 +45,8 @@ CONTROL_OF = {"fps": "fps", "intrinsics": "camera", "cam_to_ego": "camera", "way
               "ego_to_world": "trajectory", "boxes": "boxes", "box_classes": "boxes",
               "box_valid": "boxes", "bev_map": "map", "warp": "warp",
               "frame_times": "frame_time"}
+# Fields the projected layout (controls.layout) reads besides those of its own controls.
+LAYOUT_FIELDS = ("intrinsics", "cam_to_ego", "bev_map")
 # Fields with a (pixel or latent) frame axis at 1; the others are per clip or per view.
 PER_FRAME = ("waypoints", "ego_to_world", "boxes", "box_classes", "box_valid", "bev_map", "frame_times")
 # The data pipeline's drop names (jaxdrive.data.pipeline.CONDITIONS) -> the DiT conditions they drop.
@@ -92,7 +94,8 @@ class Conditions:
             kw["text"], kw["text_mask"] = text, text_mask
         if "fps" in on:
             kw["fps"] = f32("fps")
-        if "camera" in on or ("boxes" in on and cfg.controls.box_per_view):
+        layout = cfg.controls.layout
+        if "camera" in on or ("boxes" in on and cfg.controls.box_per_view) or layout:
             kw["intrinsics"], kw["cam_to_ego"] = f32("intrinsics"), f32("cam_to_ego")
         if "waypoints" in on:
             kw["waypoints"] = f32("waypoints")
@@ -100,7 +103,7 @@ class Conditions:
             kw["ego_to_world"] = f32("ego_to_world")
         if "boxes" in on:
             kw.update({k: np.asarray(batch[k]) for k in ("boxes", "box_classes", "box_valid")})
-        if "map" in on:
+        if "map" in on or layout:
             kw["bev_map"] = f32("bev_map")          # the schema's classes are 0 / 1 already
         if "frame_time" in on:
             kw["frame_times"] = f32("frame_times")
@@ -171,6 +174,8 @@ def _check(cfg: DiTConfig, latents, sigma, cond: Conditions) -> None:
     for name, control in CONTROL_OF.items():
         if control == "camera" and c.boxes and c.box_per_view:
             continue                                     # per-view boxes use the cameras too
+        if c.layout and name in LAYOUT_FIELDS:
+            continue                                     # the layout draws the map with the cameras
         if kw.get(name) is not None and control not in on:
             raise ValueError(f"{name}: this DiT takes no {control} (controls.{control} is False), "
                              f"got an array of shape {_shape(kw[name])}")
@@ -197,6 +202,10 @@ def _check(cfg: DiTConfig, latents, sigma, cond: Conditions) -> None:
     if kw.get("bev_map") is not None:
         check_shape("bev_map", kw["bev_map"], [b, None, None, None, c.map_channels])
         frame_mode("bev_map", np.shape(kw["bev_map"])[1], nf, r)
+        fb, fm = np.shape(kw.get("boxes"))[1:2], np.shape(kw["bev_map"])[1]
+        if c.layout and fb and fb[0] != fm:
+            raise ValueError(f"bev_map: the layout (controls.layout) draws each frame's boxes and map together, "
+                             f"expected {fb[0]} frames as the boxes, got {fm}")
     for name in ("cond_latents", "cond_mask"):
         if kw.get(name) is not None and c.cond_frames is None:
             raise ValueError(f"{name}: this DiT takes no condition frames (controls.cond_frames is None)")
@@ -260,9 +269,12 @@ def _check_boxes(cfg, b, nf, intrinsics, kw):
     check_shape("box_classes", kw["box_classes"], [b, fb, n])
     check_shape("box_valid", kw["box_valid"], [b, fb, n])
     _check_bool("box_valid", kw["box_valid"])
-    if cfg.controls.box_per_view and intrinsics is None:
+    if cfg.controls.boxes and cfg.controls.box_per_view and intrinsics is None:
         raise ValueError("intrinsics: per-view boxes (controls.box_per_view) need intrinsics and "
                          "cam_to_ego, got none")
+    if cfg.controls.layout and intrinsics is None:
+        raise ValueError("intrinsics: the projected layout (controls.layout) draws the boxes with the cameras, "
+                         "expected intrinsics and cam_to_ego, got none")
 
 
 def _check_features(cfg, b, latents, features, mask):

@@ -33,6 +33,8 @@ droppable for classifier-free guidance by ``cond.drop={name: [B] bool}``:
   for every sample;
 - a dropped or absent ``frame_times`` adds nothing (its embedding's last layer starts at zero,
   so the "null" is the model without the control);
+- the projected layout (``controls.layout``) is dropped with ``boxes`` (absent boxes: likewise)
+  and then adds nothing;
 - a dropped ``map`` is the all-zero map (MagicDrive-V2 appendix E, after MagicDrive); leaving
   ``bev_map`` out switches the ControlNet branch off;
 - condition frames are set by ``cond_latents``/``cond_mask`` (interpolation = first and last frame
@@ -60,6 +62,7 @@ from jaxdrive.models.dit_controls import (BoxEncoder, CameraEncoder, CaptionEnco
                                           MapEncoder, TimestepMLP, TrajectoryEncoder, WaypointEncoder,
                                           null_param, use_null)
 from jaxdrive.models.dit_inputs import example_inputs
+from jaxdrive.models.layout import LayoutEncoder
 from jaxdrive.models.embeddings import rope_3d, sincos_2d, sincos_3d
 from jaxdrive.models.layers import MLP, Dense, LayerNorm, modulate
 from jaxdrive.models.params import ZEROS, Init, abstract_params, count_params, host_params, normal, param
@@ -291,6 +294,8 @@ class DiT(nn.Module):
                                   name="frame_time_embed")(cond.frame_times, nf)
             ft = use_null(drop.get("frame_time"), pool_frames(ft, pt), jnp.zeros((), dt))
             add = add + ft[:, :, None, None]                                # [B, Ft, 1, 1, D]
+        if c.layout and cond.boxes is not None:
+            add = add + self._layout(cfg, cond, drop, hw, nf)
         if ref is not None:
             add = add + Dense(width, ("channels", "embed"), dtype=dt, kernel_init=ZEROS, name="reference_embed")(
                 constrain(patchify(ref, cfg.patch), VIDEO[:-1] + ("channels",)))
@@ -304,6 +309,23 @@ class DiT(nn.Module):
             add = add + Dense(width, ("channels", "embed"), dtype=dt, kernel_init=ZEROS,
                               name="cond_embed")(constrain(patchify(cin, cfg.patch), VIDEO[:-1] + ("channels",)))
         return add
+
+    def _layout(self, cfg, cond: Conditions, drop, hw, nf):
+        """The projected layout control (``controls.layout``, :mod:`jaxdrive.models.layout`):
+        the canvas of the boxes and the BEV map in every camera on the latent grid ``hw``,
+        encoded, patchified, then a zero-initialised projection per token (the gate: a model
+        initialised from a run without the control starts unchanged) -> ``[B, Ft, S, V, D]``.
+        Dropped with the boxes (``drop["boxes"]``): a dropped row adds nothing, the model without
+        the control. The caller adds nothing when the boxes are absent."""
+        c, dt = cfg.controls, cfg.compute_dtype
+        image_hw = (hw[0] * cfg.vae_spatial, hw[1] * cfg.vae_spatial)
+        feats = LayoutEncoder(c.num_classes, c.map_channels, c.layout_hidden, c.layout_samples,
+                              tuple(c.layout_bev_range), cfg.vae_temporal, dt, name="layout_embed")(
+            cond.boxes, cond.box_classes, cond.box_valid, cond.intrinsics, cond.cam_to_ego, cond.bev_map, image_hw,
+            hw, nf)                                                         # [B, V, F', h, w, hidden]
+        tokens = constrain(patchify(feats, cfg.patch), VIDEO[:-1] + ("channels",))
+        out = Dense(cfg.width, ("channels", "embed"), dtype=dt, kernel_init=ZEROS, name="layout_gate")(tokens)
+        return use_null(drop.get("boxes"), out, jnp.zeros((), dt))
 
     def _clip_embeddings(self, cfg, b, fps, ofs, drop):
         """Per-clip additions to the timestep embedding: fps (Open-Sora) and ofs (CogVideoX 1.5)."""
@@ -370,9 +392,9 @@ class DiT(nn.Module):
                 bm = jnp.ones((b, ft, nv, 1), bool)
             else:
                 image_hw = (hw[0] * cfg.vae_spatial, hw[1] * cfg.vae_spatial)
-                bt, bm = BoxEncoder(width, cfg.heads, c.encoder_layers, c.num_classes, c.fourier_freqs,
+                bt, bm = BoxEncoder(width, cfg.heads, c.encoder_layers, c.num_classes, cfg.box_freqs,
                                     c.fourier_temperature, cfg.vae_temporal, c.box_per_view, cfg.local_attn_impl,
-                                    dt, name="boxes_embed")(boxes, box_classes, box_valid, nf, intrinsics,
+                                    dt, cfg.box_range, name="boxes_embed")(boxes, box_classes, box_valid, nf, intrinsics,
                                                              cam_to_ego, image_hw)
                 bt = pool_frames(bt, pt)
                 bm = jnp.any(bm.reshape(b, ft, pt, *bm.shape[2:]), axis=2)

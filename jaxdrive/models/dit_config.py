@@ -53,6 +53,16 @@ class Controls:
       attention tokens per (frame, view). ``box_per_view``: corners in each camera's frame and
       boxes behind / outside a camera masked for that view.
     - ``map``: the BEV map as a ControlNet branch over the first ``map_blocks`` layers.
+    - ``layout``: the projected layout canvas (:mod:`jaxdrive.models.layout`, in the style of
+      Ctrl-V's and CoGen's layout conditioning): per frame and camera, the boxes' filled
+      silhouettes by class (nearest in front), a near-box channel and the BEV map's road classes
+      on the visible ground, ray cast with the clip's own cameras at the latent grid
+      (``layout_samples`` x ``layout_samples`` rays per latent cell, averaged), two 3x3
+      convolutions of ``layout_hidden`` channels, the VAE's temporal alignment, then per token a
+      zero-initialised projection added to the tokens. It reads the box inputs (and the BEV map,
+      spanning ``layout_bev_range`` metres (x, y), where given) and is dropped with the boxes
+      (``drop["boxes"]``), so guidance that drops the boxes drops the layout too; with
+      ``boxes=False`` it is the only box pathway.
     - ``cond_frames``: clean condition frames: ``"replace"`` (Open-Sora / MiLA: the given latents
       replace those frames, whose noise level becomes 0) or ``"concat"`` (CogVideoX-I2V / LongDWM:
       ``[cond * mask, mask]`` through a zero-initialised patch embedding added to the tokens).
@@ -90,6 +100,10 @@ class Controls:
     map_channels: int = 8
     map_blocks: int = 2
     map_hidden: int = 64
+    layout: bool = False
+    layout_hidden: int = 32
+    layout_samples: int = 2
+    layout_bev_range: tuple[float, float] = (100.0, 100.0)
     cond_frames: str | None = None
     reference_frame: str | None = None
     warp: bool = False
@@ -102,9 +116,12 @@ class Controls:
 
     def enabled(self) -> tuple[str, ...]:
         """The conditions this DiT takes, by their names in :data:`CONDITIONS` (the one list
-        of which controls are on: checks, batch preparation and guidance read it)."""
+        of which controls are on: checks, batch preparation and guidance read it). ``"boxes"``
+        names the box inputs and their drop, which both box pathways read (cross-attention with
+        ``boxes``, the canvas with ``layout``)."""
         on = {"text": self.text is not None, "fps": self.fps, "camera": self.camera, "waypoints": self.waypoints,
-              "trajectory": self.trajectory, "boxes": self.boxes, "map": self.map, "warp": self.warp, "frame_time": self.frame_time}
+              "trajectory": self.trajectory, "boxes": self.boxes or self.layout, "map": self.map, "warp": self.warp,
+              "frame_time": self.frame_time}
         return tuple(name for name in CONDITIONS if on[name])
 
 
@@ -141,6 +158,18 @@ class DiTConfig:
     adds U-ViT's two 3x3 convolutions after the unpatchify (Bao et al. 2023, sec. 3.1), over the
     output, the input and the given frame: without them each token's output is a linear map of its
     own hidden state, and a narrow model's frames show the token grid as blocks.
+
+    Boxes: ``box_range`` (metres) divides the box corners before their Fourier features
+    (``controls.boxes``), so a corner at the edge of the range is 1: MagicDrive min-max normalises
+    its box corners before its Fourier embedder (``XYZ_MIN`` / ``XYZ_RANGE`` of its
+    ``bbox_embedder``); jaxdrive's default is the +-51.2 m of the nuScenes detection range its
+    data follows, one scale for x, y, z and for corners in a camera's frame (``box_per_view``).
+    ``None`` keeps raw metres (runs trained before the normalisation: their saved config lacks
+    the field and loads with ``None``, see :func:`jaxdrive.train.run.load_run_config`).
+    ``box_freqs``: the Fourier frequency count of the corners, ``temperature^(i / n)``, ``i < n``
+    (:func:`jaxdrive.models.embeddings.fourier_features`; with the default 8 and temperature 100
+    the highest is ~56 rad per unit, a ~6 m wavelength at the default range, where it was ~0.1 m
+    on raw metres).
 
     Execution: ``dtype`` (compute; params are float32), ``remat`` (``"none"``, ``"full"``,
     ``"dots"``, ``"dots_no_batch"``: which activations a layer keeps for the backward),
@@ -182,6 +211,8 @@ class DiTConfig:
     text_len: int = 300
     ofs_embed_dim: int | None = None
     controls: Controls = field(default_factory=Controls)
+    box_range: float | None = 51.2
+    box_freqs: int = 8
     prediction: str = "velocity"
     prediction_min_sigma: float = 0.05
     final_conv: int = 0
@@ -248,8 +279,18 @@ def check_config(cfg: DiTConfig) -> DiTConfig:
                  "vae_temporal", "vae_spatial", "htft_groups"):
         check_positive_int(name, getattr(cfg, name))
     check_positive_int("final_conv", cfg.final_conv, minimum=0)
-    for name in ("num_classes", "map_channels", "map_hidden", "fourier_freqs", "caption_vocab"):
+    if cfg.box_range is not None and (isinstance(cfg.box_range, bool) or not isinstance(cfg.box_range, (int, float))
+                                      or not 0.0 < cfg.box_range < float("inf")):
+        raise ValueError(f"box_range: expected a positive number of metres (or None: raw metres), "
+                         f"got {cfg.box_range!r}")
+    check_positive_int("box_freqs", cfg.box_freqs)
+    for name in ("num_classes", "map_channels", "map_hidden", "fourier_freqs", "caption_vocab", "layout_hidden",
+                 "layout_samples"):
         check_positive_int(f"controls.{name}", getattr(cfg.controls, name))
+    bev = cfg.controls.layout_bev_range
+    if (len(tuple(bev)) != 2 or any(isinstance(r, bool) or not isinstance(r, (int, float)) for r in bev)
+            or not all(0.0 < r < float("inf") for r in bev)):
+        raise ValueError(f"controls.layout_bev_range: expected two positive extents in metres (x, y), got {bev!r}")
     check_positive_int("controls.encoder_layers", cfg.controls.encoder_layers, minimum=0)
     check_positive_int("controls.caption_layers", cfg.controls.caption_layers, minimum=0)
     if len(cfg.patch) != 3:

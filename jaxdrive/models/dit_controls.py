@@ -22,6 +22,7 @@ import numpy as np
 from jaxdrive import geometry
 from jaxdrive.attention import attention
 from jaxdrive.parallel.rules import constrain
+from jaxdrive.validate import check_trailing_shape
 from jaxdrive.models.embeddings import apply_rope, fourier_features, rope_1d, timestep_embedding
 from jaxdrive.models.layers import MLP, AttnProj, Dense, LayerNorm, lookup
 from jaxdrive.models.params import ZEROS, Init, normal, param
@@ -289,6 +290,19 @@ def box_visibility(corners_cam, intrinsics, image_hw, min_depth: float = 0.1):
     return jnp.any(front, -1) & (u_hi >= 0) & (u_lo <= w) & (v_hi >= 0) & (v_lo <= h)
 
 
+def box_corner_features(corners, box_range, num_freqs: int, temperature: float):
+    """Corners ``[..., 8, 3]`` (metres) -> Fourier features ``[..., 24 (1 + 2 num_freqs)]``
+    (:func:`jaxdrive.models.embeddings.fourier_features`) of the corners divided by ``box_range``
+    (metres; None: raw metres), so a corner ``box_range`` away is 1 (``DiTConfig.box_range``)."""
+    if box_range is not None and not (isinstance(box_range, (int, float)) and 0 < box_range < float("inf")):
+        raise ValueError(f"box_range: expected a positive number of metres or None, got {box_range!r}")
+    check_trailing_shape("corners", corners, (8, 3), "[..., 8, 3]")
+    c = jnp.asarray(corners, jnp.float32)
+    if box_range is not None:
+        c = c / box_range
+    return fourier_features(c.reshape(*c.shape[:-2], 24), num_freqs, temperature)
+
+
 class BoxEncoder(nn.Module):
     """MagicDrive-V2's spatial-temporal box encoder (sec. 4.3, Fig. 4b).
 
@@ -298,6 +312,8 @@ class BoxEncoder(nn.Module):
     for that view, keeping one box sequence length across views and frames) else 1. Each box:
     Fourier features of its 8 corners concatenated with a class embedding, an MLP; then a temporal
     transformer with RoPE over the frames of each box; then downsampling to latent frames.
+    ``box_range`` (metres; None: raw metres) divides the corners before their ``num_freqs``
+    Fourier features (``DiTConfig.box_range``: MagicDrive min-max normalises its corners).
     """
 
     width: int
@@ -310,6 +326,7 @@ class BoxEncoder(nn.Module):
     per_view: bool
     impl: str = "xla"
     dtype: jnp.dtype = jnp.float32
+    box_range: float | None = None
 
     @nn.compact
     def __call__(self, boxes, classes, valid, latent_frames, intrinsics=None, cam_to_ego=None,
@@ -325,7 +342,7 @@ class BoxEncoder(nn.Module):
             mask = valid[:, :, None] & vis                            # [B, Fb, V, N]
         else:
             coords, mask = corners[:, :, None], valid[:, :, None]
-        feats = fourier_features(coords.reshape(*coords.shape[:-2], 24), self.num_freqs, self.temperature)
+        feats = box_corner_features(coords, self.box_range, self.num_freqs, self.temperature)
         table = param(self, "class_embed", normal(0.02), (self.num_classes, self.width), ("vocab", "embed"))
         table = constrain(table, (None, "embed"))           # whole table on every device for the lookup
         cls = lookup(table, jnp.clip(jnp.asarray(classes, jnp.int32), 0, self.num_classes - 1))

@@ -37,7 +37,7 @@ def example_inputs(cfg: DiTConfig, *, batch: int = 1, views: int = 1, frames: in
         out["text_mask"] = np.ones((batch, text_len), bool)
     if c.fps:
         out["fps"] = rng.uniform(2, 12, (batch,)).astype(np.float32)
-    if c.camera or (c.boxes and c.box_per_view):
+    if c.camera or (c.boxes and c.box_per_view) or c.layout:
         out.update(example_cameras(batch, views, height * cfg.vae_spatial, width * cfg.vae_spatial))
     if c.waypoints:
         out["waypoints"] = np.cumsum(np.abs(f32(batch, fc, 2)), axis=1)
@@ -48,7 +48,7 @@ def example_inputs(cfg: DiTConfig, *, batch: int = 1, views: int = 1, frames: in
         poses = np.tile(np.eye(4, dtype=np.float32), (batch, fc, 1, 1))
         poses[:, :, 0, 3] = np.arange(fc) * 0.5
         out["ego_to_world"] = poses
-    if c.boxes:
+    if c.boxes or c.layout:
         b = np.zeros((batch, fc, boxes, 7), np.float32)
         b[..., 0] = rng.uniform(-20, 20, (batch, fc, boxes))
         b[..., 1] = rng.uniform(-20, 20, (batch, fc, boxes))
@@ -57,7 +57,7 @@ def example_inputs(cfg: DiTConfig, *, batch: int = 1, views: int = 1, frames: in
         out["boxes"] = b
         out["box_classes"] = rng.integers(0, c.num_classes, (batch, fc, boxes)).astype(np.int32)
         out["box_valid"] = rng.uniform(0, 1, (batch, fc, boxes)) < 0.8
-    if c.map:
+    if c.map or c.layout:
         out["bev_map"] = (rng.uniform(0, 1, (batch, fc, *map_hw, c.map_channels)) < 0.3).astype(np.float32)
     if c.cond_frames:
         out["cond_latents"] = f32(batch, views, frames, height, width, cfg.in_channels)

@@ -511,7 +511,9 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
 
 
 def load_run_config(workdir) -> Config:
-    """The config a run in ``workdir`` was started with (``workdir/config.json``)."""
+    """The config a run in ``workdir`` was started with (``workdir/config.json``). A run saved
+    before ``model.box_range`` existed embedded its box corners in raw metres: it loads with
+    ``box_range=None``, so its parameters keep meaning what they were trained for."""
     from jaxdrive.config import from_dict
     path = Path(workdir) / CONFIG_FILE
     if not path.is_file():
@@ -522,6 +524,8 @@ def load_run_config(workdir) -> Config:
         raise ValueError(f"workdir: expected JSON in {path}, got a file that is not ({e})") from None
     if not isinstance(data, dict):
         raise ValueError(f"workdir: expected a JSON object in {path}, got {type(data).__name__}")
+    if isinstance(data.get("model"), dict):
+        data["model"].setdefault("box_range", None)
     return from_dict(Config, data)
 
 
