@@ -202,6 +202,41 @@ def write_frame_grid(path, video, num_frames: int = 4, *, reference=None, min_wi
     return path
 
 
+def write_route_grid(path, rows, num_frames: int = 5, *, view: int = 0, min_width: int = 960) -> Path:
+    """A PNG comparing generations under different controls: one row per ``(label, render,
+    generated)`` (videos ``[V, F, H, W, 3]`` of the same shape), each showing ``view`` (default the
+    front camera) at ``num_frames`` evenly spaced frames, the render on the left and the generation
+    on the right, with the label above. Enlarged by an integer factor (nearest neighbour) until a
+    row is at least ``min_width`` pixels wide."""
+    from PIL import Image, ImageDraw
+
+    if not rows:
+        raise ValueError("rows: expected at least one (label, render, generated), got none")
+    strips = []
+    for label, render, generated in rows:
+        render, generated = _with_views(render), _with_views(generated)
+        if render.shape != generated.shape:
+            raise ValueError(f"rows[{label!r}]: expected render and generated of one shape, got "
+                             f"{list(render.shape)} and {list(generated.shape)}")
+        picks = np.unique(np.linspace(0, render.shape[1] - 1, min(num_frames, render.shape[1])).round().astype(int))
+        side = lambda v: np.concatenate([np.pad(f, ((0, 0), (0, 2), (0, 0)), constant_values=255)
+                                         for f in v[view, picks]], axis=1)
+        a, b = side(render), side(generated)
+        strip = np.concatenate([a, np.full((a.shape[0], 6, 3), 255, np.uint8), b], axis=1)
+        up = max(1, -(-min_width // strip.shape[1]))
+        strip = einops.repeat(strip, "h w c -> (h sy) (w sx) c", sy=up, sx=up)
+        head = Image.new("RGB", (strip.shape[1], 14), "white")
+        ImageDraw.Draw(head).text((2, 1), f"{label}: render | generated (frames {', '.join(map(str, picks))})",
+                                  fill=(0, 0, 0))
+        strips += [np.asarray(head), strip]
+    width = max(x.shape[1] for x in strips)
+    strips = [np.pad(x, ((0, 0), (0, width - x.shape[1]), (0, 0)), constant_values=255) for x in strips]
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.concatenate(strips, axis=0)).save(path)
+    return path
+
+
 def plot_losses(path, steps, losses, *, title: str = "training loss") -> Path:
     """A PNG of ``losses`` against ``steps`` (log scale when they span a decade)."""
     import matplotlib

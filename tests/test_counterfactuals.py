@@ -162,6 +162,9 @@ def test_eval_scores_every_route_against_its_render(tiny_dit, routes21, tmp_path
             # by definition: the route's score minus the recorded-route generation's on the same render
             assert np.isfinite(row["psnr"]) and abs(row["ssim"]) <= 2.0
     assert "Route effect" in (out / "eval.md").read_text()
+    assert (out / "routes.png").stat().st_size > 0
+    # the model has boxes: one more row with them dropped, against the recorded render
+    assert list(rows["rollout (no boxes)"]["buckets"]) == ["2-5", "6-8", "9-12", "2-12"]
     # merged with itself as another model's run: the effects follow the renamed strategies
     merged = tmp_path / "merged"
     assert main(["eval", "--merge", f"{out},{out}", "--out", str(merged)]) == 0

@@ -184,8 +184,8 @@ def test_every_config_loads_and_checks(name):
 def test_demo_runs_end_to_end(tmp_path, capsys):
     # no mesh given: the demo fits its batch of 2 to the 8 test devices (data 2 x seq 4)
     sets = [*SMALLER, "train.sample_steps=2", "train.checkpoint_every=100"]
-    args = ["demo", "--workdir", str(tmp_path / "demo"), "--steps", "2", "--scenes", "3", "--frames", "9",
-            "--no-progress"]
+    args = ["demo", "--workdir", str(tmp_path / "demo"), "--steps", "2", "--scenes", "4", "--frames", "9",
+            "--routes", "stop", "--no-progress"]
     for s in sets:
         args += ["--set", s]
     assert cli(args) == 0
@@ -198,6 +198,11 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     assert len(q["per_frame"]) == 9 and q["cond_frames"] == 2 and q["window"] == 5
     assert q["first_window"]["frames"] == [2, 3, 4] and q["all_generated"]["frames"] == list(range(2, 9))
     assert (tmp_path / "demo" / "loss.png").stat().st_size > 0
+    # control, shown: the recorded route and 'stop' from the same given frames, each against its render
+    assert "| rollout @ stop |" in out and "| stop | rollout |" in out and "routes.png" in out
+    routes = json.loads((tmp_path / "demo" / "samples" / "routes" / "eval.json").read_text())
+    assert routes["routes"] == ["recorded", "stop"] and routes["clips"] == 2
+    assert (tmp_path / "demo" / "samples" / "routes" / "routes.png").stat().st_size > 0
 
 
 def test_demo_recipe_learns_a_continuation_not_noise(dataset, tmp_path):

@@ -146,12 +146,15 @@ def _eval_routes(args, names, run, spec, load_main, load_fine, codec, given, giv
     segment = None
     if segmenter is not None:
         segment = lambda frames: segmenter.classes(frames, mesh=run.mesh)
+    boxes = "boxes" in spec.model.controls.enabled()
     with jax.set_mesh(run.mesh):
-        results, effects = evaluate_routes(
+        results, effects, rows = evaluate_routes(
             args.routes, plan, load_inputs=load_inputs, strategies=names, models=models, codec=codec, length=length,
             first_latents=lambda inp: first_latents(inp, codec, models.main.window, given), buckets=buckets,
             key=jax.random.key(args.seed), given=given_pixels, depth=spec.data.warp_depth, mesh=run.mesh,
-            segment=segment, **features)
+            segment=segment, without_boxes=boxes, **features)
+    from jaxdrive.media import write_route_grid
+    grid = write_route_grid(Path(args.out) / "routes.png", rows)
     paths = write_outputs(results, Path(args.out), effects=effects,
                           meta={"workdir": str(args.workdir), "fine_workdir": args.fine_workdir, "clips": clips,
                                 "frames": args.frames, "given_frames": given_pixels, "views": spec.data.views,
@@ -159,7 +162,7 @@ def _eval_routes(args, names, run, spec, load_main, load_fine, codec, given, giv
                                 "shuffle_boxes": False, "split": "validation", "routes": args.routes,
                                 "route_clips": plan["indices"]})
     print(paths["table"])
-    print(f"wrote {paths['json']}, {paths['md']}, {paths['plot']}")
+    print(f"wrote {paths['json']}, {paths['md']}, {paths['plot']}, {grid}")
     return 0
 
 

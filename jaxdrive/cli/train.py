@@ -134,14 +134,22 @@ def _demo(args, rest) -> int:
                          f"(a batch of training scenes and one for validation), got {args.scenes}")
     start_jax()
     config = _demo_mesh(config, args.set)
+    routes = [] if args.routes.strip().lower() == "none" else _parse_demo_routes(args.routes)
+    validation = config.mesh.data        # eval samples a multiple of the batch shards
+    if args.scenes < config.data.batch_size + validation:
+        raise ValueError(f"--scenes: expected at least data.batch_size + {validation} = "
+                         f"{config.data.batch_size + validation} (a batch of training scenes and {validation} for "
+                         f"validation on this mesh), got {args.scenes}")
     t0 = time.perf_counter()
     if not data.exists():
         from jaxdrive.data.synthetic import write_synthetic_dataset
         d = config.data
         frames = max(args.frames, d.frames)
-        print(f"[1/3] synthesising {args.scenes} driving scenes ({d.views} views x {frames} frames) in {data}")
-        write_synthetic_dataset(data, train=args.scenes - 1, validation=1, overwrite=True, views=6, frames=frames,
-                                height=2 * d.height, width=2 * d.width)
+        print(f"[1/3] synthesising {args.scenes} driving scenes ({d.views} views x {frames} frames) in {data}"
+              + (f", the validation scenes also along {', '.join(routes)}" if routes else ""))
+        write_synthetic_dataset(data, train=args.scenes - validation, validation=validation, overwrite=True, views=6,
+                                frames=frames, height=2 * d.height, width=2 * d.width, counterfactuals=routes,
+                                skip_undrivable=True)
     from jaxdrive.media import plot_losses
     from jaxdrive.train.metrics import read_metrics
     from jaxdrive.train.run import train
@@ -158,10 +166,45 @@ def _demo(args, rest) -> int:
     paths = write_samples(out["run"].sampling(), out["state"], workdir / "samples" / "demo", frames=args.frames,
                           steps=config.train.sample_steps, guidance=args.cfg, progress=not args.no_progress)
     print(quality_lines(paths["quality"]))
+    grid = _demo_routes(workdir, data, routes, validation, args, config)
     print(f"done in {time.perf_counter() - t0:.0f} s:\n  video      {paths.get('video')}\n"
           f"  frame grid {paths.get('grid')} (recorded | generated)\n  quality    {paths.get('quality_json')}\n"
-          f"  loss plot  {plot}\n  metrics    {workdir / 'metrics.jsonl'}")
+          + (f"  routes     {grid} (render | generated, per route)\n" if grid else "")
+          + f"  loss plot  {plot}\n  metrics    {workdir / 'metrics.jsonl'}")
     return 0
+
+
+def _parse_demo_routes(text: str) -> list[str]:
+    from jaxdrive.data.synth_routes import ROUTES
+    names = [r.strip() for r in text.split(",") if r.strip()]
+    if not names or any(r not in ROUTES[1:] for r in names):
+        raise ValueError(f"--routes: expected counterfactual routes from {', '.join(ROUTES[1:])} (or none), "
+                         f"got {text!r}")
+    return names
+
+
+def _demo_routes(workdir: Path, data: Path, routes, clips: int, args, config):
+    """Control, shown: ``jaxdrive eval --routes recorded,ROUTE`` on the validation scenes, ROUTE
+    the first of ``routes`` that every one of them can drive; returns its ``routes.png``."""
+    from jaxdrive.data.synthetic import read_counterfactuals
+    stored = read_counterfactuals(data).get("routes", {})
+    drivable = [r for r in routes if r in stored and len(stored[r]["clips"]) >= clips]
+    if not drivable:
+        print(f"no route comparison: the validation scenes of {data} drive none of {', '.join(routes) or '(none)'}"
+              if routes else "no route comparison (--routes none)")
+        return None
+    from jaxdrive.cli import build_parser
+    out = workdir / "samples" / "routes"
+    print(f"[3/3] and the same given frames along the recorded route and along '{drivable[0]}', scored against the "
+          f"world's render of each (jaxdrive eval --routes)")
+    argv = ["eval", "--workdir", str(workdir), "--strategies", "rollout", "--clips", str(clips), "--frames",
+            str(args.frames), "--routes", f"recorded,{drivable[0]}", "--steps", str(config.train.sample_steps),
+            "--out", str(out)]
+    if args.cfg is not None:
+        argv += ["--cfg", str(args.cfg)]
+    ev = build_parser().parse_args(argv)
+    ev.run(ev, [])
+    return out / "routes.png"
 
 
 def quality_lines(q: dict) -> str:
@@ -229,6 +272,9 @@ def add_commands(sub) -> None:
     demo.add_argument("--frames", type=int, default=33, help="frames of the sampled clip")
     demo.add_argument("--cfg", type=float, default=1.0, help="classifier-free guidance (1: none; the tiny "
                                                              "model scores best without)")
+    demo.add_argument("--routes", default="lane-left,stop,faster",
+                      help="counterfactual routes to render for the validation scenes; the first one they can all "
+                           "drive is generated beside the recorded route (none: skip)")
     demo.add_argument("--set", action="append", metavar="KEY=VALUE")
     add_progress(demo, "the training steps and the sampled windows")
     demo.set_defaults(run=_demo)

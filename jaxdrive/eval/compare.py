@@ -126,12 +126,15 @@ def repeat_baseline(recorded, given: int, buckets, **features) -> dict:
 
 
 def run_strategies(strategies, models, codec, controls, first, length, recorded, buckets, *, key, mesh=None,
-                   fid_features=None, fvd_features=None, segment=None, masks=None, targets=None, log=print) -> dict:
+                   fid_features=None, fvd_features=None, segment=None, masks=None, targets=None, keep=False,
+                   log=print) -> dict:
     """Every strategy of ``strategies`` (name -> its options) on the same inputs, decoded and
     scored (:func:`score`); returns ``{name: {"seconds", "sequential_sampler_calls",
     "peak_device_bytes", "buckets": {...}}}``. ``targets`` (label -> ``(video, masks)``): each
     generation is also scored against these other videos (the counterfactual renders of
-    ``jaxdrive eval --routes``), under the result's ``"against": {label: buckets}``."""
+    ``jaxdrive eval --routes``), under the result's ``"against": {label: buckets}``. ``keep``:
+    the first clip's decoded video ``[V, F, H, W, 3]`` stays under ``"video"`` (pop it before
+    writing the results as JSON)."""
     from jaxdrive.generate.strategies import run_strategy
     from jaxdrive.generate.windows import Tracker
     results = {}
@@ -155,6 +158,8 @@ def run_strategies(strategies, models, codec, controls, first, length, recorded,
                          "peak_device_bytes": int(tracker.peak_bytes),
                          "buckets": score(video, recorded, buckets, fid_features=fid_features,
                                           fvd_features=fvd_features, segment=segment, masks=masks)}
+        if keep:
+            results[name]["video"] = video[0]
         if targets:
             results[name]["against"] = {label: score(video, target, buckets, segment=segment, masks=target_masks)
                                         for label, (target, target_masks) in targets.items()}

@@ -117,36 +117,57 @@ def effect_table(effects: dict) -> str:
 
 
 def evaluate_routes(routes, plan, *, load_inputs, first_latents, strategies, models, codec, length, buckets, key,
-                    given: int, depth: float, mesh=None, segment=None, log=print, **features) -> tuple[dict, dict]:
+                    given: int, depth: float, mesh=None, segment=None, without_boxes: bool = False, log=print,
+                    **features) -> tuple[dict, dict, list]:
     """Every strategy under every route of ``routes`` (:func:`route_clips`'s ``plan``), scored
     against each route's render, with the ``repeat`` and ``warp`` rows per route; returns
-    ``(results, effects)`` for :func:`jaxdrive.eval.compare.write_outputs`.
+    ``(results, effects, rows)``: the results and route effects for
+    :func:`jaxdrive.eval.compare.write_outputs`, and for the first clip and strategy the
+    ``(label, render, generated)`` videos of each route (:func:`jaxdrive.media.write_route_grid`).
 
     ``load_inputs(split, indices)`` gives :func:`jaxdrive.generate.samples.dataset_inputs` of those
     clips (with ``poses``, and ``class_masks`` with a ``segment`` function);
     ``first_latents(inputs)`` the given latents every strategy starts from. Every route's
-    generation draws the same noise (``key``), so what differs between routes is the controls."""
+    generation draws the same noise (``key``), so what differs between routes is the controls.
+    ``without_boxes``: one more row, the first strategy under the recorded route with the boxes
+    (and the layout drawn from them) dropped to their learned nulls, named ``"NAME (no boxes)"``:
+    what the boxes change."""
     from jaxdrive.eval.compare import repeat_baseline, repeat_name, run_strategies
     base = load_inputs(None, plan["indices"])
     inputs = {r: base if r == RECORDED else load_inputs(plan["splits"][r], plan["rows"][r]) for r in routes}
     first = first_latents(base)
     masks = lambda inp: inp.get("class_masks") if segment is not None else None
     targets = {r: (np.asarray(inp["video"]), masks(inp)) for r, inp in inputs.items() if r != RECORDED}
-    run = lambda inp, **kw: run_strategies({n: {} for n in strategies}, models, codec, inp["cond"], first, length,
-                                           np.asarray(inp["video"]), buckets, key=key, mesh=mesh, segment=segment,
-                                           masks=masks(inp), log=log, **features, **kw)
+    warped = models.main.dit.config.controls.warp
+
+    def run(inp, names=strategies, cond=None, **kw):
+        opts = {}
+        if warped:                    # LongDWM: each window's first frame warped along this route's poses
+            from jaxdrive.generate.warps import WarpGuide
+            opts["warp"] = WarpGuide.from_inputs(inp, codec, depth=depth)
+        return run_strategies({n: opts for n in names}, models, codec, inp["cond"] if cond is None else cond, first,
+                              length, np.asarray(inp["video"]), buckets, key=key, mesh=mesh, segment=segment,
+                              masks=masks(inp), log=log, keep=True, **features, **kw)
     recorded = run(base, targets=targets)
     against = {name: r.pop("against") for name, r in recorded.items()}
-    results = {}
+    results, rows = {}, []
     for route in routes:
         inp = inputs[route]
         video = np.asarray(inp["video"])
         runs = recorded if route == RECORDED else run(inp)
+        rows.append((f"{strategies[0]} @ {route}", video[0], runs[strategies[0]]["video"]))
         for name, r in runs.items():
+            r = {k: v for k, v in r.items() if k != "video"}
             results[name if route == RECORDED else f"{name}{SEP}{route}"] = {**r, "route": route}
         label = "" if route == RECORDED else f"{SEP}{route}"
         results[repeat_name(given) + label] = {**repeat_baseline(video, given, buckets, segment=segment,
                                                                  masks=masks(inp), **features), "route": route}
         results[f"{WARP}{SEP}{route}"] = {**warp_baseline(video, inp["poses"], given, depth, buckets, segment=segment,
                                                           masks=masks(inp), **features), "route": route}
-    return results, route_effect(results, against, routes)
+    if without_boxes:
+        cond = base["cond"].with_drops(["boxes"], True, len(plan["indices"]))
+        name = strategies[0]
+        r = run(base, names=[name], cond=cond)[name]
+        rows.append((f"{name} @ recorded, no boxes", np.asarray(base["video"])[0], r.pop("video")))
+        results[f"{name} (no boxes)"] = {**r, "route": RECORDED}
+    return results, route_effect(results, against, routes), rows
