@@ -88,8 +88,8 @@ def footprint_bytes(compiled) -> int | None:
 # Threads of a trace that repeat the device's work at another level (whole modules, steps, name
 # scopes) rather than being it: left out of the sums so that nothing counts twice.
 _DERIVED_LINES = ("xla modules", "steps", "xla ops", "framework", "tensorflow", "source", "xla tracemes")
-_CATEGORIES = (("matmul", ("gemm", "cublas", "cutlass", "xmma", "matmul", "dot", "wgmma", "ynn_fusion")),
-               ("attention", ("fmha", "flash", "cudnn", "attention", "sdpa")),
+_CATEGORIES = (("attention", ("fmha", "flash", "cudnn", "attention", "sdpa")),      # before matmul: wgmma inside
+               ("matmul", ("gemm", "cublas", "cutlass", "xmma", "nvjet", "matmul", "dot", "ynn_fusion")),
                ("memory copy", ("memcpy", "memset", "copy")),
                ("collective", ("nccl", "all-reduce", "all-gather", "reduce-scatter", "all-to-all")))
 

@@ -1,9 +1,11 @@
 """The DiT's rectified-flow train step: tokens per second, model FLOPs utilisation, and the
 diffusers PyTorch ``CogVideoXTransformer3DModel`` train step on the same CPU at the same size.
 
-    python -m jaxdrive.bench.train [--presets tiny small] [--batch 1] [--frames 5] [--height 16]
+    python -m jaxdrive.bench.train [--presets tiny small] [--batch 1 | --batch auto] [--frames 5] [--height 16]
                                    [--width 16] [--repeats 10] [--no-torch | --compare-only]
                                    [--torch-threads N] [--peak-tflops T] [--no-ops] [--json]
+                                   [--measure-peak 8192] [--profile DIR] [--dtype bfloat16] [--remat dots]
+                                   [--attn-impl cudnn] [--scan-layers]
 
 For each preset the benchmark jits the library's step (:func:`jaxdrive.train.flow_step.make_train_step`:
 noise levels and condition frames, the DiT forward, the flow loss, the backward, global-norm
@@ -52,6 +54,14 @@ backward = 3 x forward; with 2 FLOPs per multiply-add)::
   views of a frame ``4 F' (V S)^2 D``, temporal ``4 V S F'^2 D``, text cross-attention ``4 N L D``
   (``S = h / ph * w / pw``). Control-token attentions and cross-view attention are not modelled
   (no FLOPs, hence no MFU, for a cross-view preset).
+
+On an accelerator (``--no-torch``): ``--batch auto`` times the largest batch whose compiled step fits
+``--memory-fraction`` of the device's memory (the allocator's limit, or ``--device-memory``):
+:func:`largest_batch` predicts it from two probe compiles (batches 1 and 2, side by side, without
+GPU autotuning) and checks the prediction's compile, and an out-of-memory at run time retries once
+at 85% of the batch. ``--profile DIR`` traces ``--profile-steps`` more steps with ``jax.profiler``
+and names the largest device costs (:func:`jaxdrive.bench.report.trace_costs`, ``profile_cost``
+figures); the device's peak memory is printed (``peak_device_memory``; null on a CPU).
 
 MFU = ``F_step / step time / peak FLOP/s``: ``--peak-tflops`` (TFLOP/s of the device), else the
 dense bf16 peak of known accelerators by ``device_kind`` (TPU v4 / v5e / v5p / v6e, A100, H100,
