@@ -114,24 +114,31 @@ print('imports ok')
 "
 BACKEND=$(grep -o '^backend [a-z]*' "$WORK/preflight.log" | cut -d' ' -f2)
 ATTN=xla
+WANT=""
 if [ "$BACKEND" = gpu ]; then
   ATTN=cudnn
-  # XLA flags for one Hopper GPU, kept only where this jaxlib knows them (an unknown flag aborts)
+  # XLA flags for one Hopper GPU
   WANT="--xla_gpu_enable_latency_hiding_scheduler=true --xla_gpu_enable_while_loop_double_buffering=true
         --xla_gpu_enable_triton_gemm=false"
-  known() { XLA_FLAGS="${XLA_FLAGS:-} $*" timeout 60 "$PY" -c "import jax; jax.devices()" > /dev/null 2>&1; }
-  FLAGS=$(echo $WANT)
-  if ! known $FLAGS; then
-    FLAGS=""
-    for f in $WANT; do
-      if known $FLAGS $f; then FLAGS="$FLAGS $f"; else log "XLA flag $f: not known to this jaxlib, left out"; fi
-    done
-  fi
-  export XLA_FLAGS="${XLA_FLAGS:-} $FLAGS"
-  log "XLA_FLAGS=$XLA_FLAGS"
 elif [ "$BACKEND" = tpu ]; then
   ATTN=auto
 fi
+# XLA aborts at start on a flag it does not know: keep only those this jaxlib knows, the CPU flag
+# that jaxdrive's commands add (jaxdrive.xla_flags) included
+known() { XLA_FLAGS="${XLA_FLAGS:-} $*" timeout 60 "$PY" -c "import jax; jax.devices()" > /dev/null 2>&1; }
+CPU_FLAG=--xla_cpu_experimental_ynn_fusion_type=
+FLAGS=$(echo $WANT)
+if ! known $FLAGS $CPU_FLAG; then
+  if ! known $CPU_FLAG; then
+    export JAXDRIVE_CPU_FLAGS=0
+    log "XLA flag $CPU_FLAG: not known to this jaxlib, jaxdrive runs without it (JAXDRIVE_CPU_FLAGS=0)"
+  fi
+  FLAGS=""
+  for f in $WANT; do
+    if known $FLAGS $f; then FLAGS="$FLAGS $f"; else log "XLA flag $f: not known to this jaxlib, left out"; fi
+  done
+fi
+export XLA_FLAGS="${XLA_FLAGS:-} $FLAGS"
 echo "XLA_FLAGS=${XLA_FLAGS:-} XLA_PYTHON_CLIENT_MEM_FRACTION=${XLA_PYTHON_CLIENT_MEM_FRACTION:-} attention=$ATTN" \
   | tee -a "$OUT/log.txt" > "$WORK/env.txt"
 
