@@ -82,7 +82,7 @@ step() {
   cap=$((cap * CAPS))
   t=$(( cap < left ? cap : left ))
   if [ "$t" -lt 15 ]; then
-    log "== $name: skipped, ${left}s of the budget left"
+    log "== $name: skipped, $(( left > 0 ? left : 0 ))s of the budget left"
     printf '%s\tskipped\t0\tno time left in the budget\n' "$name" >> "$WORK/steps.tsv"
     return 0
   fi

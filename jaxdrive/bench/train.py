@@ -316,6 +316,8 @@ def jax_step(cfg, mesh, *, batch: int | None, frames: int, height: int, width: i
 
             batch, probes = largest_batch(footprints, fit["limit"], fit["max_batch"], final=compile_at)
             out.update(batch_search_s=time.perf_counter() - t0, probes=probes)
+            print(f"note: batch {batch} fits {fit['limit'] / 2**30:.2f} GiB (batch, bytes: {probes}; "
+                  f"{out['batch_search_s']:.0f} s)", file=sys.stderr, flush=True)
         attempts = 2 if fit else 1
         for attempt in range(attempts):
             compiled = compiled_at.pop(batch, None)
