@@ -20,14 +20,14 @@
 # Missing Python packages are installed from the wheels in .whl/, when there is such a folder;
 # jaxdrive itself runs from this checkout (PYTHONPATH).
 set -uo pipefail
-cd "$(dirname "$0")/.." || exit 1
+ROOT=$(cd "$(dirname "$0")/.." && pwd) || exit 1
 OUT=""; TINY=0; BUDGET=480; BUDGET_GIVEN=0
 while [ $# -gt 0 ]; do
   case "$1" in
     --out) OUT=$2; shift 2 ;;
     --budget) BUDGET=$2; BUDGET_GIVEN=1; shift 2 ;;
     --tiny) TINY=1; shift ;;
-    -h|--help) sed -n '2,22p' "$0"; exit 0 ;;
+    -h|--help) sed -n '2,21p' "$ROOT/launch/accelerator_bench.sh"; exit 0 ;;
     -*) echo "accelerator_bench.sh: expected --out DIR, --budget SECONDS or --tiny, got $1" >&2; exit 2 ;;
     *) OUT=$1; shift ;;
   esac
@@ -36,6 +36,7 @@ case "$BUDGET" in ''|*[!0-9]*) echo "accelerator_bench.sh: --budget: expected wh
 OUT=${OUT:-bench-$(hostname)}
 mkdir -p "$OUT" || exit 1
 OUT=$(cd "$OUT" && pwd)
+cd "$ROOT" || exit 1
 PY=${PYTHON:-python3}
 export PYTHONUNBUFFERED=1
 START=$SECONDS
