@@ -82,9 +82,9 @@ def markdown(work: Path, rows: list[dict]) -> tuple[str, dict | None]:
                       get("compile_time")])
     profile = None
     if train:
-        model = (_value(rows, train[0], "params") or {})
-        lines += [f"## Train step ({model.get('model')}, {model.get('value')} parameters, bf16 compute, fp32 "
-                  f"master weights, scanned layers)", ""]
+        model = next((r for r in rows if r["bench"] == "train" and r["figure"] == "params"), {})
+        what = f"{model['model']}, {model['value']} parameters, " if model else ""
+        lines += [f"## Train step ({what}bf16 compute, fp32 master weights, scanned layers)", ""]
         lines += _table(["remat", "batch", "V x F x h x w", "step ms", "tokens/s", "TFLOP/s", "MFU (vendor peak)",
                          "MFU (measured peak)", "measured bf16 TFLOP/s", "peak GiB", "compiled GiB", "compile s"],
                         table) + [""]
