@@ -14,7 +14,9 @@ the first client is created, so these calls must come before the first computati
   every YNNPACK fusion stays off. The reduce fusions also crash on some rank-7/8 reductions in this
   jaxlib (jax-ml/jax#39257, #40412).
   ``jaxdrive`` commands, the benchmarks and the tests call it. Library users on CPU call it first
-  thing, or set the flag in ``XLA_FLAGS`` themselves.
+  thing, or set the flag in ``XLA_FLAGS`` themselves. ``JAXDRIVE_CPU_FLAGS=0`` leaves it out: XLA
+  aborts at start on a flag its version does not know, and this one is experimental, so a jaxlib
+  that dropped it (``launch/accelerator_bench.sh`` checks) runs without it.
 """
 
 from __future__ import annotations
@@ -45,8 +47,9 @@ def _jaxlib_version() -> tuple[int, ...]:
 
 def deterministic_cpu() -> bool:
     """Add :data:`CPU_DETERMINISTIC` where the installed jaxlib knows the flag (XLA aborts on an
-    unknown one). Returns whether the flag was added or already set."""
-    if _jaxlib_version() < (0, 10):
+    unknown one) and ``JAXDRIVE_CPU_FLAGS`` is not ``0``. Returns whether the flag was added or
+    already set."""
+    if _jaxlib_version() < (0, 10) or os.environ.get("JAXDRIVE_CPU_FLAGS") == "0":
         return False
     add_xla_flags(CPU_DETERMINISTIC)
     return True

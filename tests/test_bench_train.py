@@ -1,12 +1,14 @@
 """The train-step benchmark: its JSON figures (one compile of the tiny comparison model against
 diffusers' PyTorch step) and its analytic FLOPs against hand-counted ones."""
 
+import gzip
 import json
 
 import flax.linen as nn
 import pytest
 
 from jaxdrive.bench import train as bench
+from jaxdrive.bench.report import trace_costs
 from jaxdrive.convert.diffusers_dit import config_from_diffusers
 from jaxdrive.models.dit import DiT
 from jaxdrive.models.dit_presets import preset
@@ -130,3 +132,59 @@ def test_arguments_are_checked():
         bench.main(["--no-torch", "--compare-only"])
     with pytest.raises(SystemExit):
         bench.main(["--repeats", "0"])
+    with pytest.raises(SystemExit):
+        bench.main(["--batch", "auto"])                                          # the search is jaxdrive's alone
+    with pytest.raises(SystemExit):
+        bench.main(["--batch", "many", "--no-torch"])
+    with pytest.raises(SystemExit):
+        bench.main(["--batch", "auto", "--no-torch"])                            # a CPU has no memory limit
+    with pytest.raises(SystemExit):
+        bench.main(["--batch", "auto", "--no-torch", "--device-memory", "1GiB", "--memory-fraction", "1.5"])
+
+
+def test_batch_search_predicts_from_two_probes_and_backs_off():
+    calls = []
+
+    def footprint(b):                 # 10 GB of state, 3 GB a clip, and 1 GB more above 8 clips
+        return 10 + 3 * b + (b > 8)
+
+    def probes(bs):
+        calls.append(list(bs))
+        return [footprint(b) for b in bs]
+
+    batch, seen = bench.largest_batch(probes, 36, 64)
+    assert batch == 8 and calls[0] == [1, 2]          # line: 10 + 3b <= 36 -> 8; 8 needs 34
+    assert seen[:2] == [(1, 13), (2, 16)] and seen[2] == (8, 34)
+    batch, seen = bench.largest_batch(probes, 37, 64)        # 9 needs 38 > 37: back to 8
+    assert batch == 8 and [b for b, _ in seen] == [1, 2, 9, 8]
+    assert bench.largest_batch(probes, 100, 5)[0] == 5       # capped
+    assert bench.largest_batch(probes, 13, 1) == (1, [(1, 13)])
+    with pytest.raises(ValueError, match="batch of 1"):
+        bench.largest_batch(probes, 12, 64)
+
+
+def test_trace_costs_sum_device_events_by_op(tmp_path):
+    run = tmp_path / "plugins" / "profile" / "2026_01_01"
+    run.mkdir(parents=True)
+    events = [{"ph": "M", "pid": 1, "name": "process_name", "args": {"name": "/device:GPU:0"}},
+              {"ph": "M", "pid": 2, "name": "process_name", "args": {"name": "/host:CPU"}},
+              {"ph": "M", "pid": 1, "tid": 7, "name": "thread_name", "args": {"name": "XLA Ops"}},
+              {"ph": "X", "pid": 1, "tid": 5, "dur": 300.0, "name": "sm90_xmma_gemm_bf16", "args": {"hlo_op": "dot.1"}},
+              {"ph": "X", "pid": 1, "tid": 5, "dur": 300.0, "name": "sm90_xmma_gemm_bf16", "args": {"hlo_op": "dot.1"}},
+              {"ph": "X", "pid": 1, "tid": 5, "dur": 200.0, "name": "cudnn_generated_fort_native_sdpa_sm90_flash_fprop_wgmma_f16",
+               "args": {"hlo_op": "custom-call.3"}},
+              {"ph": "X", "pid": 1, "tid": 5, "dur": 100.0, "name": "loop_fusion", "args": {"hlo_op": "fusion.9"}},
+              {"ph": "X", "pid": 1, "tid": 5, "dur": 50.0, "name": "input_reduce_fusion", "args": {"hlo_op": "fusion.2"}},
+              {"ph": "X", "pid": 1, "tid": 7, "dur": 5000.0, "name": "dot.1"},       # a derived line: not counted
+              {"ph": "X", "pid": 2, "tid": 1, "dur": 9000.0, "name": "PjitFunction(step)"}]
+    with gzip.open(run / "perfetto_trace.json.gz", "wt") as f:
+        json.dump({"traceEvents": events}, f)
+    got = trace_costs(tmp_path, steps=2)
+    assert got["device_ms_per_step"] == pytest.approx(0.475)
+    assert [(t["op"], t["ms_per_step"], t["events"], t["category"]) for t in got["top"]] == [
+        ("dot.1", 0.3, 2, "matmul"), ("custom-call.3", 0.1, 1, "attention"),
+        ("fusion.9", 0.05, 1, "other (fusions, elementwise)")]
+    assert got["top"][0]["share"] == pytest.approx(600 / 950, abs=1e-4)
+    assert json.loads((tmp_path / "top_costs.json").read_text())["top"] == got["top"]
+    with pytest.raises(ValueError, match="log_dir"):
+        trace_costs(tmp_path / "none")

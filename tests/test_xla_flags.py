@@ -28,6 +28,9 @@ def test_flags_are_appended_once_and_the_users_value_kept(monkeypatch):
     assert deterministic_cpu() and os.environ["XLA_FLAGS"] == CPU_DETERMINISTIC
     with pytest.raises(ValueError, match="flags: expected '--name=value', got 'new'"):
         add_xla_flags("new")
+    monkeypatch.delenv("XLA_FLAGS")
+    monkeypatch.setenv("JAXDRIVE_CPU_FLAGS", "0")              # a jaxlib that no longer knows the flag
+    assert not deterministic_cpu() and "XLA_FLAGS" not in os.environ
 
 
 def test_the_tests_run_with_the_cpu_flags():

@@ -2,7 +2,7 @@
 side, for several lengths, on the tiny recipe's models (``configs/tiny.py``, random weights: the
 figures are about cost, not quality). Each figure is the second of two runs (compiling is left out).
 
-    python -m jaxdrive.bench.longvideo [--frames 33 145 721] [--steps 10] [--views 6] [--strategies streaming]
+    python -m jaxdrive.bench.longvideo [--frames 33 145 721] [--steps 10] [--views 6] [--strategies streaming ...]
 
 Also the ratio of ``coarse-fine``'s time for 145 frames to the time of one window (LongDWM
 reports 145 frames in 70 s where Vista needs 95 s for 25) and to ``rollout``'s time for the same
@@ -12,6 +12,9 @@ the segments per fine call (``segment_batch``), which keeps device memory flat i
 ``streaming`` (STAGE) is the tiny model with an HTFT layer, its buffer of 10 frames fusing
 -1, -5, -10: one sequential call per frame, so its figure is ``s_per_frame``; ``programs`` is
 the number of programs each run compiled (streaming: one, whatever the length).
+``--strategies`` keeps only the rows named (``coarse-fine-capped`` is the capped row); on an
+accelerator the peak memory is the device's peak so far in the process, so a strategy's own figure
+wants a process of its own (``--strategies`` one at a time).
 """
 
 from __future__ import annotations
@@ -28,6 +31,9 @@ import numpy as np
 from jaxdrive.bench.report import emit, table
 
 NAME = "longvideo"
+# each row's --strategies name (the capped coarse-fine row has its own)
+KEYS = {"rollout": "rollout", "coarse-to-refine": "coarse-to-refine", "coarse-fine": "coarse-fine",
+        "coarse-fine (capped)": "coarse-fine-capped", "streaming": "streaming"}
 CONFIG = Path(__file__).resolve().parents[2] / "configs" / "tiny.py"
 
 
@@ -75,7 +81,7 @@ def run(frames_list, steps: int, views: int, segment_batch: int, strategies=None
              ("coarse-fine", Models(m["coarse"], m["fine"]), {}),
              ("coarse-fine (capped)", Models(m["coarse"], m["fine"]), {"segment_batch": segment_batch}),
              ("streaming", Models(m["stream"]), {})]
-    keep = lambda label, frames: (not strategies or label.split(" ")[0] in strategies
+    keep = lambda label, frames: (not strategies or KEYS[label] in strategies
                                   or (label == "rollout" and frames == config.data.frames))   # the one window
     rows, seconds = [], {}
     out = Path(tempfile.mkdtemp(prefix="jaxdrive-bench-longvideo-"))
@@ -125,7 +131,8 @@ def main(argv=None):
     parser.add_argument("--steps", type=int, default=10)
     parser.add_argument("--views", type=int, default=6)
     parser.add_argument("--segment-batch", type=int, default=4, help="segments per fine call, the capped row")
-    parser.add_argument("--strategies", nargs="+", help="only these rows (and rollout's one window, the reference)")
+    parser.add_argument("--strategies", nargs="+", choices=list(KEYS.values()),
+                        help="only these rows (and rollout's one window, the reference)")
     args = parser.parse_args(argv)
     bad = [f for f in args.frames if (f - 1) % 8]
     if bad:
