@@ -132,8 +132,23 @@ def _blockwise(q, k, v, *, kv_mask, **kw):
     return o
 
 
+def _batch_like(q, k, v, kv_mask):
+    """K, V and the mask resharded to q's batch sharding (K and V to its head sharding too): under
+    an Explicit mesh a batched dot needs equal batch shardings, and the text of a cross-attention
+    may be sharded over the batch where the video tokens are not (jax 0.11 refuses the mix)."""
+    qs = spec_of(q)
+
+    def like(x, want):
+        if x is None or tuple(spec_of(x)) == want:
+            return x
+        return jax.sharding.reshard(x, jax.sharding.PartitionSpec(*want))
+    ks, vs = spec_of(k), spec_of(v)
+    return (like(k, (qs[0], ks[1], qs[2], ks[3])), like(v, (qs[0], vs[1], qs[2], vs[3])),
+            None if kv_mask is None else like(kv_mask, (qs[0],) + spec_of(kv_mask)[1:]))
+
+
 def _xla(q, k, v, scale, kv_mask, causal_block):
-    k, v, kv_mask = _gather_kv(k, v, kv_mask)
+    k, v, kv_mask = _batch_like(q, *_gather_kv(k, v, kv_mask))
     return softmax_blocks.attend_block(q, k, v, scale=scale, kv_mask=kv_mask,
                                        causal_block=causal_block)[0].astype(q.dtype)
 

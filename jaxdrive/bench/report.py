@@ -89,6 +89,8 @@ def footprint_bytes(compiled) -> int | None:
 # scopes) rather than being it: left out of the sums so that nothing counts twice.
 _DERIVED_LINES = ("xla modules", "steps", "xla ops", "framework", "tensorflow", "source", "xla tracemes")
 _CATEGORIES = (("attention", ("fmha", "flash", "cudnn", "attention", "sdpa")),      # before matmul: wgmma inside
+               # before matmul: an fp32 or tf32 GEMM in a bf16 step is a matmul that left the tensor cores' bf16 path
+               ("matmul fp32/tf32", ("f32f32", "s1688gemm", "sgemm", "gemmsn_nn_kernel<float")),
                ("matmul", ("gemm", "cublas", "cutlass", "xmma", "nvjet", "matmul", "dot", "ynn_fusion")),
                ("memory copy", ("memcpy", "memset", "copy")),
                ("collective", ("nccl", "all-reduce", "all-gather", "reduce-scatter", "all-to-all")))
@@ -136,16 +138,19 @@ def trace_costs(log_dir, *, steps: int = 1, top: int = 3) -> dict:
     total = defaultdict(float)
     count = defaultdict(int)
     kernel = {}
+    categories = defaultdict(float)
     for e in spans:
         args = e.get("args") or {}
         op = str(args.get("hlo_op") or e.get("name"))
+        if op.startswith("command_buffer"):
+            # a GPU command buffer (one CUDA graph of many fused ops) names all its kernels after
+            # itself: the kernel's own name says what ran
+            op = str(e.get("name"))
         total[op] += float(e["dur"])
         count[op] += 1
         kernel.setdefault(op, str(e.get("name")))
+        categories[_category(op, str(e.get("name")))] += float(e["dur"])
     whole = sum(total.values())
-    categories = defaultdict(float)
-    for op, dur in total.items():
-        categories[_category(op, kernel[op])] += dur
     ranked = sorted(total, key=total.get, reverse=True)[:top]
     result = {"trace": found[-1], "steps": steps, "device_ms_per_step": round(whole / 1e3 / steps, 3),
               "top": [{"op": op, "ms_per_step": round(total[op] / 1e3 / steps, 3),
