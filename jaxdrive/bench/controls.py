@@ -24,9 +24,10 @@ where the change is decided by the control alone:
 - ``waypoints`` (``controls.waypoints``, MiLA eq. 1-2) and ``trajectory`` (MagicDrive-V2's ego
   trajectory encoder, ``controls.trajectory``): the ego moves 2-6 m forward and -2..2 m sideways
   between the frames; frame 1 is frame 0 multiplied by the sign of the lateral motion (``x1 = s
-  x0``, change ``(s - 1) x0``). A shift left or right would be the physical picture, but a one-layer
-  model does not learn to move content by a token in a few dozen steps, where the sign is a local
-  gate of the given frame; both are decided by the lateral motion alone.
+  x0``, change ``(s - 1) x0``). A shift left or right would be the physical picture; the sign
+  was chosen because it is a local gate of the given frame (each cell needs its own given value
+  and the control), where a shift needs each token to fetch its neighbour's content through
+  attention, more than a few dozen steps of a one-layer model are likely to learn (not tried).
 - ``warp`` (LongDWM's warped frames, ``controls.warp``): the control's frames are the given frame
   and the given frame rolled by -2..2 latent cells in each direction (the toy's warp along the
   ego motion); the target is that warped frame.
