@@ -74,6 +74,16 @@ def _conds():
     return cond, null
 
 
+def _counted(fn):
+    """``fn`` and the list of the batch sizes it is called with."""
+    calls = []
+
+    def model(x, s, c):
+        calls.append(x.shape[0])
+        return fn(x, s, c)
+    return model, calls
+
+
 def test_cfg_scale_one_equals_the_conditional_output_exactly():
     _, noise = _point_and_noise()
     cond, null = _conds()
@@ -93,11 +103,7 @@ def test_guidance_combines_as_documented_in_one_batched_call():
     _, noise = _point_and_noise()
     cond, null = _conds()
     sigma = jnp.array([0.7, 0.7])
-    calls = []
-
-    def model(x, s, c):
-        calls.append(x.shape[0])
-        return _linear_model(x, s, c)
+    model, calls = _counted(_linear_model)
 
     scales = {"text": 2.0, "traj": 4.0}
     one_step = flow.sample(model, noise, jnp.array([0.7, 0.2]), cond=cond, null_cond=null,
@@ -162,11 +168,7 @@ def test_control_guidance_combines_as_documented_with_one_forward_more_per_contr
     _, noise = _point_and_noise()
     cond, null = _conds()
     sigma = jnp.array([0.7, 0.7])
-    calls = []
-
-    def model(x, s, c):
-        calls.append(x.shape[0])
-        return _coupled_model(x, s, c)
+    model, calls = _counted(_coupled_model)
     controls = {"traj": (5.0, _without(cond, null, "traj"))}
     one_step = flow.sample(model, noise, jnp.array([0.7, 0.2]), cond=cond, null_cond=null, guidance_scale=2.0,
                            control_guidance=controls)
