@@ -22,6 +22,9 @@ tasks, the distillation. Where it differs, deliberately: rectified flow (velocit
 jaxdrive's one convention) where LongDWM fine-tunes CogVideoX's v-prediction; both models on
 frame-wise latents (the fine model's segment ends are then exactly the coarse keyframes, where
 LongDWM hands keyframes over as decoded frames to a 3D VAE); 1 + 12k-frame horizons.
+Guidance: ``sample.cfg`` stays 1.0 (none), as the paper samples without classifier-free guidance
+(it names no scale); ``jaxdrive sample --cfg S`` guides against the nulls that the 15% drops
+(``data.drop_prob``) train.
 
 Set ``data.path``, ``latents.vae_path`` and ``data.text_embeddings`` (T5, 226 tokens) at paper size.
 """

@@ -4,7 +4,11 @@
 cameras, ego trajectory, 3D boxes, the BEV map ControlNet) on CogVideoX VAE latents of 6-view
 nuScenes clips. ``size=tiny``: the same code path on the tiny model (``configs/tiny.py``) and
 synthetic data, minutes on a CPU of 8 devices (``JAXDRIVE_CPU_DEVICES=8``: its mesh is
-``data=2, seq=4`` in every stage); what the tests run.
+``data=2, seq=4`` in every stage); what the tests run. It takes MagicDrive-V2's own control
+scheme, not tiny.py's: cross-view attention between neighbouring views (MVDiT), the ego
+trajectory, the 3D boxes and the BEV map (a ControlNet of one block, 16 channels wide) beside the
+cameras, instead of MiLA's waypoints; tiny.py's training aids (the caption encoder, clean given
+frames, the residual to the last given frame) stay.
 
 Stages (sec. 4.5, appendix B table I; each starts from the previous one with
 ``--set train.init_from=RUN_OF_STAGE_N-1``):
@@ -21,20 +25,26 @@ paper balances it against the slowest video format at batch 1 (appendix B, E): h
 bucket's batch per data-parallel group is the slowest bucket's token count over its own (capped
 at ``MAX_GROUP_BATCH``), a starting point to refine with ``jaxdrive bench buckets``; its
 probability is its batch, so that every bucket gets about the same number of batches an epoch
-(the paper repeats the scarce long clips to the same end). Sampling: rectified flow, 30 steps.
+(the paper repeats the scarce long clips to the same end). Sampling: rectified flow, 30 steps,
+classifier-free guidance 2 (``sample.cfg``, below).
 
 Where it deliberately differs: 424 x 800 is 416 x 800 (the latent grid must divide into 2 x 2
 patches: 424 / 8 = 53 latent rows); batch sizes assume the paper's 32 GPUs (8 data-parallel
 groups in stage 3) and scale with your mesh; the paper's learning rate and CFG scale did not
-survive in our copy of its text: lr 8e-5 (Open-Sora 1.2's, on which it builds) and guidance 2.
+survive in our copy of its text ("the classifier-free-guidance (CFG) scale at ."; appendix E):
+lr 8e-5 (Open-Sora 1.2's, on which it builds) and guidance 2.0, the ``cfg_scale=2.0`` of the
+authors' released test configs (MagicDriveDiT, ``configs/magicdrive/test/17-16x848x1600_..._cfg2.0.py``,
+"base value 1, 0 is uncond": our convention) and MagicDrive's own scale (Gao et al. 2024), not
+Open-Sora's 7.0 for text-to-video prompts; the nulls it guides against are learned by dropping
+each condition 15% of the time (appendix E; ``data.drop_prob``).
 Set ``data.path``, ``latents.vae_path`` and ``data.text_embeddings`` at paper size.
 """
 
 import dataclasses
 from pathlib import Path
 
-from jaxdrive.config import (Config, DataConfig, FlowConfig, LatentConfig, MeshConfig, OptimConfig, TrainConfig,
-                             check_arg, load_config, parse_arg)
+from jaxdrive.config import (Config, DataConfig, FlowConfig, LatentConfig, MeshConfig, OptimConfig, SampleConfig,
+                             TrainConfig, check_arg, load_config, parse_arg)
 from jaxdrive.models.dit_presets import preset
 
 MAX_GROUP_BATCH = {"paper": 8, "tiny": 2}
@@ -50,6 +60,7 @@ TINY = {            # the same table at tiny resolutions, frames up to 33
     3: {(16, 32): (1, 17, 33), (32, 32): (1, 17, 33), (32, 56): (1, 9, 17)},
 }
 STEPS = {"paper": {1: 80_000, 2: 40_000, 3: 30_000}, "tiny": {1: 60, 2: 60, 3: 40}}
+GUIDANCE = 2.0          # the authors' released test configs' cfg_scale (module docstring)
 
 
 def balanced_buckets(table: dict, *, spatial: int, temporal: int, patch: int, groups: int,
@@ -93,6 +104,7 @@ def _paper(stage: int) -> Config:
         train=TrainConfig(steps=STEPS["paper"][stage], log_every=50, checkpoint_every=1000,
                           compute_dtype="bfloat16", sample_steps=30),
         mesh=MeshConfig(data=-1, fsdp=1, seq=4 if stage == 3 else 1),
+        sample=SampleConfig(cfg=GUIDANCE),
     )
 
 
@@ -103,12 +115,14 @@ def _tiny(stage: int) -> Config:
     m = base.model
     buckets = balanced_buckets(table, spatial=base.latents.factor, temporal=1, patch=m.patch[1], groups=2,
                                max_group_batch=MAX_GROUP_BATCH["tiny"])
-    model = m.replace(temporal={1: "off", 2: "zero_init", 3: "on"}[stage])
+    controls = dataclasses.replace(m.controls, waypoints=False, trajectory=True, boxes=True, map=True, map_blocks=1,
+                                   map_hidden=16)
+    model = m.replace(temporal={1: "off", 2: "zero_init", 3: "on"}[stage], multiview="cross_view", controls=controls)
     return dataclasses.replace(
         base, model=model,
         data=dataclasses.replace(base.data, frames=f, height=h, width=w, batch_size=2, buckets=buckets),
         train=dataclasses.replace(base.train, steps=STEPS["tiny"][stage], checkpoint_every=20),
-        mesh=MeshConfig(data=2, seq=4))
+        mesh=MeshConfig(data=2, seq=4), sample=SampleConfig(cfg=GUIDANCE))
 
 
 def get_config(arg=None) -> Config:

@@ -18,11 +18,16 @@ Stages (appendix B):
    ``jaxdrive sample --strategy coarse-to-refine`` (anchors every 12 frames: one per second).
 
 Where it follows the paper: the window (4 given + 12 generated frames), the rate sets, the 75%
-anchor rate, TPD, the stage-1 trainable set. Where it differs, deliberately: latents are the
-CogVideoX VAE in frame-wise mode (MiLA's STDiT-2 uses a per-frame image VAE; a causal 3D VAE
-cannot compress frames of mixed rates, and coarse anchors are single frames); JDC's g(t) is
-``slope * sigma`` with slope 0.5 and alpha1 = 0.1 (the paper gives neither constant). Each
-stage starts from the previous one with ``--set train.init_from=RUN_OF_STAGE_N-1``.
+anchor rate, TPD, the stage-1 trainable set, and the guidance: ``sample.cfg = 3.0`` at both sizes,
+"a fixed classifier-free guidance scale of 3.0" (appendix B, Inference), against the nulls that
+training learns by dropping each condition 15% of the time (appendix B, Training; ``data.drop_prob``).
+With ``--set model.controls.boxes=true`` (boxes are not MiLA's, but the same code path takes
+them) stage 1 trains the box encoder and its null too: the stage-1 set names the condition
+embeddings by one pattern, which matches ``boxes_embed`` / ``boxes_null`` when they exist.
+Where it differs, deliberately: latents are the CogVideoX VAE in frame-wise mode (MiLA's STDiT-2
+uses a per-frame image VAE; a causal 3D VAE cannot compress frames of mixed rates, and coarse
+anchors are single frames); JDC's g(t) is ``slope * sigma`` with slope 0.5 and alpha1 = 0.1 (the
+paper gives neither constant). Each stage starts from the previous one with ``--set train.init_from=RUN_OF_STAGE_N-1``.
 
 Set ``data.path``, ``latents.vae_path`` and ``data.text_embeddings`` for your data (paper size).
 """
@@ -30,15 +35,18 @@ Set ``data.path``, ``latents.vae_path`` and ``data.text_embeddings`` for your da
 import dataclasses
 from pathlib import Path
 
-from jaxdrive.config import (Config, DataConfig, FlowConfig, LatentConfig, MeshConfig, OptimConfig, TrainConfig,
-                             check_arg, load_config, parse_arg)
+from jaxdrive.config import (Config, DataConfig, FlowConfig, LatentConfig, MeshConfig, OptimConfig, SampleConfig,
+                             TrainConfig, check_arg, load_config, parse_arg)
 from jaxdrive.models.dit_presets import preset
 
 # stage 1's trainable set, regexes over "a/b/kernel" parameter paths: MiLA's new modules (the
 # Fourier + MLP condition embeddings; its multi-view spatial attention is the spatial attention
 # itself here, attending over all views, so it trains with the last block), the last block and
-# the output layer
-STAGE1_TRAINABLE = ("camera_embed", "waypoints_embed", "fps_embedder", "layers_{last}/", "final", "proj_out")
+# the output layer. The embeddings are one pattern (a pattern must match some parameter): the box
+# encoder and its null join it when boxes are on, also when --set turns them on after get_config
+STAGE1_TRAINABLE = (r"^(camera_embed|waypoints_embed|boxes_embed)/|^boxes_null$", "fps_embedder",
+                    "layers_{last}/", "final", "proj_out")
+GUIDANCE = 3.0                  # appendix B, Inference: "a fixed classifier-free guidance scale of 3.0"
 
 
 def _paper(stage: int) -> Config:
@@ -86,4 +94,4 @@ def get_config(arg=None) -> Config:
         depth = config.model.depth
         optim = dataclasses.replace(optim, trainable=tuple(p.replace("{last}", str(depth - 1))
                                                            for p in STAGE1_TRAINABLE))
-    return dataclasses.replace(config, data=data, flow=flow, optim=optim)
+    return dataclasses.replace(config, data=data, flow=flow, optim=optim, sample=SampleConfig(cfg=GUIDANCE))

@@ -46,7 +46,8 @@ features, where HTFT reads and writes, are the outputs of the DiT layers in ``ht
 (the middle layer); "the latent of frame T" is one frame-wise VAE latent frame, so a 3-frame
 window is anchor, condition and new; STAGE's noise-prediction loss is the rectified-flow velocity
 loss (jaxdrive's one convention). Where the paper is silent (steps, learning rates, the
-degradation share, the stage-3 rollout's steps) the values below are choices. Each stage starts
+degradation share, the stage-3 rollout's steps) the values below are choices. Guidance:
+``sample.cfg`` stays 1.0 (none): the paper uses no classifier-free guidance. Each stage starts
 from the previous one with ``--set train.init_from=RUN_OF_STAGE_N-1``.
 
 Set ``data.path``, ``latents.vae_path`` and ``data.text_embeddings`` for your data (paper size).

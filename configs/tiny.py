@@ -19,6 +19,10 @@ Why it learns on a CPU in minutes (``jaxdrive demo``):
   about 1.5x the step time;
 - every training window has its two given frames (``cond_frames_random=False``): the demo only
   continues clips, and each step then trains exactly that.
+
+Guidance: ``sample.cfg`` stays 1.0 (none), what the demo has always sampled with; the conditions
+are still dropped 15% of the time (``data.drop_prob``), so ``--cfg`` / ``--cfg-route`` have nulls
+to guide against.
 """
 
 from jaxdrive.config import Config, DataConfig, FlowConfig, LatentConfig, OptimConfig, TrainConfig

@@ -172,6 +172,18 @@ class TrainConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class SampleConfig:
+    """How the run's model is sampled unless the command line says otherwise (``jaxdrive sample``,
+    ``eval`` and ``demo`` without ``--cfg``, and the training loop's periodic samples).
+
+    ``cfg``: the classifier-free guidance scale, ``v = v_null + cfg (v_c - v_null)``
+    (:mod:`jaxdrive.flow.sampler`): 1 is none (one forward per step), 0 the unconditional model,
+    above 1 the controls amplified; each recipe in ``configs/`` sets its paper's value."""
+
+    cfg: float = 1.0
+
+
+@dataclasses.dataclass(frozen=True)
 class MeshConfig:
     data: int = -1                         # -1: the devices left over
     fsdp: int = 1
@@ -192,6 +204,7 @@ class Config:
     train: TrainConfig = TrainConfig()
     mesh: MeshConfig = MeshConfig()
     stream: StreamConfig = StreamConfig()
+    sample: SampleConfig = SampleConfig()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -472,5 +485,7 @@ def check_sections(config) -> None:
                                 ("flow.distill_teacher", f.distill_teacher, ""), ("optim.grad_accum", o.grad_accum, 1)):
             if value != ok:       # stored windows have one shape; a step's micro-batches must share a bucket
                 raise ValueError(f"{name}: expected {ok!r} with data.buckets, got {value!r}")
+    if hasattr(config, "sample"):
+        validate.check_range("sample.cfg", config.sample.cfg, 0.0, float("inf"), hi_open=True)
     if hasattr(config, "model"):
         check_config(config.model)

@@ -117,5 +117,7 @@ def relative_to_first(poses):
     rot = jnp.matmul(jnp.swapaxes(rot0, -1, -2), poses[..., :3, :3])
     trans = jnp.matmul(jnp.swapaxes(rot0, -1, -2), poses[..., :3, 3:] - t0)
     top = jnp.concatenate([rot, trans], axis=-1)
-    bottom = jnp.broadcast_to(jnp.asarray([0.0, 0.0, 0.0, 1.0], jnp.float32), top.shape[:-2] + (1, 4))
+    # zeros_like: the bottom row takes top's sharding (a batch-sharded trajectory under an explicit
+    # mesh cannot be concatenated with a replicated constant)
+    bottom = jnp.zeros_like(top[..., :1, :]) + jnp.asarray([0.0, 0.0, 0.0, 1.0], jnp.float32)
     return jnp.concatenate([top, bottom], axis=-2)

@@ -133,3 +133,39 @@ def test_eval_merges_strategies_of_different_runs_into_one_table(tmp_path, capsy
                           (f"{tmp_path / 'a'},{tmp_path / 'none'}", "--merge: expected eval.json of jaxdrive eval")):
         assert cli(["eval", "--merge", dirs, "--out", str(tmp_path / "no")]) == 2, dirs
         assert message in capsys.readouterr().err, message
+
+
+def test_eval_sweeps_guidance_scales_into_one_table_that_merges(tiny_dit, tmp_path, capsys, monkeypatch):
+    """``--cfg 1,2`` scores the strategy at each scale (rows ``rollout@cfgS``), with the route
+    guided on its own (``--cfg-route``); every row records its guidance, and ``--merge`` takes it.
+    (The 1-step fixture's condition pathways are still at their zero init, so the scales cannot
+    change its samples: what reaches the sampler is read where the windows build its guidance.)"""
+    import shutil
+
+    import jaxdrive.generate.windows as windows
+    from jaxdrive.cli import main as cli
+    seen, real = [], windows.sampler_guidance
+
+    def spy(cond, names, batch, scale, controls=()):
+        seen.append((scale, tuple(controls), tuple(sorted(names))))
+        return real(cond, names, batch, scale, controls)
+    monkeypatch.setattr(windows, "sampler_guidance", spy)
+    out = tmp_path / "sweep"
+    assert cli(["eval", "--workdir", str(tiny_dit), "--strategies", "rollout", "--clips", "2", "--frames", "9",
+                "--steps", "1", "--cfg", "1,2", "--cfg-route", "3", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "| rollout@cfg1 | 2-3 |" in printed and "| rollout@cfg2 | 2-3 |" in printed
+    report = json.loads((out / "eval.json").read_text())
+    rows = report["strategies"]
+    assert list(rows) == ["rollout@cfg1", "rollout@cfg2", "repeat frame 1"]
+    assert rows["rollout@cfg1"]["guidance"] == {"cfg": 1.0, "cfg_route": 3.0}
+    assert rows["rollout@cfg2"]["guidance"] == {"cfg": 2.0, "cfg_route": 3.0}
+    assert (report["cfg"], report["cfg_route"], report["cfg_boxes"]) == ([1.0, 2.0], 3.0, None)
+    names = ("boxes", "camera", "text", "waypoints")                  # the tiny run's conditions with a null
+    assert {(1.0, (("route", 3.0),), names), (2.0, (("route", 3.0),), names)} <= set(seen)
+    assert all(np.isfinite(b["psnr"]) for r in rows.values() for b in r["buckets"].values())
+    shutil.copytree(out, tmp_path / "again")
+    assert cli(["eval", "--merge", f"{out},{tmp_path / 'again'}", "--out", str(tmp_path / "merged")]) == 0
+    merged = json.loads((tmp_path / "merged" / "eval.json").read_text())["strategies"]
+    assert list(merged) == ["rollout@cfg1 (run)", "rollout@cfg2 (run)", "repeat frame 1"]   # rows named by run
+    assert merged["rollout@cfg2 (run)"]["guidance"] == {"cfg": 2.0, "cfg_route": 3.0}

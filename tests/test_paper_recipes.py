@@ -66,6 +66,7 @@ def test_mila_tiny_stages_train_and_sample_coarse_to_refine(long_scenes, tmp_pat
     # window, the refine pass takes 3 windows (0, 6, 12)
     assert (report["strategy"], report["frames"], report["views"]) == ("coarse-to-refine", 20, 2)
     assert report["sequential_sampler_calls"] == 1 + 3 and report["peak_device_bytes"] > 0
+    assert report["guidance"] == {"main": {"cfg": 3.0}}          # the recipe's sample.cfg (no --cfg given)
     latents = np.load(out / "latents.npy")
     assert latents.shape == (2, 2, 20, 8, 14, 48) and np.isfinite(latents).all()
     assert (out / "sample.mp4").stat().st_size > 0 and (out / "frames.png").stat().st_size > 0
@@ -142,6 +143,7 @@ def test_magicdrive_tiny_stages_grow_from_images_and_train_on_their_buckets(tmp_
                 "--out", str(out), "--no-progress"]) == 0
     report = json.loads((out / "report.json").read_text())
     assert (report["strategy"], report["frames"], report["sequential_sampler_calls"]) == ("window", 33, 1)
+    assert report["guidance"] == {"main": {"cfg": 2.0}}
     assert np.load(out / "latents.npy").shape == (2, 1, 33, 8, 14, 48)
     capsys.readouterr()             # a model trained on one length cannot: said before compiling
     assert cli(["sample", "--workdir", str(runs[1]), "--strategy", "window", "--frames", "33",

@@ -74,6 +74,16 @@ def _conds():
     return cond, null
 
 
+def _counted(fn):
+    """``fn`` and the list of the batch sizes it is called with."""
+    calls = []
+
+    def model(x, s, c):
+        calls.append(x.shape[0])
+        return fn(x, s, c)
+    return model, calls
+
+
 def test_cfg_scale_one_equals_the_conditional_output_exactly():
     _, noise = _point_and_noise()
     cond, null = _conds()
@@ -93,11 +103,7 @@ def test_guidance_combines_as_documented_in_one_batched_call():
     _, noise = _point_and_noise()
     cond, null = _conds()
     sigma = jnp.array([0.7, 0.7])
-    calls = []
-
-    def model(x, s, c):
-        calls.append(x.shape[0])
-        return _linear_model(x, s, c)
+    model, calls = _counted(_linear_model)
 
     scales = {"text": 2.0, "traj": 4.0}
     one_step = flow.sample(model, noise, jnp.array([0.7, 0.2]), cond=cond, null_cond=null,
@@ -129,6 +135,55 @@ def test_unnamed_conditions_are_never_nulled():
     np.testing.assert_array_equal(seen[0], jnp.repeat(cond["traj"], 2))
 
 
+def _coupled_model(x, sigma, cond):
+    """A toy model whose conditions interact (text x traj): composition is not additive."""
+    s = flow.expand_per_frame(sigma, x)
+    text = cond["text"][:, None, None, None, None]
+    traj = cond["traj"][:, None, None, None, None]
+    return 0.3 * x * (1 + s) + text * traj + jnp.tanh(text + traj * x)
+
+
+def _without(cond, null, name):
+    return {k: (null[k] if k == name else v) for k, v in cond.items()}
+
+
+@pytest.mark.parametrize("scale", [1.0, 3.0])
+def test_control_guidance_with_every_scale_equal_to_the_plain_one_is_plain_guidance(scale):
+    _, noise = _point_and_noise()
+    cond, null = _conds()
+    sig = flow.sampling_sigmas(4)
+    plain = flow.sample(_coupled_model, noise, sig, cond=cond, null_cond=null, guidance_scale=scale)
+    controls = {k: (scale, _without(cond, null, k)) for k in ("text", "traj")}
+    composed = flow.sample(_coupled_model, noise, sig, cond=cond, null_cond=null, guidance_scale=scale,
+                           control_guidance=controls)
+    np.testing.assert_allclose(composed, plain, rtol=1e-6, atol=1e-6)
+    # another scale for one control moves the samples: the extra forwards are used
+    controls["traj"] = (scale + 2.0, controls["traj"][1])
+    other = flow.sample(_coupled_model, noise, sig, cond=cond, null_cond=null, guidance_scale=scale,
+                        control_guidance=controls)
+    assert float(jnp.abs(other - plain).max()) > 1e-3
+
+
+def test_control_guidance_combines_as_documented_with_one_forward_more_per_control():
+    _, noise = _point_and_noise()
+    cond, null = _conds()
+    sigma = jnp.array([0.7, 0.7])
+    model, calls = _counted(_coupled_model)
+    controls = {"traj": (5.0, _without(cond, null, "traj"))}
+    one_step = flow.sample(model, noise, jnp.array([0.7, 0.2]), cond=cond, null_cond=null, guidance_scale=2.0,
+                           control_guidance=controls)
+    assert calls == [3 * SHAPE[0]]                    # cond, null, cond without traj: one batched call
+    v_c, v_null = _coupled_model(noise, sigma, cond), _coupled_model(noise, sigma, null)
+    v_no_traj = _coupled_model(noise, sigma, controls["traj"][1])
+    v = v_null + 2.0 * (v_c - v_null) + (5.0 - 2.0) * (v_c - v_no_traj)
+    np.testing.assert_allclose(one_step, noise - 0.5 * v, rtol=1e-5, atol=1e-5)
+    calls.clear()                                     # plain scale 1: no null forward
+    one_step = flow.sample(model, noise, jnp.array([0.7, 0.2]), cond=cond, null_cond=null, guidance_scale=1.0,
+                           control_guidance=controls)
+    assert calls == [2 * SHAPE[0]]
+    np.testing.assert_allclose(one_step, noise - 0.5 * (v_c + 4.0 * (v_c - v_no_traj)), rtol=1e-5, atol=1e-5)
+
+
 def test_compiles_once_for_a_shape_and_step_count():
     x0, noise = _point_and_noise()
     traces = []
@@ -158,6 +213,15 @@ def test_compiles_once_for_a_shape_and_step_count():
     (dict(guidance_scale=2.0, cond={"text": jnp.ones(2)}), "null_cond: expected the null conditions"),
     (dict(guidance_scale={"map": 2.0}, cond={"text": jnp.ones(2)}, null_cond={"text": jnp.zeros(2)}),
      r"guidance_scale: expected names present in cond and null_cond \(\['text'\]\), got unknown \['map'\]"),
+    (dict(guidance_scale=-2.0, cond={"text": jnp.ones(2)}, null_cond={"text": jnp.zeros(2)}),
+     r"guidance_scale: expected values in \[0.0, inf\), got -2"),
+    (dict(guidance_scale={"text": -1.0}, cond={"text": jnp.ones(2)}, null_cond={"text": jnp.zeros(2)}),
+     r"guidance_scale\['text'\]: expected values in \[0.0, inf\), got -1"),
+    (dict(guidance_scale=2.0, cond={"text": jnp.ones(2)}, null_cond={"text": jnp.zeros(2)},
+          control_guidance={"text": (-3.0, {"text": jnp.zeros(2)})}),
+     r"control_guidance\['text'\]: expected values in \[0.0, inf\), got -3"),
+    (dict(guidance_scale=2.0, cond={"text": jnp.ones(2)}, control_guidance={"text": (3.0, {"text": jnp.zeros(2)})}),
+     "null_cond: expected the null conditions"),
 ])
 def test_bad_inputs(kwargs, match):
     _, noise = _point_and_noise()

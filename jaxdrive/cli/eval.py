@@ -2,7 +2,7 @@
 
     jaxdrive eval --workdir RUN [--fine-workdir RUN2] --strategies rollout,coarse-to-refine,...
                   --clips N --frames F [--buckets 2-12,13-24] [--inception FILE] [--i3d FILE]
-                  [--segmenter RUN [--shuffle-boxes]] --out DIR
+                  [--segmenter RUN [--shuffle-boxes]] [--cfg 1,2,4] [--cfg-boxes S] [--cfg-route S] --out DIR
     jaxdrive eval --videos DIR --data PATH [...] --out DIR      # a folder of generated mp4s
     jaxdrive eval --merge OUT1,OUT2,... --out DIR               # strategies of different models, one table
 
@@ -11,12 +11,16 @@ validation split (:mod:`jaxdrive.eval.compare` scores them): PSNR / SSIM per hor
 always, FID per view and over all views with ``--inception``, FVD on 16-frame windows with
 ``--i3d``, controllability (the segmenter's mIoU against the class masks of the conditioning
 boxes, and on the recorded frames, its ceiling) with ``--segmenter``. Writes ``DIR/eval.json``,
-``DIR/eval.md`` and ``DIR/quality_vs_horizon.png`` and prints the table. Every check that can
-fail does so before anything compiles.
+``DIR/eval.md`` and ``DIR/quality_vs_horizon.png`` and prints the table. Guidance: each run's
+``sample.cfg`` unless ``--cfg`` gives scales; several (``--cfg 1,2,4``) score every strategy at
+each, in rows named ``STRATEGY@cfgS``; ``--cfg-boxes`` / ``--cfg-route`` add those controls' own
+scales (:mod:`jaxdrive.generate.guidance`); every row records its ``guidance``. Every check that
+can fail does so before anything compiles.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 
@@ -42,8 +46,10 @@ def _eval(args, rest) -> int:
     import jax
     import numpy as np
 
+    from jaxdrive.cli.options import parse_scales
     from jaxdrive.cli.sample import first_latents, load_runs
     from jaxdrive.eval.compare import parse_buckets, repeat_baseline, repeat_name, run_strategies, write_outputs
+    from jaxdrive.generate.guidance import describe
     from jaxdrive.generate.samples import dataset_inputs
     from jaxdrive.generate.strategies import NEEDS_FINE, STRATEGIES, Models, check_strategy
     from jaxdrive.validate import check_positive_int
@@ -56,7 +62,12 @@ def _eval(args, rest) -> int:
     if not names:
         raise ValueError(f"--strategies: expected a comma-separated list from {', '.join(STRATEGIES)}, got "
                          f"{args.strategies!r}")
+    if args.frames is None:
+        raise ValueError("--frames: required with --workdir (the pixel frames per clip to generate and score), "
+                         "got none")
     check_positive_int("--frames", args.frames)
+    scales = parse_scales(args.cfg)
+    args.cfg = None                      # the models load with their runs' sample.cfg; the sweep sets each
     clips = check_positive_int("--clips", args.clips)
     _check_common(args, clips)
     if args.routes:
@@ -66,6 +77,9 @@ def _eval(args, rest) -> int:
             if value:
                 raise ValueError(f"{option}: expected none with --routes (each route has its own boxes; the routes "
                                  f"are the validation clips'), got {value!r}")
+        if len(scales) > 1:
+            raise ValueError(f"--cfg: expected one guidance scale with --routes (a route effect compares one "
+                             f"model's generations), got {len(scales)}")
     args.cond_frames = None
     run, spec, fine_spec, load_main, load_fine, shapes, length = load_runs(args)
     horizon_spec = fine_spec or spec
@@ -88,7 +102,7 @@ def _eval(args, rest) -> int:
                          "ids), got one on precomputed latent windows")
     if args.routes:
         return _eval_routes(args, names, run, horizon_spec, load_main, load_fine, codec, given, given_pixels,
-                            length, buckets, features, segmenter, clips)
+                            length, buckets, features, segmenter, clips, scales[0])
     try:
         inputs = dataset_inputs(horizon_spec, frames=args.frames, clips=clips, seed=args.seed, split=args.split,
                                 masks=segmenter is not None, shuffle_boxes=args.shuffle_boxes)
@@ -105,22 +119,31 @@ def _eval(args, rest) -> int:
         features["masks"] = inputs.get("box_class_masks", inputs["class_masks"])
         ceiling = controllability(features["segment"], recorded, inputs["class_masks"], buckets)
     out = Path(args.out)
-    with jax.set_mesh(run.mesh):
-        results = run_strategies({n: {} for n in names}, models, codec, inputs["cond"], first, length, recorded,
-                                 buckets, key=jax.random.key(args.seed), mesh=run.mesh, **features)
+    results = {}
+    for scale in scales:
+        guided = models if scale is None else Models(*(None if m is None else dataclasses.replace(m, guidance=scale)
+                                                       for m in (models.main, models.fine)))
+        suffix = "" if len(scales) == 1 else f"@cfg{scale:g}"
+        with jax.set_mesh(run.mesh):
+            rows = run_strategies({n: {} for n in names}, guided, codec, inputs["cond"], first, length, recorded,
+                                  buckets, key=jax.random.key(args.seed), mesh=run.mesh, **features)
+        for name, row in rows.items():
+            results[name + suffix] = {**row, "guidance": describe(guided.main.guidance, guided.main.control_guidance)}
     results[repeat_name(given_pixels)] = repeat_baseline(recorded, given_pixels, buckets, **features)
     paths = write_outputs(results, out, ceiling=ceiling,
                           meta={"workdir": str(args.workdir), "fine_workdir": args.fine_workdir, "clips": clips,
                                 "frames": args.frames, "given_frames": given_pixels, "views": int(recorded.shape[1]),
                                 "inception": args.inception, "i3d": args.i3d, "segmenter": args.segmenter,
-                                "shuffle_boxes": bool(args.shuffle_boxes), "split": args.split})
+                                "shuffle_boxes": bool(args.shuffle_boxes), "split": args.split,
+                                "cfg": [models.main.guidance if s is None else s for s in scales],
+                                "cfg_boxes": args.cfg_boxes, "cfg_route": args.cfg_route})
     print(paths["table"])
     print(f"wrote {paths['json']}, {paths['md']}, {paths['plot']}")
     return 0
 
 
 def _eval_routes(args, names, run, spec, load_main, load_fine, codec, given, given_pixels, length, buckets,
-                 features, segmenter, clips) -> int:
+                 features, segmenter, clips, scale) -> int:
     """``--routes``: every strategy under every route, against each route's render
     (:mod:`jaxdrive.eval.routes`)."""
     import jax
@@ -143,6 +166,9 @@ def _eval_routes(args, names, run, spec, load_main, load_fine, codec, given, giv
         except ValueError as e:      # the clips are shorter than --frames
             raise ValueError(f"--{e}" if str(e).startswith("frames:") else f"--frames: {e}") from None
     models = Models(load_main(), load_fine() if load_fine else None)
+    if scale is not None:              # --cfg; else each run's sample.cfg
+        models = Models(*(None if m is None else dataclasses.replace(m, guidance=scale)
+                          for m in (models.main, models.fine)))
     segment = None
     if segmenter is not None:
         segment = lambda frames: segmenter.classes(frames, mesh=run.mesh)
@@ -160,7 +186,8 @@ def _eval_routes(args, names, run, spec, load_main, load_fine, codec, given, giv
                                 "frames": args.frames, "given_frames": given_pixels, "views": spec.data.views,
                                 "inception": args.inception, "i3d": args.i3d, "segmenter": args.segmenter,
                                 "shuffle_boxes": False, "split": "validation", "routes": args.routes,
-                                "route_clips": plan["indices"]})
+                                "route_clips": plan["indices"], "cfg": [models.main.guidance],
+                                "cfg_boxes": args.cfg_boxes, "cfg_route": args.cfg_route})
     print(paths["table"])
     print(f"wrote {paths['json']}, {paths['md']}, {paths['plot']}, {grid}")
     return 0
@@ -177,7 +204,7 @@ def _eval_videos(args) -> int:
     from jaxdrive.eval.segmenter import class_masks_of
     from jaxdrive.media import read_mp4
     from jaxdrive.validate import check_positive_int
-    for name in ("strategies", "fine_workdir", "frames", "routes"):
+    for name in ("strategies", "fine_workdir", "frames", "routes", "cfg", "cfg_boxes", "cfg_route"):
         if getattr(args, name) not in (None, "rollout"):
             raise ValueError(f"--{name.replace('_', '-')}: expected only with --workdir, got {getattr(args, name)!r}")
     if not args.data:
@@ -308,6 +335,6 @@ def add_commands(sub) -> None:
                                      "--counterfactuals): comma-separated, e.g. recorded,stop,lane-left; every "
                                      "strategy under each route against that route's render, with repeat and warp "
                                      "rows and the route effect")
-    add_sampling(ev, cfg=1.0)
+    add_sampling(ev, sweep=True)
     ev.add_argument("--out", required=True, help="output directory")
     ev.set_defaults(run=_eval)

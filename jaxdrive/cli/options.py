@@ -15,12 +15,55 @@ def add_progress(parser, what: str) -> None:
     parser.add_argument("--no-progress", action="store_true", help=f"no progress bar over {what}")
 
 
-def add_sampling(parser, *, cfg: float) -> None:
-    """What sampling a run's checkpoint takes: ``--steps``, ``--cfg`` (default ``cfg``), ``--seed``,
-    ``--mesh``, ``--no-ema``, ``--set``."""
+def add_sampling(parser, *, sweep: bool = False) -> None:
+    """What sampling a run's checkpoint takes: ``--steps``, ``--cfg`` (default: the run's
+    ``sample.cfg``; with ``sweep`` a comma-separated list of scales), ``--cfg-boxes``,
+    ``--cfg-route``, ``--seed``, ``--mesh``, ``--no-ema``, ``--set``."""
     parser.add_argument("--steps", type=int, help="sampling steps (default: the run's train.sample_steps)")
-    parser.add_argument("--cfg", type=float, default=cfg, help="classifier-free guidance scale (1: none)")
+    if sweep:
+        parser.add_argument("--cfg", help="classifier-free guidance scales, comma-separated, e.g. 1,2,4: every "
+                                          "strategy is scored at each (rows STRATEGY@cfgS); default: the run's "
+                                          "sample.cfg")
+    else:
+        parser.add_argument("--cfg", type=float, help="classifier-free guidance scale (1: none, 0: unconditional; "
+                                                      "default: the run's sample.cfg)")
+    parser.add_argument("--cfg-boxes", type=float, help="the 3D boxes' own guidance scale (compositional guidance: "
+                                                        "one more forward per step; needs a model trained with boxes)")
+    parser.add_argument("--cfg-route", type=float, help="the ego route's own guidance scale (waypoints, trajectory "
+                                                        "and warp, which training drops together)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--mesh", help="mesh axis sizes for sampling")
     parser.add_argument("--no-ema", action="store_true", help="sample with the raw parameters, not the EMA")
     parser.add_argument("--set", action="append", metavar="KEY=VALUE")
+
+
+def parse_scales(text) -> list:
+    """``--cfg`` of ``jaxdrive eval``: ``"1,2,4"`` -> ``[1.0, 2.0, 4.0]`` (each a guidance scale
+    >= 0, no repeats); None -> ``[None]`` (the run's ``sample.cfg``)."""
+    from jaxdrive.generate.guidance import check_scale
+    if text is None:
+        return [None]
+    out = []
+    for part in str(text).split(","):
+        try:
+            value = float(part)
+        except ValueError:
+            raise ValueError(f"--cfg: expected guidance scales like 1,2,4, got {text!r}") from None
+        out.append(check_scale("--cfg", value))
+    if len(set(out)) != len(out):
+        raise ValueError(f"--cfg: expected distinct scales, got {text!r}")
+    return out
+
+
+def guidance_options(args, specs) -> dict:
+    """The per-control scales of ``--cfg-boxes`` / ``--cfg-route`` checked against every run's
+    :class:`jaxdrive.generate.samples.Sampling` in ``specs`` (and ``--cfg`` when it is one
+    number): ``ValueError`` naming the option before anything compiles. Returns control -> scale."""
+    from jaxdrive.generate.guidance import check_controls, check_scale
+    if isinstance(args.cfg, (int, float)):
+        check_scale("--cfg", args.cfg)
+    controls = {"boxes": args.cfg_boxes, "route": args.cfg_route}
+    for spec in specs:
+        if spec is not None:
+            check_controls(spec.model, spec.data.drop_prob, controls, option=lambda c: f"--cfg-{c}")
+    return {k: v for k, v in controls.items() if v is not None}

@@ -15,11 +15,10 @@ from __future__ import annotations
 from pathlib import Path
 
 
-def _load(workdir, sets, mesh, *, ema: bool, steps, guidance, role: str):
+def _load(workdir, sets, mesh, *, role: str):
     from jaxdrive.cli.train import _config_mesh
     from jaxdrive.config import override
-    from jaxdrive.generate.windows import WindowModel
-    from jaxdrive.train.run import Run, load_run_config, restore_params
+    from jaxdrive.train.run import Run, load_run_config
     if not (Path(workdir) / "config.json").is_file():
         raise ValueError(f"{role}: expected a run directory with config.json, got {str(workdir)!r}")
     config = load_run_config(workdir)
@@ -27,38 +26,44 @@ def _load(workdir, sets, mesh, *, ema: bool, steps, guidance, role: str):
         config = override(config, s)
     config = _config_mesh(config, mesh) if mesh else config
     run = Run(config)
-    spec = run.sampling()
-    return run, spec, lambda: WindowModel.from_sampling(spec, restore_params(run, workdir, ema=ema)[1], steps=steps,
-                                                        guidance=guidance)
+    return run, run.sampling()
 
 
 def load_runs(args):
     """The runs of ``--workdir`` (and ``--fine-workdir``) for a strategy: ``(run, spec, fine_spec,
     load_main, load_fine, shapes, length)``; ``shapes`` are the :class:`Models` known from the
     configs alone (what every check needs, before any parameter is read), ``length`` the latent
-    frames of ``--frames``."""
+    frames of ``--frames``. Guidance: ``--cfg`` (None: each run's ``sample.cfg``), ``--cfg-boxes``,
+    ``--cfg-route``, checked against both runs here."""
+    from jaxdrive.cli.options import guidance_options
     from jaxdrive.generate.strategies import Models
     from jaxdrive.generate.windows import WindowModel
+    from jaxdrive.train.run import restore_params
     ema = not args.no_ema
-    run, spec, load_main = _load(args.workdir, args.set, args.mesh, ema=ema, steps=args.steps, guidance=args.cfg,
-                                 role="--workdir")
+    run, spec = _load(args.workdir, args.set, args.mesh, role="--workdir")
     from jaxdrive import compile_cache
     compile_cache.enable(run.config.train.compile_cache)      # the run's own setting (default: on)
-    fine_spec = load_fine = None
+    fine_run = fine_spec = load_fine = None
     if args.fine_workdir:
-        _, fine_spec, load_fine = _load(args.fine_workdir, args.set, args.mesh, ema=ema, steps=args.steps,
-                                        guidance=args.cfg, role="--fine-workdir")
+        fine_run, fine_spec = _load(args.fine_workdir, args.set, args.mesh, role="--fine-workdir")
         for name in ("channels", "spatial", "temporal"):
             a, b = getattr(spec.codec, name), getattr(fine_spec.codec, name)
             if a != b:
                 raise ValueError(f"--fine-workdir: expected latents like --workdir's ({name} {a}), got {name} {b}")
+    controls = guidance_options(args, (spec, fine_spec))
+
+    def model(s, r=None, workdir=None):
+        params = None if r is None else restore_params(r, workdir, ema=ema)[1]
+        return WindowModel.from_sampling(s, params, steps=args.steps, guidance=args.cfg, control_guidance=controls)
+    load_main = lambda: model(spec, run, args.workdir)
+    if fine_spec is not None:
+        load_fine = lambda: model(fine_spec, fine_run, args.fine_workdir)
     horizon_spec = fine_spec or spec
     length = horizon_spec.codec.latent_frames(args.frames)
     if horizon_spec.codec.temporal > 1 and (args.frames - 1) % horizon_spec.codec.temporal:
         raise ValueError(f"--frames: expected 1 + {horizon_spec.codec.temporal}k frames for the causal VAE, "
                          f"got {args.frames}")
-    shape_only = lambda s: WindowModel.from_sampling(s, None, steps=args.steps, guidance=args.cfg)
-    shapes = Models(shape_only(spec), shape_only(fine_spec) if fine_spec else None)
+    shapes = Models(model(spec), model(fine_spec) if fine_spec else None)
     return run, spec, fine_spec, load_main, load_fine, shapes, length
 
 

@@ -78,12 +78,15 @@ def _sample(args, rest) -> int:
     from jaxdrive import compile_cache
     compile_cache.enable(config.train.compile_cache)
     run = Run(config)
+    from jaxdrive.cli.options import guidance_options
+    controls = guidance_options(args, [run.sampling()])      # before anything compiles
     step, params = restore_params(run, args.workdir, ema=not args.no_ema)
     views = None if args.views is None else [int(v) for v in args.views]
     out_dir = Path(args.out or Path(args.workdir) / "samples" / f"sample_{step:07d}")
     t = time.perf_counter()
     paths = write_samples(run.sampling(), params, out_dir, frames=args.frames, views=views, steps=args.steps,
-                          guidance=args.cfg, seed=args.seed, progress=not args.no_progress)
+                          guidance=args.cfg, control_guidance=controls, seed=args.seed,
+                          progress=not args.no_progress)
     if "quality" in paths:
         print(quality_lines(paths["quality"]))
     print(f"sampled from checkpoint {step} in {time.perf_counter() - t:.1f} s: {out_dir}")
@@ -129,6 +132,9 @@ def _demo(args, rest) -> int:
     data = workdir / "data"
     extra = [f"data.path={data}", f"train.steps={args.steps}"]
     config = _config(config_path, None, args.set, extra)
+    if args.cfg is not None:
+        from jaxdrive.generate.guidance import check_scale
+        check_scale("--cfg", args.cfg)
     if args.scenes < config.data.batch_size + 1:
         raise ValueError(f"--scenes: expected at least data.batch_size + 1 = {config.data.batch_size + 1} "
                          f"(a batch of training scenes and one for validation), got {args.scenes}")
@@ -235,7 +241,7 @@ def add_commands(sub) -> None:
     sample.add_argument("--workdir", required=True)
     sample.add_argument("--frames", type=int, help="pixel frames (longer than training: rolled out in windows)")
     sample.add_argument("--views", nargs="+", help="camera indices (default: the training views)")
-    add_sampling(sample, cfg=2.0)
+    add_sampling(sample)
     sample.add_argument("--out", help="output directory (default WORKDIR/samples/sample_STEP)")
     sample.add_argument("--strategy", help="long-video strategy: rollout, coarse-to-refine (MiLA), coarse-fine "
                                            "(LongDWM), window (MagicDrive-V2: one window, models trained on "
@@ -270,8 +276,8 @@ def add_commands(sub) -> None:
     demo.add_argument("--steps", type=int, default=800)
     demo.add_argument("--scenes", type=int, default=24, help="synthetic scenes (one kept for validation)")
     demo.add_argument("--frames", type=int, default=33, help="frames of the sampled clip")
-    demo.add_argument("--cfg", type=float, default=1.0, help="classifier-free guidance (1: none; the tiny "
-                                                             "model scores best without)")
+    demo.add_argument("--cfg", type=float, help="classifier-free guidance (1: none; default: the config's "
+                                                "sample.cfg, 1 for configs/tiny.py, whose model scores best without)")
     demo.add_argument("--routes", default="lane-left,stop,faster",
                       help="counterfactual routes to render for the validation scenes; the first one they can all "
                            "drive is generated beside the recorded route (none: skip)")

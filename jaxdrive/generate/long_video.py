@@ -11,7 +11,8 @@ and appends it to the mp4. It writes under ``out``:
 - ``latents.npy``: all latents ``[B, V, F', h, w, C]``;
 - ``report.json``: ``strategy``, ``frames``, ``latent_frames``, ``views``, ``clips``,
   ``sequential_sampler_calls``, ``seconds``, ``peak_device_bytes`` (and the models' windows and
-  the options the strategy ran with, ``compiled_programs``; ``stream`` for ``streaming``: the HTFT
+  the options the strategy ran with, ``compiled_programs``; ``guidance``: each model's scales,
+  :func:`jaxdrive.generate.guidance.describe`; ``stream`` for ``streaming``: the HTFT
   buffer's frames, taps and fixed ``buffer_bytes``); when the recorded clip covers the horizon, ``quality``:
   PSNR / SSIM of the first clip against it, beside the repeat and noise baselines, over the
   first window, all generated frames and each second (``horizon``), scored part by part as the
@@ -28,6 +29,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from jaxdrive.generate.guidance import describe
 from jaxdrive.generate.strategies import Models, run_strategy
 from jaxdrive.generate.windows import Tracker
 from jaxdrive.models.conditions import Conditions
@@ -96,7 +98,10 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
               "given_latent_frames": int(np.shape(first)[2]),
               "windows": {"main": models.main.window, **({"fine": models.fine.window} if models.fine else {})},
               "options": {k: v for k, v in options.items() if v is not None and k != "warp"},
-              "compiled_programs": tracker.programs, **tracker.notes}
+              "compiled_programs": tracker.programs,
+              "guidance": {k: describe(m.guidance, m.control_guidance) for k, m in
+                           (("main", models.main), ("fine", models.fine)) if m is not None},
+              **tracker.notes}
     if options.get("warp") is not None:          # LongDWM's warped frames: the plane depth they used
         report["warp"] = {"depth": options["warp"].depth}
     if route is not None:

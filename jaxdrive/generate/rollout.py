@@ -26,7 +26,8 @@ from jaxdrive.validate import check_positive_int
 
 def rollout(dit: DiT, codec, params, codec_params, inputs: dict, *, total_frames: int, window: int,
             overlap: int, cond_frames: int, steps: int, guidance: float, key, shift: float = 1.0,
-            tpd: bool = False, tpd_omega: float = np.pi / 2, progress: bool = False, mesh=None):
+            tpd: bool = False, tpd_omega: float = np.pi / 2, progress: bool = False, mesh=None,
+            control_guidance: tuple[tuple[str, float], ...] = ()):
     """Latents ``[B, V, total_frames, h, w, C]`` (NumPy) generated window by window (module
     docstring): the ``rollout`` strategy of :mod:`jaxdrive.generate.strategies` on a dataset
     batch; ``progress``: a progress bar over the windows (on process 0); ``mesh``: where the
@@ -36,7 +37,8 @@ def rollout(dit: DiT, codec, params, codec_params, inputs: dict, *, total_frames
     length (per-frame controls in ``cond`` for every frame; ``video`` needs only the first ``cond_frames``
     latent frames' pixels; a precomputed dataset gives ``latents`` instead, of at least ``window``
     frames). ``window``: latent frames per window (the training length);
-    ``overlap``: frames each next window conditions on (``1 <= overlap < window``)."""
+    ``overlap``: frames each next window conditions on (``1 <= overlap < window``); ``guidance``,
+    ``control_guidance``: as :class:`jaxdrive.generate.windows.WindowModel` takes them."""
     from jaxdrive.generate.strategies import Models, rollout as rollout_strategy
     check_positive_int("total_frames", total_frames)
     check_positive_int("window", window)
@@ -53,7 +55,8 @@ def rollout(dit: DiT, codec, params, codec_params, inputs: dict, *, total_frames
         video = jnp.asarray(inputs["video"])[:, :, :codec.pixel_frames(window)]
         first = np.asarray(codec.encode(codec_params, video))[:, :, :cond_frames]
     model = WindowModel(dit, params, window=window, cond_frames=cond_frames, steps=steps, guidance=guidance,
-                        shift=shift, tpd=tpd, tpd_omega=tpd_omega, temporal=codec.temporal)
+                        control_guidance=tuple(control_guidance), shift=shift, tpd=tpd, tpd_omega=tpd_omega,
+                        temporal=codec.temporal)
     parts = rollout_strategy(Models(model), controls, first, total_frames, key=key, mesh=mesh, overlap=overlap)
     bar = tqdm(parts, total=len(window_starts(total_frames, window, overlap)), unit="window",
                disable=not progress or jax.process_index() != 0)

@@ -1,7 +1,7 @@
 """Sample videos of a model: condition frames and controls from dataset clips, the jitted sampler,
 and the outputs (an mp4 with the views tiled, a frame-grid PNG, the latents as ``.npy``).
 
-    g = generate(Sampling(model, codec, mesh, data, flow), params, frames=33, guidance=1.0)
+    g = generate(Sampling(model, codec, mesh, data, flow), params, frames=33, guidance=2.0)
 
 Used by the training loop (periodic samples) and by ``jaxdrive sample``; a training run gives its
 :class:`Sampling` by :meth:`jaxdrive.train.run.Run.sampling`.
@@ -22,6 +22,7 @@ from jax.sharding import Mesh
 
 from jaxdrive import flow
 from jaxdrive.config import DataConfig, FlowConfig, StreamConfig
+from jaxdrive.generate.guidance import check_controls, check_scale, describe
 from jaxdrive.generate.rollout import rollout, to_numpy_video
 from jaxdrive.models.dit import DiT
 from jaxdrive.models.dit_config import DiTConfig
@@ -37,7 +38,8 @@ class Sampling:
     (latent frames per sampler call; default: the latent frames of ``data.frames``) and the
     source-frame stride between its frames (default ``data.stride``); ``precomputed``: ``data.path``
     holds latent windows (``jaxdrive data encode``); ``stream``: STAGE's streaming settings of a
-    model trained frame by frame."""
+    model trained frame by frame; ``guidance``: the classifier-free guidance scale it samples with
+    unless told otherwise (the run's ``sample.cfg``)."""
 
     model: DiTConfig
     codec: LatentCodec
@@ -50,6 +52,7 @@ class Sampling:
     precomputed: bool = False
     steps: int = 20
     stream: StreamConfig = StreamConfig()
+    guidance: float = 1.0
 
     @property
     def latent_window(self) -> int:
@@ -180,19 +183,24 @@ class Generated:
     """What :func:`generate` returns: ``video [clips, V, F, H, W, 3]`` in [-1, 1] and its
     ``latents``; ``recorded``, the dataset clips' own frames at the same positions (decoded stored
     latents for a precomputed dataset); ``cond_frames`` and ``window``: the given frames and the
-    first sampler window's frames, in pixel frames."""
+    first sampler window's frames, in pixel frames; ``guidance``: the scales it sampled with
+    (:func:`jaxdrive.generate.guidance.describe`)."""
 
     video: np.ndarray
     latents: np.ndarray
     recorded: np.ndarray
     cond_frames: int
     window: int
+    guidance: dict = dataclasses.field(default_factory=dict)
 
 
 def generate(spec: Sampling, params, *, frames: int | None = None, views=None, steps: int | None = None,
-             guidance: float = 1.0, cond_frames: int | None = None, overlap: int | None = None,
-             clips: int | None = None, seed: int = 0, progress: bool = False) -> Generated:
-    """Generate ``clips`` clips conditioned on dataset clips (see :class:`Generated`). ``frames``
+             guidance: float | None = None, control_guidance=None, cond_frames: int | None = None,
+             overlap: int | None = None, clips: int | None = None, seed: int = 0,
+             progress: bool = False) -> Generated:
+    """Generate ``clips`` clips conditioned on dataset clips (see :class:`Generated`). ``guidance``
+    None: the run's (``spec.guidance``); ``control_guidance``: control -> its own scale
+    (:mod:`jaxdrive.generate.guidance`). ``frames``
     defaults to the training clip (``data.frames``; the window's frames for a model whose window is
     not the data clip, a distilled coarse model); ``clips`` to the size of the mesh's batch axes
     (``data x fsdp``), the least a batch-sharded sampler can run; ``progress``: a progress bar over
@@ -207,6 +215,8 @@ def generate(spec: Sampling, params, *, frames: int | None = None, views=None, s
         frames = spec.data.frames if codec.latent_frames(spec.data.frames) == window else window
     frames = check_positive_int("frames", frames)
     steps = spec.steps if steps is None else check_positive_int("steps", steps)
+    guidance = check_scale("guidance", spec.guidance if guidance is None else guidance)
+    controls = check_controls(spec.model, spec.data.drop_prob, control_guidance or {})
     total = codec.latent_frames(frames)
     cond = max(1, spec.flow.cond_frames) if cond_frames is None else cond_frames
     overlap = max(1, cond) if overlap is None else overlap
@@ -220,13 +230,15 @@ def generate(spec: Sampling, params, *, frames: int | None = None, views=None, s
     with jax.set_mesh(mesh):
         latents = rollout(DiT(spec.model), codec, params, codec.params, inputs, total_frames=total, window=window,
                           overlap=overlap, cond_frames=cond, steps=steps, guidance=guidance,
+                          control_guidance=controls,
                           key=jax.random.key(seed), shift=shift, tpd=f.tpd, tpd_omega=f.tpd_omega,
                           progress=progress, mesh=mesh)
         video = to_numpy_video(codec, codec.params, latents)
         recorded = (np.asarray(inputs["video"]) if "video" in inputs else
                     to_numpy_video(codec, codec.params, inputs["latents"][:, :, :total]))
     pixel = lambda n: codec.pixel_frames(n) if n else 0
-    return Generated(video, np.asarray(latents), recorded, pixel(cond), min(pixel(window), video.shape[2]))
+    return Generated(video, np.asarray(latents), recorded, pixel(cond), min(pixel(window), video.shape[2]),
+                     guidance=describe(guidance, controls))
 
 
 def write_samples(spec: Sampling, state_or_params, outdir, *, log=print, fps: float | None = None,
@@ -234,7 +246,8 @@ def write_samples(spec: Sampling, state_or_params, outdir, *, log=print, fps: fl
     """Generate (``kwargs`` as :func:`generate`) and write under ``outdir``: ``sample.mp4``,
     ``frames.png`` (each row: the recorded frame left, the generated one right), ``latents.npy`` and ``quality.json``
     (PSNR / SSIM of the first clip against its recorded frames, beside the repeat-the-last-frame
-    and noise baselines: :func:`jaxdrive.eval.frames.clip_quality`). Returns the paths and the
+    and noise baselines: :func:`jaxdrive.eval.frames.clip_quality`; and the ``guidance`` used).
+    Returns the paths and the
     quality summary (``"quality"``). EMA parameters are used when the state keeps them."""
     from jaxdrive.eval.frames import clip_quality
     from jaxdrive.media import write_frame_grid, write_mp4
@@ -254,7 +267,8 @@ def write_samples(spec: Sampling, state_or_params, outdir, *, log=print, fps: fl
         np.save(outdir / "latents.npy", g.latents)
         out["latents"] = outdir / "latents.npy"
         if g.cond_frames:           # quality is measured against what the given frames continue
-            q = clip_quality(video[0], g.recorded[0], cond_frames=g.cond_frames, window=g.window)
+            q = {**clip_quality(video[0], g.recorded[0], cond_frames=g.cond_frames, window=g.window),
+                 "guidance": g.guidance}
             out["quality"] = q
             out["quality_json"] = outdir / "quality.json"
             out["quality_json"].write_text(json.dumps(q, indent=1))

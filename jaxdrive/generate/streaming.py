@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrive import flow
+from jaxdrive.generate.guidance import sampler_guidance
 from jaxdrive.generate.windows import Tracker, WindowModel, to_mesh
 from jaxdrive.models.conditions import Conditions
 from jaxdrive.models.htft import buffer_init, buffer_push, buffer_select
@@ -136,20 +137,16 @@ def stream_frame(model: WindowModel, taps: tuple[int, ...], params, anchor, prev
     m = model.dit.config
     names = list(controls.drop or {})
     x_cond, mask, cond = window_inputs(model, anchor, prev, controls)
-    b = x_cond.shape[0]
-    null = None
-    if names and model.guidance != 1.0:
-        cond, null = cond.with_drops(names, False, b), cond.with_drops(names, True, b)
+    guidance = sampler_guidance(cond, names, x_cond.shape[0], model.guidance, model.control_guidance)
     schedule = flow.frame_schedule(flow.sampling_sigmas(model.steps, shift=model.shift), mask)
     noise = noise_like(key, x_cond)
     x0 = jnp.where(mask[:, None, :, None, None, None], x_cond, noise)
-    guidance = None if null is None else model.guidance
     if buffer is None or not taps or not m.htft_layers:
         out = flow.sample(lambda x, s, c: window_velocity(model.dit, params)(x, s, c, None)[0], x0, schedule,
-                          cond=cond, null_cond=null, guidance_scale=guidance, cond_mask=mask)
+                          cond_mask=mask, **guidance)
         return in_range(model, out[:, :, NEW:]), None
-    out, feats = flow.sample(window_velocity(model.dit, params), x0, schedule, cond=cond, null_cond=null,
-                             guidance_scale=guidance, cond_mask=mask, step_inputs=_per_step(buffer, taps))
+    out, feats = flow.sample(window_velocity(model.dit, params), x0, schedule, cond_mask=mask,
+                             step_inputs=_per_step(buffer, taps), **guidance)
     return in_range(model, out[:, :, NEW:]), buffer_push(buffer, feats)
 
 

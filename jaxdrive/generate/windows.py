@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
 from typing import Any
 
 import jax
@@ -26,6 +27,7 @@ from jax.sharding import PartitionSpec as P
 
 from jaxdrive import flow
 from jaxdrive.flow.jdc import DEFAULT_ALPHA1, DEFAULT_ANCHOR_SLOPE
+from jaxdrive.generate.guidance import check_controls, check_scale, sampler_guidance
 from jaxdrive.models.conditions import Conditions
 from jaxdrive.models.dit import DiT
 from jaxdrive.validate import check_positive_int
@@ -36,8 +38,9 @@ class WindowModel:
     """A trained DiT and how to sample it: its ``window`` (latent frames per sampler call), the
     given frames it was trained with (``cond_frames``), the flow settings of its training (shift,
     TPD, JDC slope and alpha1, the condition ``patterns`` and ``anchor_every``), the sampling
-    ``steps`` and the guidance scale. ``stride``: source frames between its training frames (a
-    coarse model's low rate). ``streaming``: trained frame by frame (STAGE, ``stream.enabled``),
+    ``steps``, the plain guidance scale ``guidance`` and the per-control ones ``control_guidance``
+    (``((control, scale), ...)``, :mod:`jaxdrive.generate.guidance`). ``stride``: source frames
+    between its training frames (a coarse model's low rate). ``streaming``: trained frame by frame (STAGE, ``stream.enabled``),
     with an HTFT buffer of ``stream_buffer`` frames fusing ``stream_taps`` (empty: HTFT off).
     ``value_range``: the interval its codec's latents lie in (``LatentCodec.value_range``), or None."""
 
@@ -47,6 +50,7 @@ class WindowModel:
     cond_frames: int = 1
     steps: int = 20
     guidance: float = 1.0
+    control_guidance: tuple[tuple[str, float], ...] = ()
     shift: float = 1.0
     tpd: bool = False
     tpd_omega: float = math.pi / 2
@@ -63,11 +67,21 @@ class WindowModel:
     stream_taps: tuple[int, ...] = ()
     value_range: tuple[float, float] | None = None
 
+    def __post_init__(self):
+        check_scale("guidance", self.guidance)
+        for control, scale in self.control_guidance:
+            check_scale(f"control_guidance[{control!r}]", scale)
+
     @classmethod
-    def from_sampling(cls, spec, params, *, steps: int | None = None, guidance: float = 1.0) -> "WindowModel":
+    def from_sampling(cls, spec, params, *, steps: int | None = None, guidance: float | None = None,
+                      control_guidance: Mapping[str, float | None] | None = None) -> "WindowModel":
         """From a run's :class:`jaxdrive.generate.samples.Sampling` and its parameters; ``lengths``:
-        the latent frame counts it trained on (several with ``data.buckets`` of several lengths)."""
+        the latent frame counts it trained on (several with ``data.buckets`` of several lengths).
+        ``guidance`` None: the run's (``sample.cfg``); ``control_guidance``: control -> scale,
+        checked against the model (:func:`jaxdrive.generate.guidance.check_controls`)."""
         from jaxdrive.data.pipeline import parse_bucket_specs
+        guidance = spec.guidance if guidance is None else guidance
+        controls = check_controls(spec.model, spec.data.drop_prob, control_guidance or {})
         d, f = spec.data, spec.flow
         lengths = {spec.latent_window}
         if d.buckets:
@@ -79,6 +93,7 @@ class WindowModel:
             d.height, d.width, WINDOW if spec.stream.enabled else spec.latent_window)
         return cls(DiT(spec.model), params, window=spec.latent_window, cond_frames=max(1, f.cond_frames),
                    steps=spec.steps if steps is None else check_positive_int("steps", steps), guidance=guidance,
+                   control_guidance=controls,
                    shift=shift, tpd=f.tpd, tpd_omega=f.tpd_omega, jdc_slope=f.jdc_slope, jdc_alpha1=f.jdc_alpha1,
                    patterns=tuple(f.patterns), anchor_every=f.anchor_every,
                    jdc_anchor_rate=f.jdc_anchor_rate, stride=spec.frame_stride, temporal=spec.codec.temporal,
@@ -252,17 +267,15 @@ def sample_window(model: WindowModel, params, x_cond, cond_mask, controls: Condi
     :func:`jaxdrive.flow.jdc_renoise` (MiLA eq. 8-12) and are denoised jointly with the frames
     between them (their output is the corrected anchor). The per-frame schedule is
     :func:`jaxdrive.flow.frame_schedule`'s (TPD when the model trained with it, MiLA eq. 13-14).
-    ``controls.drop`` names the conditions guidance drops (all at once, against learned nulls)."""
+    ``controls.drop`` names the conditions guidance drops (against learned nulls: all at once for
+    ``model.guidance``, one control at a time for ``model.control_guidance``,
+    :mod:`jaxdrive.generate.guidance`)."""
     m = model.dit.config
     names = list(controls.drop or {})
     cond = controls.replace(drop=None)
     if m.controls.cond_frames is not None:
         cond = cond.replace(cond_latents=x_cond, cond_mask=cond_mask)
-    b = x_cond.shape[0]
-    null = None
-    if names and model.guidance != 1.0:
-        cond = cond.with_drops(names, False, b)
-        null = cond.with_drops(names, True, b)
+    guidance = sampler_guidance(cond, names, x_cond.shape[0], model.guidance, model.control_guidance)
     schedule = flow.frame_schedule(flow.sampling_sigmas(model.steps, shift=model.shift), cond_mask,
                                    anchor_mask=anchor_mask, tpd=model.tpd, omega=model.tpd_omega,
                                    anchor_slope=model.jdc_slope)
@@ -280,8 +293,7 @@ def sample_window(model: WindowModel, params, x_cond, cond_mask, controls: Condi
     def velocity(x, sigma, c):
         out = model.dit.forward(params, x, sigma, c)
         return flow.velocity_from_output(out, x, sigma, m.prediction, m.prediction_min_sigma)
-    return flow.sample(velocity, x0, schedule, cond=cond, null_cond=null,
-                       guidance_scale=None if null is None else model.guidance, cond_mask=cond_mask)
+    return flow.sample(velocity, x0, schedule, cond_mask=cond_mask, **guidance)
 
 
 _SAMPLE = jax.jit(sample_window, static_argnums=(0,))

@@ -383,8 +383,10 @@ class DiT(nn.Module):
                                        cfg.vae_temporal, cfg.local_attn_impl, dt, name="trajectory_embed")(
                     ego_to_world, nf)
                 tr = use_null(drop.get("trajectory"), pool_frames(tr, pt), null)
-            toks.append(jnp.broadcast_to(tr[:, :, None, None], (b, ft, nv, 1, width)))
-            masks.append(jnp.ones((b, ft, nv, 1), bool))
+            # over the batch axes, as the box tokens below: the two are concatenated per token
+            toks.append(constrain(jnp.broadcast_to(tr[:, :, None, None], (b, ft, nv, 1, width)),
+                                  ("batch", None, None, None, None)))
+            masks.append(constrain(jnp.ones((b, ft, nv, 1), bool), ("batch", None, None, None)))
         if c.boxes:
             null = null_param(self, "boxes_null", (width,), ("embed",))
             if boxes is None:

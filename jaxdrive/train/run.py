@@ -267,7 +267,8 @@ class Run:
         from jaxdrive.generate.streaming import WINDOW
         return Sampling(self.training.model, self.codec, self.mesh, c.data, c.flow, text_embeddings=self.text,
                         window=WINDOW if c.stream.enabled else self.latent_frames, stride=self.frame_stride,
-                        precomputed=c.latents.precomputed, steps=c.train.sample_steps, stream=c.stream)
+                        precomputed=c.latents.precomputed, steps=c.train.sample_steps, stream=c.stream,
+                        guidance=c.sample.cfg)
 
     # ------------------------------------------------------------------ state
     def boxed_params(self):
