@@ -121,7 +121,7 @@ def test_undrivable_routes_write_nothing(tmp_path, capsys):
         write_synthetic_dataset(tmp_path / "x", train=1, validation=2, seed=0, counterfactuals="lane-right",
                                 views=1, frames=13, height=16, width=28)
     assert not any(tmp_path.iterdir())
-    with pytest.raises(ValueError, match="counterfactuals: expected routes from"):
+    with pytest.raises(ValueError, match="counterfactuals: expected distinct comma-separated routes from stop"):
         write_synthetic_dataset(tmp_path / "y", train=1, validation=1, counterfactuals="recorded", views=1, frames=13)
     assert main(["data", "synth", "--out", str(tmp_path / "z"), "--scenes", "1", "--counterfactuals", "stop"]) == 2
     assert "--counterfactuals: expected a dataset with validation clips" in capsys.readouterr().err

@@ -140,7 +140,8 @@ def _demo(args, rest) -> int:
                          f"(a batch of training scenes and one for validation), got {args.scenes}")
     start_jax()
     config = _demo_mesh(config, args.set)
-    routes = [] if args.routes.strip().lower() == "none" else _parse_demo_routes(args.routes)
+    from jaxdrive.data.synth_routes import parse_routes
+    routes = [] if args.routes.strip().lower() == "none" else parse_routes(args.routes, "--routes", recorded=False)
     validation = config.mesh.data        # eval samples a multiple of the batch shards
     if args.scenes < config.data.batch_size + validation:
         raise ValueError(f"--scenes: expected at least data.batch_size + {validation} = "
@@ -178,15 +179,6 @@ def _demo(args, rest) -> int:
           + (f"  routes     {grid} (render | generated, per route)\n" if grid else "")
           + f"  loss plot  {plot}\n  metrics    {workdir / 'metrics.jsonl'}")
     return 0
-
-
-def _parse_demo_routes(text: str) -> list[str]:
-    from jaxdrive.data.synth_routes import ROUTES
-    names = [r.strip() for r in text.split(",") if r.strip()]
-    if not names or any(r not in ROUTES[1:] for r in names):
-        raise ValueError(f"--routes: expected counterfactual routes from {', '.join(ROUTES[1:])} (or none), "
-                         f"got {text!r}")
-    return names
 
 
 def _demo_routes(workdir: Path, data: Path, routes, clips: int, args, config):

@@ -56,6 +56,17 @@ ACCEL, BRAKE, HARD_BRAKE = 2.5, 2.5, 7.0   # m/s^2 of the driven ego: comfortabl
 LOOKAHEAD = np.arange(0.5, 40.0, 0.5)   # metres along the path checked for obstacles
 
 
+def parse_routes(routes, option: str, *, recorded: bool = True) -> list[str]:
+    """Route names from a comma-separated string (or a sequence): distinct names of :data:`ROUTES`
+    (without ``recorded`` unless ``recorded``); ``ValueError`` naming ``option`` otherwise."""
+    names = [n.strip() for n in (routes.split(",") if isinstance(routes, str) else routes) if n.strip()]
+    allowed = ROUTES if recorded else ROUTES[1:]
+    if any(n not in allowed for n in names) or len(set(names)) != len(names):
+        raise ValueError(f"{option}: expected distinct comma-separated routes from {', '.join(allowed)}, got "
+                         f"{routes!r}")
+    return names
+
+
 class UndrivableRoute(ValueError):
     """A counterfactual route the scene cannot drive (a ``ValueError``)."""
 

@@ -263,17 +263,6 @@ def counterfactual_split(route: str) -> str:
     return "validation_route_" + route.replace("-", "_")
 
 
-def _parse_routes(counterfactuals) -> tuple[str, ...]:
-    names = tuple(counterfactuals.split(",") if isinstance(counterfactuals, str) else counterfactuals)
-    names = tuple(n.strip() for n in names if n.strip())
-    for name in names:
-        if name not in ROUTES or name == "recorded":
-            raise ValueError(f"counterfactuals: expected routes from {', '.join(ROUTES[1:])}, got {name!r}")
-    if len(set(names)) != len(names):
-        raise ValueError(f"counterfactuals: expected each route once, got {list(names)}")
-    return names
-
-
 def write_synthetic_dataset(out, *, train: int, validation: int = 0, seed: int = 0, overwrite: bool = False,
                             counterfactuals=(), counterfactual_start: int = COUNTERFACTUAL_START,
                             skip_undrivable: bool = False, **clip_kwargs):
@@ -292,7 +281,7 @@ def write_synthetic_dataset(out, *, train: int, validation: int = 0, seed: int =
     """
     from jaxdrive.data.tfds_io import write_dataset
 
-    names = _parse_routes(counterfactuals)
+    names = routes.parse_routes(counterfactuals, "counterfactuals", recorded=False)
     if names and not validation:
         raise ValueError(f"counterfactuals: expected validation clips to re-render, got validation={validation}")
     frames = clip_kwargs.get("frames", 33)

@@ -29,11 +29,11 @@ EFFECT_METRICS = ("psnr", "ssim", "miou")
 
 
 def parse_routes(text: str) -> list[str]:
-    """``--routes "recorded,stop"`` -> the route names (checked against the synthetic world's)."""
-    from jaxdrive.data.synth_routes import ROUTES
-    names = [r.strip() for r in str(text).split(",") if r.strip()]
-    if not names or any(r not in ROUTES for r in names) or len(set(names)) != len(names):
-        raise ValueError(f"--routes: expected distinct comma-separated routes from {', '.join(ROUTES)}, got {text!r}")
+    """``--routes "recorded,stop"`` -> at least one route name (:func:`jaxdrive.data.synth_routes.parse_routes`)."""
+    from jaxdrive.data.synth_routes import parse_routes as parse
+    names = parse(text, "--routes")
+    if not names:
+        raise ValueError(f"--routes: expected at least one route, got {text!r}")
     return names
 
 
