@@ -246,7 +246,6 @@ def check_drivable(route: str, clip: str, rec: EgoRoute, driver: EgoDriver, ego_
         raise UndrivableRoute(f"route {route!r}: expected clip {clip} to offer a free gap in the target lane "
                               f"before it ends, got none")
     if route == "branch":
-        _, _ = _branch_path(rec, float(rec.dist[f0 - 1]), route, clip)
         diverged = np.linalg.norm(ego_xy - rec.xy, axis=-1).max()
         if diverged < 0.5:
             raise UndrivableRoute(f"route {route!r}: expected clip {clip} to reach its other branch before the "
