@@ -42,7 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrive.models.dit_controls import Conv3x3, _align
-from jaxdrive.models.tokens import merge, split
+from jaxdrive.models.tokens import merge, reshape, split
 from jaxdrive.validate import check_positive_int, check_shape
 
 _EPS = 1e-9
@@ -116,7 +116,7 @@ def box_hits(boxes, box_valid, origin, dirs):
     check_shape("origin", origin, [b, None, 3])
     check_shape("dirs", dirs, [b, np.shape(origin)[1], None, None, 3])
     hs, ws = np.shape(dirs)[2:4]
-    flat = jnp.asarray(dirs, jnp.float32).reshape(b, -1, hs * ws, 3)
+    flat = reshape(jnp.asarray(dirs, jnp.float32), (b, np.shape(dirs)[1], hs * ws, 3))
     origin = jnp.asarray(origin, jnp.float32)
     bx = jnp.moveaxis(jnp.asarray(boxes, jnp.float32), 2, 0)                # [N, B, F, 7]
     ok = jnp.moveaxis(jnp.asarray(box_valid, bool), 2, 0)                    # [N, B, F]
@@ -137,7 +137,7 @@ def box_hits(boxes, box_valid, origin, dirs):
     # the first box outside the scan: the carry then has the body's type (and sharding) from the start
     first = one(jnp.int32(0), bx[0], ok[0])
     (depth, owner), _ = jax.lax.scan(step, first, (jnp.arange(1, n, dtype=jnp.int32), bx[1:], ok[1:]))
-    return depth.reshape(shape), owner.reshape(shape)
+    return reshape(depth, shape), reshape(owner, shape)
 
 
 def ground_classes(bev_map, origin, dirs, bev_range):
@@ -162,9 +162,9 @@ def ground_classes(bev_map, origin, dirs, bev_range):
     col = jnp.floor(wm / 2 - point[..., 1] / (float(bev_range[1]) / wm)).astype(jnp.int32)
     inside = down & (row >= 0) & (row < hm) & (col >= 0) & (col < wm)
     index = jnp.where(inside, row * wm + col, 0)                             # [B, V, Hs, Ws]
-    flat = jnp.asarray(bev_map, jnp.float32).reshape(b, f, hm * wm, ch)
-    picked = jnp.take_along_axis(flat, index.reshape(b, 1, -1, 1), axis=2)   # [B, F, V Hs Ws, C]
-    picked = picked.reshape(b, f, *index.shape[1:], ch) * inside[:, None, ..., None]
+    flat = reshape(jnp.asarray(bev_map, jnp.float32), (b, f, hm * wm, ch))
+    picked = jnp.take_along_axis(flat, reshape(index, (b, 1, int(np.prod(index.shape[1:])), 1)), axis=2)   # [B, F, V Hs Ws, C]
+    picked = reshape(picked, (b, f, *index.shape[1:], ch)) * inside[:, None, ..., None]
     return picked, jnp.where(inside, t, jnp.inf)
 
 
@@ -173,7 +173,7 @@ def _pool(x, s: int):
     if s == 1:
         return x
     *lead, hs, ws, c = x.shape
-    return jnp.mean(x.reshape(*lead, hs // s, s, ws // s, s, c), axis=(-4, -2))
+    return jnp.mean(reshape(x, (*lead, hs // s, s, ws // s, s, c)), axis=(-4, -2))
 
 
 def layout_canvas(boxes, box_classes, box_valid, intrinsics, cam_to_ego, image_hw, grid_hw, *,
@@ -193,8 +193,8 @@ def layout_canvas(boxes, box_classes, box_valid, intrinsics, cam_to_ego, image_h
         check_shape("bev_map", bev_map, [b, f, None, None, None])
     origin, dirs = camera_rays(intrinsics, cam_to_ego, image_hw, grid_hw, samples)
     depth, owner = box_hits(boxes, box_valid, origin, dirs)                  # [B, F, V, Hs, Ws]
-    cls = jnp.take_along_axis(jnp.asarray(box_classes, jnp.int32), jnp.maximum(owner, 0).reshape(b, f, -1), axis=2)
-    cls = jnp.where(owner >= 0, cls.reshape(owner.shape), -1)
+    cls = jnp.take_along_axis(jnp.asarray(box_classes, jnp.int32), reshape(jnp.maximum(owner, 0), (b, f, int(np.prod(owner.shape[2:])))), axis=2)
+    cls = jnp.where(owner >= 0, reshape(cls, owner.shape), -1)
     # each part pooled on its own (a concatenation at the rays' resolution would be kept whole)
     parts = [_pool(jax.nn.one_hot(cls, num_classes, dtype=jnp.float32), samples),   # -1, out of range: zeros
              _pool(jnp.where(owner >= 0, 1.0 / jnp.maximum(depth, 1.0), 0.0)[..., None], samples)]
