@@ -173,12 +173,17 @@ def test_cli_train_then_sample_writes_video_and_grid(dataset, tmp_path):
     assert latents.shape == (1, 2, 9, 8, 14, 48) and np.all(np.isfinite(latents))
 
 
-@pytest.mark.parametrize("name", ["tiny", "small", "mila", "magicdrive_v2", "longdwm", "stdit3_xl"])
+@pytest.mark.parametrize("name", ["tiny", "world", "small", "mila", "magicdrive_v2", "longdwm", "stdit3_xl"])
 def test_every_config_loads_and_checks(name):
     from jaxdrive.config import check_sections
     config = load_config(ROOT / "configs" / f"{name}.py")
     check_sections(config)
     assert config.model.in_channels == (48 if config.latents.source == "space_to_depth" else 16)
+    if name == "world":     # the controls the bench found learnable, and not the others
+        on = config.model.controls.enabled()
+        assert {"waypoints", "boxes", "camera"} <= set(on) and config.model.controls.layout, on
+        assert not {"trajectory", "map"} & set(on) and not config.model.controls.boxes, on
+        assert load_config(f"{ROOT / 'configs' / 'world.py'}:steps=10").train.steps == 10
 
 
 def test_demo_runs_end_to_end(tmp_path, capsys):
@@ -202,6 +207,8 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     assert "| rollout @ stop |" in out and "| stop | rollout |" in out and "routes.png" in out
     routes = json.loads((tmp_path / "demo" / "samples" / "routes" / "eval.json").read_text())
     assert routes["routes"] == ["recorded", "stop"] and routes["clips"] == 2
+    # the demo's recipe (configs/world.py) draws the boxes as a layout: a row with them removed
+    assert any(k.endswith("(no boxes)") for k in routes["strategies"]), list(routes["strategies"])
     assert (tmp_path / "demo" / "samples" / "routes" / "routes.png").stat().st_size > 0
 
 

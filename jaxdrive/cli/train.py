@@ -122,12 +122,14 @@ def _demo_mesh(config, sets):
 
 
 def _demo(args, rest) -> int:
-    """Synthesise a dataset, train the tiny DiT on frame-wise latents, sample a long clip."""
+    """Synthesise a dataset, train the world recipe (``configs/world.py``: the tiny DiT with the
+    controls ``jaxdrive bench controls`` found learnable) on frame-wise latents, sample a long clip,
+    then the validation scene along its recorded route and a counterfactual one."""
     workdir = Path(args.workdir)
     from jaxdrive.config import split_config_path
-    config_path = args.config or str(REPO_CONFIGS / "tiny.py")
+    config_path = args.config or str(REPO_CONFIGS / "world.py")
     if not split_config_path(config_path)[0].is_file():
-        raise ValueError(f"config: expected the tiny config at {config_path!r} (run from a checkout, or "
+        raise ValueError(f"config: expected the world config at {config_path!r} (run from a checkout, or "
                          f"pass --config), got a missing file")
     data = workdir / "data"
     extra = [f"data.path={data}", f"train.steps={args.steps}"]
@@ -160,7 +162,8 @@ def _demo(args, rest) -> int:
     from jaxdrive.media import plot_losses
     from jaxdrive.train.metrics import read_metrics
     from jaxdrive.train.run import train
-    print(f"[2/3] training the tiny DiT for {config.train.steps} steps in {workdir}")
+    print(f"[2/3] training the tiny DiT ({split_config_path(config_path)[0].name}) for {config.train.steps} steps "
+          f"in {workdir}")
     out = train(config, workdir, progress=not args.no_progress)
     if out["status"] != "done":
         print(f"training {out['status']} at step {out['step']}; run 'jaxdrive demo' again to resume")
@@ -176,7 +179,8 @@ def _demo(args, rest) -> int:
     grid = _demo_routes(workdir, data, routes, validation, args, config)
     print(f"done in {time.perf_counter() - t0:.0f} s:\n  video      {paths.get('video')}\n"
           f"  frame grid {paths.get('grid')} (recorded | generated)\n  quality    {paths.get('quality_json')}\n"
-          + (f"  routes     {grid} (render | generated, per route)\n" if grid else "")
+          + (f"  routes     {grid} (render | generated: the recorded route, a counterfactual one, the recorded "
+             f"route without its boxes)\n" if grid else "")
           + f"  loss plot  {plot}\n  metrics    {workdir / 'metrics.jsonl'}")
     return 0
 
@@ -262,10 +266,11 @@ def add_commands(sub) -> None:
     add_progress(sample, "the sampled windows")
     sample.set_defaults(run=_sample)
 
-    demo = sub.add_parser("demo", help="synthesise data, train a tiny DiT, sample a long multi-view clip")
+    demo = sub.add_parser("demo", help="synthesise data, train a tiny DiT with controls, sample a long multi-view "
+                                       "clip and a counterfactual route")
     demo.add_argument("--workdir", default="jaxdrive-demo")
-    add_config(demo, "default: configs/tiny.py of this checkout", required=False)
-    demo.add_argument("--steps", type=int, default=800)
+    add_config(demo, "default: configs/world.py of this checkout", required=False)
+    demo.add_argument("--steps", type=int, default=600)
     demo.add_argument("--scenes", type=int, default=24, help="synthetic scenes (one kept for validation)")
     demo.add_argument("--frames", type=int, default=33, help="frames of the sampled clip")
     demo.add_argument("--cfg", type=float, help="classifier-free guidance (1: none; default: the config's "
