@@ -183,6 +183,25 @@ def test_layout_gate_starts_closed_gradients_reach_the_encoder_and_guidance_drop
     assert max_rel(dropped[0], live[0]) > 1e-4
 
 
+def test_a_window_sampled_without_its_box_inputs_is_the_model_without_the_layout():
+    """What ``jaxdrive eval --routes`` does for its "no boxes" row: the box inputs left out of a
+    window's controls change the sample of a model whose layout gate is open. A drop set in the
+    controls does not: the samplers read ``controls.drop`` as the names that guidance may drop
+    (the bug that made the row equal the recorded-route row)."""
+    from jaxdrive.generate.windows import WindowModel, sample_window
+    lat, sig, text, kw = split_inputs(example_inputs(LAYOUT, **dict(SHAPES)))
+    params = params_for(LAYOUT, SHAPES)
+    params = perturb(params, scale=0.05, skip=tuple(k for k in params if k != "layout_gate"))
+    model = WindowModel(DiT(LAYOUT), params, window=2, cond_frames=1, steps=2)
+    controls = conditions(text, kw)
+    mask = np.zeros(lat.shape[0:1] + lat.shape[2:3], bool)
+    mask[:, 0] = True
+    sample = lambda c: np.asarray(sample_window(model, params, lat, mask, c, jax.random.key(0)))
+    full = sample(controls)
+    assert max_rel(sample(controls.replace(boxes=None, box_classes=None, box_valid=None)), full) > 1e-4
+    np.testing.assert_array_equal(sample(controls.with_drops(["boxes"], True, lat.shape[0])), full)
+
+
 def test_the_layout_pathway_learns_where_the_boxes_are():
     """The layout toy of ``jaxdrive bench controls`` (:mod:`jaxdrive.bench.controls`): a box
     6-12 m ahead of a front camera appears in the generated frame where it covers the cells, the

@@ -165,7 +165,10 @@ def evaluate_routes(routes, plan, *, load_inputs, first_latents, strategies, mod
         results[f"{WARP}{SEP}{route}"] = {**warp_baseline(video, inp["poses"], given, depth, buckets, segment=segment,
                                                           masks=masks(inp), **features), "route": route}
     if without_boxes:
-        cond = base["cond"].with_drops(["boxes"], True, len(plan["indices"]))
+        # the box inputs left out, which the DiT reads as dropped (the learned null of box
+        # cross-attention, nothing from the layout): the samplers take ``cond.drop`` as the names
+        # guidance may drop and ignore its values, so a drop set here was never applied
+        cond = base["cond"].replace(boxes=None, box_classes=None, box_valid=None)
         name = strategies[0]
         r = run(base, names=[name], cond=cond)[name]
         rows.append((f"{name} @ recorded, no boxes", np.asarray(base["video"])[0], r.pop("video")))
