@@ -183,3 +183,22 @@ def test_eval_routes_on_a_dataset_without_counterfactuals(tiny_dit, tmp_path, ca
     assert main(["eval", "--workdir", str(tiny_dit), "--clips", "2", "--frames", "13", "--steps", "1",
                  "--routes", "recorded,stop", "--out", str(tmp_path / "no")]) == 2
     assert "--routes: expected a dataset with counterfactual routes" in capsys.readouterr().err
+
+
+def test_drivable_clips_says_which_clips_drive_each_route():
+    """What the writer checks and the demo filters its routes with: the listed clips render the
+    route, the others are undrivable; with skip_undrivable=False the first undrivable clip is a
+    ValueError naming it."""
+    from jaxdrive.data.synth_routes import UndrivableRoute
+    from jaxdrive.data.synthetic import counterfactual_clip, drivable_clips
+    rows = drivable_clips(["lane-right", "stop"], 0, 6, views=1, frames=17, height=32, width=56)
+    assert set(rows) == {"lane-right", "stop"}
+    assert 0 < len(rows["lane-right"]) < 6, rows       # the outer lane has no lane to its right
+    for i in range(6):
+        if i in rows["lane-right"]:
+            counterfactual_clip(i, "lane-right", views=1, frames=17, height=32, width=56)
+        else:
+            with pytest.raises(UndrivableRoute):
+                counterfactual_clip(i, "lane-right", views=1, frames=17, height=32, width=56)
+    with pytest.raises(ValueError, match=r"lane-right.*validation clip \d"):
+        drivable_clips(["lane-right"], 0, 6, skip_undrivable=False, views=1, frames=17, height=32, width=56)

@@ -151,9 +151,17 @@ def _demo(args, rest) -> int:
                          f"validation on this mesh), got {args.scenes}")
     t0 = time.perf_counter()
     if not data.exists():
-        from jaxdrive.data.synthetic import write_synthetic_dataset
+        from jaxdrive.data.synthetic import drivable_clips, write_synthetic_dataset
         d = config.data
         frames = max(args.frames, d.frames)
+        # the comparison needs a route every validation scene drives (on 1 device there is one
+        # scene, and a route it cannot drive would stop the synthesis)
+        rows = drivable_clips(routes, args.scenes - validation, validation, views=6, frames=frames,
+                              height=2 * d.height, width=2 * d.width)
+        skipped = [r for r in routes if len(rows[r]) < validation]
+        if skipped:
+            print(f"routes the validation scenes cannot all drive, left out: {', '.join(skipped)}")
+        routes = [r for r in routes if r not in skipped]
         print(f"[1/3] synthesising {args.scenes} driving scenes ({d.views} views x {frames} frames) in {data}"
               + (f", the validation scenes also along {', '.join(routes)}" if routes else ""))
         write_synthetic_dataset(data, train=args.scenes - validation, validation=validation, overwrite=True, views=6,

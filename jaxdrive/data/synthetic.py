@@ -263,6 +263,27 @@ def counterfactual_split(route: str) -> str:
     return "validation_route_" + route.replace("-", "_")
 
 
+def drivable_clips(names, first_seed: int, count: int, *, start: int = COUNTERFACTUAL_START,
+                   skip_undrivable: bool = True, **clip_kwargs) -> dict:
+    """``{route: [i, ...]}``: which of the ``count`` clips of seeds ``first_seed + i`` can drive
+    each route of ``names`` from frame ``start`` (the routes are driven, nothing is rendered). An
+    undrivable clip is left out, or with ``skip_undrivable=False`` a ``ValueError`` naming the
+    route and the clip. What :func:`write_synthetic_dataset` checks before writing; the demo keeps
+    the routes that every one of its validation scenes can drive."""
+    names = routes.parse_routes(names, "counterfactuals", recorded=False)
+    out = {}
+    for name in names:
+        out[name] = []
+        for i in range(count):
+            try:
+                _drive(first_seed + i, name, int(start), clip_kwargs)
+                out[name].append(i)
+            except routes.UndrivableRoute as e:
+                if not skip_undrivable:
+                    raise ValueError(f"{e} (validation clip {i}; skip_undrivable leaves it out)") from None
+    return out
+
+
 def write_synthetic_dataset(out, *, train: int, validation: int = 0, seed: int = 0, overwrite: bool = False,
                             counterfactuals=(), counterfactual_start: int = COUNTERFACTUAL_START,
                             skip_undrivable: bool = False, **clip_kwargs):
@@ -288,20 +309,12 @@ def write_synthetic_dataset(out, *, train: int, validation: int = 0, seed: int =
     if names and not (isinstance(counterfactual_start, (int, np.integer)) and 1 <= counterfactual_start < frames):
         raise ValueError(f"counterfactual_start: expected a frame in [1, {frames - 1}] for clips of {frames} "
                          f"frames, got {counterfactual_start!r}")
-    drivable = {}
-    for name in names:
-        rows = []
-        for i in range(train, train + validation):
-            try:
-                _drive(seed + i, name, int(counterfactual_start), clip_kwargs)
-                rows.append(i - train)
-            except routes.UndrivableRoute as e:
-                if not skip_undrivable:
-                    raise ValueError(f"{e} (validation clip {i - train}; skip_undrivable leaves it out)") from None
+    drivable = drivable_clips(names, seed + train, validation, start=int(counterfactual_start),
+                              skip_undrivable=skip_undrivable, **clip_kwargs)
+    for name, rows in drivable.items():
         if not rows:
             raise ValueError(f"counterfactuals: expected route {name!r} to be drivable by at least one of the "
                              f"{validation} validation clips, got none")
-        drivable[name] = rows
 
     def clips(first, count):
         for i in range(first, first + count):
