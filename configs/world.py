@@ -17,8 +17,8 @@ read in its steps) and the BEV-map ControlNet (the layout already paints the map
 where the cameras see the ground; the ControlNet would double the step time).
 
 Data: the clips of ``jaxdrive data synth`` at 2x the latent resolution (64 x 112, 6 views, 33
-frames, the validation clips also along the counterfactual routes, see README "Control"), 9-frame
-windows at random offsets, 2 given frames. Train and score::
+frames, the validation clips also along the counterfactual routes; README "A recipe that follows
+its controls"), 9-frame windows at random offsets, 2 given frames. Train and score::
 
     jaxdrive data synth --out data/world --scenes 200 --val-fraction 0.04 --frames 33 \\
         --counterfactuals stop,slower,faster,lane-left --skip-undrivable

@@ -163,7 +163,8 @@ def ground_classes(bev_map, origin, dirs, bev_range):
     inside = down & (row >= 0) & (row < hm) & (col >= 0) & (col < wm)
     index = jnp.where(inside, row * wm + col, 0)                             # [B, V, Hs, Ws]
     flat = reshape(jnp.asarray(bev_map, jnp.float32), (b, f, hm * wm, ch))
-    picked = jnp.take_along_axis(flat, reshape(index, (b, 1, int(np.prod(index.shape[1:])), 1)), axis=2)   # [B, F, V Hs Ws, C]
+    rays = int(np.prod(index.shape[1:]))                                     # V Hs Ws
+    picked = jnp.take_along_axis(flat, reshape(index, (b, 1, rays, 1)), axis=2)  # [B, F, V Hs Ws, C]
     picked = reshape(picked, (b, f, *index.shape[1:], ch)) * inside[:, None, ..., None]
     return picked, jnp.where(inside, t, jnp.inf)
 
@@ -193,7 +194,8 @@ def layout_canvas(boxes, box_classes, box_valid, intrinsics, cam_to_ego, image_h
         check_shape("bev_map", bev_map, [b, f, None, None, None])
     origin, dirs = camera_rays(intrinsics, cam_to_ego, image_hw, grid_hw, samples)
     depth, owner = box_hits(boxes, box_valid, origin, dirs)                  # [B, F, V, Hs, Ws]
-    cls = jnp.take_along_axis(jnp.asarray(box_classes, jnp.int32), reshape(jnp.maximum(owner, 0), (b, f, int(np.prod(owner.shape[2:])))), axis=2)
+    owners = reshape(jnp.maximum(owner, 0), (b, f, int(np.prod(owner.shape[2:]))))     # [B, F, V Hs Ws]
+    cls = jnp.take_along_axis(jnp.asarray(box_classes, jnp.int32), owners, axis=2)
     cls = jnp.where(owner >= 0, reshape(cls, owner.shape), -1)
     # each part pooled on its own (a concatenation at the rays' resolution would be kept whole)
     parts = [_pool(jax.nn.one_hot(cls, num_classes, dtype=jnp.float32), samples),   # -1, out of range: zeros
