@@ -122,6 +122,35 @@ def test_coarse_fine_keeps_the_coarse_keyframes_bit_for_bit_in_one_fine_call():
     np.testing.assert_array_equal(capped[:, :, keyframes], out[:, :, keyframes])
 
 
+@pytest.mark.parametrize("name", ["rollout", "coarse-fine"])
+def test_every_window_strategy_keeps_its_sampled_frames_in_the_latents_range(name):
+    """As streaming does: a sampled frame that becomes a later call's condition frame is clipped to
+    the codec's range (``WindowModel.value_range``) first, so the next window samples from the
+    clipped frame; the given frames come through unchanged even where they lie outside it. Every
+    window strategy samples through ``sample_window``: the rollout and the coarse-fine (one
+    window-by-window pass, one stacked pass) stand for the others."""
+    r = 0.05
+    if name == "coarse-fine":
+        length, given = 13, 1
+        models = S.Models(tiny_model(4, stride=4), dataclasses.replace(tiny_model(5), patterns=("prefix", "ends")))
+    else:
+        length, given = 9, 2
+        models = S.Models(tiny_model(5))
+    ranged = S.Models(*(None if m is None else dataclasses.replace(m, value_range=(-r, r))
+                        for m in (models.main, models.fine)))
+    _, free, first = run(name, models, length, given=given)
+    _, got, _ = run(name, ranged, length, given=given)
+    assert np.abs(free[:, :, given:]).max() > 2 * r                   # the model leaves the range
+    assert np.abs(got[:, :, given:]).max() <= r
+    np.testing.assert_array_equal(got[:, :, :given], first)
+    assert np.abs(first).max() > r                                    # given frames are not clipped
+    if name == "rollout":
+        # the later windows (new frames 5-8) are conditioned on window 1's clipped frames 3-4
+        np.testing.assert_allclose(got[:, :, :5], np.where(np.arange(5)[:, None, None, None] < given,
+                                                           free[:, :, :5], np.clip(free[:, :, :5], -r, r)), atol=1e-6)
+        assert np.abs(got[:, :, 5:] - np.clip(free[:, :, 5:], -r, r)).max() > 1e-3
+
+
 def test_strategies_reject_what_they_cannot_do_before_compiling():
     m = tiny_model(5)
     with pytest.raises(ValueError, match=r"--fine-workdir: strategy 'coarse-fine' needs a fine model run"):

@@ -56,7 +56,7 @@ def rollout(dit: DiT, codec, params, codec_params, inputs: dict, *, total_frames
         first = np.asarray(codec.encode(codec_params, video))[:, :, :cond_frames]
     model = WindowModel(dit, params, window=window, cond_frames=cond_frames, steps=steps, guidance=guidance,
                         control_guidance=tuple(control_guidance), shift=shift, tpd=tpd, tpd_omega=tpd_omega,
-                        temporal=codec.temporal)
+                        temporal=codec.temporal, value_range=codec.value_range)
     parts = rollout_strategy(Models(model), controls, first, total_frames, key=key, mesh=mesh, overlap=overlap)
     bar = tqdm(parts, total=len(window_starts(total_frames, window, overlap)), unit="window",
                disable=not progress or jax.process_index() != 0)

@@ -132,7 +132,7 @@ def stream_frame(model: WindowModel, taps: tuple[int, ...], params, anchor, prev
     """One new latent frame ``[B, V, 1, h, w, C]`` after ``anchor`` and ``prev`` (``[B, V, 1, h,
     w, C]`` each) under the window's ``controls`` (:func:`window_controls`), and the buffer with its
     features pushed (``buffer`` None or no ``taps``: HTFT off, returns None); the frame is clipped to
-    ``model.value_range`` (:func:`in_range`). Guidance as
+    ``model.value_range`` (:meth:`WindowModel.in_range`). Guidance as
     :func:`jaxdrive.generate.windows.sample_window` (``controls.drop`` names what it drops)."""
     m = model.dit.config
     names = list(controls.drop or {})
@@ -144,20 +144,10 @@ def stream_frame(model: WindowModel, taps: tuple[int, ...], params, anchor, prev
     if buffer is None or not taps or not m.htft_layers:
         out = flow.sample(lambda x, s, c: window_velocity(model.dit, params)(x, s, c, None)[0], x0, schedule,
                           cond_mask=mask, **guidance)
-        return in_range(model, out[:, :, NEW:]), None
+        return model.in_range(out[:, :, NEW:]), None
     out, feats = flow.sample(window_velocity(model.dit, params), x0, schedule, cond_mask=mask,
                              step_inputs=_per_step(buffer, taps), **guidance)
-    return in_range(model, out[:, :, NEW:]), buffer_push(buffer, feats)
-
-
-def in_range(model: WindowModel, frame):
-    """``frame`` clipped to the latents' ``model.value_range`` (unchanged when None). Every
-    streamed frame is the next one's condition frame: a value no encoded frame can have is an
-    error that the next frame builds on (measured on the tiny recipe: without the clip its
-    latents leave [-1, 1] within a second and grow without bound, 1000x by frame 100)."""
-    if model.value_range is None:
-        return frame
-    return jnp.clip(frame, *model.value_range)
+    return model.in_range(out[:, :, NEW:]), buffer_push(buffer, feats)
 
 
 def observe_frame(model: WindowModel, taps: tuple[int, ...], params, anchor, prev, frame, controls: Conditions,

@@ -102,6 +102,16 @@ class WindowModel:
                    stream_taps=tuple(spec.stream.taps) if spec.model.htft_layers else (),
                    value_range=spec.codec.value_range)
 
+    def in_range(self, latents):
+        """``latents`` clipped to :attr:`value_range` (unchanged when None). Every sampled frame
+        may become the condition frame of a later call (a rollout's next window, a stream's next
+        frame): a value no encoded frame can have is an error the next call builds on (measured on
+        the tiny recipe: without the clip its streamed latents leave [-1, 1] within a second and
+        grow without bound, 1000x by frame 100)."""
+        if self.value_range is None:
+            return latents
+        return jnp.clip(latents, *self.value_range)
+
     @property
     def trained_anchors(self) -> bool:
         """Whether it learnt to correct JDC anchors (MiLA stage 3)."""
@@ -269,7 +279,8 @@ def sample_window(model: WindowModel, params, x_cond, cond_mask, controls: Condi
     :func:`jaxdrive.flow.frame_schedule`'s (TPD when the model trained with it, MiLA eq. 13-14).
     ``controls.drop`` names the conditions guidance drops (against learned nulls: all at once for
     ``model.guidance``, one control at a time for ``model.control_guidance``,
-    :mod:`jaxdrive.generate.guidance`)."""
+    :mod:`jaxdrive.generate.guidance`). The sampled frames come out clipped to the latents'
+    range (:meth:`WindowModel.in_range`); the given frames bit for bit as ``x_cond``."""
     m = model.dit.config
     names = list(controls.drop or {})
     cond = controls.replace(drop=None)
@@ -293,7 +304,8 @@ def sample_window(model: WindowModel, params, x_cond, cond_mask, controls: Condi
     def velocity(x, sigma, c):
         out = model.dit.forward(params, x, sigma, c)
         return flow.velocity_from_output(out, x, sigma, m.prediction, m.prediction_min_sigma)
-    return flow.sample(velocity, x0, schedule, cond_mask=cond_mask, **guidance)
+    out = flow.sample(velocity, x0, schedule, cond_mask=cond_mask, **guidance)
+    return jnp.where(keep, out, model.in_range(out))
 
 
 _SAMPLE = jax.jit(sample_window, static_argnums=(0,))
