@@ -12,8 +12,9 @@ learnable in a few dozen steps, and none that it did not:
 - the ego's waypoints (MiLA eq. 1-2, added to the tokens, 0.14x): the route;
 - the cameras, the frame rate and the caption, as in tiny.py.
 
-Noise levels: SD3's shift (Esser et al. 2024, eq. 23: ``t' = s t / (1 + (s - 1) t)``) at
-``flow.shift=3``, in training and sampling. A data-predicting model trained with the velocity
+Noise levels: SD3's resolution-dependent timestep shift (Esser et al. 2024, arXiv 2403.03206:
+``t' = s t / (1 + (s - 1) t)``, :func:`jaxdrive.flow.shift_sigmas`) at ``flow.shift=3``, in
+training and sampling. A data-predicting model trained with the velocity
 loss (JiT's v-loss) weighs level ``t`` by ``1 / t^2``, so at tiny.py's shift 1 the levels near
 pure noise, where a sample's layout and motion are decided, get almost none of the gradient: after
 4000 steps its prediction from pure noise scored 19.39 dB (latent PSNR, 2 validation clips,
