@@ -100,8 +100,9 @@ def test_longdwm_tiny_roles_train_and_sample_coarse_fine(long_scenes, tmp_path, 
             "--steps", "2", "--no-progress"]
     assert cli([*args, "--frames", "17", "--out", str(out)]) == 0
     report = json.loads((out / "report.json").read_text())
-    # keyframes 0, 8, 16 in one coarse window, then both segments in one fine call
-    assert report["strategy"] == "coarse-fine" and report["frames"] == 17 and report["sequential_sampler_calls"] == 2
+    # keyframes 0, 8, 16 in one coarse window, then the segments one a call (the default on a CPU)
+    assert report["strategy"] == "coarse-fine" and report["frames"] == 17 and report["sequential_sampler_calls"] == 3
+    assert report["segment_batch"]["segment_batch"] == 1 and report["options"]["segment_batch"] == "auto"
     latents = np.load(out / "latents.npy")
     assert latents.shape == (2, 2, 17, 8, 14, 48) and np.isfinite(latents).all()
     capsys.readouterr()
@@ -110,7 +111,11 @@ def test_longdwm_tiny_roles_train_and_sample_coarse_fine(long_scenes, tmp_path, 
              "--fine-workdir: strategy 'coarse-fine' needs a fine model run, got none"),
             (["--workdir", str(coarse), "--fine-workdir", str(coarse), "--strategy", "coarse-fine", "--frames", "17"],
              "--fine-workdir: expected a model trained for interpolation"),
-            ([*args[1:], "--frames", "18"], "frames: coarse-fine reaches 1 + n * 8 latent frames")):
+            ([*args[1:], "--frames", "18"], "frames: coarse-fine reaches 1 + n * 8 latent frames"),
+            ([*args[1:], "--frames", "17", "--segment-batch", "0"], "--segment-batch: expected 'auto' or a positive"),
+            ([*args[1:], "--frames", "17", "--device-memory", "lots"], "--device-memory: expected a byte count"),
+            (["--workdir", str(coarse), "--strategy", "rollout", "--frames", "17", "--device-memory", "8GiB"],
+             "--device-memory: not an option of strategy 'rollout'")):
         assert cli(["sample", *bad, "--out", str(tmp_path / "bad")]) == 2
         assert message in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()

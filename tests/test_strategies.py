@@ -110,16 +110,20 @@ def test_coarse_fine_keeps_the_coarse_keyframes_bit_for_bit_in_one_fine_call():
     horizon, _ = S.coarse_anchors(S.Models(coarse, dataclasses.replace(fine, anchor_every=6)), controls, first, 25,
                                   key=jax.random.key(0), anchor_every=6)
     tracker = Tracker()
-    parts, out, _ = run("coarse-fine", models, 25, given=1, tracker=tracker)
+    parts, out, _ = run("coarse-fine", models, 25, given=1, tracker=tracker, segment_batch=4)
     np.testing.assert_array_equal(out[:, :, keyframes], horizon.latents[:, :, keyframes])
     coarse_windows = len(S.window_starts(5, 4, 1))
-    assert tracker.calls == coarse_windows + 1 == S.sequential_calls("coarse-fine", models, 25, 1)
+    assert tracker.calls == coarse_windows + 1 == S.sequential_calls("coarse-fine", models, 25, 1, segment_batch=4)
     between = [f for f in range(25) if f not in keyframes]
     assert np.abs(out[:, :, between]).mean() > 0.1              # the segments were filled
     tracker = Tracker()
     _, capped, _ = run("coarse-fine", models, 25, given=1, tracker=tracker, segment_batch=3)
     assert tracker.calls == coarse_windows + 2                  # 4 segments, 3 per call
     np.testing.assert_array_equal(capped[:, :, keyframes], out[:, :, keyframes])
+    tracker = Tracker()                                         # the default on a CPU: one segment a call
+    _, auto, _ = run("coarse-fine", models, 25, given=1, tracker=tracker)
+    assert tracker.calls == coarse_windows + 4 and tracker.notes["segment_batch"]["segment_batch"] == 1
+    np.testing.assert_array_equal(auto[:, :, keyframes], out[:, :, keyframes])
 
 
 @pytest.mark.parametrize("name", ["rollout", "coarse-fine"])
@@ -174,25 +178,31 @@ def test_strategies_reject_what_they_cannot_do_before_compiling():
         S.check_strategy("rollout", S.Models(m), 2, 2)
 
 
-def test_device_memory_is_flat_in_the_length(tmp_path):
-    """721 frames (a minute at 12 fps) on 6 views need the device memory of 145 (within 10%)."""
-    cases = {"rollout": (S.Models(tiny_model(5)), {}),
-             "coarse-to-refine": (S.Models(tiny_model(5, jdc_anchor_rate=0.75, anchor_every=3)), {}),
-             "coarse-fine": (S.Models(tiny_model(4, stride=6), dataclasses.replace(tiny_model(7), patterns=("ends",))),
-                             {"segment_batch": 24})}
+def test_device_memory_is_flat_in_the_length_at_the_defaults(tmp_path):
+    """721 frames (a minute at 12 fps) on 6 views need the device memory of 145 (within 10%), with
+    no option: coarse-fine groups its segments (``segment_batch="auto"``) by the budget."""
+    cases = {"rollout": S.Models(tiny_model(5)),
+             "coarse-to-refine": S.Models(tiny_model(5, jdc_anchor_rate=0.75, anchor_every=3)),
+             "coarse-fine": S.Models(tiny_model(4, stride=6), dataclasses.replace(tiny_model(7), patterns=("ends",)))}
     codec = LatentCodec("space_to_depth", 4)
-    for name, (models, options) in cases.items():
+    for name, models in cases.items():
         given = 1 if name == "coarse-fine" else 2
-        peaks = {}
+        peaks, reports = {}, {}
         for length in (145, 721):
             first, controls = horizon_inputs(length, views=6, given=given)
             report = sample_long(name, models, codec, controls, first, length, tmp_path / f"{name}{length}",
-                                 key=jax.random.key(0), fps=12.0, log=lambda *a: None, **options)
-            peaks[length] = report["peak_device_bytes"]
+                                 key=jax.random.key(0), fps=12.0, log=lambda *a: None)
+            peaks[length], reports[length] = report["peak_device_bytes"], report
+            options = {"segment_batch": report["segment_batch"]["segment_batch"]} if name == "coarse-fine" else {}
             assert report["sequential_sampler_calls"] == S.sequential_calls(name, models, length, given, **options)
         assert peaks[145] > 0 and abs(peaks[721] / peaks[145] - 1) < 0.10, (name, peaks)
+    auto = {n: reports[n]["segment_batch"] for n in (145, 721)}
+    assert auto[145]["segments"] == 24 and auto[721]["segments"] == 120
+    assert auto[145]["segment_batch"] == auto[721]["segment_batch"] == 1           # a CPU: one by one
+    assert auto[721]["budget_source"].startswith("CPU") and auto[721]["footprint_bytes"] == auto[721]["probed"]["1"]
     report = json.loads((tmp_path / "coarse-fine721" / "report.json").read_text())
-    assert {"strategy", "frames", "views", "sequential_sampler_calls", "seconds", "peak_device_bytes"} <= set(report)
+    assert {"strategy", "frames", "views", "sequential_sampler_calls", "seconds", "peak_device_bytes",
+            "segment_batch"} <= set(report)
     assert (report["strategy"], report["frames"], report["views"]) == ("coarse-fine", 721, 6)
     assert np.load(tmp_path / "coarse-fine721" / "latents.npy").shape == (1, 6, 721, H, W, C)
     assert (tmp_path / "coarse-fine721" / "sample.mp4").stat().st_size > 0
@@ -215,3 +225,50 @@ def test_window_is_one_call_over_the_whole_length_and_seq_sharding_changes_nothi
     assert out[1].shape == (1, 2, 13, H, W, C) and out[1][:, :, 2:].std() > 0.1
     np.testing.assert_array_equal(out[1][:, :, :2], first)
     np.testing.assert_allclose(out[4], out[1], rtol=1e-4, atol=1e-4)
+
+
+def test_the_automatic_segment_batch_is_the_largest_group_that_fits_the_budget():
+    from jaxdrive.generate.segments import choose_segment_batch
+    from jaxdrive.generate.windows import Horizon
+    fine = dataclasses.replace(tiny_model(7), patterns=("ends",))
+    first, controls = horizon_inputs(61, views=2, given=1)
+    horizon = Horizon.start(first, 61)
+
+    def choose(budget, tracker=None):
+        return choose_segment_batch(fine, horizon, controls, 10, given=1, key=jax.random.key(0),
+                                    tracker=tracker or Tracker(), device_memory=budget)
+    every = {n: choose(2**40)["probed"] for n in (0,)}[0]              # all ten in one call: 1 and 10 probed
+    one, ten = every["1"], every["10"]
+    assert choose(2**40)["segment_batch"] == 10
+    for budget in (one, (one + ten) // 2, ten - 1):
+        tracker = Tracker()
+        got = choose(budget, tracker)
+        n = got["segment_batch"]
+        assert got["footprint_bytes"] == got["probed"][str(n)] <= budget and got["budget_source"] == "--device-memory"
+        assert got["probed"][str(n + 1)] > budget                     # the next group would not fit
+        assert tracker.programs == 0                                  # probes are not the run's programs
+    with pytest.raises(ValueError, match=r"--device-memory: expected a budget that holds one fine call of 1 "
+                                         r"segment\(s\) \(\d+ bytes per device\), got 1000 bytes"):
+        choose(1000)
+
+
+@pytest.mark.parametrize("value, message", [("0", "--segment-batch: expected 'auto' or a positive number"),
+                                            ("many", "--segment-batch: expected 'auto' or a positive number"),
+                                            (-2, "--segment-batch: expected 'auto' or a positive number")])
+def test_segment_batch_rejects_what_is_not_a_group(value, message):
+    from jaxdrive.generate.segments import check_segment_batch
+    with pytest.raises(ValueError, match=message):
+        check_segment_batch(value)
+    assert check_segment_batch("auto") == check_segment_batch(None) == "auto" and check_segment_batch("3") == 3
+
+
+def test_device_memory_budgets_parse_and_reject_what_is_no_size():
+    from jaxdrive.parallel.memory import device_budget, host_memory_bytes, parse_bytes
+    assert parse_bytes("16GiB") == 16 * 2**30 and parse_bytes("512 MiB") == 512 * 2**20
+    assert parse_bytes("8e9") == 8 * 10**9 == parse_bytes("8GB") and parse_bytes(4096) == 4096
+    for bad in ("lots", "12 parsecs", "0", -5, True):
+        with pytest.raises(ValueError, match=r"--device-memory: expected"):
+            parse_bytes(bad)
+    assert device_budget("1GiB") == (2**30, "--device-memory", True)
+    budget, source, strict = device_budget()                         # a CPU: its share, a preference
+    assert 0 < budget <= host_memory_bytes() / 4 and source.startswith("CPU") and not strict

@@ -7,12 +7,15 @@ figures are about cost, not quality). Each figure is the second of two runs (com
 Also the ratio of ``coarse-fine``'s time for 145 frames to the time of one window (LongDWM
 reports 145 frames in 70 s where Vista needs 95 s for 25) and to ``rollout``'s time for the same
 frames. On a CPU a batched call costs about as much as its segments would one by one, so the
-sequential calls are the figure that transfers to an accelerator; ``coarse-fine (capped)`` caps
-the segments per fine call (``segment_batch``), which keeps device memory flat in the length.
+sequential calls are the figure that transfers to an accelerator. ``coarse-fine`` runs at its
+default, ``segment_batch="auto"`` (the largest group of segments per fine call that fits the
+per-device budget, ``--device-memory``; its ``segment_batch`` column), which keeps device memory
+flat in the length; ``coarse-fine (all in one)`` stacks every segment in one call, the fewest
+sequential calls, its memory growing with the length.
 ``streaming`` (STAGE) is the tiny model with an HTFT layer, its buffer of 10 frames fusing
 -1, -5, -10: one sequential call per frame, so its figure is ``s_per_frame``; ``programs`` is
 the number of programs each run compiled (streaming: one, whatever the length).
-``--strategies`` keeps only the rows named (``coarse-fine-capped`` is the capped row); on an
+``--strategies`` keeps only the rows named (``coarse-fine-all`` is the all-in-one row); on an
 accelerator the peak memory is the device's peak so far in the process, so a strategy's own figure
 wants a process of its own (``--strategies`` one at a time).
 """
@@ -31,9 +34,9 @@ import numpy as np
 from jaxdrive.bench.report import emit, table
 
 NAME = "longvideo"
-# each row's --strategies name (the capped coarse-fine row has its own)
+# each row's --strategies name (the all-in-one coarse-fine row has its own)
 KEYS = {"rollout": "rollout", "coarse-to-refine": "coarse-to-refine", "coarse-fine": "coarse-fine",
-        "coarse-fine (capped)": "coarse-fine-capped", "streaming": "streaming"}
+        "coarse-fine (all in one)": "coarse-fine-all", "streaming": "streaming"}
 CONFIG = Path(__file__).resolve().parents[2] / "configs" / "tiny.py"
 
 
@@ -69,7 +72,7 @@ def _horizon(config, frames: int, views: int):
     return model_inputs(batch, config.model)
 
 
-def run(frames_list, steps: int, views: int, segment_batch: int, strategies=None):
+def run(frames_list, steps: int, views: int, strategies=None, device_memory=None):
     from jaxdrive.config import load_config
     from jaxdrive.generate.long_video import sample_long
     from jaxdrive.generate.strategies import Models
@@ -78,8 +81,8 @@ def run(frames_list, steps: int, views: int, segment_batch: int, strategies=None
     codec = LatentCodec.from_config(config.latents)
     m = _models(config, views, steps)
     cases = [("rollout", Models(m["main"]), {}), ("coarse-to-refine", Models(m["refine"]), {}),
-             ("coarse-fine", Models(m["coarse"], m["fine"]), {}),
-             ("coarse-fine (capped)", Models(m["coarse"], m["fine"]), {"segment_batch": segment_batch}),
+             ("coarse-fine", Models(m["coarse"], m["fine"]), {"device_memory": device_memory}),
+             ("coarse-fine (all in one)", Models(m["coarse"], m["fine"]), {"segment_batch": 10**9}),
              ("streaming", Models(m["stream"]), {})]
     keep = lambda label, frames: (not strategies or KEYS[label] in strategies
                                   or (label == "rollout" and frames == config.data.frames))   # the one window
@@ -104,7 +107,8 @@ def run(frames_list, steps: int, views: int, segment_batch: int, strategies=None
             seconds[(label, frames)] = wall
             row = dict(strategy=label, frames=frames, seconds=round(wall, 2), s_per_frame=round(wall / frames, 4),
                        sequential_calls=report["sequential_sampler_calls"],
-                       peak_mib=round(report["peak_device_bytes"] / 2**20, 1), programs=report["compiled_programs"])
+                       peak_mib=round(report["peak_device_bytes"] / 2**20, 1), programs=report["compiled_programs"],
+                       segment_batch=report.get("segment_batch", {}).get("segment_batch", ""))
             rows.append(row)
             ctx = dict(strategy=label, frames=frames, views=views, steps=steps, backend=jax.default_backend())
             emit(NAME, "seconds", row["seconds"], "s", **ctx)
@@ -112,7 +116,8 @@ def run(frames_list, steps: int, views: int, segment_batch: int, strategies=None
             emit(NAME, "peak_device_memory", row["peak_mib"], "MiB", **ctx)
             emit(NAME, "seconds_per_frame", row["s_per_frame"], "s", **ctx)
             emit(NAME, "compiled_programs", row["programs"], "programs", **ctx)
-    print(table(rows, ["strategy", "frames", "seconds", "s_per_frame", "sequential_calls", "peak_mib", "programs"]))
+    print(table(rows, ["strategy", "frames", "seconds", "s_per_frame", "sequential_calls", "peak_mib", "programs",
+                       "segment_batch"]))
     window = seconds[("rollout", config.data.frames)]
     if ("coarse-fine", 145) in seconds:
         cf = seconds[("coarse-fine", 145)]
@@ -121,6 +126,16 @@ def run(frames_list, steps: int, views: int, segment_batch: int, strategies=None
         if ("rollout", 145) in seconds:
             emit(NAME, "coarse_fine_145_over_rollout_145", round(cf / seconds[("rollout", 145)], 2), "x")
             print(f"coarse-fine 145 frames: {cf / seconds[('rollout', 145)]:.2f} x rollout's 145 frames")
+    peak = {(r["strategy"], r["frames"]): r["peak_mib"] for r in rows}
+    if ("coarse-fine", 145) in peak and ("coarse-fine", 721) in peak:
+        ratio = peak[("coarse-fine", 721)] / peak[("coarse-fine", 145)]
+        emit(NAME, "coarse_fine_peak_721_over_145", round(ratio, 3), "x")
+        print(f"coarse-fine at its default: peak device memory of 721 frames = {ratio:.3f} x that of 145")
+    for (label, frames), wall in sorted(seconds.items()):
+        if label == "coarse-fine (all in one)" and ("coarse-fine", frames) in seconds:
+            ratio = seconds[("coarse-fine", frames)] / wall
+            emit(NAME, "coarse_fine_default_over_all_in_one", round(ratio, 3), "x", frames=frames)
+            print(f"coarse-fine {frames} frames: the default takes {ratio:.2f} x the all-in-one call's time")
     return rows
 
 
@@ -130,14 +145,15 @@ def main(argv=None):
                         help="pixel frames (1 + 8n for the tiny coarse-fine models)")
     parser.add_argument("--steps", type=int, default=10)
     parser.add_argument("--views", type=int, default=6)
-    parser.add_argument("--segment-batch", type=int, default=4, help="segments per fine call, the capped row")
+    parser.add_argument("--device-memory", help="coarse-fine's per-device budget of its automatic segment batch "
+                                                "(default: the device's free memory, or a CPU's share)")
     parser.add_argument("--strategies", nargs="+", choices=list(KEYS.values()),
                         help="only these rows (and rollout's one window, the reference)")
     args = parser.parse_args(argv)
     bad = [f for f in args.frames if (f - 1) % 8]
     if bad:
         parser.error(f"--frames: expected 1 + 8n frames (keyframes every 8 frames), got {bad}")
-    return run(args.frames, args.steps, args.views, args.segment_batch, args.strategies)
+    return run(args.frames, args.steps, args.views, args.strategies, args.device_memory)
 
 
 if __name__ == "__main__":

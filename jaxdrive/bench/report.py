@@ -7,6 +7,7 @@ import time
 
 import jax
 
+from jaxdrive.parallel.memory import footprint_bytes  # noqa: F401  (re-exported: the benches read it here)
 from jaxdrive.xla_flags import add_xla_flags, deterministic_cpu
 
 
@@ -72,17 +73,6 @@ def peak_device_bytes(device=None) -> int | None:
     device = jax.devices()[0] if device is None else device
     stats = device.memory_stats() if hasattr(device, "memory_stats") else None
     return int(stats["peak_bytes_in_use"]) if stats and "peak_bytes_in_use" in stats else None
-
-
-def footprint_bytes(compiled) -> int | None:
-    """Everything a compiled program holds on one device while it runs: its arguments, outputs and
-    temporary memory, less the outputs that alias (donated) arguments (``memory_analysis()``), or
-    None where the backend has no analysis."""
-    a = compiled.memory_analysis()
-    if a is None:
-        return None
-    return int(a.argument_size_in_bytes + a.output_size_in_bytes + a.temp_size_in_bytes
-               - a.alias_size_in_bytes)
 
 
 # Threads of a trace that repeat the device's work at another level (whole modules, steps, name

@@ -113,9 +113,9 @@ def sample_strategy(args) -> int:
         given = min(given, shapes.fine.window - 1)
     check_strategy(args.strategy, shapes, length, given)
     options = {"anchor_every": args.anchor_every, "segment_batch": args.segment_batch, "overlap": args.overlap,
-               "taps": parse_taps(args.taps)}
+               "taps": parse_taps(args.taps), "device_memory": args.device_memory}
     allowed = {"rollout": ("overlap",), "coarse-to-refine": ("overlap", "anchor_every"),
-               "coarse-fine": ("segment_batch",), "window": (), "streaming": ("taps",)}[args.strategy]
+               "coarse-fine": ("segment_batch", "device_memory"), "window": (), "streaming": ("taps",)}[args.strategy]
     for name, value in options.items():
         if value is not None and name not in allowed:
             raise ValueError(f"--{name.replace('_', '-')}: not an option of strategy {args.strategy!r} "
@@ -123,6 +123,12 @@ def sample_strategy(args) -> int:
     options = {k: v for k, v in options.items() if k in allowed}
     if args.strategy == "streaming":
         check_taps(shapes, options.get("taps"))
+    if args.strategy == "coarse-fine":              # before anything loads or compiles
+        from jaxdrive.generate.segments import check_segment_batch
+        from jaxdrive.parallel.memory import parse_bytes
+        options["segment_batch"] = check_segment_batch(options.get("segment_batch"))
+        if options.get("device_memory") is not None:
+            options["device_memory"] = parse_bytes(options["device_memory"])
     models = Models(load_main(), load_fine() if load_fine else None)
     views = None if args.views is None else [int(v) for v in args.views]
     sizes = dict(zip(run.mesh.axis_names, run.mesh.axis_sizes))

@@ -63,7 +63,8 @@ def _sample(args, rest) -> int:
     if args.strategy is not None:
         from jaxdrive.cli.sample import sample_strategy
         return sample_strategy(args)
-    for name in ("fine_workdir", "anchor_every", "segment_batch", "overlap", "cond_frames", "route", "predictor"):
+    for name in ("fine_workdir", "anchor_every", "segment_batch", "device_memory", "overlap", "cond_frames", "route",
+                 "predictor"):
         if getattr(args, name) is not None:
             raise ValueError(f"--{name.replace('_', '-')}: expected only with --strategy, got {getattr(args, name)}")
     if args.controls != "recorded":
@@ -257,8 +258,11 @@ def add_commands(sub) -> None:
     sample.add_argument("--overlap", type=int, help="rollout / refine windows: frames each next window conditions on")
     sample.add_argument("--anchor-every", type=int, help="coarse-to-refine: latent frames between anchors "
                                                          "(default: the model's training spacing; 0: no anchors)")
-    sample.add_argument("--segment-batch", type=int, help="coarse-fine: segments per fine sampler call "
-                                                          "(default: all in one call)")
+    sample.add_argument("--segment-batch", help="coarse-fine: segments per fine sampler call, or auto (default: the "
+                                                "largest group whose compiled call fits --device-memory; on a CPU "
+                                                "without it, one segment a call)")
+    sample.add_argument("--device-memory", help="coarse-fine: per-device memory budget of --segment-batch auto, "
+                                                "e.g. 16GiB (default: the device's free memory)")
     sample.add_argument("--taps", help="streaming: the past frames HTFT fuses, e.g. --taps=-1,-5,-10 (default: the "
                                        "run's stream.taps; 'none': HTFT off)")
     sample.add_argument("--route", help="drive this route instead of the recorded one (--strategy): a JSON or CSV "

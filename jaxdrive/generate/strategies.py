@@ -40,7 +40,8 @@ import jax
 import numpy as np
 
 from jaxdrive import flow
-from jaxdrive.generate.windows import Horizon, Tracker, WindowModel, controls_at, pixel_frames, to_mesh, window_starts
+from jaxdrive.generate.segments import AUTO, check_segment_batch, choose_segment_batch, fine_group
+from jaxdrive.generate.windows import Horizon, Tracker, WindowModel, to_mesh, window_controls, window_starts
 from jaxdrive.models.conditions import Conditions
 from jaxdrive.validate import check_choice, check_positive_int
 
@@ -56,17 +57,6 @@ class Models:
 
     main: WindowModel
     fine: WindowModel | None = None
-
-
-def window_controls(model: WindowModel, horizon: Horizon, idx, controls: Conditions, *, fps_scale: float = 1.0,
-                    warp=None) -> Conditions:
-    """The conditions of ``model``'s window at horizon positions ``idx``: the per-frame controls
-    there and, for a model trained with warps (LongDWM, ``controls.warp``), the window's first
-    frame warped along its frames' poses (``warp``: a :class:`jaxdrive.generate.warps.WarpGuide`)."""
-    ctrl = controls_at(controls, idx, model.temporal, fps_scale=fps_scale)
-    if model.dit.config.controls.warp:
-        ctrl = ctrl.replace(warp=warp.window(horizon.latents[:, :, idx[:1]], pixel_frames(idx, model.temporal)))
-    return ctrl
 
 
 def _pass(model: WindowModel, horizon: Horizon, positions, controls: Conditions, key, tracker: Tracker, mesh,
@@ -172,9 +162,12 @@ def coarse_to_refine(models: Models, controls: Conditions, first, length: int, *
 
 
 def coarse_fine(models: Models, controls: Conditions, first, length: int, *, key, tracker: Tracker | None = None,
-                mesh=None, segment_batch: int | None = None, warp=None) -> Iterator[np.ndarray]:
+                mesh=None, segment_batch="auto", device_memory=None, warp=None) -> Iterator[np.ndarray]:
     """LongDWM's coarse keyframes + parallel fine interpolation (module docstring).
-    ``segment_batch``: segments per fine sampler call (default: all of them in one call)."""
+    ``segment_batch``: segments per fine sampler call, or ``"auto"`` (the default): the largest
+    group whose compiled call fits ``device_memory`` bytes per device (default: the device's free
+    memory, :mod:`jaxdrive.generate.segments`), chosen before the coarse pass runs and written to
+    ``report.json`` (``segment_batch``)."""
     tracker = tracker or Tracker()
     coarse, fine = models.main, models.fine
     first = np.asarray(first, np.float32)
@@ -183,23 +176,22 @@ def coarse_fine(models: Models, controls: Conditions, first, length: int, *, key
     keys = list(range(0, length, seg))
     horizon = Horizon.start(first, length)
     emit = _Emitter(horizon)
+    segments = len(keys) - 1
+    per_call = check_segment_batch(segment_batch)
+    if per_call == AUTO:
+        choice = choose_segment_batch(fine, horizon, controls, segments, given=given, key=key, tracker=tracker,
+                                      mesh=mesh, warp=warp, device_memory=device_memory)
+        per_call = choice["segment_batch"]
+        tracker.notes["segment_batch"] = choice
     coarse_positions = sorted(set(range(given)) | set(keys))
     key = _drain(_pass(coarse, horizon, coarse_positions, controls, key, tracker, mesh, given=given,
                        overlap=min(given, coarse.window - 1), fps_scale=seg, warp=warp))
-    segments = len(keys) - 1
-    per_call = segments if segment_batch is None else check_positive_int("segment_batch", segment_batch)
     b = first.shape[0]
     for lo in range(0, segments, per_call):
-        group = range(lo, min(lo + per_call, segments))
-        idx = [np.arange(i * seg, i * seg + fine.window) for i in group]
-        x = np.concatenate([horizon.latents[:, :, i] for i in idx], axis=0)           # segments on the batch
-        # both ends pinned; the first segment also keeps every given frame
-        n_cond = np.concatenate([np.full(b, given if i == 0 else 1) for i in group])
-        cond, _ = flow.pattern_masks("ends", fine.window, n_cond)
-        ctrl = [window_controls(fine, horizon, i, controls, warp=warp) for i in idx]
-        ctrl = jax.tree_util.tree_map(lambda *v: np.concatenate([np.asarray(a) for a in v], axis=0), *ctrl)
+        idx, args = fine_group(fine, horizon, range(lo, min(lo + per_call, segments)), controls, given=given,
+                               warp=warp)
         key, sub = jax.random.split(key)
-        z = np.asarray(tracker.call(fine, *to_mesh((fine.params, x, np.asarray(cond), ctrl), mesh), sub))
+        z = np.asarray(tracker.call(fine, *to_mesh((fine.params, *args), mesh), sub))
         for j, i in enumerate(idx):
             horizon.put(i, z[j * b:(j + 1) * b])
         del z                  # on a CPU the array may be a view of the device buffer: free it now
@@ -327,7 +319,8 @@ def sequential_calls(name: str, models: Models, length: int, given: int, **optio
     if name == "coarse-fine":
         seg = fine.window - 1
         segments = (length - 1) // seg
-        per_call = options.get("segment_batch") or segments
+        per_call = options.get("segment_batch") or AUTO
+        per_call = segments if per_call == AUTO else per_call      # auto: at most all of them
         return coarse_windows(len(set(range(given)) | set(range(0, length, seg)))) + math.ceil(segments / per_call)
     refine = fine or main
     overlap = options.get("overlap") or given

@@ -139,15 +139,18 @@ class Tracker:
         """Distinct programs this tracker's calls ran (one per function and input shapes)."""
         return len(self._used)
 
-    def compiled(self, model: WindowModel, *args, fn=None, static=()):
+    def compiled(self, model: WindowModel, *args, fn=None, static=(), probe: bool = False):
         """``fn`` (default :func:`sample_window`, jitted with ``model`` and then ``static`` as
-        static arguments) compiled for ``args``' shapes, once per shape and process (the last
-        :data:`KEEP_PROGRAMS` are kept: a second run of a strategy compiles nothing)."""
+        static arguments) compiled for ``args``' shapes (arrays or ``jax.ShapeDtypeStruct``),
+        once per shape and process (the last :data:`KEEP_PROGRAMS` are kept: a second run of a
+        strategy compiles nothing). ``probe``: compiled to read its memory, not counted among the
+        programs the run used."""
         fn = _SAMPLE if fn is None else fn
         leaves, tree = jax.tree_util.tree_flatten(args)
         key = (fn, model, static, tree) + tuple((x.shape, str(x.dtype), getattr(x, "sharding", None))
                                                  for x in leaves)
-        self._used.add(key)
+        if not probe:
+            self._used.add(key)
         if key in _PROGRAMS:
             _PROGRAMS[key] = _PROGRAMS.pop(key)                     # most recently used last
         else:
@@ -180,20 +183,38 @@ class Tracker:
         self.peak_bytes = max(self.peak_bytes, int(live + temp))
 
 
+def _placement(mesh, shape):
+    """Where an array of ``shape`` goes: its batch (axis 0) over the mesh's ``data``/``fsdp``
+    axes when they divide it, else replicated (without a mesh: the default device)."""
+    if mesh is None:
+        return jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    sizes = dict(zip(mesh.axis_names, mesh.axis_sizes))
+    axes = tuple(a for a in ("data", "fsdp") if a in sizes)
+    shards = math.prod(sizes[a] for a in axes)
+    return NamedSharding(mesh, P(axes or None) if len(shape) and shape[0] % shards == 0 else P())
+
+
 def to_mesh(tree, mesh):
     """Host arrays -> device arrays with the batch (axis 0) over the mesh's ``data``/``fsdp`` axes
     when it divides evenly, else replicated."""
     if mesh is None:
         return jax.tree_util.tree_map(jnp.asarray, tree)
-    sizes = dict(zip(mesh.axis_names, mesh.axis_sizes))
-    axes = tuple(a for a in ("data", "fsdp") if a in sizes)
-    shards = math.prod(sizes[a] for a in axes)
 
     def put(x):
         x = np.asarray(x)
-        spec = P(axes or None) if x.ndim and x.shape[0] % shards == 0 else P()
-        return jax.device_put(x, NamedSharding(mesh, spec))
+        return jax.device_put(x, _placement(mesh, x.shape))
     return jax.tree_util.tree_map(put, tree)
+
+
+def abstract_on_mesh(tree, mesh, *, batch: int = 1):
+    """What :func:`to_mesh` would make of ``tree`` with every array's batch axis ``batch`` times
+    as long, as shapes only (``jax.ShapeDtypeStruct``, same dtype and placement): to compile a
+    call for a batch without building it."""
+    def abstract(x):
+        x = np.asarray(x)
+        shape = (x.shape[0] * batch,) + x.shape[1:] if x.ndim else ()
+        return jax.ShapeDtypeStruct(shape, jax.dtypes.canonicalize_dtype(x.dtype), sharding=_placement(mesh, shape))
+    return jax.tree_util.tree_map(abstract, tree)
 
 
 def pixel_frames(positions, temporal: int) -> np.ndarray:
@@ -229,6 +250,17 @@ def controls_at(controls: Conditions, positions, temporal: int, *, fps_scale: fl
     if fps_scale != 1.0 and out.fps is not None:
         out = out.replace(fps=np.asarray(out.fps, np.float32) / fps_scale)
     return out
+
+
+def window_controls(model: WindowModel, horizon: Horizon, idx, controls: Conditions, *, fps_scale: float = 1.0,
+                    warp=None) -> Conditions:
+    """The conditions of ``model``'s window at horizon positions ``idx``: the per-frame controls
+    there and, for a model trained with warps (LongDWM, ``controls.warp``), the window's first
+    frame warped along its frames' poses (``warp``: a :class:`jaxdrive.generate.warps.WarpGuide`)."""
+    ctrl = controls_at(controls, idx, model.temporal, fps_scale=fps_scale)
+    if model.dit.config.controls.warp:
+        ctrl = ctrl.replace(warp=warp.window(horizon.latents[:, :, idx[:1]], pixel_frames(idx, model.temporal)))
+    return ctrl
 
 
 def window_starts(total_frames: int, window: int, overlap: int) -> list[int]:
