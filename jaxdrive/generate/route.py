@@ -242,11 +242,11 @@ def _turn_lead(route: Route, start, scene, reach: float) -> float | None:
     s = np.arange(0.0, np.pi / 2 * TURN_RADIUS + TURN_EXIT + 1e-9, SEARCH_STEP)
     xy, heading = _turn_path(route.manoeuvre, s)
     normal = np.stack([-np.sin(heading), np.cos(heading)], -1)
-    sides = np.array([-TURN_MARGIN, 0.0, TURN_MARGIN])[:, None, None]
-    shape = (xy + sides * normal)[None] + np.stack([leads, np.zeros_like(leads)], -1)[:, None, None]   # [L, 3, N, 2]
+    sides = np.array([-TURN_MARGIN, 0.0, TURN_MARGIN])
+    shape = (xy + sides[:, None, None] * normal)[None] + np.stack([leads, 0 * leads], -1)[:, None, None]  # [L, 3, N, 2]
     turn_ok = scene.on_road(_to_world(start, shape)).all((1, 2))
-    straight = np.stack([np.broadcast_to(leads, (3, len(leads))), sides[:, :, 0] + 0 * leads], -1)     # [3, L, 2]
-    straight_ok = np.cumprod(scene.on_road(_to_world(start, straight)).all(0)).astype(bool)
+    straight = np.stack(np.broadcast_arrays(leads[None], sides[:, None]), -1)                        # [3, L, 2]
+    straight_ok = np.logical_and.accumulate(scene.on_road(_to_world(start, straight)).all(0))        # road so far
     fits = np.nonzero(turn_ok & straight_ok)[0]
     if not len(fits):
         return None
