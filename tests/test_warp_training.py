@@ -186,7 +186,11 @@ def test_a_warp_run_trains_and_samples_through_the_cli(data, tmp_path, capsys, m
     turned = tmp_path / "turn"
     assert cli(["sample", "--workdir", str(tmp_path / "run"), "--strategy", "rollout", "--frames", "9", "--steps", "2",
                 "--route", "left turn", "--out", str(turned), "--no-progress"]) == 0
-    assert json.loads((turned / "report.json").read_text())["route"] == "manoeuvre 'left turn'"
+    report = json.loads((turned / "report.json").read_text())
+    assert report["route"] == "manoeuvre 'left turn'"
+    # no intersection within the 5 m the 9 frames drive: the turn starts where the clip is (the poses below)
+    assert report["route_drive"]["start"] == {"frame": 0, "time": 0.0, "x": 0.0, "y": 0.0}
+    assert report["route_drive"]["start_at"] == "clip" and report["route_drive"]["map_checked"] is True
     want = load_route("left turn", duration=8 / 12).poses(9, 12.0).astype(np.float64)
     for frames, poses in seen:          # each window's poses relative to its first: the route's
         p = poses[:, frames].astype(np.float64)

@@ -146,12 +146,16 @@ def sample_strategy(args) -> int:
     from jaxdrive.data.scene_map import bev_range_of
     from jaxdrive.data.tfds_io import dataset_info
     bev_range = bev_range_of(dataset_info(horizon_spec.data.path)["metadata"])
-    hook, routes = None, {}
+    if args.allow_off_road and not args.route:
+        raise ValueError("--allow-off-road: expected with a --route file to drive off the road, got no --route")
+    hook, routes, drives = None, {}, []
     if predictor is not None or args.route:
-        hook = _controls_hook(args, bev_range, predictor, horizon_spec.codec.pixel_frames(given), routes)
+        hook = _controls_hook(args, bev_range, predictor, horizon_spec.codec.pixel_frames(given), routes, drives)
     inputs = dataset_inputs(horizon_spec, frames=args.frames, views=views, clips=clips, seed=args.seed,
                             controls=hook, scene=True)
     scene = inputs.pop("scene")
+    if drives:
+        scene["route_drive"] = drives[0]            # the first clip's: the one sample.mp4 and frames.png show
     scene["cell"] = tuple(r / n for r, n in zip(bev_range, scene["bev_map"].shape[1:3]))
     codec = horizon_spec.codec
     first = first_latents(inputs, codec, models.main.window, given)
@@ -175,12 +179,16 @@ def sample_strategy(args) -> int:
     return 0
 
 
-def _controls_hook(args, bev_range, predictor, given_pixels: int, routes: dict):
-    """Each sampled clip's controls for ``--frames``: the route driven (``--route``), and the
-    predictor's beyond the recorded frames (``--predictor``; from the given frames on with
-    ``--controls predicted`` or a route). ``routes`` collects the routes loaded, by frame rate."""
+def _controls_hook(args, bev_range, predictor, given_pixels: int, routes: dict, drives: list):
+    """Each sampled clip's controls for ``--frames``: the route driven (``--route``, placed on and
+    checked against the clip's scene map, ``--allow-off-road``), and the predictor's beyond the
+    recorded frames (``--predictor``; from the given frames on with ``--controls predicted`` or a
+    route). ``routes`` collects the routes loaded, by frame rate; ``drives`` each clip's
+    ``route_drive`` (:func:`jaxdrive.generate.route.drive_on_map`). A route's warnings come once
+    per run, not once per clip."""
     from jaxdrive.generate.future import future_controls
     from jaxdrive.generate.route import load_route
+    warned = set()
 
     def hook(sample, clip, where):
         fps = float(sample["fps"])
@@ -193,6 +201,9 @@ def _controls_hook(args, bev_range, predictor, given_pixels: int, routes: dict):
         keep = have
         if predictor is not None and (args.controls == "predicted" or route is not None):
             keep = min(given_pixels, have)
-        return future_controls(sample, clip, frames=args.frames, keep=keep, predictor=predictor, route=route,
-                               bev_range=bev_range, where=where)
+        out = future_controls(sample, clip, frames=args.frames, keep=keep, predictor=predictor, route=route,
+                              bev_range=bev_range, where=where, allow_off_road=args.allow_off_road, warned=warned)
+        if "route_drive" in out:
+            drives.append(out.pop("route_drive"))        # for report.json, not a model input
+        return out
     return hook

@@ -69,6 +69,8 @@ def _sample(args, rest) -> int:
             raise ValueError(f"--{name.replace('_', '-')}: expected only with --strategy, got {getattr(args, name)}")
     if args.controls != "recorded":
         raise ValueError(f"--controls: expected only with --strategy, got {args.controls!r}")
+    if args.allow_off_road:
+        raise ValueError("--allow-off-road: expected only with --strategy and --route, got it without them")
     from jaxdrive.config import override
     from jaxdrive.generate.samples import write_samples
     from jaxdrive.train.run import Run, load_run_config, restore_params
@@ -267,7 +269,11 @@ def add_commands(sub) -> None:
                                        "run's stream.taps; 'none': HTFT off)")
     sample.add_argument("--route", help="drive this route instead of the recorded one (--strategy): a JSON or CSV "
                                         "file of ego waypoints (x, y[, t]) or a manoeuvre: 'straight 10m/s', "
-                                        "'left turn', 'right turn', 'stop'")
+                                        "'left turn', 'right turn', 'stop'; a turn starts at the next "
+                                        "intersection on the scene's map within the frames generated")
+    sample.add_argument("--allow-off-road", action="store_true",
+                        help="drive a --route file even where it leaves the road of the scene's map (refused "
+                             "otherwise when more than a few metres of it are off the road)")
     sample.add_argument("--predictor", help="a run of configs/predictor.py: predicts the controls past the end of "
                                             "the clip's recorded ones (--frames may exceed the clip), and the other "
                                             "agents along a --route")

@@ -11,7 +11,8 @@ pose: each cell takes the stitched map where the recorded car saw it; an unseen 
 typical seen value of its column (the ego's direction): the road the ego drives on goes on
 straight, without the cross streets seen here and there; a column seen nowhere takes
 ``fallback`` (the newest recorded BEV map in the ego frame). That continuation is the only prediction of the map
-jaxdrive makes; a user's route must stay on the seen map (:meth:`SceneMap.covers`).
+jaxdrive makes; a user's route must stay on the seen map (:meth:`SceneMap.covers`), and on its road
+(:meth:`SceneMap.on_road`, :data:`ROAD_CLASSES`) unless its user says otherwise.
 """
 
 from __future__ import annotations
@@ -21,8 +22,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrive.data.bev import cell_centres
+from jaxdrive.data.schema import BEV_CLASSES
 
 DEFAULT_RANGE = (100.0, 100.0)   # metres (x, y) a BEV map spans: the synthetic world's and nuScenes' default
+# the surfaces a car drives on: walkways are not, the divider lines lie on drivable area anyway (a
+# stray line cell alone is no road), and a cell with no class set is verge or building
+ROAD_CLASSES = ("drivable_area", "ped_crossing", "stop_line", "carpark_area", "road_block")
 
 
 def bev_range_of(metadata: dict) -> tuple[float, float]:
@@ -81,13 +86,36 @@ class SceneMap:
             covered[r0 + rr, c0 + cc] = True
         return cls(raster, covered, lo.astype(np.float64), float(res), cell, (int(hm), int(wm)))
 
+    def _lookup(self, xy, values, empty) -> np.ndarray:
+        """``values`` (per grid cell) at world points ``xy [..., 2]``; ``empty`` off the grid."""
+        xy = np.asarray(xy, np.float64)
+        if xy.shape[-1:] != (2,):
+            raise ValueError(f"xy: expected world points [..., 2], got shape {list(xy.shape)}")
+        idx = np.floor((xy - self.origin) / self.resolution).astype(int)
+        ok = (idx >= 0).all(-1) & (idx[..., 0] < self.covered.shape[0]) & (idx[..., 1] < self.covered.shape[1])
+        out = np.full(ok.shape, empty, np.asarray(values).dtype)
+        out[ok] = np.asarray(values)[idx[ok][:, 0], idx[ok][:, 1]]
+        return out
+
     def covers(self, xy) -> np.ndarray:
         """Whether world points ``xy [..., 2]`` lie on the seen map."""
-        idx = np.floor((np.asarray(xy, np.float64) - self.origin) / self.resolution).astype(int)
-        ok = (idx >= 0).all(-1) & (idx[..., 0] < self.covered.shape[0]) & (idx[..., 1] < self.covered.shape[1])
-        out = np.zeros(ok.shape, bool)
-        out[ok] = self.covered[idx[ok][:, 0], idx[ok][:, 1]]
-        return out
+        return self._lookup(xy, self.covered, False)
+
+    def _road(self, classes) -> np.ndarray:
+        unknown = sorted(set(classes) - set(BEV_CLASSES))
+        if unknown or not classes:
+            raise ValueError(f"classes: expected names from {', '.join(BEV_CLASSES)}, got {list(classes)}")
+        ch = [BEV_CLASSES.index(c) for c in classes]
+        return np.asarray(self.covered) & (np.asarray(self.raster)[..., ch] > 0).any(-1)
+
+    def on_road(self, xy, classes=ROAD_CLASSES) -> np.ndarray:
+        """Whether world points ``xy [..., 2]`` lie on the seen map on one of ``classes``."""
+        return self._lookup(xy, self._road(classes), False)
+
+    def has_road(self, classes=ROAD_CLASSES) -> bool:
+        """Whether any seen cell is road: False for a map of zeros (nuScenes without its map
+        expansion), where nothing about the road can be checked."""
+        return bool(self._road(classes).any())
 
     def device(self, multiple: int = 128) -> "SceneMap":
         """The arrays as device arrays (what :func:`cut` under jit takes), padded with unseen cells

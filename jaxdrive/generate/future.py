@@ -72,12 +72,16 @@ def _fit_tracks(tracks: dict, n: int) -> tuple[dict, np.ndarray]:
 
 
 def future_controls(sample: dict, clip: dict, *, frames: int, keep: int, predictor: FuturePredictor | None = None,
-                    route=None, bev_range=DEFAULT_RANGE, where: str = "clip") -> dict:
+                    route=None, bev_range=DEFAULT_RANGE, where: str = "clip", allow_off_road: bool = False,
+                    warned: set | None = None) -> dict:
     """``sample`` (:func:`jaxdrive.data.pipeline.sample_clip` of the first frames of ``clip``, at
     the clip's rate over its stride) with controls for ``frames`` frames: frames before ``keep``
     keep their recorded controls, later ones come from ``predictor``; with a ``route``
-    (:class:`jaxdrive.generate.route.Route`) the ego drives it through every frame. ``video``
-    keeps the recorded frames. ``predicted_from`` is added: the first frame not recorded."""
+    (:class:`jaxdrive.generate.route.Route`) the ego drives it through every frame, placed on and
+    checked against the scene's map (:func:`jaxdrive.generate.route.drive_on_map`, with
+    ``allow_off_road`` and ``warned``; what it says is added as ``route_drive``, not a model
+    input). ``video`` keeps the recorded frames. ``predicted_from`` is added: the first frame not
+    recorded."""
     have = int(np.shape(sample["ego_to_world"])[0])
     fps = float(sample["fps"])
     if not 1 <= keep <= have:
@@ -94,10 +98,11 @@ def future_controls(sample: dict, clip: dict, *, frames: int, keep: int, predict
     tracks = clip_tracks(recorded, ref=keep - 1)
     ego = np.concatenate([planar(recorded["ego_to_world"])[:min(have, frames)],
                           np.zeros((max(frames - have, 0), 3))])
+    drive = None
     if route is not None:
-        from jaxdrive.generate.route import check_on_map
+        from jaxdrive.generate.route import drive_on_map
         start = np.asarray(sample["ego_to_world"][0], np.float64)
-        check_on_map(route, start, scene, frames, fps)
+        route, drive = drive_on_map(route, start, scene, frames, fps, allow_off_road=allow_off_road, warned=warned)
         ego = planar(start @ route.poses(frames, fps))
     n = tracks["agents"].shape[1]
     agents = np.concatenate([tracks["agents"][:min(have, frames)], np.zeros((max(frames - have, 0), n, 3))])
@@ -127,6 +132,8 @@ def future_controls(sample: dict, clip: dict, *, frames: int, keep: int, predict
     out["bev_map"] = np.concatenate([np.asarray(sample["bev_map"])[:min(first, frames)], cut_maps])
     out["frame_times"] = times.astype(np.float32)
     out["predicted_from"] = keep if predictor is not None and frames > keep else frames
+    if drive is not None:
+        out["route_drive"] = drive
     return out
 
 

@@ -13,7 +13,9 @@ and appends it to the mp4. It writes under ``out``:
   ``sequential_sampler_calls``, ``seconds``, ``peak_device_bytes`` (and the models' windows and
   the options the strategy ran with, ``compiled_programs``; ``guidance``: each model's scales,
   :func:`jaxdrive.generate.guidance.describe`; ``stream`` for ``streaming``: the HTFT
-  buffer's frames, taps and fixed ``buffer_bytes``); when the recorded clip covers the horizon, ``quality``:
+  buffer's frames, taps and fixed ``buffer_bytes``); with a driven route, ``route`` (where it came
+  from) and ``route_drive`` (the first clip's, :func:`jaxdrive.generate.route.drive_on_map`: where
+  the manoeuvre started, whether and how far it left the road); when the recorded clip covers the horizon, ``quality``:
   PSNR / SSIM of the first clip against it, beside the repeat and noise baselines, over the
   first window, all generated frames and each second (``horizon``), scored part by part as the
   frames are decoded (:class:`jaxdrive.eval.frames.FrameScores`);
@@ -46,8 +48,8 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
     strategy (``overlap``, ``anchor_every``, ``segment_batch``, ``warp``); ``route``: where the
     driven route came from (``jaxdrive sample --route``), for the report; ``control_source``: where the
     controls came from (recorded, predicted), for the report; ``scene``: the first clip's
-    ``bev_map``, ``ego_to_world``, ``boxes``, ``box_valid`` per frame and ``predicted_from`` (the
-    first frame not recorded): each frame-grid row then starts with its BEV map, the ego's path drawn on it
+    ``bev_map``, ``ego_to_world``, ``boxes``, ``box_valid`` per frame, ``predicted_from`` (the
+    first frame not recorded) and optionally ``route_drive`` (for the report): each frame-grid row then starts with its BEV map, the ego's path drawn on it
     (:func:`jaxdrive.media.bev_image`)."""
     tracker = Tracker()
     start = time.perf_counter()
@@ -106,6 +108,8 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
         report["warp"] = {"depth": options["warp"].depth}
     if route is not None:
         report["route"] = route
+    if scene is not None and scene.get("route_drive") is not None:
+        report["route_drive"] = scene["route_drive"]     # where the manoeuvre began, whether it left the road
     if control_source is not None:
         report["controls"] = control_source
     quality = None

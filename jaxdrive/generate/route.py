@@ -14,6 +14,14 @@ first frame). ``SPEC`` is one of
 Without times, the points are spread evenly over the clip. :meth:`Route.poses` gives the dense ego
 pose per frame (:func:`jaxdrive.warp.trajectory_poses`, LongDWM appendix A.1). Bad input is a
 ``ValueError`` naming the file and the row.
+
+On the scene's map (:func:`drive_on_map`, what ``jaxdrive sample --route`` runs for each clip):
+a turn starts at the next intersection ahead, the first place within the frames generated where
+the ego, driving straight on, can turn with the whole arc on the road; with none in reach it turns
+where the clip is, as the manoeuvre alone says, with one warning. A route file whose path runs
+more than :data:`OFF_ROAD_METRES` off the road is a ``ValueError`` naming the file and where it
+leaves the road, unless ``allow_off_road``. A map with no road at all (nuScenes without its map
+expansion) leaves the route unchecked, with one warning.
 """
 
 from __future__ import annotations
@@ -22,6 +30,7 @@ import csv
 import dataclasses
 import json
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +38,13 @@ import numpy as np
 TURN_RADIUS = 15.0        # metres: a quarter circle at an urban intersection
 BRAKING = 3.0             # m/s^2: a firm, comfortable stop
 DEFAULT_SPEED = {"straight": 10.0, "left turn": 8.0, "right turn": 8.0, "stop": 10.0}
+TURNS = ("left turn", "right turn")
+# a route file may leave the road for this much of its path in one stretch (a wide corner, a lane
+# edge on the map's cells) before it is refused; jaxdrive sample --allow-off-road drives it anyway
+OFF_ROAD_METRES = 3.0
+TURN_MARGIN = 1.0         # metres either side of a turn's path that must be road too: half a car
+TURN_EXIT = 5.0           # metres after the arc that must be road: the turn ends on a street
+SEARCH_STEP = 0.5         # metres between the turn starts tried
 _MANOEUVRE = re.compile(r"^\s*(straight|left turn|right turn|stop)\s*(?:([0-9]*\.?[0-9]+)\s*m/s)?\s*$", re.I)
 
 
@@ -42,6 +58,9 @@ class Route:
     times: np.ndarray | None = None
     source: str = "route"
     first_row: int | None = None          # the file row of the first point (None: a manoeuvre)
+    manoeuvre: str | None = None          # the named manoeuvre, its speed (m/s) and the metres it
+    speed: float | None = None            # drives straight on before it begins (a turn placed at
+    lead: float = 0.0                     # an intersection ahead)
 
     def frame_times(self, frames: int, fps: float) -> np.ndarray:
         """The frame (a float) at which each point is passed in a clip of ``frames`` at ``fps``."""
@@ -57,10 +76,26 @@ class Route:
         return trajectory_poses(self.points, frames, times=self.frame_times(frames, fps))
 
 
-def manoeuvre(name: str, speed: float | None, duration: float, step: float = 0.1) -> Route:
-    """A named manoeuvre (module docstring) sampled about every ``step`` seconds over ``duration``."""
+def _turn_path(name: str, s, lead: float = 0.0):
+    """``(xy [N, 2], heading [N])`` at path lengths ``s`` of a turn that first drives ``lead``
+    metres straight on: a quarter circle of :data:`TURN_RADIUS`, then straight on."""
+    s = np.asarray(s, np.float64)
+    arc = np.pi / 2 * TURN_RADIUS
+    into = np.maximum(s - lead, 0.0)
+    angle = np.minimum(into, arc) / TURN_RADIUS
+    x = np.minimum(s, lead) + TURN_RADIUS * np.sin(angle)
+    y = TURN_RADIUS * (1 - np.cos(angle)) + np.maximum(into - arc, 0.0)
+    side = 1.0 if name == "left turn" else -1.0
+    return np.stack([x, side * y], axis=-1), side * angle
+
+
+def manoeuvre(name: str, speed: float | None, duration: float, step: float = 0.1, lead: float = 0.0) -> Route:
+    """A named manoeuvre (module docstring) sampled about every ``step`` seconds over ``duration``;
+    a turn drives ``lead`` metres straight on first."""
     name = name.lower()
     v = DEFAULT_SPEED[name] if speed is None else float(speed)
+    if not (np.isfinite(lead) and lead >= 0):
+        raise ValueError(f"lead: expected metres >= 0 driven before the manoeuvre, got {lead}")
     duration = max(float(duration), step)
     t = np.linspace(0.0, duration, max(2, int(np.ceil(duration / step)) + 1))      # up to the clip's end
     s = v * t                                                   # distance along the path
@@ -71,13 +106,9 @@ def manoeuvre(name: str, speed: float | None, duration: float, step: float = 0.1
         tt = np.minimum(t, t_stop)
         xy = np.stack([v * tt - 0.5 * BRAKING * tt ** 2, np.zeros_like(tt)], axis=1)
     else:
-        arc = np.pi / 2 * TURN_RADIUS
-        on_arc = np.minimum(s, arc) / TURN_RADIUS
-        after = np.maximum(s - arc, 0.0)
-        x = TURN_RADIUS * np.sin(on_arc)
-        y = TURN_RADIUS * (1 - np.cos(on_arc)) + after
-        xy = np.stack([x, y if name == "left turn" else -y], axis=1)
-    return Route(xy.astype(np.float32), t, source=f"manoeuvre {name!r}")
+        xy = _turn_path(name, s, lead if name in TURNS else 0.0)[0]
+    return Route(xy.astype(np.float32), t, source=f"manoeuvre {name!r}", manoeuvre=name, speed=v,
+                 lead=float(lead) if name in TURNS else 0.0)
 
 
 def _rows_from_json(path: Path, data):
@@ -192,3 +223,126 @@ def check_on_map(route: Route, start, scene, frames: int, fps: float) -> None:
     raise ValueError(f"route {route.source} {where}: expected a point on the scene's map (the BEV maps the clip "
                      f"recorded, about {scene.cell[0] * scene.size[0] / 2:.0f} m around its path), got ({x:.1f}, "
                      f"{y:.1f}) m beyond it: shorten the route or use a longer clip")
+
+
+class RouteWarning(UserWarning):
+    """A route driven although the scene's map could not vouch for it (``jaxdrive sample --route``)."""
+
+
+def _to_world(start, xy):
+    return np.asarray(xy, np.float64) @ start[:2, :2].T + start[:2, 3]
+
+
+def _turn_lead(route: Route, start, scene, reach: float) -> float | None:
+    """Metres to drive straight on before the turn of ``route`` so that it turns at the next
+    intersection within ``reach`` metres: the middle of the first stretch of starts where the
+    straight run up to it and the whole turn (arc and :data:`TURN_EXIT`, :data:`TURN_MARGIN`
+    either side) lie on the road; None when there is none."""
+    leads = np.arange(0.0, reach + 1e-9, SEARCH_STEP)
+    s = np.arange(0.0, np.pi / 2 * TURN_RADIUS + TURN_EXIT + 1e-9, SEARCH_STEP)
+    xy, heading = _turn_path(route.manoeuvre, s)
+    normal = np.stack([-np.sin(heading), np.cos(heading)], -1)
+    sides = np.array([-TURN_MARGIN, 0.0, TURN_MARGIN])
+    shape = (xy + sides[:, None, None] * normal)[None] + np.stack([leads, 0 * leads], -1)[:, None, None]  # [L, 3, N, 2]
+    turn_ok = scene.on_road(_to_world(start, shape)).all((1, 2))
+    straight = np.stack(np.broadcast_arrays(leads[None], sides[:, None]), -1)                        # [3, L, 2]
+    straight_ok = np.logical_and.accumulate(scene.on_road(_to_world(start, straight)).all(0))        # road so far
+    fits = np.nonzero(turn_ok & straight_ok)[0]
+    if not len(fits):
+        return None
+    gaps = np.nonzero(np.diff(fits) > 1)[0]
+    run = fits[:gaps[0] + 1] if len(gaps) else fits          # the first intersection, not a later one
+    return float(leads[(run[0] + run[-1]) // 2])
+
+
+def _off_road(route: Route, start, scene, frames: int, fps: float, sub: int = 4):
+    """Where the path of ``route`` leaves the road: a list of ``(metres, frame, (x, y))`` per
+    stretch off the road (its length, where it begins, in the first frame's ego frame), the path
+    sampled ``sub`` times a frame; an off-road sample counts half of each step beside it."""
+    xy = route.poses(sub * (frames - 1) + 1, sub * fps)[:, :2, 3]
+    off = ~scene.on_road(_to_world(start, xy))
+    step = np.linalg.norm(np.diff(xy, axis=0), axis=-1)
+    weight = 0.5 * (off[1:].astype(float) + off[:-1])
+    stretches, i = [], 0
+    while i < len(off):
+        if not off[i]:
+            i += 1
+            continue
+        j = i
+        while j + 1 < len(off) and off[j + 1]:
+            j += 1
+        metres = float((step * weight)[max(i - 1, 0):j + 1].sum())
+        stretches.append((metres, i / sub, tuple(float(v) for v in xy[i])))
+        i = j + 1
+    return stretches
+
+
+def _at(frame: float, fps: float, xy) -> dict:
+    return {"frame": int(np.floor(frame + 1e-6)), "time": round(frame / fps, 3),
+            "x": round(float(xy[0]), 2), "y": round(float(xy[1]), 2)}
+
+
+def drive_on_map(route: Route, start, scene, frames: int, fps: float, *, allow_off_road: bool = False,
+                 max_off_road: float = OFF_ROAD_METRES, warned: set | None = None) -> tuple[Route, dict]:
+    """``route`` driven from the ego pose ``start [4, 4]`` on ``scene`` (a
+    :class:`jaxdrive.data.scene_map.SceneMap`) for ``frames`` at ``fps`` (module docstring):
+    ``(route, drive)``, the route placed on the map (a turn: at the next intersection) and what
+    ``report.json`` records of it: ``start`` (frame, time, x, y in the first frame's ego frame,
+    where the manoeuvre begins), ``start_at`` ("intersection" or "clip"), ``map_checked``,
+    ``off_road``, ``off_road_metres`` (the longest stretch off the road) and ``off_road_from``
+    (where the path first leaves it). A file off the road for more than ``max_off_road`` metres
+    in one stretch is a ``ValueError`` unless ``allow_off_road``; a point beyond the seen map
+    always is (:func:`check_on_map`). Warnings (:class:`RouteWarning`) are given once per kind:
+    ``warned`` collects the kinds given (share one set across the clips of a run)."""
+    start = np.asarray(start, np.float64)
+    if start.shape != (4, 4) or not np.isfinite(start).all():
+        raise ValueError(f"start: expected a finite ego pose [4, 4], got shape {list(start.shape)}")
+    if int(frames) < 2:
+        raise ValueError(f"frames: expected at least 2 frames to drive, got {frames}")
+    if not fps > 0:
+        raise ValueError(f"fps: expected a positive frame rate, got {fps}")
+    if not (np.isfinite(max_off_road) and max_off_road >= 0):
+        raise ValueError(f"max_off_road: expected metres >= 0, got {max_off_road}")
+    warned = set() if warned is None else warned
+
+    def warn(kind, message):
+        if kind not in warned:
+            warned.add(kind)
+            warnings.warn(message, RouteWarning, stacklevel=3)
+    checked = scene.has_road()
+    start_at = "clip"
+    if checked and route.manoeuvre in TURNS and route.speed:
+        reach = route.speed * (frames - 1) / fps
+        lead = _turn_lead(route, start, scene, reach)
+        if lead is not None:
+            route, start_at = manoeuvre(route.manoeuvre, route.speed, float(route.times[-1]), lead=lead), \
+                "intersection"
+    check_on_map(route, start, scene, frames, fps)
+    begin = route.lead / route.speed * fps if route.lead else 0.0
+    drive = {"start": _at(begin, fps, (route.lead, 0.0)), "start_at": start_at, "map_checked": checked,
+             "off_road": False, "off_road_metres": 0.0, "off_road_from": None}
+    if not checked:
+        warn("unchecked", f"route {route.source}: unchecked: the scene's map has no road (nuScenes without its map "
+                          f"expansion?), so nothing says whether the route stays on the road")
+        return route, drive
+    stretches = _off_road(route, start, scene, frames, fps)
+    if stretches:
+        drive.update(off_road=True, off_road_metres=round(max(m for m, _, _ in stretches), 2),
+                     off_road_from=_at(stretches[0][1], fps, stretches[0][2]))
+    too_far = [st for st in stretches if st[0] > max_off_road]
+    if too_far and route.manoeuvre is None and not allow_off_road:
+        metres, frame, (x, y) = too_far[0]
+        raise ValueError(f"route {route.source}: expected a path on the road of the scene's map (at most "
+                         f"{max_off_road:g} m off it in one stretch), got {metres:.1f} m off the road from frame "
+                         f"{int(frame)} (t = {frame / fps:.2f} s) at ({x:.1f}, {y:.1f}) m; pass --allow-off-road to "
+                         f"drive it anyway")
+    where = "" if not stretches else (f": it leaves the road at frame {drive['off_road_from']['frame']} "
+                                      f"({drive['off_road_from']['x']:.1f}, {drive['off_road_from']['y']:.1f}) m, "
+                                      f"{drive['off_road_metres']:.1f} m off it")
+    if route.manoeuvre in TURNS and start_at == "clip":
+        warn("no intersection", f"route {route.source}: no intersection within the "
+                                f"{(route.speed or 0) * (frames - 1) / fps:.0f} m the ego drives ahead on the scene's "
+                                f"map, so the turn starts where the clip is{where or ' (on the road so far)'}")
+    elif too_far:                     # a named manoeuvre, or a file with allow_off_road
+        warn("off road", f"route {route.source}: driven off the road{where}")
+    return route, drive
