@@ -25,7 +25,9 @@ paper balances it against the slowest video format at batch 1 (appendix B, E): h
 bucket's batch per data-parallel group is the slowest bucket's token count over its own (capped
 at ``MAX_GROUP_BATCH``), a starting point to refine with ``jaxdrive bench buckets``; its
 probability is its batch, so that every bucket gets about the same number of batches an epoch
-(the paper repeats the scarce long clips to the same end). Sampling: rectified flow, 30 steps,
+(the paper repeats the scarce long clips to the same end; here every bucket's repeat is
+``auto``, :class:`jaxdrive.data.pipeline._BatchPlan`, so the tiny stages fill every bucket from a
+dataset of three scenes). Sampling: rectified flow, 30 steps,
 classifier-free guidance 2 (``sample.cfg``, below).
 
 Where it deliberately differs: 424 x 800 is 416 x 800 (the latent grid must divide into 2 x 2

@@ -47,8 +47,9 @@ class DataConfig:
     shuffle_seed: int = 0
     threads: int = 0                  # grain read threads (0: in the main thread)
     text_embeddings: str = ""         # .npz of 'jaxdrive data text-embed' (models with text='embeddings')
-    # mixed resolution / length training (MagicDrive-V2 appendix B): "HxWxF:batch[:prob]" each, the
-    # batch global; F = 1 is an image bucket. (): one bucket, height x width x frames at batch_size
+    # mixed resolution / length training (MagicDrive-V2 appendix B): "HxWxF:batch[:prob[:repeat]]"
+    # each, the batch global; F = 1 is an image bucket; repeat (default auto) repeats scarce clips
+    # within an epoch (jaxdrive.data.pipeline). (): one bucket, height x width x frames at batch_size
     buckets: tuple[str, ...] = ()
     # LongDWM's warp-guided control (models with controls.warp): the one depth, in metres, at which
     # the first frame is warped along the clip's poses (jaxdrive.warp); beyond the clip's travel

@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 
 from jaxdrive.config import load_config
-from jaxdrive.data.pipeline import parse_bucket_specs
+from jaxdrive.data.pipeline import parse_bucket_specs, parse_buckets
 from jaxdrive.train.metrics import read_metrics
 from jaxdrive.train.run import Run, train
 
@@ -29,14 +29,30 @@ def tiny(data, *sets):
 
 
 def test_bucket_specs_worked_example_and_bad_text():
-    assert parse_bucket_specs(["224x400x1:32", "224x400x33:4:0.5", "848X1600x33:1"]) == {
-        (224, 400, 1): (32, 1.0), (224, 400, 33): (4, 0.5), (848, 1600, 33): (1, 1.0)}
-    for bad, match in ((["224x400:32"], r"expected 'HxWxF:batch\[:prob\]'"), (["1x2x3"], "expected 'HxWxF"),
+    # the fourth field is the repeat: an integer, or 'auto' (None), the default
+    assert parse_bucket_specs(["224x400x1:32", "224x400x33:4:0.5", "848X1600x33:1", "224x400x241:1:1:3",
+                               "424x800x1:8:2:auto"]) == {
+        (224, 400, 1): (32, 1.0, None), (224, 400, 33): (4, 0.5, None), (848, 1600, 33): (1, 1.0, None),
+        (224, 400, 241): (1, 1.0, 3), (424, 800, 1): (8, 2.0, None)}
+    fmt = r"expected 'HxWxF:batch\[:prob\[:repeat\]\]'"
+    for bad, match in ((["224x400:32"], fmt), (["1x2x3"], "expected 'HxWxF"),
                        (["8x8x1:0"], "positive H, W, F and batch"), (["8x8x1:2:-1"], "probability >= 0"),
-                       (["8x8x1:2", "8x8x1:4"], r"each \(H, W, F\) once"), ([], "at least one bucket"),
-                       ("8x8x1:2", "a sequence of")):
+                       (["8x8x1:2:1:0"], r"a repeat >= 1 or 'auto', got '8x8x1:2:1:0'"),
+                       (["8x8x1:2:1:1.5"], fmt + r" .*got '8x8x1:2:1:1.5'"), (["8x8x1:2:1:often"], fmt),
+                       (["8x8x1:2:1:2:5"], fmt), (["8x8x1:2", "8x8x1:4"], r"each \(H, W, F\) once"),
+                       ([], "at least one bucket"), ("8x8x1:2", "a sequence of")):
         with pytest.raises(ValueError, match=r"data\.buckets: .*" + match):
             parse_bucket_specs(bad)
+    # the mapping form of make_pipeline: (batch, prob, repeat), repeat None for automatic
+    assert [b.repeat for b in parse_buckets({(8, 8, 1): (2, 1.0, 3), (8, 8, 5): (2, 1.0, None), (8, 8, 9): 2})] == [
+        3, None, None]
+    for value, match in (((2, 1.0, 0), r"buckets\[\(8, 8, 1\)\] repeat \(None: automatic\): expected an integer "
+                                       r">= 1, got 0"),
+                         ((2, 1.0, True), r"repeat .*expected an integer >= 1, got True"),
+                         ((2, 1.0, 2, 1), r"buckets\[\(8, 8, 1\)\]: expected batch_size, \(batch_size, prob\) or "
+                                          r"\(batch_size, prob, repeat\), got \(2, 1.0, 2, 1\)")):
+        with pytest.raises(ValueError, match=match):
+            parse_buckets({(8, 8, 1): value}, compression=4)
 
 
 @pytest.mark.parametrize("sets, match", [
@@ -44,7 +60,7 @@ def test_bucket_specs_worked_example_and_bad_text():
     (["data.buckets=32x52x5:2"], r"data.buckets 32x52x5: expected multiples of latent compression x patch \(8\)"),
     (["data.buckets=32x56x5:2", "optim.grad_accum=2", "data.batch_size=4"],
      r"optim.grad_accum: expected 1 with data.buckets, got 2"),
-    (["data.buckets=32x56x5"], r"data.buckets: expected 'HxWxF:batch\[:prob\]'"),
+    (["data.buckets=32x56x5"], r"data.buckets: expected 'HxWxF:batch\[:prob\[:repeat\]\]'"),
 ])
 def test_bad_buckets_fail_before_compiling(scenes, sets, match):
     with pytest.raises(ValueError, match=match):
@@ -100,3 +116,44 @@ def test_bench_rebalance_fits_all_points_and_survives_timing_noise():
     assert _fit_batch([(4, 0.1), (8, 0.2)], 0.4, groups=2, max_batch=256) == 16        # exact on a line
     assert _fit_batch([(4, 0.1), (8, 0.2)], 10.0, groups=2, max_batch=64) == 64        # capped
     assert _fit_batch([(4, 0.1), (4, 0.1)], 0.2, groups=4, max_batch=0) == 8           # one batch: proportional
+
+
+@pytest.fixture(scope="module")
+def three_scenes(tmp_path_factory):
+    """``jaxdrive data synth --scenes 3 --frames 65``'s shape: two train scenes, one validation."""
+    return write_synthetic(tmp_path_factory.mktemp("three") / "data", train=2, frames=65, views=1)
+
+
+@pytest.mark.parametrize("stage", [1, 2, 3])
+def test_magicdrive_tiny_fills_every_bucket_from_three_scenes(three_scenes, stage, caplog):
+    """Issue 34: two train clips fill every bucket of each tiny MagicDrive-V2 stage (images at a
+    batch of 4, 33-frame clips) by automatic repetition; an image batch takes several frames of one
+    clip, each a different one; the repeats are logged once per epoch."""
+    import numpy as np
+    config = load_config(f"{ROOT / 'configs' / 'magicdrive_v2.py'}:size=tiny,stage={stage}",
+                         [f"data.path={three_scenes}", "data.views=1"])
+    run = Run(config)
+    want = {(b.batch_size, b.frames, b.height, b.width) for b in run.buckets}
+    with caplog.at_level("INFO", logger="jaxdrive.data.pipeline"):
+        it = iter(run.dataset())
+        # two clips give each bucket exactly one batch an epoch: epoch 0 is the first len(buckets)
+        batches = [next(it) for _ in range(2 * len(want))]
+    for epoch in (batches[:len(want)], batches[len(want):]):
+        assert {b["video"].shape[:1] + b["video"].shape[2:5] for b in epoch} == want
+    assert caplog.text.count("epoch 0: bucket repeats") == caplog.text.count("epoch 1: bucket repeats") == 1
+    images = [b for b in batches if b["video"].shape[2] == 1]
+    assert all(len(set(b["index"].tolist())) < len(b["index"]) for b in images)      # 4 samples of 2 clips
+    for b in images:
+        for i in set(b["index"].tolist()):
+            poses = b["ego_to_world"][b["index"] == i, 0]                            # each sample's frame
+            assert len(np.unique(poses.reshape(len(poses), -1), axis=0)) == len(poses)
+
+
+def test_a_bucket_no_clip_can_fill_is_named(three_scenes):
+    """No repeat helps a bucket longer than every clip (65 frames): the error names it."""
+    config = load_config(f"{ROOT / 'configs' / 'magicdrive_v2.py'}:size=tiny,stage=2",
+                         [f"data.path={three_scenes}", "data.views=1", "data.buckets=16x32x1:4,16x32x129:2"])
+    with pytest.raises(ValueError, match=r"bucket \(H, W, F\) = \(16, 32, 129\): zero samples after bucketing: "
+                                         r"each clip needs .* = 129 source frames at stride 1, but the longest "
+                                         r"of the 2 clips has 65"):
+        Run(config).dataset()

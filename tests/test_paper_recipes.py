@@ -126,7 +126,7 @@ def test_magicdrive_tiny_stages_grow_from_images_and_train_on_their_buckets(tmp_
     images and videos of two resolutions) -> 3 (three resolutions, seq = 4), each from the last
     with train.init_from, on the configs' own buckets; then the stage-3 model's one-shot window."""
     from jaxdrive.train.run import Run
-    data = write_synthetic(tmp_path / "data", train=48, frames=33, views=1)   # every bucket fills in epoch 0
+    data = write_synthetic(tmp_path / "data", train=2, frames=33, views=1)    # 3 scenes: buckets repeat clips
     runs = {}
     for stage in (1, 2, 3):
         config = load_config(f"{ROOT / 'configs' / 'magicdrive_v2.py'}:size=tiny,stage={stage}",

@@ -126,6 +126,28 @@ def test_resume_is_exact():
     assert_batches_equal([next(fresh) for _ in range(4)], cont)
 
 
+def test_repeating_buckets_resume_exactly_across_an_epoch_boundary(caplog):
+    """Four clips for a bucket of a fixed repeat 2 and one of batch 3 (automatic repeat): batches
+    hold a clip more than once, and a state saved in epoch 1 resumes it exactly."""
+    clips, buckets = CLIPS[:4], {(8, 8, 5): (2, 1.0, 2), (4, 6, 9): 3}
+    kw = dict(seed=3, shard_index=0, shard_count=1, num_threads=2)
+    plan = pipeline._BatchPlan([9, 10, 11, 12], pipeline.parse_buckets(buckets), stride=1, seed=3, shard_index=0,
+                               shard_count=1, num_epochs=None)
+    first = len(plan._epoch(0))
+    assert {b for b, *_ in plan._epoch(0)} == {0, 1} and first < 5          # both buckets; epoch 1 from batch 5 on
+    with caplog.at_level("INFO", logger="jaxdrive.data.pipeline"):
+        it = iter(pipeline.make_pipeline(clips, buckets, **kw))
+        seen = [next(it) for _ in range(first + 1)]
+        state = it.get_state()
+        cont = [next(it) for _ in range(4)]
+    assert re.search(r"epoch 0: bucket repeats \(rounds of clips\): 8x8x5 2, 4x6x9 \d+ \(auto\)", caplog.text)
+    assert caplog.text.count("epoch 1: bucket repeats") == 1
+    assert any(len(set(b["index"].tolist())) < len(b["index"]) for b in seen + cont)   # a clip twice in a batch
+    fresh = iter(pipeline.make_pipeline(clips, buckets, **kw))
+    fresh.set_state(state)
+    assert_batches_equal([next(fresh) for _ in range(4)], cont)
+
+
 def test_shards_are_disjoint_and_in_step():
     kw = dict(num_epochs=1, drop_probs={}, shard_count=3)
     runs = [list(pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1, (4, 6, 9): 1}, seed=0, shard_index=s, **kw))
@@ -155,8 +177,17 @@ def test_empty_bucket_names_bucket_and_reason():
                                          r"each clip needs .* = 25 source frames at stride 3, but the longest "
                                          r"of the 24 clips has 16"):
         pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1, (4, 6, 9): 1}, stride=3, shard_index=0, shard_count=1)
-    with pytest.raises(ValueError, match=r"bucket \(H, W, F\) = \(4, 6, 9\).*fewer clips .* than its batch size 50"):
-        pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1, (4, 6, 9): 50}, shard_index=0, shard_count=1)
+    # a fixed repeat that leaves a bucket short of one batch; the automatic one repeats the clips
+    with pytest.raises(ValueError, match=r"bucket \(H, W, F\) = \(4, 6, 9\).*fewer clips .* over its 2 round\(s\)\) "
+                                         r"than its batch size 50"):
+        pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1, (4, 6, 9): (50, 1.0, 2)}, shard_index=0, shard_count=1)
+    it = iter(pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1, (4, 6, 9): 50}, shard_index=0, shard_count=1))
+    assert any(next(it)["video"].shape[0] == 50 for _ in range(60))
+    # automatic repetition needs a long enough clip on every shard: here only the odd clips are
+    with pytest.raises(ValueError, match=r"bucket \(H, W, F\) = \(4, 6, 13\): zero samples after bucketing: expected "
+                                         r"a clip of at least 13 source frames on every shard, got none on shard 0 of 2"):
+        pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1, (4, 6, 13): 1}, shard_index=1, shard_count=2,
+                               frame_counts=[9 + 7 * (i % 2) for i in range(24)])
 
 
 def test_stride_longer_than_every_scene():

@@ -30,8 +30,14 @@ Choices:
   sequence shared by all shards, so all processes feed the same shapes at every step (required to
   assemble global arrays). ``batch_size`` is per process. Leftover clips are dropped and counted
   in the log.
+- Repetition (MagicDrive-V2 appendix B, scarce clips repeated within an epoch): a bucket's
+  ``repeat`` r takes the clips of r seeded rounds of that draw; by default the fewest rounds that
+  fill its batch on every shard, each epoch, so a few clips fill every bucket (a clip then gives
+  several samples, at distinct start frames while it has them). Logged once per epoch
+  (:class:`_BatchPlan`). No repeat helps a bucket that no clip is long enough for: an error.
 - Per-sample draws (start frame, crop offset, drop masks, the stride after the head of a mixed-rate
-  clip) are seeded by (seed, epoch, index): the same for any shard count.
+  clip) are seeded by (seed, epoch, index, and the round after the first): the same for any shard
+  count.
 - Mixed frame rates (MiLA appendix B, stage 2: 12-fps condition frames, generated frames at other
   rates): ``rate_head`` frames at ``stride``, then the rest at one stride per clip drawn uniformly
   from ``rate_strides``; a clip must be long enough for the longest of them. Iterator state is grain's (the next batch index), exact on resume.
@@ -70,7 +76,8 @@ log = logging.getLogger(__name__)
 CONDITIONS = ("text", "boxes", "map", "trajectory", "camera")
 DEFAULT_DROP_PROBS = {name: 0.15 for name in CONDITIONS}
 _INFINITE = 2 ** 62
-_TAG_PERM, _TAG_BUCKET, _TAG_ORDER, _TAG_SAMPLE = 1, 2, 3, 4
+_TAG_PERM, _TAG_BUCKET, _TAG_ORDER, _TAG_SAMPLE, _TAG_START = 1, 2, 3, 4, 5
+MAX_AUTO_REPEAT = 1000      # rounds an automatic repeat may take before it gives up (a bucket of tiny probability)
 
 
 def frames_for(k: int, *, compression: int = 4) -> int:
@@ -85,6 +92,7 @@ class Bucket:
     frames: int
     batch_size: int
     prob: float
+    repeat: int | None = None      # rounds of clips an epoch (:class:`_BatchPlan`); None: automatic
 
     @property
     def key(self) -> tuple[int, int, int]:
@@ -108,8 +116,9 @@ def frame_offsets(frames: int, stride: int, head: int = 0, tail_stride: int | No
 
 
 def parse_buckets(buckets, *, compression: int = 4) -> tuple[Bucket, ...]:
-    """``{(H, W, F): batch_size}`` or ``{(H, W, F): (batch_size, prob)}`` -> buckets (probabilities
-    default to uniform and are normalised)."""
+    """``{(H, W, F): batch_size}``, ``{(H, W, F): (batch_size, prob)}`` or ``{(H, W, F):
+    (batch_size, prob, repeat)}`` -> buckets (probabilities default to uniform and are normalised;
+    ``repeat`` None, the default, is automatic: :class:`_BatchPlan`)."""
     if not isinstance(buckets, Mapping) or not buckets:
         raise ValueError(f"buckets: expected a non-empty {{(H, W, F): batch_size}} mapping, got {buckets!r}")
     out = []
@@ -119,42 +128,60 @@ def parse_buckets(buckets, *, compression: int = 4) -> tuple[Bucket, ...]:
         h, w, f = (check_positive_int(f"buckets key {key} {n}", v) for n, v in zip("HWF", key))
         if (f - 1) % compression:
             raise ValueError(f"buckets: bucket {key}: expected F = 1 + {compression}k frames, got {f}")
-        bs, p = value if isinstance(value, tuple) else (value, 1.0)
+        if isinstance(value, tuple) and len(value) not in (2, 3):
+            raise ValueError(f"buckets[{key}]: expected batch_size, (batch_size, prob) or (batch_size, prob, "
+                             f"repeat), got {value!r}")
+        bs, p, repeat = (*value, None)[:3] if isinstance(value, tuple) else (value, 1.0, None)
         bs = check_positive_int(f"buckets[{key}] batch size", bs)
         if not (isinstance(p, (int, float)) and p >= 0):
             raise ValueError(f"buckets[{key}]: expected a probability >= 0, got {p!r}")
-        out.append(Bucket(h, w, f, bs, float(p)))
+        if repeat is not None:
+            repeat = check_positive_int(f"buckets[{key}] repeat (None: automatic)", repeat)
+        out.append(Bucket(h, w, f, bs, float(p), repeat))
     total = sum(b.prob for b in out)
     if total <= 0:
         raise ValueError(f"buckets: expected a positive probability somewhere, got {buckets!r}")
     return tuple(dataclasses.replace(b, prob=b.prob / total) for b in out)
 
 
+SPEC_FORMAT = "'HxWxF:batch[:prob[:repeat]]'"
+
+
 def parse_bucket_specs(specs: Sequence[str], *, name: str = "data.buckets") -> dict:
-    """Config text ``("HxWxF:B", "HxWxF:B:P", ...)`` -> ``{(H, W, F): (B, P)}`` (``P`` defaults to
-    1; :func:`parse_buckets` normalises). ``B`` is the bucket's global batch; MagicDrive-V2
-    (appendix B) picks each so that every bucket's step takes about the same time."""
+    """Config text ``("HxWxF:B", "HxWxF:B:P", "HxWxF:B:P:R", ...)`` -> ``{(H, W, F): (B, P, R)}``
+    (``P`` defaults to 1, :func:`parse_buckets` normalises; ``R``, an integer >= 1 or ``auto``, the
+    default, is None for automatic). ``B`` is the bucket's global batch; MagicDrive-V2 (appendix B)
+    picks each so that every bucket's step takes about the same time, and repeats the scarce clips
+    within an epoch (``R``, :class:`_BatchPlan`)."""
     if isinstance(specs, str) or not isinstance(specs, Sequence):
-        raise ValueError(f"{name}: expected a sequence of 'HxWxF:batch[:prob]' strings, got {specs!r}")
+        raise ValueError(f"{name}: expected a sequence of {SPEC_FORMAT} strings, got {specs!r}")
     out = {}
     for spec in specs:
         parts = str(spec).split(":")
         dims = parts[0].lower().split("x")
         try:
-            if len(parts) not in (2, 3) or len(dims) != 3:
+            if len(parts) not in (2, 3, 4) or len(dims) != 3:
                 raise ValueError
             key = tuple(int(v) for v in dims)
-            batch, prob = int(parts[1]), float(parts[2]) if len(parts) == 3 else 1.0
+            batch, prob = int(parts[1]), float(parts[2]) if len(parts) > 2 else 1.0
+            repeat = _parse_repeat(parts[3] if len(parts) == 4 else "auto")
         except ValueError:
-            raise ValueError(f"{name}: expected 'HxWxF:batch[:prob]' (e.g. '32x56x9:2'), got {spec!r}") from None
-        if min(key) < 1 or batch < 1 or not prob >= 0:
-            raise ValueError(f"{name}: expected positive H, W, F and batch and a probability >= 0, got {spec!r}")
+            raise ValueError(f"{name}: expected {SPEC_FORMAT} (e.g. '32x56x9:2' or '32x56x1:4:1:3'; repeat an "
+                             f"integer or 'auto'), got {spec!r}") from None
+        if min(key) < 1 or batch < 1 or not prob >= 0 or (repeat is not None and repeat < 1):
+            raise ValueError(f"{name}: expected positive H, W, F and batch, a probability >= 0 and a repeat "
+                             f">= 1 or 'auto', got {spec!r}")
         if key in out:
             raise ValueError(f"{name}: expected each (H, W, F) once, got {key} twice")
-        out[key] = (batch, prob)
-    if not out or sum(p for _, p in out.values()) <= 0:
+        out[key] = (batch, prob, repeat)
+    if not out or sum(p for _, p, _ in out.values()) <= 0:
         raise ValueError(f"{name}: expected at least one bucket with a positive probability, got {list(specs)!r}")
     return out
+
+
+def _parse_repeat(text: str) -> int | None:
+    """A spec's repeat field: ``auto`` -> None, else an integer (ValueError otherwise)."""
+    return None if text.strip().lower() == "auto" else int(text)
 
 
 # ----------------------------------------------------------------------------- per-clip transforms
@@ -290,7 +317,20 @@ def _rng(*keys: int) -> np.random.Generator:
 
 
 class _BatchPlan:
-    """Random access to batch specs ``(epoch, bucket, source indices)``: the whole schedule."""
+    """Random access to batch specs ``(epoch, bucket, source indices, their rounds, their
+    occurrences)``: the whole schedule (occurrences: how often the clip came earlier in the
+    bucket's epoch; None for a bucket that takes one round).
+
+    Repetition (MagicDrive-V2 appendix B: "due to the limited number of full video clips, we
+    repeat this type of data within an epoch"): an epoch draws a bucket for every clip in seeded
+    rounds; a bucket of ``repeat`` r takes the clips drawn for it in the first r rounds, so about r
+    times its share, a clip drawn for it in two rounds being two samples. Round 0 is the one draw
+    of a plan without repetition, so a plan whose buckets all take one round is unchanged. A
+    bucket's automatic repeat (``repeat`` None) is, each epoch, the fewest rounds that give it a
+    full batch on every shard (1 whenever one round does): a dataset of a few clips still fills
+    every bucket. A bucket that takes several rounds gives the j-th sample of a clip the j-th start
+    frame of a seeded order of the clip's start frames (:meth:`start_frame`), so the samples of one
+    clip differ while it has frames to spare (an image bucket takes several frames of a clip)."""
 
     def __init__(self, frame_counts, buckets, *, stride, seed, shard_index, shard_count, num_epochs,
                  rate_head=0, rate_strides=()):
@@ -303,6 +343,7 @@ class _BatchPlan:
         self._lock = threading.Lock()
         self._lengths: list[int] = []
         self._cache: dict[int, tuple] = {}
+        self._logged: set[int] = set()
         self._check()
 
     def needed(self, bucket: Bucket, tail_stride: int | None = None) -> int:
@@ -323,29 +364,39 @@ class _BatchPlan:
         if short:
             log.warning("skipping %d of %d clips: shorter than the %d source frames the shortest bucket "
                         "needs at %s", short, n, min(self.needed(b) for b in self.buckets), self._rate())
-        epoch0 = self._epoch(0)
-        got = {}
-        for b, _ in epoch0:
-            got[b] = got.get(b, 0) + 1
-        for i, b in enumerate(self.buckets):
-            if b.prob == 0 or got.get(i):
+        for i, b in enumerate(self.buckets):    # no repeat can fill these: no clip (on a shard) is long enough
+            if b.prob == 0:
                 continue
-            if not self.eligible[:, i].any():
+            on_shard = np.bincount(np.flatnonzero(self.eligible[:, i]) % self.shard_count,
+                                   minlength=self.shard_count)
+            if not on_shard.any():
                 span = "1 + (F - 1) * stride" if not self.rate_strides else "the mixed-rate span"
-                why = (f"each clip needs {span} = {self.needed(b)} source frames at "
-                       f"{self._rate()}, but the longest of the {n} clips has {longest}: the frame "
-                       f"stride or clip length is longer than every scene")
-            else:
-                why = (f"fewer clips were assigned to it ({self._assigned_min(i)} on some shard in epoch 0) "
-                       f"than its batch size {b.batch_size}: use a smaller batch size, a higher probability "
-                       f"or more clips")
-            raise ValueError(f"buckets: bucket (H, W, F) = {b.key}: zero samples after bucketing: {why}")
+                self._refuse(b, f"each clip needs {span} = {self.needed(b)} source frames at {self._rate()}, but "
+                               f"the longest of the {n} clips has {longest}: the frame stride or clip length is "
+                               f"longer than every scene")
+            if b.repeat is None and not on_shard.all():
+                s = int(np.argmin(on_shard))
+                self._refuse(b, f"expected a clip of at least {self.needed(b)} source frames on every shard, got "
+                               f"none on shard {s} of {self.shard_count} (the clips of index % {self.shard_count} "
+                               f"== {s}): use more clips or fewer processes")
+        got = {b for b, *_ in self._epoch(0)}
+        for i, b in enumerate(self.buckets):
+            if b.prob > 0 and i not in got:        # only a fixed repeat gets here: an automatic one fills
+                self._refuse(b, f"fewer clips were assigned to it ({self._assigned_min(i)} on some shard in epoch "
+                               f"0, over its {b.repeat} round(s)) than its batch size {b.batch_size}: use a smaller "
+                               f"batch size, a higher probability or repeat (or leave the repeat out: automatic), "
+                               f"or more clips")
 
-    def _assign(self, epoch: int):
-        """Global order and bucket of every clip for ``epoch`` (-1: fits no bucket)."""
-        n = len(self.counts)
-        order = _rng(self.seed, epoch, _TAG_PERM).permutation(n)
-        u = _rng(self.seed, epoch, _TAG_BUCKET).random(n)
+    @staticmethod
+    def _refuse(bucket: Bucket, why: str):
+        raise ValueError(f"buckets: bucket (H, W, F) = {bucket.key}: zero samples after bucketing: {why}")
+
+    def _assign(self, epoch: int, round_: int = 0):
+        """Global order and bucket of every clip for ``round_`` of ``epoch`` (-1: fits no bucket);
+        round 0 has the keys of a plan without repetition."""
+        n, k = len(self.counts), (round_,) if round_ else ()
+        order = _rng(self.seed, epoch, _TAG_PERM, *k).permutation(n)
+        u = _rng(self.seed, epoch, _TAG_BUCKET, *k).random(n)
         p = self.eligible * np.array([b.prob for b in self.buckets])[None, :]
         tot = p.sum(1, keepdims=True)
         cdf = np.cumsum(p / np.where(tot > 0, tot, 1), axis=1)
@@ -354,8 +405,38 @@ class _BatchPlan:
         return order, bucket[order]
 
     def _assigned_min(self, b: int) -> int:
-        order, bucket = self._assign(0)
-        return min(int(((bucket == b) & (order % self.shard_count == s)).sum()) for s in range(self.shard_count))
+        pool, _ = self._pool(self._rounds(0)[0], b, self.buckets[b].repeat or 1)
+        return int(np.bincount(pool % self.shard_count, minlength=self.shard_count).min())
+
+    def _rounds(self, epoch: int) -> tuple[list, list[int]]:
+        """``(draws, repeats)``: the epoch's rounds of :meth:`_assign` and the rounds each bucket
+        takes (its ``repeat``, or the automatic count: class docstring)."""
+        repeats = [b.repeat or (1 if b.prob == 0 else None) for b in self.buckets]
+        have = np.zeros((len(self.buckets), self.shard_count), np.int64)
+        draws = []
+        while None in repeats or len(draws) < max(repeats):
+            k = len(draws)
+            if k == MAX_AUTO_REPEAT and None in repeats:    # unlikely: _check found a clip on every shard
+                i = repeats.index(None)
+                raise ValueError(f"buckets: bucket (H, W, F) = {self.buckets[i].key}: expected a full batch within "
+                                 f"{MAX_AUTO_REPEAT} automatic repeats in epoch {epoch}, got {have[i].min()} clips "
+                                 f"on some shard: give it a higher probability or an explicit repeat")
+            draws.append(self._assign(epoch, k))
+            order, bucket = draws[-1]
+            for i, b in enumerate(self.buckets):
+                if repeats[i] is None:
+                    have[i] += np.bincount(order[bucket == i] % self.shard_count, minlength=self.shard_count)
+                    if have[i].min() >= b.batch_size:
+                        repeats[i] = k + 1
+        return draws, repeats
+
+    @staticmethod
+    def _pool(draws: list, b: int, repeat: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(clips, rounds)``: the global clips of bucket ``b`` over its first ``repeat`` rounds,
+        in planned order, and the round of each."""
+        taken = [(order[bucket == b], k) for k, (order, bucket) in enumerate(draws[:repeat])]
+        return (np.concatenate([c for c, _ in taken]).astype(np.int64),
+                np.concatenate([np.full(len(c), k, np.int64) for c, k in taken]))
 
     def _epoch(self, epoch: int) -> list:
         return self._schedule(epoch)[0]
@@ -365,31 +446,50 @@ class _BatchPlan:
         planned order (the batches take consecutive runs of it; the leftovers are its tail)."""
         if epoch in self._cache:
             return self._cache[epoch]
-        order, bucket = self._assign(epoch)
-        shard = order % self.shard_count
+        draws, repeats = self._rounds(epoch)
         kinds, dropped = [], 0
         mine = []
         for i, b in enumerate(self.buckets):
-            per_shard = np.bincount(shard[bucket == i], minlength=self.shard_count)
+            pool, rounds = self._pool(draws, i, repeats[i])
+            shard = pool % self.shard_count
+            per_shard = np.bincount(shard, minlength=self.shard_count)
             nb = int(per_shard.min()) // b.batch_size
             kinds += [i] * nb
-            mine.append(order[(bucket == i) & (shard == self.shard_index)])
+            here = shard == self.shard_index
+            mine.append((pool[here], rounds[here], _occurrences(pool[here]) if repeats[i] > 1 else None))
             dropped += int(per_shard[self.shard_index]) - nb * b.batch_size
         kinds = np.asarray(kinds, np.int64)[_rng(self.seed, epoch, _TAG_ORDER).permutation(len(kinds))]
         used = [0] * len(self.buckets)
         batches = []
         for i in kinds:
-            bs = self.buckets[i].batch_size
-            batches.append((int(i), mine[i][used[i]:used[i] + bs]))
+            bs, u = self.buckets[i].batch_size, used[i]
+            clips, rounds, occ = mine[i]
+            batches.append((int(i), clips[u:u + bs], rounds[u:u + bs], None if occ is None else occ[u:u + bs]))
             used[i] += bs
         if dropped:     # the same count every epoch: said once at INFO (the CLI shows INFO), then DEBUG
             (log.info if epoch == 0 else log.debug)(
                 "epoch %d shard %d/%d: %d clips left over after batching (not used this epoch)",
                 epoch, self.shard_index, self.shard_count, dropped)
+        self._log_repeats(epoch, repeats)
         if len(self._cache) > 4:
             self._cache.pop(min(self._cache))
-        self._cache[epoch] = batches, mine
-        return batches, mine
+        self._cache[epoch] = batches, [clips for clips, _, _ in mine]
+        return self._cache[epoch]
+
+    def _log_repeats(self, epoch: int, repeats: list[int]) -> None:
+        """Each bucket's repeat, once per epoch: INFO when a bucket repeats, else DEBUG."""
+        if epoch in self._logged:
+            return
+        self._logged.add(epoch)
+        said = ", ".join(f"{'x'.join(map(str, b.key))} {r}{'' if b.repeat else ' (auto)'}"
+                         for b, r in zip(self.buckets, repeats))
+        (log.info if max(repeats) > 1 else log.debug)("epoch %d: bucket repeats (rounds of clips): %s", epoch, said)
+
+    def start_frame(self, epoch: int, bucket: int, index: int, occurrence: int, starts: int) -> int:
+        """The start frame of the ``occurrence``-th sample of clip ``index`` in ``bucket`` of a
+        repeating bucket: that place in a seeded order of the clip's ``starts`` start frames
+        (distinct while it has them, then round again)."""
+        return int(_rng(self.seed, epoch, index, _TAG_START, bucket).permutation(starts)[occurrence % starts])
 
     def substitutes(self, epoch: int, bucket: int, index: int) -> np.ndarray:
         """The clips that may stand in for an unreadable clip ``index`` of ``bucket`` in ``epoch``:
@@ -399,7 +499,8 @@ class _BatchPlan:
         with self._lock:
             mine = self._schedule(epoch)[1][bucket]
         at = int(np.flatnonzero(mine == index)[0])
-        return np.concatenate([mine[at + 1:], mine[:at]])
+        rest = np.concatenate([mine[at + 1:], mine[:at]])
+        return rest[rest != index]          # a repeating bucket holds a clip more than once
 
     def __len__(self) -> int:
         if self.num_epochs is None:
@@ -415,8 +516,7 @@ class _BatchPlan:
                 if epoch == len(self._lengths):
                     self._lengths.append(len(self._epoch(epoch)))
                 if j < self._lengths[epoch]:
-                    b, idx = self._epoch(epoch)[j]
-                    return epoch, b, idx
+                    return (epoch, *self._epoch(epoch)[j])
                 j -= self._lengths[epoch]
                 epoch += 1
 
@@ -428,6 +528,16 @@ class _BatchPlan:
     def __setstate__(self, state):
         self.__dict__.update(state)
         self._lock = threading.Lock()
+
+
+def _occurrences(clips: np.ndarray) -> np.ndarray:
+    """For each entry, how many times its clip came earlier in ``clips``."""
+    order = np.argsort(clips, kind="stable")
+    first = np.r_[True, clips[order][1:] != clips[order][:-1]]
+    run_start = np.maximum.accumulate(np.where(first, np.arange(len(clips)), 0))
+    out = np.empty(len(clips), np.int64)
+    out[order] = np.arange(len(clips)) - run_start
+    return out
 
 
 def clip_warp(sample: Mapping, depth: float) -> np.ndarray:
@@ -476,17 +586,21 @@ class _LoadBatch:
                          f"in epoch {epoch}: every one is unreadable (the first: {first})")
 
     def __call__(self, spec) -> dict:
-        epoch, b, indices = spec
+        epoch, b, indices, rounds, occurrences = spec
         bucket = self.plan.buckets[b]
         samples, replaced = [], 0
-        for planned in indices:
-            rng = _rng(self.plan.seed, epoch, int(planned), _TAG_SAMPLE)
+        for j, planned in enumerate(indices):
+            # round 0 keeps the keys of a plan without repetition; a later round is a sample of its own
+            rng = _rng(self.plan.seed, epoch, int(planned), _TAG_SAMPLE, *((int(rounds[j]),) if rounds[j] else ()))
             idx, clip, stand_in = self._read(epoch, b, int(planned))
             replaced += stand_in
             T = int(np.shape(clip["ego_to_world"])[0])
             strides = self.plan.rate_strides       # no draw without them: the same samples as before
             tail = int(strides[rng.integers(len(strides))]) if strides else None
-            start = int(rng.integers(0, T - self.plan.needed(bucket, tail) + 1))
+            starts = T - self.plan.needed(bucket, tail) + 1
+            start = int(rng.integers(0, starts))        # drawn always: the crop and drops draw after it
+            if occurrences is not None:
+                start = self.plan.start_frame(epoch, b, int(planned), int(occurrences[j]), starts)
             if "latents" in clip:
                 s = take_window(clip, frames=bucket.frames, views=self.views, where=f"source window {idx}")
             else:
@@ -514,8 +628,10 @@ def make_pipeline(source, buckets, *, stride: int = 1, views=None, crop: str = "
                   skip_bad_records: bool = False) -> grain.IterDataset:
     """A grain ``IterDataset`` of training batches from a random-access clip ``source``.
 
-    ``buckets``: ``{(H, W, F): batch_size}`` or ``{(H, W, F): (batch_size, prob)}`` with
-    F = 1 + ``compression`` * k. ``views``: indices or camera names (:data:`schema.CAMERAS`), None
+    ``buckets``: ``{(H, W, F): batch_size}``, ``{(H, W, F): (batch_size, prob)}`` or
+    ``{(H, W, F): (batch_size, prob, repeat)}`` with F = 1 + ``compression`` * k; ``repeat``: the
+    rounds of clips the bucket takes an epoch, None (the default) the fewest that fill its batch
+    (:class:`_BatchPlan`). ``views``: indices or camera names (:data:`schema.CAMERAS`), None
     for all. ``drop_probs``: condition -> drop probability (default 0.15 for each of
     :data:`CONDITIONS`). Shards default to ``jax.process_index()`` / ``jax.process_count()``.
     ``num_epochs=None`` repeats forever. ``iter(ds)`` has grain's ``get_state`` / ``set_state``.

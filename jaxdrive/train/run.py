@@ -314,7 +314,8 @@ class Run:
         source = open_source(d.path, split or d.split)
         stride = 1 if self.config.latents.precomputed else d.stride     # latent windows are strided already
         procs = jax.process_count()
-        buckets = {b.key: (b.batch_size // (procs * self.config.optim.grad_accum), b.prob) for b in self.buckets}
+        buckets = {b.key: (b.batch_size // (procs * self.config.optim.grad_accum), b.prob, b.repeat)
+                   for b in self.buckets}
         return make_pipeline(source, buckets, stride=stride,
                              views=list(range(d.views)), drop_probs={n: d.drop_prob for n in CONDITIONS},
                              seed=d.shuffle_seed, num_threads=d.threads, prefetch=2 if d.threads else 0,
