@@ -113,7 +113,7 @@ def test_longdwm_tiny_roles_train_and_sample_coarse_fine(long_scenes, tmp_path, 
              "--fine-workdir: expected a model trained for interpolation"),
             ([*args[1:], "--frames", "18"], "frames: coarse-fine reaches 1 + n * 8 latent frames"),
             ([*args[1:], "--frames", "17", "--segment-batch", "0"], "--segment-batch: expected 'auto' or a positive"),
-            ([*args[1:], "--frames", "17", "--device-memory", "lots"], "--device-memory: expected a byte count"),
+            ([*args[1:], "--frames", "17", "--device-memory", "lots"], "--device-memory: expected a positive size"),
             (["--workdir", str(coarse), "--strategy", "rollout", "--frames", "17", "--device-memory", "8GiB"],
              "--device-memory: not an option of strategy 'rollout'")):
         assert cli(["sample", *bad, "--out", str(tmp_path / "bad")]) == 2

@@ -4,7 +4,8 @@ against before anything runs (``jaxdrive sample --device-memory``).
 The budget is per device. Given, it is taken as it is; otherwise on a GPU/TPU it is what the
 device reports free (``memory_stats()``: ``bytes_limit - bytes_in_use``, the smallest over the
 process's devices) plus what the caller says it already holds there and counts again (the
-params a program takes as arguments). A CPU reports nothing: its budget is
+params a program takes as arguments), times :data:`DEVICE_FRACTION` (the allocator's
+fragmentation and what the next program, a VAE decode, holds beside it need room). A CPU reports nothing: its budget is
 :data:`CPU_HOST_FRACTION` of the host's memory shared among its devices, and it is not a hard
 limit (``strict`` False): a caller that can split its work finely should, on a CPU, since a CPU
 runs a batched call about as fast as its members one by one (``jaxdrive bench longvideo``).
@@ -18,8 +19,9 @@ import re
 import jax
 
 CPU_HOST_FRACTION = 0.25
-_UNITS = {"": 1, "B": 1, "KB": 10**3, "MB": 10**6, "GB": 10**9, "TB": 10**12,
-          "KIB": 2**10, "MIB": 2**20, "GIB": 2**30, "TIB": 2**40}
+DEVICE_FRACTION = 0.9
+UNITS = {"": 1, "b": 1, "kb": 10 ** 3, "mb": 10 ** 6, "gb": 10 ** 9, "tb": 10 ** 12,
+         "kib": 2 ** 10, "mib": 2 ** 20, "gib": 2 ** 30, "tib": 2 ** 40}
 
 
 def footprint_bytes(compiled) -> int | None:
@@ -34,21 +36,15 @@ def footprint_bytes(compiled) -> int | None:
 
 
 def parse_bytes(text, name: str = "--device-memory") -> int:
-    """``"16GiB"``, ``"512MiB"``, ``"8e9"``, ``8000000000`` -> bytes (a positive int);
-    ``ValueError`` naming ``name`` otherwise."""
-    if isinstance(text, bool):
-        raise ValueError(f"{name}: expected a byte count like 16GiB or 512MiB, got {text!r}")
-    if isinstance(text, (int, float)):
-        value = float(text)
-    else:
-        m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][0-9]+)?)\s*([A-Za-z]*)\s*", str(text))
-        unit = m.group(2).upper() if m else None
-        if m is None or unit not in _UNITS:
-            raise ValueError(f"{name}: expected a byte count like 16GiB, 512MiB or 8e9, got {text!r}")
-        value = float(m.group(1)) * _UNITS[unit]
-    if not value >= 1:
-        raise ValueError(f"{name}: expected at least 1 byte, got {text!r}")
-    return int(value)
+    """``"80GiB"``, ``"16GB"``, ``"512MiB"``, ``"1e9"`` (or a number of bytes) -> bytes, a positive
+    int; ``ValueError`` naming ``name`` otherwise."""
+    m = None if isinstance(text, bool) else re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:e[0-9]+)?)\s*([a-z]*)\s*",
+                                                          str(text), re.IGNORECASE)
+    unit = m and m.group(2).lower()
+    if not m or unit not in UNITS or float(m.group(1)) * UNITS[unit] < 1:
+        raise ValueError(f"{name}: expected a positive size like 80GiB, 16GB or 512MiB (units "
+                         f"{', '.join(u for u in UNITS if u)}), got {text!r}")
+    return int(float(m.group(1)) * UNITS[unit])
 
 
 def host_memory_bytes() -> int:
@@ -69,6 +65,6 @@ def device_budget(device_memory=None, *, counted_bytes: int = 0) -> tuple[int, s
     stats = [s for s in stats if s and "bytes_limit" in s]
     if stats:
         free = min(int(s["bytes_limit"]) - int(s.get("bytes_in_use", 0)) for s in stats)
-        return free + int(counted_bytes), "free device memory", True
+        return int(DEVICE_FRACTION * (free + int(counted_bytes))), f"{DEVICE_FRACTION:g} of free device memory", True
     share = int(host_memory_bytes() * CPU_HOST_FRACTION / max(len(devices), 1))
     return share, f"CPU: {CPU_HOST_FRACTION:g} of host memory over {len(devices)} devices", False

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import re
 import time
 
 import jax
@@ -43,21 +42,10 @@ import numpy as np
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from jaxdrive.parallel.memory import parse_bytes  # noqa: F401  (the planner's sizes: jaxdrive plan, bench train)
 from jaxdrive.parallel.mesh import MESH_AXES, parse_mesh_spec
 
-UNITS = {"": 1, "b": 1, "kb": 10 ** 3, "mb": 10 ** 6, "gb": 10 ** 9, "tb": 10 ** 12,
-         "kib": 2 ** 10, "mib": 2 ** 20, "gib": 2 ** 30, "tib": 2 ** 40}
 STATE_PARTS = ("params", "opt_state", "ema")
-
-
-def parse_bytes(text, name: str = "--device-memory") -> int:
-    """``"80GiB"``, ``"16GB"``, ``"512MiB"``, ``"1e9"`` -> bytes (``ValueError`` naming ``name``)."""
-    m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:e[0-9]+)?)\s*([a-z]*)\s*", str(text), re.IGNORECASE)
-    unit = m and m.group(2).lower()
-    if not m or unit not in UNITS or float(m.group(1)) <= 0:
-        raise ValueError(f"{name}: expected a positive size like 80GiB, 16GB or 512MiB (units "
-                         f"{', '.join(u for u in UNITS if u)}), got {text!r}")
-    return int(float(m.group(1)) * UNITS[unit])
 
 
 def parse_mesh(spec, devices: int | None = None, name: str = "--mesh") -> dict[str, int]:
@@ -123,9 +111,11 @@ def abstract_codec(latents):
     if latents.source != "vae":
         return LatentCodec.from_config(latents), latents.source
     if (Path(latents.vae_path) / MODEL_FILE).is_file():
-        vae, what = load_pretrained_model(latents.vae_path, mode=latents.vae_mode), latents.vae_path
+        vae = load_pretrained_model(latents.vae_path, mode=latents.vae_mode, frame_wise_batch=latents.vae_frame_batch)
+        what = latents.vae_path
     else:
-        vae, what = CausalVAE(VAEConfig(mode=latents.vae_mode)), f"CogVideoX-2B ({latents.vae_path!r} has none)"
+        vae = CausalVAE(VAEConfig(mode=latents.vae_mode, frame_wise_batch=latents.vae_frame_batch))
+        what = f"CogVideoX-2B ({latents.vae_path!r} has none)"
     params = jax.eval_shape(vae.init, jax.random.PRNGKey(0))
     return LatentCodec("vae", 1, 1.0, vae, params), f"vae {what}"
 
