@@ -65,7 +65,8 @@ class LatentConfig:
     """Where the DiT's latents come from.
 
     ``"vae"``: a saved jaxdrive VAE (``vae_path``, see ``jaxdrive convert vae``), encoding on the
-    fly in ``vae_mode``. ``"space_to_depth"``: frame-wise pixel latents, each ``factor x factor``
+    fly in ``vae_mode`` (``"frame_wise"``: ``vae_frame_batch`` frames of every clip at a time, the
+    VAE's ``frame_wise_batch``, which bounds the step's encoder temporaries; 0: all at once). ``"space_to_depth"``: frame-wise pixel latents, each ``factor x factor``
     patch folded into channels (exact and parameter-free: the CPU demo uses it so that it needs no
     VAE training).
 
@@ -76,6 +77,7 @@ class LatentConfig:
     source: str = "space_to_depth"
     vae_path: str = ""
     vae_mode: str = "chunked"
+    vae_frame_batch: int = 0          # vae_mode frame_wise: frames of each clip encoded per step (0: all at once)
     factor: int = 4
     scale: float = 1.0                # space_to_depth latents are multiplied by this (a VAE uses its scaling factor)
     precomputed: bool = False

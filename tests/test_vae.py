@@ -130,6 +130,26 @@ def test_frame_wise_mode_encodes_each_frame_alone(tiny):
         np.testing.assert_allclose(z[:, f:f + 1], vae.encode(params, x[:, f:f + 1]), rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.parametrize("k", [1, 3])
+def test_frame_wise_mode_in_groups_of_frames_equals_all_at_once_and_holds_less(tiny, k):
+    """``frame_wise_batch`` k: k frames of every clip per ``lax.map`` step (the chunked encode of
+    MiLA's train step): the same latents and video, sharded as before, with the temporaries of k
+    frames (7 frames: not a multiple of 3, the remainder is a step of its own)."""
+    vae, params = tiny
+    grouped = CausalVAE(VAEConfig(**{**TINY.__dict__, "mode": "frame_wise", "frame_wise_batch": k}))
+    whole = CausalVAE(VAEConfig(**{**TINY.__dict__, "mode": "frame_wise"}))
+    x = _video((2, 3, 7, 16, 16, 3), seed=3)
+    z = whole.encode(params, x)
+    np.testing.assert_allclose(grouped.encode(params, x), z, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(grouped.decode(params, z), whole.decode(params, z), rtol=1e-5, atol=1e-5)
+    mesh = make_mesh(data=2, fsdp=1, devices=jax.devices()[:2])
+    with jax.set_mesh(mesh):
+        zs = grouped.encode(params, jax.device_put(x, NamedSharding(mesh, P("data"))))
+    np.testing.assert_allclose(zs, z, rtol=1e-5, atol=1e-6)
+    temp = lambda m: jax.jit(m.encode).lower(params, x).compile().memory_analysis().temp_size_in_bytes
+    assert temp(grouped) < 0.6 * temp(whole)
+
+
 def test_views_fold_into_the_batch_and_shard(tiny):
     """[B, V, F, H, W, 3] equals encoding each view alone; on a data=2 x fsdp=4 mesh, encode and
     decode give the single-device numbers with the folded batch sharded over both axes."""
@@ -193,6 +213,7 @@ def test_bad_values_and_arguments(tiny):
     (dict(block_out_channels=(8, 10, 16)), "block_out_channels: expected multiples of norm_num_groups 4"),
     (dict(encode_chunk_frames=6), "encode_chunk_frames: expected a multiple of temporal_compression 4"),
     (dict(mode="stream"), "mode: expected one of"),
+    (dict(frame_wise_batch=-1), r"frame_wise_batch: expected frames per step >= 0 \(0: all at once\), got -1"),
     (dict(layers_per_block=0), "layers_per_block: expected an integer >= 1"),
 ])
 def test_bad_config(changes, match):

@@ -20,6 +20,9 @@ Modes (``config.mode``, or the ``mode=`` argument):
 - ``"whole"``: the whole clip in one pass. GroupNorm takes its statistics over time, so this
   differs from ``"chunked"`` (on the order of 0.1-0.3 on a random model).
 - ``"frame_wise"``: every frame is its own one-frame clip (LongDWM's Coarse DiT), ``F -> F``.
+  All frames of all clips go through at once, or, with ``frame_wise_batch`` k, k frames of every
+  clip at a time in a ``lax.map``, so the temporaries are those of k frames (MiLA's step encodes
+  4 clips x 6 views x 16 frames per device on the fly: 126 GiB at once). Equal either way.
 
 A video generated part by part decodes as its latents come, equal to the whole-clip decode, with
 :mod:`jaxdrive.models.vae_stream` (``"chunked"`` and ``"frame_wise"`` only).
@@ -67,6 +70,7 @@ class VAEConfig:
     mode: str = "chunked"
     encode_chunk_frames: int = 8
     decode_chunk_latents: int = 2
+    frame_wise_batch: int = 0       # frame_wise mode: frames of each clip per lax.map step (0: all at once)
     tiling: bool = False
     tile_sample_height: int = 240
     tile_sample_width: int = 360
@@ -91,6 +95,10 @@ class VAEConfig:
             raise ValueError(f"temporal_compression: expected a power of 2 up to "
                              f"{2 ** (len(self.block_out_channels) - 1)} (one level per downsampling "
                              f"block), got {self.temporal_compression}")
+        if isinstance(self.frame_wise_batch, bool) or not isinstance(self.frame_wise_batch, int) \
+                or self.frame_wise_batch < 0:
+            raise ValueError(f"frame_wise_batch: expected frames per step >= 0 (0: all at once), "
+                             f"got {self.frame_wise_batch!r}")
         if self.encode_chunk_frames % self.temporal_compression:
             raise ValueError(f"encode_chunk_frames: expected a multiple of temporal_compression "
                              f"{self.temporal_compression}, got {self.encode_chunk_frames}")
@@ -358,6 +366,8 @@ class CausalVAE:
         c = self.config
         module, chunk, tile_key = ((Encoder3D(c), c.encode_chunk_frames, "tile_sample") if kind == "encode"
                                    else (Decoder3D(c), c.decode_chunk_latents, "tile_latent"))
+        if mode == "frame_wise" and 0 < c.frame_wise_batch < x.shape[1]:
+            return self._frame_groups(kind, params, x, tiled)
         if mode == "frame_wise":
             # one merge / split at a time: under an Explicit mesh the clips' axis stays sharded
             out = self._run(kind, params, merge(x, 0)[:, None], "whole", tiled)
@@ -367,6 +377,20 @@ class CausalVAE:
         run = (lambda t: apply(t, None)[0]) if mode == "whole" else (lambda t: _run_chunks(apply, t, chunk))
         geo = self._tiles(x, tile_key, tiled)
         return run(x) if geo is None else _tiled(run, x, *geo, kind)
+
+    def _frame_groups(self, kind: str, params, x, tiled: bool):
+        """Frame-wise ``x [N, F, ...]`` in groups of ``frame_wise_batch`` k frames of every clip, one
+        group per ``lax.map`` step (the remainder a step of its own): the temporaries of k frames.
+        The groups are a leading axis split off the frames, not a vmap, so the clips' axis keeps
+        its sharding under an Explicit mesh."""
+        k = self.config.frame_wise_batch
+        n, frames = x.shape[:2]
+        g = frames // k
+        each = lambda t: self._run(kind, params, t, "frame_wise", tiled)     # t [N, k, ...]: all at once
+        groups = jnp.moveaxis(x[:, :g * k], 1, 0).reshape(g, k, n, *x.shape[2:])
+        out = jax.lax.map(lambda t: jnp.moveaxis(each(jnp.moveaxis(t, 0, 1)), 1, 0), groups)   # [g, k, N, ...]
+        out = jnp.moveaxis(out.reshape(g * k, *out.shape[2:]), 0, 1)
+        return out if frames == g * k else jnp.concatenate([out, each(x[:, g * k:])], axis=1)
 
     def _tiles(self, x, tile_key: str, tiled: bool):
         """``(geometry of height, of width)`` when ``x [N, T, H, W, C]`` is tiled, else None: with
