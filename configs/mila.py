@@ -27,7 +27,9 @@ embeddings by one pattern, which matches ``boxes_embed`` / ``boxes_null`` when t
 Where it differs, deliberately: latents are the CogVideoX VAE in frame-wise mode (MiLA's STDiT-2
 uses a per-frame image VAE; a causal 3D VAE cannot compress frames of mixed rates, and coarse
 anchors are single frames); JDC's g(t) is ``slope * sigma`` with slope 0.5 and alpha1 = 0.1 (the
-paper gives neither constant). Each stage starts from the previous one with ``--set train.init_from=RUN_OF_STAGE_N-1``.
+paper gives neither constant); memory settings the paper does not give: full rematerialisation
+and the frame-wise encode one frame of every clip per step (``latents.vae_frame_batch``), so a
+step of 4 clips a device fits 80 GiB at fsdp 8 (README, "Will it fit?"). Each stage starts from the previous one with ``--set train.init_from=RUN_OF_STAGE_N-1``.
 
 Set ``data.path``, ``latents.vae_path`` and ``data.text_embeddings`` for your data (paper size).
 """
@@ -50,13 +52,16 @@ GUIDANCE = 3.0                  # appendix B, Inference: "a fixed classifier-fre
 
 
 def _paper(stage: int) -> Config:
-    model = preset("mila", in_channels=16, vae_spatial=8, vae_temporal=1, remat="dots", scan_layers=False,
+    # full rematerialisation and the frame-wise encode one frame of every clip at a time: with
+    # remat "dots" (380 GiB as "dots_no_batch") or the whole encode (161 GiB) 4 clips a device at
+    # fsdp 8 fit no 80 GiB device; as set, 62 GiB (jaxdrive plan, README "Will it fit?")
+    model = preset("mila", in_channels=16, vae_spatial=8, vae_temporal=1, remat="full", scan_layers=False,
                    controls=dict(camera=True, waypoints=True, cond_frames="replace", fps=True,
                                  frame_time=stage >= 2))
     return Config(
         model=model,
         data=DataConfig(path="data/nuscenes", frames=16, height=256, width=448, views=6, batch_size=32, threads=8),
-        latents=LatentConfig(source="vae", vae_path="runs/cogvideox_vae", vae_mode="frame_wise"),
+        latents=LatentConfig(source="vae", vae_path="runs/cogvideox_vae", vae_mode="frame_wise", vae_frame_batch=1),
         flow=FlowConfig(shift=0.0, cond_frames=4, cond_frames_random=False, tpd=True),
         optim=OptimConfig(lr=1e-4, warmup_steps=1000, ema_decay=0.9999, weight_decay=0.0),
         train=TrainConfig(steps={1: 2_000, 2: 20_000, 3: 8_000}[stage], log_every=50, checkpoint_every=1000,
