@@ -277,3 +277,31 @@ def test_a_scanned_stage_1_model_loads_into_stage_2_with_its_outputs_unchanged()
     past = jnp.ones((1, 2, (H // 2) * (W // 2), 2, cfg.width))
     for cond in (ex["cond"], ex["cond"].replace(features={1: past}, features_mask=jnp.ones((1, 2), bool))):
         np.testing.assert_allclose(stage2.forward(p2, ex["latents"], ex["sigma"], cond), want, rtol=1e-6, atol=1e-6)
+
+
+def test_the_stage_3_step_holds_each_model_pass_once_whatever_the_depth():
+    """The step's passes (self-rollout, feature pass, gradient window) loop in ``lax.scan`` and,
+    with scanned layers (``configs/stage.py`` at paper size), hold each layer run once: the
+    lowered program's matmuls do not grow with the depth (unrolled, each pass held every layer's)."""
+    from pathlib import Path
+    from jaxdrive.config import load_config
+    from jaxdrive.train import stream_step
+    config = Path(__file__).resolve().parents[1] / "configs" / "stage.py"
+    assert all(load_config(f"{config}:stage={s}").model.scan_layers for s in (1, 2, 3))
+    stream = StreamConfig(enabled=True, buffer=BUFFER, taps=TAPS, self_rollout=True, rollout_steps=2)
+    nf = 6
+    _, controls = horizon_inputs(nf, given=1)
+    x = jax.ShapeDtypeStruct((1, 2, nf, H, W, C), jnp.float32)
+
+    def size(depth):
+        cfg = preset("tiny", depth=depth, in_channels=C, vae_spatial=4, vae_temporal=1, patch=(1, 2, 2),
+                     prediction="data", htft_layers=(0,), scan_layers=True,
+                     controls=dict(waypoints=True, fps=True, cond_frames="replace", reference_frame="residual"))
+        dit = DiT(cfg)
+        params = nn.unbox(dit.init_params(0, batch=1, views=2, frames=3, height=H, width=W))
+        training = _training(WindowModel(dit, None, window=3, cond_frames=1, steps=2, streaming=True,
+                                         stream_buffer=BUFFER, stream_taps=TAPS), stream)
+        grad = jax.grad(lambda p, x: stream_step.stream_loss_fn(training, p, x, {"cond": controls},
+                                                                jax.random.key(0))[0])
+        return jax.jit(grad).lower(params, x).as_text().count("stablehlo.dot_general")
+    assert size(5) == size(3)

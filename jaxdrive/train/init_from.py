@@ -14,10 +14,10 @@ that the source has takes the source's value, placed with the new parameter's sh
 source lacks keeps the new run's initialisation (a module added in a later stage); a shape that
 differs is a ``ValueError`` naming the parameter and both shapes. Layers are matched one by one
 across scanned runs (``layers_0_13``: layers 0 .. 12 stacked) and unrolled layers (``layers_13``),
-so a stage may split or join the source's runs (STAGE's stage 2 adds an HTFT layer inside a run). ``name_map`` renames source paths
-first: ``"regex=replacement"`` entries (``re.sub``, applied in order), for layouts that moved. The
-source is read into the target of ``jax.eval_shape`` with the new mesh's shardings, never into a
-freshly initialised copy.
+so a stage may split or join the source's runs (STAGE's stage 2 adds an HTFT layer inside a run).
+``name_map`` renames source paths first: ``"regex=replacement"`` entries (``re.sub``, applied in
+order), for layouts that moved. The source is read into the target of ``jax.eval_shape`` with the
+new mesh's shardings, never into a freshly initialised copy.
 """
 
 from __future__ import annotations
