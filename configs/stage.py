@@ -64,7 +64,10 @@ HTFT_TRAINABLE = ("htft_",)          # stage 2: only the HTFT modules' parameter
 
 
 def _paper(stage: int) -> Config:
-    model = preset("stdit3-xl/2", in_channels=16, vae_spatial=8, vae_temporal=1, remat="dots", scan_layers=False,
+    # scanned layers: the step runs the model in the stage-3 rollout, the feature pass and the
+    # gradient window, and 28 + 13 (ControlNet) unrolled layers in each made its compile take
+    # over 15 minutes; init_from moves the layers between the runs the HTFT layer splits
+    model = preset("stdit3-xl/2", in_channels=16, vae_spatial=8, vae_temporal=1, remat="dots", scan_layers=True,
                    controls=dict(camera=True, boxes=True, map=True, map_blocks=13, cond_frames="replace", fps=True))
     return Config(
         model=model,

@@ -94,6 +94,26 @@ def test_the_name_map_renames_source_paths():
         merge_params(new, source, name_map=("layers",))
 
 
+def test_layers_move_between_scanned_runs_of_other_bounds_and_unrolled_layers():
+    # STAGE stage 2 adds an HTFT layer after layer 1, which splits the scanned run 0..3 in two
+    layer = lambda i: np.full((2, 3), i, np.float32)
+    source = {"layers_0_4": {"kernel": np.stack([layer(i) for i in range(4)])}, "head": {"bias": np.ones(3, np.float32)}}
+    new = {"layers_0_2": {"kernel": np.zeros((2, 2, 3), np.float32)}, "layers_2": {"kernel": np.zeros((2, 3), np.float32)},
+           "layers_3_5": {"kernel": np.zeros((2, 2, 3), np.float32)}, "head": {"bias": np.zeros(3, np.float32)}}
+    merged, report = merge_params(new, source)
+    np.testing.assert_array_equal(merged["layers_0_2"]["kernel"], np.stack([layer(0), layer(1)]))
+    np.testing.assert_array_equal(merged["layers_2"]["kernel"], layer(2))
+    # a run the source has only part of (layer 4) keeps its initialisation
+    np.testing.assert_array_equal(merged["layers_3_5"]["kernel"], 0.0)
+    assert report.loaded == ("layers_0_2/kernel", "layers_2/kernel", "head/bias")
+    assert report.kept == ("layers_3_5/kernel",) and report.unused == ()
+    # and back: unrolled layers into a scanned run
+    unrolled = {f"layers_{i}": {"kernel": layer(i)} for i in range(4)}
+    merged, report = merge_params({"layers_1_4": {"kernel": np.zeros((3, 2, 3), np.float32)}}, unrolled)
+    np.testing.assert_array_equal(merged["layers_1_4"]["kernel"], np.stack([layer(i) for i in (1, 2, 3)]))
+    assert report.unused == ("layers_0/kernel",)
+
+
 def test_bad_sources_fail_before_compiling(dataset, tmp_path):
     with pytest.raises(ValueError, match=r"train.init_from: expected a run directory .* \(not a directory\)"):
         Run(config(dataset, f"train.init_from={tmp_path / 'missing'}"))

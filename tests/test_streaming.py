@@ -252,3 +252,56 @@ def test_guidance_evaluates_both_variants_with_the_same_past():
     plain = np.concatenate(list(S.run_strategy("streaming", S.Models(dataclasses.replace(m, guidance=1.0)), controls,
                                                first, 5, key=key)), axis=2)
     assert np.isfinite(guided).all() and float(np.abs(guided[:, :, 1:] - plain[:, :, 1:]).max()) > 1e-3
+
+
+def test_a_scanned_stage_1_model_loads_into_stage_2_with_its_outputs_unchanged():
+    """``configs/stage.py`` scans its layers (28 + 13 unrolled ones in each of the step's model
+    passes made its compile take over 15 minutes): stage 2's HTFT layer splits stage 1's scanned run
+    in two, and ``train.init_from`` moves the layers across; HTFT's zero output layer then leaves
+    the stage-1 outputs as they were, past features or not."""
+    from dit_fixtures import perturb
+    from jaxdrive.models.dit_inputs import example_inputs
+    from jaxdrive.train.init_from import merge_params
+    cfg = preset("tiny", depth=4, in_channels=C, vae_spatial=4, vae_temporal=1, patch=(1, 2, 2), prediction="data",
+                 scan_layers=True)
+    stage1, stage2 = DiT(cfg), DiT(cfg.replace(htft_layers=(1,)))
+    init = lambda dit: jax.tree_util.tree_map(jnp.asarray, nn.unbox(dit.init_params(0, batch=1, views=2, frames=3,
+                                                                                    height=H, width=W)))
+    p1 = perturb(init(stage1))
+    p2, report = merge_params(init(stage2), p1)
+    assert "layers_0_4" in p1
+    assert {"layers_0_2", "layers_2_4"} <= set(p2) and all(k.startswith("htft_") for k in report.kept)
+    assert report.unused == ()
+    ex = example_inputs(cfg, batch=1, views=2, frames=3, height=H, width=W)
+    want = stage1.forward(p1, ex["latents"], ex["sigma"], ex["cond"])
+    past = jnp.ones((1, 2, (H // 2) * (W // 2), 2, cfg.width))
+    for cond in (ex["cond"], ex["cond"].replace(features={1: past}, features_mask=jnp.ones((1, 2), bool))):
+        np.testing.assert_allclose(stage2.forward(p2, ex["latents"], ex["sigma"], cond), want, rtol=1e-6, atol=1e-6)
+
+
+def test_the_stage_3_step_holds_each_model_pass_once_whatever_the_depth():
+    """The step's passes (self-rollout, feature pass, gradient window) loop in ``lax.scan`` and,
+    with scanned layers (``configs/stage.py`` at paper size), hold each layer run once: the
+    lowered program's matmuls do not grow with the depth (unrolled, each pass held every layer's)."""
+    from pathlib import Path
+    from jaxdrive.config import load_config
+    from jaxdrive.train import stream_step
+    config = Path(__file__).resolve().parents[1] / "configs" / "stage.py"
+    assert all(load_config(f"{config}:stage={s}").model.scan_layers for s in (1, 2, 3))
+    stream = StreamConfig(enabled=True, buffer=BUFFER, taps=TAPS, self_rollout=True, rollout_steps=2)
+    nf = 6
+    _, controls = horizon_inputs(nf, given=1)
+    x = jax.ShapeDtypeStruct((1, 2, nf, H, W, C), jnp.float32)
+
+    def size(depth):
+        cfg = preset("tiny", depth=depth, in_channels=C, vae_spatial=4, vae_temporal=1, patch=(1, 2, 2),
+                     prediction="data", htft_layers=(0,), scan_layers=True,
+                     controls=dict(waypoints=True, fps=True, cond_frames="replace", reference_frame="residual"))
+        dit = DiT(cfg)
+        params = nn.unbox(dit.init_params(0, batch=1, views=2, frames=3, height=H, width=W))
+        training = _training(WindowModel(dit, None, window=3, cond_frames=1, steps=2, streaming=True,
+                                         stream_buffer=BUFFER, stream_taps=TAPS), stream)
+        grad = jax.grad(lambda p, x: stream_step.stream_loss_fn(training, p, x, {"cond": controls},
+                                                                jax.random.key(0))[0])
+        return jax.jit(grad).lower(params, x).as_text().count("stablehlo.dot_general")
+    assert size(5) == size(3)

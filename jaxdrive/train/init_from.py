@@ -12,10 +12,12 @@ EMA parameters by default, the raw ones with ``ema=False``) or a diffusers
 Parameters are matched by their path (``"layers_0/attn/to_q/kernel"``): a path of the new model
 that the source has takes the source's value, placed with the new parameter's sharding; one the
 source lacks keeps the new run's initialisation (a module added in a later stage); a shape that
-differs is a ``ValueError`` naming the parameter and both shapes. ``name_map`` renames source paths
-first: ``"regex=replacement"`` entries (``re.sub``, applied in order), for layouts that moved. The
-source is read into the target of ``jax.eval_shape`` with the new mesh's shardings, never into a
-freshly initialised copy.
+differs is a ``ValueError`` naming the parameter and both shapes. Layers are matched one by one
+across scanned runs (``layers_0_13``: layers 0 .. 12 stacked) and unrolled layers (``layers_13``),
+so a stage may split or join the source's runs (STAGE's stage 2 adds an HTFT layer inside a run).
+``name_map`` renames source paths first: ``"regex=replacement"`` entries (``re.sub``, applied in
+order), for layouts that moved. The source is read into the target of ``jax.eval_shape`` with the
+new mesh's shardings, never into a freshly initialised copy.
 """
 
 from __future__ import annotations
@@ -94,6 +96,54 @@ def source_params(path, *, mesh, ema: bool = True, target_model=None) -> dict:
     return state.ema if ema and state.ema is not None else state.params
 
 
+# a scanned run of layers ``start .. end - 1`` (``nn.scan``, params stacked on a leading axis):
+# "layers_13_28/attn/to_q/kernel"; one layer of an unrolled stack or a scanned one: "layers_13/..."
+_RUN = re.compile(r"^(?P<prefix>[A-Za-z]\w*?)_(?P<start>\d+)_(?P<end>\d+)(?P<rest>/.*)$")
+_LAYER = re.compile(r"^(?P<prefix>[A-Za-z]\w*?)_(?P<index>\d+)(?P<rest>/.*)$")
+
+
+def _layer_pieces(src_flat) -> dict:
+    """``{"layers_i/rest": (run name, i - start)}`` for every layer of the source's scanned runs."""
+    pieces = {}
+    for name, value in src_flat.items():
+        m = _RUN.match(name)
+        if m is None:
+            continue
+        start, end = int(m["start"]), int(m["end"])
+        if np.ndim(value) == 0 or np.shape(value)[0] != end - start:
+            continue
+        for i in range(start, end):
+            pieces[f"{m['prefix']}_{i}{m['rest']}"] = (name, i - start)
+    return pieces
+
+
+def _source_value(name, src_flat, pieces):
+    """``(value, source names read)`` of the new parameter ``name``: the source's of that name, else
+    assembled layer by layer, so a stack of layers moves between scanned runs of other bounds and
+    unrolled layers (STAGE stage 2 adds an HTFT layer, which splits a scanned run in two);
+    ``(None, ())`` where the source lacks a layer of it."""
+    if name in src_flat:
+        return src_flat[name], (name,)
+
+    def layer(key):
+        if key in src_flat:
+            return src_flat[key], key
+        if key in pieces:
+            run, i = pieces[key]
+            return src_flat[run][i], run
+        return None, None
+    m = _RUN.match(name)
+    if m is None:
+        value, src = layer(name) if _LAYER.match(name) else (None, None)
+        return (value, (src,)) if value is not None else (None, ())
+    got = [layer(f"{m['prefix']}_{i}{m['rest']}") for i in range(int(m["start"]), int(m["end"]))]
+    if any(v is None for v, _ in got):
+        return None, ()
+    values = [v for v, _ in got]
+    stack = np.stack if all(isinstance(v, np.ndarray) for v in values) else jax.numpy.stack
+    return stack(values), tuple(src for _, src in got)
+
+
 def merge_params(new_params, source, *, name_map=(), source_name: str = "source"):
     """``(params, report)``: ``new_params`` (a nested dict of arrays) with every parameter the
     ``source`` (nested dict) has under the same path, after ``name_map``, replaced by the
@@ -107,13 +157,15 @@ def merge_params(new_params, source, *, name_map=(), source_name: str = "source"
             raise ValueError(f"train.init_map: expected distinct parameter names after renaming, got two source "
                              f"parameters named {name!r}")
         src_flat[name] = v
-    out, loaded, kept = {}, [], []
+    pieces = _layer_pieces(src_flat)
+    out, loaded, kept, used = {}, [], [], set()
     for name, leaf in new_flat.items():
-        if name not in src_flat:
+        value, names = _source_value(name, src_flat, pieces)
+        if value is None:
             out[name] = leaf
             kept.append(name)
             continue
-        value = src_flat[name]
+        used.update(names)
         if tuple(np.shape(value)) != tuple(leaf.shape):
             raise ValueError(f"train.init_from: parameter {name!r}: expected shape {list(leaf.shape)} (the new "
                              f"model), got {list(np.shape(value))} in {source_name}")
@@ -121,7 +173,7 @@ def merge_params(new_params, source, *, name_map=(), source_name: str = "source"
         value = np.asarray(value, leaf.dtype) if isinstance(value, np.ndarray) else value.astype(leaf.dtype)
         out[name] = jax.device_put(value, sharding) if sharding is not None else jax.numpy.asarray(value)
         loaded.append(name)
-    unused = sorted(set(src_flat) - set(new_flat))
+    unused = sorted(set(src_flat) - used)
     if not loaded:
         raise ValueError(f"train.init_from: expected parameters of the new model in {source_name}, found none of "
                          f"its {len(new_flat)} names (e.g. {sorted(new_flat)[:3]}; the source has e.g. "
