@@ -484,7 +484,9 @@ def run(presets, *, batch: int, frames: int, height: int, width: int, repeats: i
         figure(BENCH, "achieved_tflops", None if achieved is None else round(achieved, 6), "TFLOP/s", **ctx)
         row = dict(model=ctx["model"], impl=impl, params=r["params"], tokens=r["video_tokens"],
                    compile_s=round(r["compile_s"], 1) if "compile_s" in r else "", step_ms=round(1e3 * r["step_s"], 1),
-                   tokens_per_s=round(tps), tflops=None if achieved is None else float(f"{achieved:.4g}"),
+                   # 4 significant digits, not a whole number: a tiny model's few tokens/s would lose the
+                   # precision its ratio_to_torch is computed with
+                   tokens_per_s=float(f"{tps:.4g}"), tflops=None if achieved is None else float(f"{achieved:.4g}"),
                    preset=ctx["preset"], busy_cpus=ctx.get("busy_cpus"), **base)
         if "torch_threads" in ctx:
             row["torch_threads"] = ctx["torch_threads"]
