@@ -171,6 +171,29 @@ def test_without_an_intersection_in_reach_a_turn_starts_where_the_clip_is_with_o
     assert caught == []
 
 
+
+def test_a_turn_that_drives_beyond_the_scene_map_still_runs_with_one_warning(tmp_path):
+    """The map reaches 50 m from the recorded path: a turn at 12 m/s for 8 s leaves it up the cross
+    street. A named manoeuvre always runs (with its map controls blank there); a file does not."""
+    sample, clip = _town([20.0])
+    route = load_route("left turn 12 m/s", duration=(FRAMES - 1) / FPS)
+    poses, drive, warned = _drive(route, sample, clip)
+    assert drive["start_at"] == "intersection" and drive["off_road"] is False
+    beyond = drive["beyond_map_from"]
+    assert 50.0 < beyond["y"] < 50.0 + 12.0 / FPS + 1.0        # ~50 m from the recorded path (ego frame)
+    assert beyond["frame"] == int(np.argmax(poses[:, 1, 3] - (-1.75) > 50.0))
+    assert _on_road_truth(poses[:beyond["frame"]].astype(np.float64), [20.0]).all()
+    assert len(warned) == 1 and f"beyond the scene's map (the BEV maps the clip recorded) from frame {beyond['frame']}" \
+        in str(warned[0].message)
+    on_map, drive, warned = _drive(load_route("left turn", duration=3.0), *_town([20.0], frames=37))
+    assert drive["beyond_map_from"] is None and warned == []
+    far = tmp_path / "far.csv"                        # the same path as a file is refused, unless allowed
+    np.savetxt(far, poses[::8, :2, 3] - poses[0, :2, 3], delimiter=",", header="x,y", comments="")
+    with pytest.raises(ValueError, match=rf"route {far} row \d+: expected a point on the scene's map"):
+        _drive(load_route(str(far), duration=(FRAMES - 1) / FPS), sample, clip)
+    _, drive, warned = _drive(load_route(str(far), duration=(FRAMES - 1) / FPS), sample, clip, allow_off_road=True)
+    assert drive["beyond_map_from"] is not None and len(warned) == 1
+
 def _off_road_file(tmp_path):
     path = tmp_path / "into_the_buildings.csv"      # straight on, then across the verge at about 20 m
     path.write_text("x,y,t\n0,0,0\n10,0,1\n20,12,2\n30,24,3\n")

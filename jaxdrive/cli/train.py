@@ -272,8 +272,9 @@ def add_commands(sub) -> None:
                                         "'left turn', 'right turn', 'stop'; a turn starts at the next "
                                         "intersection on the scene's map within the frames generated")
     sample.add_argument("--allow-off-road", action="store_true",
-                        help="drive a --route file even where it leaves the road of the scene's map (refused "
-                             "otherwise when more than a few metres of it are off the road)")
+                        help="drive a --route file even where it leaves the road of the scene's map or the map "
+                             "itself (refused otherwise when more than a few metres of it are off the road, or "
+                             "any point is beyond the map)")
     sample.add_argument("--predictor", help="a run of configs/predictor.py: predicts the controls past the end of "
                                             "the clip's recorded ones (--frames may exceed the clip), and the other "
                                             "agents along a --route")

@@ -18,7 +18,9 @@ pose per frame (:func:`jaxdrive.warp.trajectory_poses`, LongDWM appendix A.1). B
 On the scene's map (:func:`drive_on_map`, what ``jaxdrive sample --route`` runs for each clip):
 a turn starts at the next intersection ahead, the first place within the frames generated where
 the ego, driving straight on, can turn with the whole arc on the road; with none in reach it turns
-where the clip is, as the manoeuvre alone says, with one warning. A route file whose path runs
+where the clip is, as the manoeuvre alone says, with one warning. A manoeuvre that drives
+beyond the seen map (a long clip, a turn off the recorded path) runs with one warning: its BEV
+map controls are blank there. A route file whose path runs
 more than :data:`OFF_ROAD_METRES` off the road is a ``ValueError`` naming the file and where it
 leaves the road, unless ``allow_off_road``. A map with no road at all (nuScenes without its map
 expansion) leaves the route unchecked, with one warning.
@@ -201,25 +203,38 @@ def load_route(spec: str, *, duration: float) -> Route:
     return load_route_file(spec)
 
 
+def _first_off_map(route: Route, start, scene, frames: int, fps: float) -> tuple[int, float] | None:
+    """The first row of ``route`` (a manoeuvre: its one row) whose point, or the path leading to
+    it, leaves the seen part of ``scene`` when driven from ``start [4, 4]``, with the first frame
+    off it; None when the whole route is on the seen map."""
+    at_rows = route.frame_times(frames, fps)
+    dense = route.poses(frames, fps)[:, :2, 3]
+    off_rows = ~scene.covers(_to_world(start, route.points))
+    off_frames = ~scene.covers(_to_world(start, dense))
+    if not (off_rows.any() or off_frames.any()):
+        return None
+    frame = int(np.argmax(off_frames)) if off_frames.any() else None
+    if off_rows.any():
+        k = int(np.argmax(off_rows))
+    else:                              # between rows: name the row the path was heading to
+        k = int(min(np.searchsorted(at_rows, frame), len(route.points) - 1))
+    if frame is None:
+        frame = int(min(np.ceil(at_rows[k]), frames - 1))
+    return k, frame
+
+
 def check_on_map(route: Route, start, scene, frames: int, fps: float) -> None:
     """``ValueError`` naming the route and its first row (a manoeuvre: the time) whose point, or the
     path leading to it, leaves the seen part of ``scene`` (a
     :class:`jaxdrive.data.scene_map.SceneMap`) when driven from the ego pose ``start [4, 4]``."""
     start = np.asarray(start, np.float64)
-    at_rows = route.frame_times(frames, fps)
-    dense = route.poses(frames, fps)[:, :2, 3]
-    pts = np.concatenate([np.asarray(route.points, np.float64), dense])
-    world = pts @ start[:2, :2].T + start[:2, 3]
-    off = ~scene.covers(world)
-    if not off.any():
+    first = _first_off_map(route, start, scene, frames, fps)
+    if first is None:
         return
-    k = int(np.argmax(off))
-    if k >= len(route.points):        # between rows: name the row the path was heading to
-        frame = k - len(route.points)
-        k = int(min(np.searchsorted(at_rows, frame), len(route.points) - 1))
+    k = first[0]
     x, y = route.points[k]
     where = (f"row {k + route.first_row}" if route.first_row is not None else
-             f"at t = {at_rows[k] / fps:.1f} s")
+             f"at t = {route.frame_times(frames, fps)[k] / fps:.1f} s")
     raise ValueError(f"route {route.source} {where}: expected a point on the scene's map (the BEV maps the clip "
                      f"recorded, about {scene.cell[0] * scene.size[0] / 2:.0f} m around its path), got ({x:.1f}, "
                      f"{y:.1f}) m beyond it: shorten the route or use a longer clip")
@@ -260,7 +275,8 @@ def _off_road(route: Route, start, scene, frames: int, fps: float, sub: int = 4)
     stretch off the road (its length, where it begins, in the first frame's ego frame), the path
     sampled ``sub`` times a frame; an off-road sample counts half of each step beside it."""
     xy = route.poses(sub * (frames - 1) + 1, sub * fps)[:, :2, 3]
-    off = ~scene.on_road(_to_world(start, xy))
+    world = _to_world(start, xy)
+    off = ~scene.on_road(world) & scene.covers(world)      # beyond the seen map is unknown, not off road
     step = np.linalg.norm(np.diff(xy, axis=0), axis=-1)
     weight = 0.5 * (off[1:].astype(float) + off[:-1])
     stretches, i = [], 0
@@ -291,8 +307,9 @@ def drive_on_map(route: Route, start, scene, frames: int, fps: float, *, allow_o
     where the manoeuvre begins), ``start_at`` ("intersection" or "clip"), ``map_checked``,
     ``off_road``, ``off_road_metres`` (the longest stretch off the road) and ``off_road_from``
     (where the path first leaves it). A file off the road for more than ``max_off_road`` metres
-    in one stretch is a ``ValueError`` unless ``allow_off_road``; a point beyond the seen map
-    always is (:func:`check_on_map`). Warnings (:class:`RouteWarning`) are given once per kind:
+    in one stretch is a ``ValueError`` unless ``allow_off_road``; so is a point beyond the seen
+    map (:func:`check_on_map`), unless ``allow_off_road`` too. A named manoeuvre always runs: beyond the map it is driven with one
+    warning, and ``beyond_map_from`` records where it left the map (None: it stayed on it). Warnings (:class:`RouteWarning`) are given once per kind:
     ``warned`` collects the kinds given (share one set across the clips of a run)."""
     start = np.asarray(start, np.float64)
     if start.shape != (4, 4) or not np.isfinite(start).all():
@@ -317,10 +334,21 @@ def drive_on_map(route: Route, start, scene, frames: int, fps: float, *, allow_o
         if lead is not None:
             route, start_at = manoeuvre(route.manoeuvre, route.speed, float(route.times[-1]), lead=lead), \
                 "intersection"
-    check_on_map(route, start, scene, frames, fps)
+    beyond = None
+    if route.manoeuvre is None and not allow_off_road:
+        check_on_map(route, start, scene, frames, fps)
+    else:                              # a manoeuvre always runs: past the seen map its BEV maps are blank
+        off_map = _first_off_map(route, start, scene, frames, fps)
+        if off_map is not None:
+            frame = off_map[1]
+            beyond = _at(frame, fps, route.poses(frames, fps)[frame, :2, 3])
+            warn("beyond map", f"route {route.source}: it drives beyond the scene's map (the BEV maps the clip "
+                               f"recorded) from frame {beyond['frame']} (t = {beyond['time']:.2f} s) at "
+                               f"({beyond['x']:.1f}, {beyond['y']:.1f}) m: the map controls are blank from there "
+                               f"and nothing says whether it stays on the road")
     begin = route.lead / route.speed * fps if route.lead else 0.0
     drive = {"start": _at(begin, fps, (route.lead, 0.0)), "start_at": start_at, "map_checked": checked,
-             "off_road": False, "off_road_metres": 0.0, "off_road_from": None}
+             "off_road": False, "off_road_metres": 0.0, "off_road_from": None, "beyond_map_from": beyond}
     if not checked:
         warn("unchecked", f"route {route.source}: unchecked: the scene's map has no road (nuScenes without its map "
                           f"expansion?), so nothing says whether the route stays on the road")
