@@ -55,9 +55,12 @@ def _paper(stage: int) -> Config:
     # full rematerialisation and the frame-wise encode one frame of every clip at a time: with
     # remat "dots" (380 GiB as "dots_no_batch") or the whole encode (161 GiB) 4 clips a device at
     # fsdp 8 fit no 80 GiB device; as set, 62 GiB (jaxdrive plan, README "Will it fit?")
-    model = preset("mila", in_channels=16, vae_spatial=8, vae_temporal=1, remat="full", scan_layers=False,
+    # scanned layers (a 28-layer unrolled step took over 12 minutes to compile, scanned 90 s), the
+    # last one a run of its own: stage 1 trains it by name (layers_27)
+    model = preset("mila", in_channels=16, vae_spatial=8, vae_temporal=1, remat="full", scan_layers=True,
                    controls=dict(camera=True, waypoints=True, cond_frames="replace", fps=True,
                                  frame_time=stage >= 2))
+    model = model.replace(scan_breaks=(model.depth - 1,))
     return Config(
         model=model,
         data=DataConfig(path="data/nuscenes", frames=16, height=256, width=448, views=6, batch_size=32, threads=8),

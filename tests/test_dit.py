@@ -240,6 +240,28 @@ def test_scan_and_remat_match_the_python_loop(dtype):
     assert max_rel(g2, g1) < tol
 
 
+
+def test_a_scan_break_gives_a_layer_its_own_name_and_changes_nothing_else():
+    """MiLA's paper config scans its layers but trains the last one by name in stage 1."""
+    from jaxdrive.models.dit_config import layer_runs
+    base = preset("tiny", depth=3)
+    broken = dataclasses.replace(base, scan_layers=True, scan_breaks=(2,))
+    assert layer_runs(broken) == [(0, 2), (2, 3)] and layer_runs(base) == [(0, 3)]
+    shapes = (("batch", 1), ("views", 2), ("frames", 2), ("height", 4), ("width", 4))
+    params = params_for(base, shapes)
+    stacked = dict(params)
+    layers = [stacked.pop(f"layers_{i}") for i in (0, 1)]
+    stacked["layers_0_2"] = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *layers)
+    assert jax.tree_util.tree_structure(stacked) == jax.tree_util.tree_structure(
+        nn.unbox(boxed_params(broken, shapes)))                  # layers_0_2 scanned, layers_2 alone
+    lat, sig, text, kw = split_inputs(example_inputs(base, **dict(shapes)))
+    a = DiT(base).forward(params, lat, sig, conditions(text, kw))
+    b = DiT(broken).forward(stacked, lat, sig, conditions(text, kw))
+    np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6)
+    for bad in [(0,), (3,)]:
+        with pytest.raises(ValueError, match=rf"scan_breaks: expected layer indices in \(0, 3\), got {bad[0]}"):
+            dataclasses.replace(base, scan_breaks=bad).replace()
+
 def test_frame_alignment_with_the_vae():
     assert frame_mode("boxes", 5, 2, 4) == "pixel" and frame_mode("boxes", 2, 2, 4) == "latent"
     with pytest.raises(ValueError, match=r"boxes: expected 2 \(latent\) or 5 \(pixel\) frames .* got 4"):

@@ -48,6 +48,22 @@ def test_paper_configs_take_their_argument(arg):
         assert config.flow.jdc_anchor_rate == 0.75 and config.flow.tpd and config.model.controls.frame_time
     if name == "mila" and "tiny" not in arg:          # what makes 4 clips a device fit 80 GiB (README, plan)
         assert config.model.remat == "full" and config.latents.vae_frame_batch == 1
+        # scanned layers for the compile, the last a run of its own: stage 1's trainable set names it
+        import flax.linen as nn
+        import jax
+
+        from jaxdrive.models.dit import DiT
+        from jaxdrive.models.dit_inputs import example_inputs
+        from jaxdrive.train.optim import trainable_labels
+        m = config.model
+        assert m.scan_layers and m.scan_breaks == (m.depth - 1,)
+        params = jax.eval_shape(lambda: nn.unbox(DiT(m).init(jax.random.PRNGKey(0), **example_inputs(m))["params"]))
+        assert {f"layers_0_{m.depth - 1}", f"layers_{m.depth - 1}"} <= set(params)
+        if "stage=1" in arg:                         # every pattern matches (else ValueError); the rest freezes
+            labels = jax.tree_util.tree_leaves_with_path(trainable_labels(params, config.optim.trainable))
+            trained = {jax.tree_util.keystr(k) for k, v in labels if v == "train"}
+            assert any(f"layers_{m.depth - 1}" in k for k in trained)
+            assert not any(f"layers_0_{m.depth - 1}" in k for k in trained)
     if "role=fine" in arg:
         assert config.flow.patterns == ("prefix", "ends")
     if "role=coarse" in arg:

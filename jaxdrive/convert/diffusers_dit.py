@@ -24,7 +24,7 @@ import numpy as np
 
 from jaxdrive.convert.safetensors_io import read_config, read_weights
 from jaxdrive.models.dit import DiT
-from jaxdrive.models.dit_config import Controls, DiTConfig, check_config
+from jaxdrive.models.dit_config import Controls, DiTConfig, check_config, layer_runs
 
 CLASS_NAME = "CogVideoXTransformer3DModel"
 
@@ -178,9 +178,11 @@ def load_diffusers_transformer(path, **overrides):
     scan = cfg.scan_layers
     tensors = {k: np.asarray(v, np.float32) for k, v in read_weights(path).items()}
     params = convert_state_dict(tensors, cfg.replace(scan_layers=False), source=str(path))
-    if scan and cfg.depth > 1:
-        layers = [params.pop(f"layers_{i}") for i in range(cfg.depth)]
-        params[f"layers_0_{cfg.depth}"] = jax.tree_util.tree_map(lambda *a: np.stack(a), *layers)
+    if scan:
+        for start, end in layer_runs(cfg):
+            if end - start > 1:
+                layers = [params.pop(f"layers_{i}") for i in range(start, end)]
+                params[f"layers_{start}_{end}"] = jax.tree_util.tree_map(lambda *a: np.stack(a), *layers)
     dit = DiT(cfg)
     expected = jax.eval_shape(lambda: nn.unbox(dit.init(jax.random.PRNGKey(0), **example_inputs(cfg))["params"]))
     _check_tree(params, expected, str(path))

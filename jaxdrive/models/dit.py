@@ -57,7 +57,7 @@ import numpy as np
 
 from jaxdrive.models.conditions import Conditions
 from jaxdrive.models.dit_blocks import LayerContext, layer_class
-from jaxdrive.models.dit_config import DiTConfig, check_config
+from jaxdrive.models.dit_config import DiTConfig, check_config, layer_runs
 from jaxdrive.models.dit_controls import (BoxEncoder, CameraEncoder, CaptionEncoder, FrameTimeEncoder,
                                           MapEncoder, TimestepMLP, TrajectoryEncoder, WaypointEncoder,
                                           null_param, use_null)
@@ -452,13 +452,9 @@ class DiT(nn.Module):
         return carry, (jnp.stack(outs) if emit else None)
 
     def _stack(self, cfg, carry, ctx, residuals, features, features_mask, deterministic):
-        """The base layers, split into runs at the ControlNet depth and after each HTFT layer."""
-        bounds = {0, cfg.depth} | {i + 1 for i in cfg.htft_layers}
-        if cfg.controls.map:
-            bounds.add(cfg.controls.map_blocks)
-        bounds = sorted(bounds)
+        """The base layers, run by run (:func:`jaxdrive.models.dit_config.layer_runs`)."""
         feats = {}
-        for start, end in zip(bounds[:-1], bounds[1:]):
+        for start, end in layer_runs(cfg):
             res = None
             if residuals is not None and start < cfg.controls.map_blocks:
                 res = residuals[start:end]

@@ -173,7 +173,9 @@ class DiTConfig:
 
     Execution: ``dtype`` (compute; params are float32), ``remat`` (``"none"``, ``"full"``,
     ``"dots"``, ``"dots_no_batch"``: which activations a layer keeps for the backward),
-    ``scan_layers`` (``lax.scan`` over runs of identical layers: compile time flat in depth),
+    ``scan_layers`` (``lax.scan`` over runs of identical layers: compile time flat in depth;
+    :func:`layer_runs` gives the runs), ``scan_breaks`` (layers that start a run of their own, so
+    that a layer keeps its own name, e.g. MiLA stage 1's trainable last layer ``layers_27``),
     ``attn_impl`` for the attentions that run sequence-sharded (spatial, cross-view, full, HTFT)
     and ``local_attn_impl`` for those that never need communication (temporal, cross-attention
     to text and control tokens). ``htft_layers``: layers after which STAGE's HTFT fuses past
@@ -221,6 +223,7 @@ class DiTConfig:
     dtype: str = "float32"
     remat: str = "none"
     scan_layers: bool = False
+    scan_breaks: tuple[int, ...] = ()
     attn_impl: str = "auto"
     local_attn_impl: str = "xla"
     htft_layers: tuple[int, ...] = ()
@@ -328,6 +331,9 @@ def check_config(cfg: DiTConfig) -> DiTConfig:
     if cfg.controls.map and not 1 <= cfg.controls.map_blocks <= cfg.depth:
         raise ValueError(f"controls.map_blocks: expected 1 .. depth = {cfg.depth}, "
                          f"got {cfg.controls.map_blocks}")
+    for i in cfg.scan_breaks:
+        if not 0 < i < cfg.depth:
+            raise ValueError(f"scan_breaks: expected layer indices in (0, {cfg.depth}), got {i}")
     for i in cfg.htft_layers:
         if not 0 <= i < cfg.depth:
             raise ValueError(f"htft_layers: expected layer indices in [0, {cfg.depth}), got {i}")
@@ -344,3 +350,15 @@ def check_config(cfg: DiTConfig) -> DiTConfig:
     if cfg.multiview == "cross_view" and (not cfg.neighbor_offsets or 0 in cfg.neighbor_offsets):
         raise ValueError(f"neighbor_offsets: expected non-zero view offsets, got {cfg.neighbor_offsets}")
     return cfg
+
+
+def layer_runs(cfg) -> list[tuple[int, int]]:
+    """The base layers' runs ``[(start, end), ...]``: split at the map ControlNet's depth, after
+    each HTFT layer and at ``scan_breaks``. Scanned (``scan_layers``), a run of more than one
+    layer is one ``nn.scan`` whose parameters are ``layers_{start}_{end}``; a run of one layer,
+    and every layer when unrolled, is ``layers_{i}``."""
+    bounds = {0, cfg.depth} | {i + 1 for i in cfg.htft_layers} | set(cfg.scan_breaks)
+    if cfg.controls.map:
+        bounds.add(cfg.controls.map_blocks)
+    bounds = sorted(bounds)
+    return list(zip(bounds[:-1], bounds[1:]))
