@@ -305,3 +305,21 @@ def test_the_stage_3_step_holds_each_model_pass_once_whatever_the_depth():
                                                                 jax.random.key(0))[0])
         return jax.jit(grad).lower(params, x).as_text().count("stablehlo.dot_general")
     assert size(5) == size(3)
+
+
+def test_the_stream_buffer_is_sharded_like_the_batch_it_stores():
+    """The HTFT ring (``[steps, B, slots, S, V, D]`` per layer) of the stage-3 self-rollout and the
+    sampler: batch over data x fsdp, tokens over seq. Zeros alone came replicated, and STAGE's
+    paper step held the ring of its whole batch of 32 on every device (126 GiB at fsdp 32)."""
+    from jaxdrive.parallel import make_mesh
+    cfg = preset("tiny", depth=2, in_channels=C, vae_spatial=4, vae_temporal=1, patch=(1, 2, 2), htft_layers=(0,),
+                 prediction="data")
+    model = WindowModel(DiT(cfg), None, window=3, cond_frames=1, steps=2, streaming=True, stream_buffer=BUFFER,
+                        stream_taps=TAPS)
+    with jax.set_mesh(make_mesh(data=2, fsdp=2, seq=2)):
+        buf = jax.jit(lambda: ST.new_buffer(model, 4, 2, (H, W)))()
+    ring = buf["data"][0]
+    assert ring.shape == (2, 4, BUFFER, (H // 2) * (W // 2), 2, cfg.width)
+    spec = tuple(ring.sharding.spec) + (None,) * (ring.ndim - len(ring.sharding.spec))
+    assert spec[1] == ("data", "fsdp") and spec[3] == "seq" and spec[0] is None and spec[2] is None
+    assert ring.addressable_shards[0].data.shape == (2, 1, BUFFER, (H // 2) * (W // 2) // 2, 2, cfg.width)

@@ -36,7 +36,7 @@ from jaxdrive.generate.guidance import sampler_guidance
 from jaxdrive.generate.windows import Tracker, WindowModel, to_mesh
 from jaxdrive.models.conditions import Conditions
 from jaxdrive.models.htft import buffer_init, buffer_push, buffer_select
-from jaxdrive.parallel.rules import reshard_like
+from jaxdrive.parallel.rules import constrain, reshard_like
 
 WINDOW = 3                        # anchor, condition, new
 NEW = 2                           # the new frame's slot
@@ -175,13 +175,20 @@ _STREAM = jax.jit(stream_frame, static_argnums=(0, 1), donate_argnums=(7,))
 _OBSERVE = jax.jit(observe_frame, static_argnums=(0, 1), donate_argnums=(8,))
 
 
+BUFFER_AXES = (None, "batch", None, "tokens", "views", "embed")      # [steps, B, slots, S, V, D]
+
+
 def new_buffer(model: WindowModel, batch: int, views: int, latent_hw: tuple[int, int]):
     """The empty ring of ``model``: ``model.stream_buffer`` frames x ``model.steps`` steps per HTFT
     layer, for windows of ``views`` views of ``latent_hw`` latents."""
     m = model.dit.config
     s = (latent_hw[0] // m.patch[1]) * (latent_hw[1] // m.patch[2])
-    return buffer_init({i: (batch, s, views, m.width) for i in m.htft_layers}, model.stream_buffer,
-                       steps=model.steps)
+    buf = buffer_init({i: (batch, s, views, m.width) for i in m.htft_layers}, model.stream_buffer,
+                      steps=model.steps)
+    # sharded like the features it stores: zeros alone come replicated, and under a mesh the ring of
+    # the whole batch (STAGE's stage-3 step at paper size: 126 GiB) sat on every device
+    buf["data"] = {i: constrain(a, BUFFER_AXES) for i, a in buf["data"].items()}
+    return buf
 
 
 def buffer_bytes(model: WindowModel, batch: int, views: int, latent_hw: tuple[int, int]) -> int:
