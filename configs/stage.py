@@ -67,12 +67,14 @@ def _paper(stage: int) -> Config:
     # scanned layers: the step runs the model in the stage-3 rollout, the feature pass and the
     # gradient window, and 28 + 13 (ControlNet) unrolled layers in each made its compile take
     # over 15 minutes; init_from moves the layers between the runs the HTFT layer splits
-    model = preset("stdit3-xl/2", in_channels=16, vae_spatial=8, vae_temporal=1, remat="dots", scan_layers=True,
+    # full rematerialisation and the frame-wise encode one frame of every clip at a time (as MiLA):
+    # with them stage 3 plans 31 GiB a device at fsdp 32 (README "Will it fit?")
+    model = preset("stdit3-xl/2", in_channels=16, vae_spatial=8, vae_temporal=1, remat="full", scan_layers=True,
                    controls=dict(camera=True, boxes=True, map=True, map_blocks=13, cond_frames="replace", fps=True))
     return Config(
         model=model,
         data=DataConfig(path="data/nuscenes", frames=12, height=512, width=768, views=6, batch_size=32, threads=8),
-        latents=LatentConfig(source="vae", vae_path="runs/cogvideox_vae", vae_mode="frame_wise"),
+        latents=LatentConfig(source="vae", vae_path="runs/cogvideox_vae", vae_mode="frame_wise", vae_frame_batch=1),
         flow=FlowConfig(shift=0.0, cond_frames=1, foreground_k=1.0, foreground_c=0.5),
         optim=OptimConfig(lr=1e-4, warmup_steps=1000, ema_decay=0.9999),
         train=TrainConfig(steps={1: 40_000, 2: 20_000, 3: 10_000}[stage], log_every=50, checkpoint_every=1000,
