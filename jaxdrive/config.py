@@ -66,7 +66,8 @@ class LatentConfig:
 
     ``"vae"``: a saved jaxdrive VAE (``vae_path``, see ``jaxdrive convert vae``), encoding on the
     fly in ``vae_mode`` (``"frame_wise"``: ``vae_frame_batch`` frames of every clip at a time, the
-    VAE's ``frame_wise_batch``, which bounds the step's encoder temporaries; 0: all at once). ``"space_to_depth"``: frame-wise pixel latents, each ``factor x factor``
+    VAE's ``frame_wise_batch``, which bounds the step's encoder temporaries; 0: all at once; in any
+    mode ``vae_clip_batch`` clips of every device at a time, the VAE's ``clip_batch``). ``"space_to_depth"``: frame-wise pixel latents, each ``factor x factor``
     patch folded into channels (exact and parameter-free: the CPU demo uses it so that it needs no
     VAE training).
 
@@ -78,6 +79,7 @@ class LatentConfig:
     vae_path: str = ""
     vae_mode: str = "chunked"
     vae_frame_batch: int = 0          # vae_mode frame_wise: frames of each clip encoded per step (0: all at once)
+    vae_clip_batch: int = 0           # clips (x views) each device encodes per step, any mode (0: all at once)
     factor: int = 4
     scale: float = 1.0                # space_to_depth latents are multiplied by this (a VAE uses its scaling factor)
     precomputed: bool = False

@@ -43,7 +43,8 @@ def _real_codec(latents):
     _, what = abstract_codec(latents)
     if latents.source != "vae" or "has none" not in what:
         return LatentCodec.from_config(latents)
-    vae = CausalVAE(VAEConfig(mode=latents.vae_mode, frame_wise_batch=latents.vae_frame_batch))
+    vae = CausalVAE(VAEConfig(mode=latents.vae_mode, frame_wise_batch=latents.vae_frame_batch,
+                              clip_batch=latents.vae_clip_batch))
     return LatentCodec("vae", 1, 1.0, vae, vae.init(jax.random.PRNGKey(0)))
 
 

@@ -63,7 +63,8 @@ class LatentCodec:
                              "when latents.source is 'vae', got ''")
         from jaxdrive.models.pretrained import load_pretrained
         vae, params = load_pretrained(config.vae_path, shardings=shardings, mode=config.vae_mode,
-                                      frame_wise_batch=config.vae_frame_batch)
+                                      frame_wise_batch=config.vae_frame_batch,
+                                      clip_batch=config.vae_clip_batch)
         return cls("vae", 1, 1.0, vae, params)
 
     # the DiT's view of the codec: latent channels, spatial and temporal compression

@@ -111,10 +111,12 @@ def abstract_codec(latents):
     if latents.source != "vae":
         return LatentCodec.from_config(latents), latents.source
     if (Path(latents.vae_path) / MODEL_FILE).is_file():
-        vae = load_pretrained_model(latents.vae_path, mode=latents.vae_mode, frame_wise_batch=latents.vae_frame_batch)
+        vae = load_pretrained_model(latents.vae_path, mode=latents.vae_mode, frame_wise_batch=latents.vae_frame_batch,
+                                    clip_batch=latents.vae_clip_batch)
         what = latents.vae_path
     else:
-        vae = CausalVAE(VAEConfig(mode=latents.vae_mode, frame_wise_batch=latents.vae_frame_batch))
+        vae = CausalVAE(VAEConfig(mode=latents.vae_mode, frame_wise_batch=latents.vae_frame_batch,
+                                  clip_batch=latents.vae_clip_batch))
         what = f"CogVideoX-2B ({latents.vae_path!r} has none)"
     params = jax.eval_shape(vae.init, jax.random.PRNGKey(0))
     return LatentCodec("vae", 1, 1.0, vae, params), f"vae {what}"
