@@ -215,20 +215,29 @@ def test_stdit2_layers_patch_spanning_two_frames_and_the_caption_encoder():
     assert max_rel(a, b) > 1e-4                         # the caption reaches the output
 
 
+SCAN_SHAPES = (("batch", 1), ("views", 2), ("frames", 2), ("height", 4), ("width", 4))
+
+
+def _unrolled_and_scanned(base, scanned):
+    """Parameters of ``base`` (unrolled) and the same with layers 0 and 1 stacked as the scanned
+    run ``layers_0_2``, checked against the tree ``scanned`` initialises."""
+    params = params_for(base, SCAN_SHAPES)
+    stacked = dict(params)
+    layers = [stacked.pop(f"layers_{i}") for i in (0, 1)]
+    stacked["layers_0_2"] = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *layers)
+    assert jax.tree_util.tree_structure(stacked) == jax.tree_util.tree_structure(
+        nn.unbox(boxed_params(scanned, SCAN_SHAPES)))
+    return params, stacked
+
+
 @pytest.mark.parametrize("dtype", ["float32", "bfloat16"])
 def test_scan_and_remat_match_the_python_loop(dtype):
     # bfloat16: the float32 parameters promote a layer's output, so the scan carry changed type
     # (nn.scan refused it) until the residual stream was kept float32 in both paths
     base = preset("tiny", depth=2, dtype=dtype)
     scanned = dataclasses.replace(base, scan_layers=True, remat="dots")
-    shapes = (("batch", 1), ("views", 2), ("frames", 2), ("height", 4), ("width", 4))
-    params = params_for(base, shapes)
-    stacked = dict(params)
-    layers = [stacked.pop(f"layers_{i}") for i in (0, 1)]
-    stacked["layers_0_2"] = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *layers)
-    assert jax.tree_util.tree_structure(stacked) == jax.tree_util.tree_structure(
-        nn.unbox(boxed_params(scanned, shapes)))
-    lat, sig, text, kw = split_inputs(example_inputs(base, **dict(shapes)))
+    params, stacked = _unrolled_and_scanned(base, scanned)
+    lat, sig, text, kw = split_inputs(example_inputs(base, **dict(SCAN_SHAPES)))
 
     def loss(cfg):
         dit = DiT(cfg)
@@ -247,14 +256,8 @@ def test_a_scan_break_gives_a_layer_its_own_name_and_changes_nothing_else():
     base = preset("tiny", depth=3)
     broken = dataclasses.replace(base, scan_layers=True, scan_breaks=(2,))
     assert layer_runs(broken) == [(0, 2), (2, 3)] and layer_runs(base) == [(0, 3)]
-    shapes = (("batch", 1), ("views", 2), ("frames", 2), ("height", 4), ("width", 4))
-    params = params_for(base, shapes)
-    stacked = dict(params)
-    layers = [stacked.pop(f"layers_{i}") for i in (0, 1)]
-    stacked["layers_0_2"] = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *layers)
-    assert jax.tree_util.tree_structure(stacked) == jax.tree_util.tree_structure(
-        nn.unbox(boxed_params(broken, shapes)))                  # layers_0_2 scanned, layers_2 alone
-    lat, sig, text, kw = split_inputs(example_inputs(base, **dict(shapes)))
+    params, stacked = _unrolled_and_scanned(base, broken)        # layers_0_2 scanned, layers_2 alone
+    lat, sig, text, kw = split_inputs(example_inputs(base, **dict(SCAN_SHAPES)))
     a = DiT(base).forward(params, lat, sig, conditions(text, kw))
     b = DiT(broken).forward(stacked, lat, sig, conditions(text, kw))
     np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6)
