@@ -67,3 +67,14 @@ def guidance_options(args, specs) -> dict:
         if spec is not None:
             check_controls(spec.model, spec.data.drop_prob, controls, option=lambda c: f"--cfg-{c}")
     return {k: v for k, v in controls.items() if v is not None}
+
+
+def config_with_mesh(config, mesh: str):
+    """``config`` with its mesh replaced by the ``--mesh`` spec ``mesh`` (e.g. ``data=2,seq=4``;
+    axes it leaves out are 1)."""
+    from jaxdrive.config import override
+    from jaxdrive.parallel import parse_mesh_spec
+    sizes = parse_mesh_spec(mesh)
+    for k in ("data", "fsdp", "seq", "tensor"):
+        config = override(config, f"mesh.{k}={sizes.get(k, 1)}")
+    return config

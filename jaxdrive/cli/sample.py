@@ -16,7 +16,7 @@ from pathlib import Path
 
 
 def _load(workdir, sets, mesh, *, role: str):
-    from jaxdrive.cli.train import _config_mesh
+    from jaxdrive.cli.options import config_with_mesh
     from jaxdrive.config import override
     from jaxdrive.train.run import Run, load_run_config
     if not (Path(workdir) / "config.json").is_file():
@@ -24,7 +24,7 @@ def _load(workdir, sets, mesh, *, role: str):
     config = load_run_config(workdir)
     for s in sets or []:
         config = override(config, s)
-    config = _config_mesh(config, mesh) if mesh else config
+    config = config_with_mesh(config, mesh) if mesh else config
     run = Run(config)
     return run, run.sampling()
 

@@ -12,7 +12,7 @@ import os
 import time
 from pathlib import Path
 
-from jaxdrive.cli.options import add_config, add_progress, add_sampling
+from jaxdrive.cli.options import add_config, add_progress, add_sampling, config_with_mesh
 
 REPO_CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -35,7 +35,7 @@ def start_jax() -> str:
 def _config(path, mesh: str | None, sets, extra=()):
     from jaxdrive.config import load_config
     config = load_config(path, list(extra) + list(sets or []))
-    return _config_mesh(config, mesh) if mesh else config
+    return config_with_mesh(config, mesh) if mesh else config
 
 
 def _train(args, rest) -> int:
@@ -77,7 +77,7 @@ def _sample(args, rest) -> int:
     config = load_run_config(args.workdir)
     for s in args.set or []:
         config = override(config, s)
-    config = _config_mesh(config, args.mesh) if args.mesh else config
+    config = config_with_mesh(config, args.mesh) if args.mesh else config
     from jaxdrive import compile_cache
     compile_cache.enable(config.train.compile_cache)
     run = Run(config)
@@ -94,15 +94,6 @@ def _sample(args, rest) -> int:
         print(quality_lines(paths["quality"]))
     print(f"sampled from checkpoint {step} in {time.perf_counter() - t:.1f} s: {out_dir}")
     return 0
-
-
-def _config_mesh(config, mesh: str):
-    from jaxdrive.config import override
-    from jaxdrive.parallel import parse_mesh_spec
-    sizes = parse_mesh_spec(mesh)
-    for k in ("data", "fsdp", "seq", "tensor"):
-        config = override(config, f"mesh.{k}={sizes.get(k, 1)}")
-    return config
 
 
 def _demo_mesh(config, sets):
