@@ -39,18 +39,40 @@ jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 import pytest  # noqa: E402
 
 
+def shared(tmp_path_factory, name: str, build):
+    """``build(folder)`` once for the whole test run, also across xdist workers: the first worker
+    to ask builds it in the run's shared temporary folder under a file lock, the others wait and
+    reuse it (a session fixture alone is built once per worker). Returns the folder."""
+    from filelock import FileLock
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+        folder = tmp_path_factory.mktemp(name)
+        build(folder)
+        return folder
+    root = tmp_path_factory.getbasetemp().parent          # one per run, shared by its workers
+    folder = root / name
+    with FileLock(str(root / f"{name}.lock")):
+        if not (folder / ".built").exists():
+            import shutil
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+            build(folder)
+            (folder / ".built").touch()
+    return folder
+
+
 @pytest.fixture(scope="session")
 def clips21(tmp_path_factory):
     """2 training scenes and 1 validation scene of 21 frames, 6 views (a session's shared data)."""
     from train_fixtures import write_synthetic
-    return write_synthetic(tmp_path_factory.mktemp("clips21") / "data", train=2, frames=21, views=6)
+    return shared(tmp_path_factory, "clips21",
+                  lambda folder: write_synthetic(folder / "data", train=2, frames=21, views=6)) / "data"
 
 
 @pytest.fixture(scope="session")
 def tiny_dit(clips21, tmp_path_factory):
     """A tiny 6-view DiT trained 1 step on ``clips21`` (``train_fixtures.tiny_run``)."""
     from train_fixtures import tiny_run
-    return tiny_run(tmp_path_factory.mktemp("tiny_dit") / "run", clips21)
+    return shared(tmp_path_factory, "tiny_dit", lambda folder: tiny_run(folder / "run", clips21)) / "run"
 
 
 @pytest.fixture(scope="session")
@@ -59,8 +81,9 @@ def segmenter_run(clips21, tmp_path_factory):
     from pathlib import Path
 
     from jaxdrive.cli import main as cli
-    workdir = tmp_path_factory.mktemp("segmenter") / "run"
     config = Path(__file__).resolve().parents[1] / "configs" / "segmenter.py"
-    assert cli(["train", "--config", f"{config}:size=test", "--workdir", str(workdir), "--set",
-                f"data.path={clips21}", "--no-progress"]) == 0
-    return workdir
+
+    def build(folder):
+        assert cli(["train", "--config", f"{config}:size=test", "--workdir", str(folder / "run"), "--set",
+                    f"data.path={clips21}", "--no-progress"]) == 0
+    return shared(tmp_path_factory, "segmenter", build) / "run"
