@@ -20,8 +20,8 @@ a turn starts at the next intersection ahead, the first place within the frames 
 the ego, driving straight on, can turn with the whole arc on the road; with none in reach it turns
 where the clip is, as the manoeuvre alone says, with one warning. A manoeuvre that drives
 beyond the seen map (a long clip, a turn off the recorded path) runs with one warning: its BEV
-map controls are blank there. A route file whose path runs
-more than :data:`OFF_ROAD_METRES` off the road is a ``ValueError`` naming the file and where it
+map controls are blank there. A route file whose path runs more than :data:`OFF_ROAD_METRES` off
+the road is a ``ValueError`` naming the file and where it
 leaves the road, unless ``allow_off_road``. A map with no road at all (nuScenes without its map
 expansion) leaves the route unchecked, with one warning.
 """
@@ -203,7 +203,7 @@ def load_route(spec: str, *, duration: float) -> Route:
     return load_route_file(spec)
 
 
-def _first_off_map(route: Route, start, scene, frames: int, fps: float) -> tuple[int, float] | None:
+def _first_off_map(route: Route, start, scene, frames: int, fps: float) -> tuple[int, int] | None:
     """The first row of ``route`` (a manoeuvre: its one row) whose point, or the path leading to
     it, leaves the seen part of ``scene`` when driven from ``start [4, 4]``, with the first frame
     off it; None when the whole route is on the seen map."""
@@ -308,8 +308,9 @@ def drive_on_map(route: Route, start, scene, frames: int, fps: float, *, allow_o
     ``off_road``, ``off_road_metres`` (the longest stretch off the road) and ``off_road_from``
     (where the path first leaves it). A file off the road for more than ``max_off_road`` metres
     in one stretch is a ``ValueError`` unless ``allow_off_road``; so is a point beyond the seen
-    map (:func:`check_on_map`), unless ``allow_off_road`` too. A named manoeuvre always runs: beyond the map it is driven with one
-    warning, and ``beyond_map_from`` records where it left the map (None: it stayed on it). Warnings (:class:`RouteWarning`) are given once per kind:
+    map (:func:`check_on_map`), unless ``allow_off_road`` too. A named manoeuvre always runs:
+    beyond the map it is driven with one warning, and ``beyond_map_from`` records where it left
+    the map (None: it stayed on it). Warnings (:class:`RouteWarning`) are given once per kind:
     ``warned`` collects the kinds given (share one set across the clips of a run)."""
     start = np.asarray(start, np.float64)
     if start.shape != (4, 4) or not np.isfinite(start).all():
