@@ -24,19 +24,32 @@ from hypothesis import settings  # noqa: E402
 settings.register_profile("jaxdrive", deadline=None, max_examples=60, derandomize=True)
 settings.load_profile("jaxdrive")
 
-# A persistent compilation cache per test process: tests that build the same jitted step more
-# than once (a run stopped and resumed, train then sample) compile it once. Numbers are the same
-# either way; the cache only skips XLA's work.
+# One persistent compilation cache for the whole test run: the xdist workers (started after the
+# controller imported this file, so they inherit the variable) and the subprocesses they launch
+# (the jaxdrive CLI, launch/local.py) read and write one folder, so a program that several tests
+# build (the tiny DiT's sampler, a recipe's train step) compiles once per run, not once per process.
+# Numbers are the same either way; the cache only skips XLA's work. A size limit turns on JAX's
+# file lock around each entry, so a worker never reads an entry another is still writing.
 import tempfile  # noqa: E402
 
-_cache = tempfile.mkdtemp(prefix="jaxdrive-xla-cache-")
+_owns_cache = not os.environ.get("JAXDRIVE_TEST_XLA_CACHE")       # the controller (or a run without xdist)
+_cache = os.environ.get("JAXDRIVE_TEST_XLA_CACHE") or tempfile.mkdtemp(prefix="jaxdrive-xla-cache-")
+os.environ["JAXDRIVE_TEST_XLA_CACHE"] = _cache
 jax.config.update("jax_compilation_cache_dir", _cache)
 os.environ.setdefault("JAXDRIVE_CACHE_DIR", _cache)    # subprocesses (jaxdrive CLI, launch/local.py) too, not ~/.cache
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 2.0)
+jax.config.update("jax_compilation_cache_max_size", 64 << 30)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 
 import pytest  # noqa: E402
+
+
+def pytest_unconfigure(config):
+    """The process that made the run's cache folder removes it at the end (it holds gigabytes)."""
+    if _owns_cache:
+        import shutil
+        shutil.rmtree(_cache, ignore_errors=True)
 
 
 def shared(tmp_path_factory, name: str, build):
