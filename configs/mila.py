@@ -29,7 +29,7 @@ uses a per-frame image VAE; a causal 3D VAE cannot compress frames of mixed rate
 anchors are single frames); JDC's g(t) is ``slope * sigma`` with slope 0.5 and alpha1 = 0.1 (the
 paper gives neither constant); memory settings the paper does not give: full rematerialisation
 and the frame-wise encode one frame of every clip per step (``latents.vae_frame_batch``), so a
-step of 4 clips a device fits 80 GiB at fsdp 8 (README, "Will it fit?"). Each stage starts from the previous one with ``--set train.init_from=RUN_OF_STAGE_N-1``.
+step of 4 clips a device fits 80 GiB at fsdp 8 (docs/results/memory.md). Each stage starts from the previous one with ``--set train.init_from=RUN_OF_STAGE_N-1``.
 
 Set ``data.path``, ``latents.vae_path`` and ``data.text_embeddings`` for your data (paper size).
 """
@@ -54,7 +54,7 @@ GUIDANCE = 3.0                  # appendix B, Inference: "a fixed classifier-fre
 def _paper(stage: int) -> Config:
     # full rematerialisation and the frame-wise encode one frame of every clip at a time: with
     # remat "dots" (380 GiB as "dots_no_batch") or the whole encode (161 GiB) 4 clips a device at
-    # fsdp 8 fit no 80 GiB device; as set, 62 GiB (jaxdrive plan, README "Will it fit?")
+    # fsdp 8 fit no 80 GiB device; as set, 62 GiB (jaxdrive plan, docs/results/memory.md)
     # scanned layers (a 28-layer unrolled step took over 12 minutes to compile, scanned 90 s), the
     # last one a run of its own: stage 1 trains it by name (layers_27)
     model = preset("mila", in_channels=16, vae_spatial=8, vae_temporal=1, remat="full", scan_layers=True,

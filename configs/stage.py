@@ -68,7 +68,7 @@ def _paper(stage: int) -> Config:
     # gradient window, and 28 + 13 (ControlNet) unrolled layers in each made its compile take
     # over 15 minutes; init_from moves the layers between the runs the HTFT layer splits
     # full rematerialisation and the frame-wise encode one frame of every clip at a time (as MiLA):
-    # with them stage 3 plans 31 GiB a device at fsdp 32 (README "Will it fit?")
+    # with them stage 3 plans 31 GiB a device at fsdp 32 (docs/results/memory.md)
     model = preset("stdit3-xl/2", in_channels=16, vae_spatial=8, vae_temporal=1, remat="full", scan_layers=True,
                    controls=dict(camera=True, boxes=True, map=True, map_blocks=13, cond_frames="replace", fps=True))
     return Config(

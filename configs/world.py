@@ -20,15 +20,15 @@ pure noise, where a sample's layout and motion are decided, get almost none of t
 4000 steps its prediction from pure noise scored 19.39 dB (latent PSNR, 2 validation clips,
 frames 2-8) against 20.23 for repeating the last given frame, and its samples fell below repeat
 already in the first window (19.29). 1200 more steps at shift 3 gave 21.15 and 20.64, and the
-rollout above ``repeat`` in PSNR in every bucket of every route (README).
+rollout above ``repeat`` in PSNR in every bucket of every route (docs/results/demo.md).
 
 Left out: the ego trajectory token (the bench's loss ratio was 0.98, a token no layer learned to
 read in its steps) and the BEV-map ControlNet (the layout already paints the map's road classes
 where the cameras see the ground; the ControlNet would double the step time).
 
 Data: the clips of ``jaxdrive data synth`` at 2x the latent resolution (64 x 112, 6 views, 33
-frames, the validation clips also along the counterfactual routes; README "A recipe that follows
-its controls"), 9-frame windows at random offsets, 2 given frames. Train and score::
+frames, the validation clips also along the counterfactual routes; docs/guides/demo.md,
+the world recipe), 9-frame windows at random offsets, 2 given frames. Train and score::
 
     jaxdrive data synth --out data/world --scenes 200 --val-fraction 0.04 --frames 33 \\
         --counterfactuals stop,slower,faster,lane-left --skip-undrivable

@@ -1,6 +1,6 @@
 """jaxdrive: long-horizon multi-view driving world models in JAX/Flax.
 
-Layers (see the README): ``flow`` (noise-level math, losses, sampler), ``parallel`` (meshes,
+Layers (docs/concepts/architecture.md): ``flow`` (noise-level math, losses, sampler), ``parallel`` (meshes,
 sharding rules, sequence-sharded attention), ``models`` (DiT, 3D causal VAE), ``data``,
 ``train``, ``generate`` (long-video strategies), ``convert`` (diffusers weights), ``eval``,
 ``bench``.

@@ -1,6 +1,6 @@
 """3D boxes, ego -> camera transforms and pinhole projection (nuScenes conventions).
 
-Frames (the README's conventions): ego x forward, y left, z up; camera x right, y down, z forward.
+Frames (docs/concepts/conventions.md): ego x forward, y left, z up; camera x right, y down, z forward.
 Boxes are ``(x, y, z, length, width, height, yaw)`` with (x, y, z) the box *centre*, length along
 the heading, width across it, height along +z, yaw about +z counter-clockwise from +x.
 

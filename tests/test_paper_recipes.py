@@ -46,7 +46,7 @@ def test_paper_configs_take_their_argument(arg):
         assert config.optim.trainable and config.data.rate_head == 0 and config.data.rate_strides
     if "stage=3" in arg:
         assert config.flow.jdc_anchor_rate == 0.75 and config.flow.tpd and config.model.controls.frame_time
-    if name == "mila" and "tiny" not in arg:          # what makes 4 clips a device fit 80 GiB (README, plan)
+    if name == "mila" and "tiny" not in arg:          # what makes 4 clips a device fit 80 GiB (docs/results/memory.md)
         assert config.model.remat == "full" and config.latents.vae_frame_batch == 1
         # scanned layers for the compile, the last a run of its own: stage 1's trainable set names it
         import flax.linen as nn
@@ -258,7 +258,7 @@ def test_stage_configs_take_their_argument(size, stage):
     assert bool(config.model.htft_layers) == (stage > 1) and bool(s.taps) == (stage > 1)
     assert config.optim.trainable == (("htft_",) if stage == 2 else ())
     assert s.self_rollout == (stage == 3)
-    if size == "paper":                  # what makes stage 3 fit 80 GiB at fsdp 32 (README, plan)
+    if size == "paper":                  # what makes stage 3 fit 80 GiB at fsdp 32 (docs/results/memory.md)
         assert config.model.remat == "full" and config.latents.vae_frame_batch == 1 and config.model.scan_layers
     with pytest.raises(ValueError, match=r"config argument stage: expected"):
         load_config(f"{ROOT / 'configs' / 'stage.py'}:size={size},stage=4")
@@ -266,7 +266,7 @@ def test_stage_configs_take_their_argument(size, stage):
 
 @pytest.mark.parametrize("stage", [1, 2, 3])
 def test_magicdrive_paper_config_encodes_a_clip_a_device_at_a_time(stage):
-    """What makes MagicDrive-V2's stage-3 step fit 80 GiB at fsdp 8 x seq 4 (README, plan): its 3D
+    """What makes MagicDrive-V2's stage-3 step fit 80 GiB at fsdp 8 x seq 4 (docs/results/memory.md): its 3D
     VAE encoding 3 clips x 6 views of 848 x 1600 a device at once held 420 GiB."""
     config = load_config(f"{ROOT / 'configs' / 'magicdrive_v2.py'}:stage={stage}")
     check_sections(config)

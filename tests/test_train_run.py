@@ -184,7 +184,7 @@ def test_every_config_loads_and_checks(name):
         assert {"waypoints", "boxes", "camera"} <= set(on) and config.model.controls.layout, on
         assert not {"trajectory", "map"} & set(on) and not config.model.controls.boxes, on
         assert load_config(f"{ROOT / 'configs' / 'world.py'}:steps=10").train.steps == 10
-        # the levels near pure noise get the gradient (README: shift 1's samples fell below repeat)
+        # the levels near pure noise get the gradient (docs/results/demo.md: shift 1's samples fell below repeat)
         assert config.flow.shift == 3.0 and load_config(ROOT / "configs" / "tiny.py").flow.shift == 1.0
 
 

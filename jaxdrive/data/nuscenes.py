@@ -349,7 +349,7 @@ def read_clips(dataroot: str, version: str = "v1.0-mini", *, frames: int = 33, s
     (bilinear) and rescales the intrinsics; ``None`` keeps the stored size. ``max_boxes`` fixes
     N (boxes beyond it are logged); ``None`` uses the clip's largest per-frame count. Padding slots
     have ``box_valid`` False, zeros, class 0 and id -1. Extra key ``meta``: scene name,
-    CAM_FRONT timestamps [F] (us), sample_data tokens [V][F], instance tokens (by box id).
+    CAM_FRONT timestamps [F] (us), sample_data tokens ``[V][F]``, instance tokens (by box id).
 
     A camera image that is missing, unreadable (truncated, not a JPEG) or of another size than the
     clip's first raises :class:`jaxdrive.data.faults.BadRecordError` (a ``ValueError``) naming the

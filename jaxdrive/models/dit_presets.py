@@ -2,7 +2,7 @@
 
 ``preset(name, **overrides)`` returns a checked :class:`DiTConfig`; ``controls=dict(...)``
 overrides fields of the controls. Parameter counts (``python -m jaxdrive.models.dit_presets``,
-computed with ``jax.eval_shape``) are listed in the README.
+computed with ``jax.eval_shape``) are listed in docs/guides/dit.md.
 
 - ``stdit3-xl/2``: Open-Sora 1.2's STDiT-3 XL/2 (28 layers of a spatial + a temporal block, width
   1152, 16 heads, patch 1x2x2, 4 latent channels, T5-XXL text of 300 tokens, fps).

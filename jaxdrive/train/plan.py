@@ -23,7 +23,7 @@ The attention is the one an accelerator runs (:func:`accelerator_attention`). Th
 XLA:CPU's buffer assignment for the mesh's devices. An accelerator's compiler
 fuses and schedules differently, and XLA:CPU computes some bfloat16 operations in float32, so the
 temporaries are an estimate of the accelerator's (the state, batch and frozen parameters are
-exact); the README compares the estimate with measured runs.
+exact); docs/results/memory.md compares the estimate with measured runs.
 
 :func:`largest_fit`: for each resolution (the planned bucket's, scaled by ``scales`` with its
 aspect ratio, rounded to the latent patch grid) the longest clip ``1 + temporal k`` frames whose
