@@ -32,6 +32,10 @@ from jaxdrive.models.conditions import Conditions
 from jaxdrive.models.dit import DiT
 from jaxdrive.validate import check_positive_int
 
+# the latent frames of one streaming sampler call (STAGE, :mod:`jaxdrive.generate.streaming`):
+# anchor, condition, new; here because every window-sized model reads it, the streaming one included
+STREAM_WINDOW = 3
+
 
 @dataclasses.dataclass(frozen=True)
 class WindowModel:
@@ -88,9 +92,8 @@ class WindowModel:
             lengths = {spec.codec.latent_frames(k[2]) for k in parse_bucket_specs(d.buckets)}
         # the resolution rule counts the frames one sampler call denoises: a streaming model's
         # window is [anchor, condition, new] (as its training step counts it), not data.frames
-        from jaxdrive.generate.streaming import WINDOW
         shift = f.shift if f.shift > 0 else flow.resolution_shift(
-            d.height, d.width, WINDOW if spec.stream.enabled else spec.latent_window)
+            d.height, d.width, STREAM_WINDOW if spec.stream.enabled else spec.latent_window)
         return cls(DiT(spec.model), params, window=spec.latent_window, cond_frames=max(1, f.cond_frames),
                    steps=spec.steps if steps is None else check_positive_int("steps", steps), guidance=guidance,
                    control_guidance=controls,
