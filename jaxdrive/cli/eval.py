@@ -39,7 +39,7 @@ def _eval(args, rest) -> int:
     if bool(args.videos) == bool(args.workdir):
         raise ValueError(f"--workdir / --videos: expected one of them (a run to sample, or a folder of generated "
                          f"mp4s), got {'both' if args.videos else 'neither'}")
-    from jaxdrive.cli.train import start_jax
+    from jaxdrive.cli.options import start_jax
     start_jax()
     if args.videos:
         return _eval_videos(args)
