@@ -27,6 +27,7 @@ from typing import Any
 from jaxdrive import validate
 from jaxdrive.flow.patterns import check_patterns
 from jaxdrive.models.dit_config import DiTConfig, check_config
+from jaxdrive.models.predictor import PredictorConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -210,22 +211,6 @@ class Config:
     mesh: MeshConfig = MeshConfig()
     stream: StreamConfig = StreamConfig()
     sample: SampleConfig = SampleConfig()
-
-
-@dataclasses.dataclass(frozen=True)
-class PredictorConfig:
-    """The future-controls predictor (:mod:`jaxdrive.models.predictor`): a transformer over the past
-    ``history`` steps of the ego pose and the agents' boxes and the BEV map around the ego, one step
-    every ``stride`` source frames of the dataset; trained by rolling it ``horizon`` steps forward."""
-
-    history: int = 8
-    horizon: int = 8
-    stride: int = 2
-    width: int = 64
-    depth: int = 2
-    heads: int = 4
-    map_patch: int = 8                 # BEV cells per side of one map token
-    max_agents: int = 20               # agent slots (a clip's box slots, padded or cut)
 
 
 @dataclasses.dataclass(frozen=True)
