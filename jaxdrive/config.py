@@ -28,6 +28,7 @@ from jaxdrive import validate
 from jaxdrive.flow.patterns import check_patterns
 from jaxdrive.models.dit_config import DiTConfig, check_config
 from jaxdrive.models.predictor import PredictorConfig
+from jaxdrive.models.segmenter import SegmenterConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -224,15 +225,6 @@ class PredictorRunConfig:
     optim: OptimConfig = OptimConfig()
     train: TrainConfig = TrainConfig()
 
-
-
-@dataclasses.dataclass(frozen=True)
-class SegmenterConfig:
-    """The segmentation evaluator (:mod:`jaxdrive.eval.segmenter`): a small U-Net that gives every
-    pixel of a frame its object class (background or one of ``schema.OBJECT_CLASSES``)."""
-
-    width: int = 32                    # channels at full resolution, doubled at every level
-    levels: int = 2                    # stride-2 downsamplings (frame sides divisible by 2**levels)
 
 
 @dataclasses.dataclass(frozen=True)

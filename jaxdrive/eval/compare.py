@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxdrive.eval.fid import FeatureStats
-from jaxdrive.eval.frames import psnr, ssim
+from jaxdrive.generate.quality import psnr, ssim
 
 FVD_FRAMES = 16
 EFFECT_METRICS = ("psnr", "ssim", "miou")    # the route effects (:mod:`jaxdrive.eval.routes`) of each row
@@ -59,10 +59,10 @@ def _to_255(video):
 
 
 def controllability(segment, video, masks, buckets) -> dict:
-    """Per bucket, the segmenter's scores (:func:`jaxdrive.eval.segmenter.summary`: ``miou``,
+    """Per bucket, the segmenter's scores (:func:`jaxdrive.models.segmenter.summary`: ``miou``,
     ``per_class``, ``pixel_accuracy``) of ``video [B, V, F, H, W, 3]`` against the class ids
     ``masks [B, V, F, H, W]`` (and the bucket's ``frames``); ``segment(frames) -> class ids``."""
-    from jaxdrive.eval.segmenter import confusion, summary
+    from jaxdrive.models.segmenter import confusion, summary
     lo, hi = min(a for a, _ in buckets), max(b for _, b in buckets)
     pred = segment(video[:, :, lo:hi])           # once: the buckets overlap (the whole span is one)
     return {f"{a}-{b - 1}": {"frames": [a, b - 1], **summary(confusion(pred[:, :, a - lo:b - lo], masks[:, :, a:b]))}
