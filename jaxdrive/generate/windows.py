@@ -148,7 +148,7 @@ class Tracker:
         once per shape and process (the last :data:`KEEP_PROGRAMS` are kept: a second run of a
         strategy compiles nothing). ``probe``: compiled to read its memory, not counted among the
         programs the run used."""
-        fn = _SAMPLE if fn is None else fn
+        fn = jitted_sample_window if fn is None else fn
         leaves, tree = jax.tree_util.tree_flatten(args)
         key = (fn, model, static, tree) + tuple((x.shape, str(x.dtype), getattr(x, "sharding", None))
                                                  for x in leaves)
@@ -350,4 +350,4 @@ def sample_window(model: WindowModel, params, x_cond, cond_mask, controls: Condi
     return jnp.where(keep, out, model.in_range(out))
 
 
-_SAMPLE = jax.jit(sample_window, static_argnums=(0,))
+jitted_sample_window = jax.jit(sample_window, static_argnums=(0,))
