@@ -27,6 +27,8 @@ from typing import Any
 from jaxdrive import validate
 from jaxdrive.flow.patterns import check_patterns
 from jaxdrive.models.dit_config import DiTConfig, check_config
+from jaxdrive.models.predictor import PredictorConfig
+from jaxdrive.models.segmenter import SegmenterConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -213,22 +215,6 @@ class Config:
 
 
 @dataclasses.dataclass(frozen=True)
-class PredictorConfig:
-    """The future-controls predictor (:mod:`jaxdrive.models.predictor`): a transformer over the past
-    ``history`` steps of the ego pose and the agents' boxes and the BEV map around the ego, one step
-    every ``stride`` source frames of the dataset; trained by rolling it ``horizon`` steps forward."""
-
-    history: int = 8
-    horizon: int = 8
-    stride: int = 2
-    width: int = 64
-    depth: int = 2
-    heads: int = 4
-    map_patch: int = 8                 # BEV cells per side of one map token
-    max_agents: int = 20               # agent slots (a clip's box slots, padded or cut)
-
-
-@dataclasses.dataclass(frozen=True)
 class PredictorRunConfig:
     """A predictor's training run (``jaxdrive train --config configs/predictor.py:size=tiny``):
     ``data`` reads ``path``, ``split``, ``batch_size`` (windows per step) and ``shuffle_seed``;
@@ -239,15 +225,6 @@ class PredictorRunConfig:
     optim: OptimConfig = OptimConfig()
     train: TrainConfig = TrainConfig()
 
-
-
-@dataclasses.dataclass(frozen=True)
-class SegmenterConfig:
-    """The segmentation evaluator (:mod:`jaxdrive.eval.segmenter`): a small U-Net that gives every
-    pixel of a frame its object class (background or one of ``schema.OBJECT_CLASSES``)."""
-
-    width: int = 32                    # channels at full resolution, doubled at every level
-    levels: int = 2                    # stride-2 downsamplings (frame sides divisible by 2**levels)
 
 
 @dataclasses.dataclass(frozen=True)

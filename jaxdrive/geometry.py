@@ -121,3 +121,8 @@ def relative_to_first(poses):
     # mesh cannot be concatenated with a replicated constant)
     bottom = jnp.zeros_like(top[..., :1, :]) + jnp.asarray([0.0, 0.0, 0.0, 1.0], jnp.float32)
     return jnp.concatenate([top, bottom], axis=-2)
+
+
+def wrap(angle):
+    """Angles (radians) into [-pi, pi) (NumPy or JAX arrays alike)."""
+    return (angle + np.pi) % (2 * np.pi) - np.pi

@@ -162,12 +162,12 @@ def predictor_run(data, tmp_path_factory):
 
 def test_the_predictor_trains_resumes_and_scores_its_validation_split(predictor_run, data):
     from jaxdrive.cli import main as cli
-    from jaxdrive.generate.future import FuturePredictor
+    from jaxdrive.train.predictor_run import load_future_predictor
     rows = [json.loads(line) for line in (predictor_run / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in rows] == [2, 4, 6] and all(np.isfinite(r["loss"]) for r in rows)
     motion = json.loads((predictor_run / "motion.json").read_text())
     assert set(motion["horizons"]) == {"1s"} and motion["windows"] >= 1     # 21 frames: 1 s fits, 2 s does not
-    p = FuturePredictor.load(predictor_run)
+    p = load_future_predictor(predictor_run)
     assert p.step_seconds == pytest.approx(2 / 12) and p.config.history == 4
     assert cli(["train", "--config", str(ROOT / "configs" / "predictor.py") + ":size=tiny", "--workdir",
                 str(predictor_run), "--steps", "8", "--no-progress", "--set", f"data.path={data}", "--set",

@@ -419,7 +419,7 @@ def busy_cpus(interval: float = 0.5) -> float | None:
     return None if total <= 0 else round((total - (i1 - i0)) / total * (os.cpu_count() or 1), 2)
 
 
-def _cpus() -> int:
+def cpu_count() -> int:
     try:
         return len(os.sched_getaffinity(0))
     except AttributeError:                                              # not Linux
@@ -461,7 +461,7 @@ def run(presets, *, batch: int, frames: int, height: int, width: int, repeats: i
     overrides = overrides or {}
     shapes = dict(batch=batch, frames=frames, height=height, width=width)
     shape = [batch or "auto", VIEWS, frames, height, width]
-    cpus = _cpus()
+    cpus = cpu_count()
     base = dict(shape=shape, backend=jax.default_backend(), device_kind=str(device.device_kind), cpus=cpus)
     rows = []
 

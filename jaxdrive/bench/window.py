@@ -47,7 +47,7 @@ def footprint(model, mesh, frames: int, views: int) -> int:
     import jax
     import numpy as np
 
-    from jaxdrive.generate.windows import _SAMPLE, to_mesh
+    from jaxdrive.generate.windows import jitted_sample_window, to_mesh
     from jaxdrive.models.conditions import Conditions
     m = dataclasses.replace(model, window=frames)
     x = np.zeros((1, views, frames, H, W, C), np.float32)
@@ -56,7 +56,7 @@ def footprint(model, mesh, frames: int, views: int) -> int:
     controls = Conditions(waypoints=np.zeros((1, frames, 2), np.float32), fps=np.full((1,), 12.0, np.float32))
     with jax.set_mesh(mesh):
         args = to_mesh((model.params, x, cond, controls), mesh)
-        compiled = _SAMPLE.lower(m, *args, jax.random.key(0)).compile()
+        compiled = jitted_sample_window.lower(m, *args, jax.random.key(0)).compile()
     return footprint_bytes(compiled)
 
 

@@ -3,7 +3,7 @@ nuScenes, T5 caption embeddings, precomputed latent windows."""
 
 from __future__ import annotations
 
-from jaxdrive.cli.options import add_config, add_progress
+from jaxdrive.cli.options import add_config, add_progress, load_config, start_jax
 
 
 def _split_counts(scenes: int, val_fraction: float) -> tuple[int, int]:
@@ -101,10 +101,9 @@ def _data_text_embed(args, rest) -> int:
 
 
 def _data_encode(args, rest) -> int:
-    from jaxdrive.cli.train import _config, start_jax
     from jaxdrive.train.encode import encode_dataset
 
-    config = _config(args.config, args.mesh, args.set)
+    config = load_config(args.config, args.mesh, args.set)
     start_jax()                 # several processes (launch/local.py, SLURM, a TPU pod) share the work
     path = encode_dataset(config, args.out, splits=args.split, every=args.every, batch=args.batch,
                           overwrite=args.overwrite, progress=not args.no_progress)

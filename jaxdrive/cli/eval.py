@@ -39,7 +39,7 @@ def _eval(args, rest) -> int:
     if bool(args.videos) == bool(args.workdir):
         raise ValueError(f"--workdir / --videos: expected one of them (a run to sample, or a folder of generated "
                          f"mp4s), got {'both' if args.videos else 'neither'}")
-    from jaxdrive.cli.train import start_jax
+    from jaxdrive.cli.options import start_jax
     start_jax()
     if args.videos:
         return _eval_videos(args)
@@ -201,7 +201,7 @@ def _eval_videos(args) -> int:
     from jaxdrive.data.pipeline import sample_clip
     from jaxdrive.data.tfds_io import open_source
     from jaxdrive.eval.compare import controllability, parse_buckets, repeat_baseline, repeat_name, score, write_outputs
-    from jaxdrive.eval.segmenter import class_masks_of
+    from jaxdrive.data.class_masks import class_masks_of
     from jaxdrive.media import read_mp4
     from jaxdrive.validate import check_positive_int
     for name in ("strategies", "fine_workdir", "frames", "routes", "cfg", "cfg_boxes", "cfg_route"):

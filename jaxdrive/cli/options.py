@@ -1,6 +1,8 @@
-"""Options that several commands share, worded once."""
+"""What several commands share: options worded once, the config they give, and starting JAX."""
 
 from __future__ import annotations
+
+import os
 
 
 def add_config(parser, what: str, *, required: bool = True) -> None:
@@ -78,3 +80,30 @@ def config_with_mesh(config, mesh: str):
     for k in ("data", "fsdp", "seq", "tensor"):
         config = override(config, f"mesh.{k}={sizes.get(k, 1)}")
     return config
+
+
+def start_jax() -> str:
+    """Before JAX starts: honour ``JAXDRIVE_CPU_DEVICES`` (fake CPU devices with gloo collectives,
+    set by ``launch/local.py --cpu-devices``), then start the multi-process runtime from the
+    environment (:func:`jaxdrive.parallel.initialize_distributed`: explicit ``JAXDRIVE_*``
+    variables, SLURM or a TPU VM pod)."""
+    import jax
+    n = os.environ.get("JAXDRIVE_CPU_DEVICES")
+    if n:
+        if not n.isdigit() or int(n) < 1:
+            raise ValueError(f"JAXDRIVE_CPU_DEVICES: expected a positive integer, got {n!r}")
+        jax.config.update("jax_platforms", "cpu")
+        jax.config.update("jax_num_cpu_devices", int(n))
+        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    from jaxdrive import compile_cache
+    compile_cache.enable("default")        # before anything compiles; a run's train.compile_cache re-points it
+    from jaxdrive.parallel import initialize_distributed
+    return initialize_distributed()
+
+
+def load_config(path, mesh: str | None, sets, extra=()):
+    """The config of ``--config path`` with the ``--set`` assignments ``sets`` (after ``extra``)
+    and the ``--mesh`` spec ``mesh``, when given."""
+    from jaxdrive.config import load_config as load
+    config = load(path, list(extra) + list(sets or []))
+    return config_with_mesh(config, mesh) if mesh else config

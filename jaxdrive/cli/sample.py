@@ -139,8 +139,8 @@ def sample_strategy(args) -> int:
     check_choice("--controls", args.controls, ("recorded", "predicted"))
     predictor = None
     if args.predictor:
-        from jaxdrive.generate.future import FuturePredictor
-        predictor = FuturePredictor.load(args.predictor)
+        from jaxdrive.train.predictor_run import load_future_predictor
+        predictor = load_future_predictor(args.predictor)
     elif args.controls == "predicted":
         raise ValueError("--controls: 'predicted' needs --predictor RUN (a run of configs/predictor.py), got none")
     from jaxdrive.data.scene_map import bev_range_of

@@ -1,41 +1,16 @@
-"""``jaxdrive train``, ``jaxdrive sample`` and ``jaxdrive demo``.
-
-Before JAX starts, :func:`start_jax` honours ``JAXDRIVE_CPU_DEVICES`` (fake CPU devices with gloo
-collectives, set by ``launch/local.py --cpu-devices``) and starts the multi-process runtime from
-the environment (:func:`jaxdrive.parallel.initialize_distributed`: explicit ``JAXDRIVE_*``
-variables, SLURM or a TPU VM pod).
-"""
+"""``jaxdrive train``, ``jaxdrive sample`` and ``jaxdrive demo``; each starts JAX with
+:func:`jaxdrive.cli.options.start_jax`."""
 
 from __future__ import annotations
 
-import os
+import argparse
 import time
 from pathlib import Path
 
-from jaxdrive.cli.options import add_config, add_progress, add_sampling, config_with_mesh
+from jaxdrive.cli import eval as eval_cli
+from jaxdrive.cli.options import add_config, add_progress, add_sampling, config_with_mesh, load_config, start_jax
 
 REPO_CONFIGS = Path(__file__).resolve().parents[2] / "configs"
-
-
-def start_jax() -> str:
-    import jax
-    n = os.environ.get("JAXDRIVE_CPU_DEVICES")
-    if n:
-        if not n.isdigit() or int(n) < 1:
-            raise ValueError(f"JAXDRIVE_CPU_DEVICES: expected a positive integer, got {n!r}")
-        jax.config.update("jax_platforms", "cpu")
-        jax.config.update("jax_num_cpu_devices", int(n))
-        jax.config.update("jax_cpu_collectives_implementation", "gloo")
-    from jaxdrive import compile_cache
-    compile_cache.enable("default")        # before anything compiles; a run's train.compile_cache re-points it
-    from jaxdrive.parallel import initialize_distributed
-    return initialize_distributed()
-
-
-def _config(path, mesh: str | None, sets, extra=()):
-    from jaxdrive.config import load_config
-    config = load_config(path, list(extra) + list(sets or []))
-    return config_with_mesh(config, mesh) if mesh else config
 
 
 def _train(args, rest) -> int:
@@ -44,7 +19,7 @@ def _train(args, rest) -> int:
         extra.append(f"train.steps={args.steps}")
     if args.checkpoint_every is not None:
         extra.append(f"train.checkpoint_every={args.checkpoint_every}")
-    config = _config(args.config, args.mesh, args.set, extra)
+    config = load_config(args.config, args.mesh, args.set, extra)
     start_jax()
     from jaxdrive.config import PredictorRunConfig, SegmenterRunConfig
     if isinstance(config, PredictorRunConfig):        # configs/predictor.py: the future-controls predictor
@@ -127,7 +102,7 @@ def _demo(args, rest) -> int:
                          f"pass --config), got a missing file")
     data = workdir / "data"
     extra = [f"data.path={data}", f"train.steps={args.steps}"]
-    config = _config(config_path, None, args.set, extra)
+    config = load_config(config_path, None, args.set, extra)
     if args.cfg is not None:
         from jaxdrive.generate.guidance import check_scale
         check_scale("--cfg", args.cfg)
@@ -197,7 +172,6 @@ def _demo_routes(workdir: Path, data: Path, routes, clips: int, args, config):
         print(f"no route comparison: the validation scenes of {data} drive none of {', '.join(routes) or '(none)'}"
               if routes else "no route comparison (--routes none)")
         return None
-    from jaxdrive.cli import build_parser
     out = workdir / "samples" / "routes"
     print(f"[3/3] and the same given frames along the recorded route and along '{drivable[0]}', scored against the "
           f"world's render of each (jaxdrive eval --routes)")
@@ -206,7 +180,9 @@ def _demo_routes(workdir: Path, data: Path, routes, clips: int, args, config):
             "--out", str(out)]
     if args.cfg is not None:
         argv += ["--cfg", str(args.cfg)]
-    ev = build_parser().parse_args(argv)
+    parser = argparse.ArgumentParser(prog="jaxdrive")          # the eval command's own options, as jaxdrive's
+    eval_cli.add_commands(parser.add_subparsers(dest="command"))
+    ev = parser.parse_args(argv)
     ev.run(ev, [])
     return out / "routes.png"
 

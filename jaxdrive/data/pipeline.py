@@ -270,7 +270,7 @@ def take_window(record: Mapping, *, frames: int, views=None, where: str = "windo
     return out
 
 
-def _pad_boxes(s: dict, n: int, where: str) -> None:
+def pad_boxes(s: dict, n: int, where: str) -> None:
     """Pad (invalid slots) or cut the box axis to ``n``, keeping valid boxes first; log cuts."""
     valid = s["box_valid"]
     have = valid.shape[1]
@@ -293,7 +293,7 @@ def collate(samples: Sequence[dict], *, max_boxes: int | None = None) -> dict:
     """Stack samples of one bucket into a batch (box slots padded to a common N)."""
     n = max_boxes or max(s["box_valid"].shape[1] for s in samples)
     for i, s in enumerate(samples):
-        _pad_boxes(s, n, f"sample {i} (index {s.get('index')})")
+        pad_boxes(s, n, f"sample {i} (index {s.get('index')})")
     batch = {}
     for k, v in samples[0].items():
         if isinstance(v, str):

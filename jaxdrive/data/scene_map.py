@@ -117,6 +117,10 @@ class SceneMap:
         expansion), where nothing about the road can be checked."""
         return bool(self._road(classes).any())
 
+    def cut(self, pose, fallback):
+        """:func:`cut` of this map (what the predictor's rollout calls, jitted, at each pose)."""
+        return cut(self, pose, fallback)
+
     def device(self, multiple: int = 128) -> "SceneMap":
         """The arrays as device arrays (what :func:`cut` under jit takes), padded with unseen cells
         to a ``multiple`` of cells per side, so that scenes of similar extent share one program."""

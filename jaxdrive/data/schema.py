@@ -12,17 +12,11 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from jaxdrive.classes import BEV_CLASSES, OBJECT_CLASSES  # noqa: F401  (the record's class vocabularies)
+
 # nuScenes camera channels in jaxdrive's view order (clockwise from the front).
 CAMERAS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT",
            "CAM_FRONT_LEFT")
-
-# MagicDrive-V2's 10 object classes (the nuScenes detection classes); class id = index.
-OBJECT_CLASSES = ("car", "truck", "construction_vehicle", "bus", "trailer", "barrier",
-                  "motorcycle", "bicycle", "pedestrian", "traffic_cone")
-
-# MagicDrive's 8 BEV road classes, the channel order of ``bev_map``.
-BEV_CLASSES = ("drivable_area", "ped_crossing", "walkway", "stop_line", "carpark_area",
-               "road_divider", "lane_divider", "road_block")
 
 CAPTION_TEMPLATE = ("This is a driving scene video captured by camera in {sensor} of a car at "
                     "{location} during {season} {daytime}.")

@@ -6,16 +6,18 @@ that frame's ego frame, one *slot* per box. :func:`clip_tracks` turns the one in
 (following each track id from a reference frame; a dataset without ids keeps slots as tracks),
 :func:`clip_fields` the other way, so predicted traffic becomes the clip fields a DiT reads
 (``ego_to_world``, ``waypoints``, ``boxes``, ``box_classes``, ``box_ids``, ``box_valid``).
+:func:`load_controls` reads a dataset's clips as controls alone, and :func:`window_traffic` cuts
+the predictor's windows from them (its training, :mod:`jaxdrive.train.predictor_run`, and ADE / FDE).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from jaxdrive.geometry import wrap
 
-def wrap(angle):
-    """Angles into [-pi, pi) (NumPy or JAX arrays alike)."""
-    return (angle + np.pi) % (2 * np.pi) - np.pi
+# the fields of a clip that are its controls (:func:`load_controls`): traffic and the map, no video
+CONTROL_FIELDS = ("ego_to_world", "boxes", "box_classes", "box_ids", "box_valid", "bev_map")
 
 
 def planar(ego_to_world) -> np.ndarray:
@@ -98,3 +100,30 @@ def interpolate(times, values, at, *, angle_last: bool = True):
     if angle_last:
         out[..., -1] = wrap(out[..., -1])
     return out
+
+
+def load_controls(path, split: str, *, max_agents: int) -> list[dict]:
+    """The control fields (:data:`CONTROL_FIELDS`) and ``fps`` of every clip of the dataset
+    ``path``'s ``split``, box slots padded or cut to ``max_agents``
+    (:func:`jaxdrive.data.pipeline.pad_boxes`)."""
+    from jaxdrive.data.pipeline import pad_boxes
+    from jaxdrive.data.tfds_io import open_source
+    source = open_source(path, split)
+    clips = []
+    for i in range(len(source)):
+        rec = source[i]
+        clip = {k: np.asarray(rec[k]) for k in CONTROL_FIELDS}
+        pad_boxes(clip, max_agents, f"{split} clip {i}")
+        clip["fps"] = float(rec["fps"])
+        clips.append(clip)
+    return clips
+
+
+def window_traffic(clip: dict, frames: np.ndarray, history: int) -> dict:
+    """The traffic of ``clip`` (:func:`load_controls`) at source ``frames``, with the tracks of
+    the last history frame: the ``Traffic`` fields (:class:`jaxdrive.models.predictor.Traffic`,
+    NumPy) of the first ``history`` steps and the targets of the rest, and each step's ``bev``."""
+    sub = {k: clip[k][frames] for k in ("ego_to_world", "boxes", "box_classes", "box_ids", "box_valid")}
+    tr = clip_tracks(sub, ref=history - 1)
+    return {"ego": tr["ego"], "agents": tr["agents"], "seen": tr["seen"], "size": tr["size"], "z": tr["z"],
+            "classes": np.maximum(tr["classes"], 0), "ids": tr["ids"], "bev": clip["bev_map"][frames]}

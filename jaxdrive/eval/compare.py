@@ -17,9 +17,10 @@ from pathlib import Path
 import numpy as np
 
 from jaxdrive.eval.fid import FeatureStats
-from jaxdrive.eval.frames import psnr, ssim
+from jaxdrive.generate.quality import psnr, ssim
 
 FVD_FRAMES = 16
+EFFECT_METRICS = ("psnr", "ssim", "miou")    # the route effects (:mod:`jaxdrive.eval.routes`) of each row
 
 
 def parse_buckets(text: str | None, given: int, frames: int) -> list[tuple[int, int]]:
@@ -58,10 +59,10 @@ def _to_255(video):
 
 
 def controllability(segment, video, masks, buckets) -> dict:
-    """Per bucket, the segmenter's scores (:func:`jaxdrive.eval.segmenter.summary`: ``miou``,
+    """Per bucket, the segmenter's scores (:func:`jaxdrive.models.segmenter.summary`: ``miou``,
     ``per_class``, ``pixel_accuracy``) of ``video [B, V, F, H, W, 3]`` against the class ids
     ``masks [B, V, F, H, W]`` (and the bucket's ``frames``); ``segment(frames) -> class ids``."""
-    from jaxdrive.eval.segmenter import confusion, summary
+    from jaxdrive.models.segmenter import confusion, summary
     lo, hi = min(a for a, _ in buckets), max(b for _, b in buckets)
     pred = segment(video[:, :, lo:hi])           # once: the buckets overlap (the whole span is one)
     return {f"{a}-{b - 1}": {"frames": [a, b - 1], **summary(confusion(pred[:, :, a - lo:b - lo], masks[:, :, a:b]))}
@@ -203,7 +204,6 @@ def write_outputs(results: dict, out, *, meta: dict, ceiling: dict | None = None
     (out / "eval.json").write_text(json.dumps({**meta, **extra, "strategies": results}, indent=1))
     md = table(results, ceiling)
     if effects:
-        from jaxdrive.eval.routes import effect_table
         md += "\n\nRoute effect (the generation under the route minus the recorded-route generation, both " \
               "against the route's render; 0: the route was ignored):\n\n" + effect_table(effects)
     (out / "eval.md").write_text(md + "\n")
@@ -230,6 +230,20 @@ def write_outputs(results: dict, out, *, meta: dict, ceiling: dict | None = None
     fig.savefig(out / "quality_vs_horizon.png")
     plt.close(fig)
     return {"json": out / "eval.json", "md": out / "eval.md", "plot": out / "quality_vs_horizon.png", "table": md}
+
+
+def effect_table(effects: dict) -> str:
+    """A markdown table of :func:`jaxdrive.eval.routes.route_effect`: one row per route, strategy and bucket."""
+    metrics = [m for m in EFFECT_METRICS if any(m in row for r in effects.values() for s in r.values()
+                                                for row in s.values())]
+    head = ["route", "strategy", "frames", *[f"{m.upper() if m != 'miou' else 'mIoU'} effect" for m in metrics]]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for route, by_strategy in effects.items():
+        for name, spans in by_strategy.items():
+            for span, row in spans.items():
+                cells = [f"{row[m]:+.3f}" if m in row else "-" for m in metrics]
+                lines.append(f"| {route} | {name} | {span} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def _effect_panel(ax, effects):

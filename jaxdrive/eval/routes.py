@@ -20,12 +20,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxdrive.eval.compare import score
+from jaxdrive.eval.compare import EFFECT_METRICS, effect_table, score  # noqa: F401  (effect_table: its old home)
 
 RECORDED = "recorded"
 SEP = " @ "                       # result names: "rollout @ stop", "repeat frame 1 @ stop", "warp @ stop"
 WARP = "warp"
-EFFECT_METRICS = ("psnr", "ssim", "miou")
 
 
 def parse_routes(text: str) -> list[str]:
@@ -100,20 +99,6 @@ def route_effect(results: dict, against: dict, routes) -> dict:
                        if mine[span].get(m) is not None and base[span].get(m) is not None}
                 for span in mine}
     return out
-
-
-def effect_table(effects: dict) -> str:
-    """A markdown table of :func:`route_effect`: one row per route, strategy and bucket."""
-    metrics = [m for m in EFFECT_METRICS if any(m in row for r in effects.values() for s in r.values()
-                                                for row in s.values())]
-    head = ["route", "strategy", "frames", *[f"{m.upper() if m != 'miou' else 'mIoU'} effect" for m in metrics]]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for route, by_strategy in effects.items():
-        for name, spans in by_strategy.items():
-            for span, row in spans.items():
-                cells = [f"{row[m]:+.3f}" if m in row else "-" for m in metrics]
-                lines.append(f"| {route} | {name} | {span} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
 
 
 def evaluate_routes(routes, plan, *, load_inputs, first_latents, strategies, models, codec, length, buckets, key,

@@ -24,10 +24,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdrive.config import PredictorConfig
 from jaxdrive.data.scene_map import DEFAULT_RANGE, SceneMap, cut
 from jaxdrive.data.traffic import clip_fields, clip_tracks, interpolate, planar
-from jaxdrive.models.predictor import Traffic, rollout_program
+from jaxdrive.models.predictor import PredictorConfig, Traffic, rollout_program
 
 CONTROLS = ("recorded", "predicted")
 BOX_FIELDS = ("boxes", "box_classes", "box_ids", "box_valid")
@@ -35,17 +34,12 @@ BOX_FIELDS = ("boxes", "box_classes", "box_ids", "box_valid")
 
 @dataclasses.dataclass(frozen=True)
 class FuturePredictor:
-    """A trained predictor: its config, parameters and the seconds of one of its steps."""
+    """A trained predictor: its config, parameters and the seconds of one of its steps (a run's:
+    :func:`jaxdrive.train.predictor_run.load_future_predictor`)."""
 
     config: PredictorConfig
     params: Any = dataclasses.field(compare=False, repr=False)
     step_seconds: float = 1 / 6
-
-    @classmethod
-    def load(cls, workdir) -> "FuturePredictor":
-        from jaxdrive.train.predictor_run import load_predictor
-        config, params, info = load_predictor(workdir)
-        return cls(config.predictor, params, float(info["step_seconds"]))
 
 
 @jax.jit

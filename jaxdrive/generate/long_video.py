@@ -18,7 +18,7 @@ and appends it to the mp4. It writes under ``out``:
   the manoeuvre started, whether and how far it left the road); when the recorded clip covers the horizon, ``quality``:
   PSNR / SSIM of the first clip against it, beside the repeat and noise baselines, over the
   first window, all generated frames and each second (``horizon``), scored part by part as the
-  frames are decoded (:class:`jaxdrive.eval.frames.FrameScores`);
+  frames are decoded (:class:`jaxdrive.generate.quality.FrameScores`);
 - ``quality.json``: the same scores with one row per frame.
 """
 
@@ -61,7 +61,7 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
     latents, grid, written = [], {}, 0
     scores = None
     if recorded is not None and np.shape(recorded)[1] >= frames:
-        from jaxdrive.eval.frames import FrameScores
+        from jaxdrive.generate.quality import FrameScores
         given = codec.pixel_frames(np.shape(first)[2])
         scores = FrameScores(np.asarray(recorded)[:, :frames], cond_frames=given)
     writer = None

@@ -78,7 +78,7 @@ def dataset_inputs(spec: Sampling, *, frames: int, views=None, clips: int = 1, s
     frames as it has, and ``video`` holds those. ``scene``: keep the first clip's map, poses and
     boxes under ``inputs["scene"]`` (the frame grid's BEV panel). ``masks``: also the recorded
     frames' exact class ids ``inputs["class_masks"] [B, V, F, H, W]`` (synthetic clips:
-    :func:`jaxdrive.eval.segmenter.class_masks`). ``shuffle_boxes`` (the controllability control
+    :func:`jaxdrive.data.class_masks.class_masks`). ``shuffle_boxes`` (the controllability control
     of ``jaxdrive eval``): clip ``i`` is conditioned on the boxes of clip ``i + 1`` (cyclically),
     and ``inputs["box_class_masks"]`` are the class masks of the boxes each clip got. ``indices``:
     the split's clips to take (default ``0 .. clips - 1``). ``poses``: also ``inputs["poses"]``,
@@ -122,7 +122,7 @@ def dataset_inputs(spec: Sampling, *, frames: int, views=None, clips: int = 1, s
         samples.append(sample if controls is None else controls(sample, clip, where))
     extra = {}
     if masks or shuffle_boxes:
-        from jaxdrive.eval.segmenter import class_masks_of
+        from jaxdrive.data.class_masks import class_masks_of
         own = [class_masks_of(s) for s in samples]
         for s in samples:
             del s["instance_ids"]                 # not a model input
@@ -246,10 +246,10 @@ def write_samples(spec: Sampling, state_or_params, outdir, *, log=print, fps: fl
     """Generate (``kwargs`` as :func:`generate`) and write under ``outdir``: ``sample.mp4``,
     ``frames.png`` (each row: the recorded frame left, the generated one right), ``latents.npy`` and ``quality.json``
     (PSNR / SSIM of the first clip against its recorded frames, beside the repeat-the-last-frame
-    and noise baselines: :func:`jaxdrive.eval.frames.clip_quality`; and the ``guidance`` used).
+    and noise baselines: :func:`jaxdrive.generate.quality.clip_quality`; and the ``guidance`` used).
     Returns the paths and the
     quality summary (``"quality"``). EMA parameters are used when the state keeps them."""
-    from jaxdrive.eval.frames import clip_quality
+    from jaxdrive.generate.quality import clip_quality
     from jaxdrive.media import write_frame_grid, write_mp4
     params = state_or_params
     if hasattr(state_or_params, "params"):

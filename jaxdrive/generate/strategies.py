@@ -41,6 +41,7 @@ import numpy as np
 
 from jaxdrive import flow
 from jaxdrive.generate.segments import AUTO, check_segment_batch, choose_segment_batch, fine_group
+from jaxdrive.generate.streaming import check_taps, streaming  # noqa: F401  (check_taps: its old home)
 from jaxdrive.generate.windows import Horizon, Tracker, WindowModel, to_mesh, window_controls, window_starts
 from jaxdrive.models.conditions import Conditions
 from jaxdrive.validate import check_choice, check_positive_int
@@ -284,27 +285,8 @@ def run_strategy(name: str, models: Models, controls: Conditions, first, length:
         raise ValueError("warp: a model trained with warped frames (controls.warp) needs the poses to warp along "
                          "(a WarpGuide: the clip's recorded poses or a route), got none")
     fn = {"rollout": rollout, "coarse-to-refine": coarse_to_refine, "coarse-fine": coarse_fine, "window": window,
-          "streaming": _streaming}[name]
+          "streaming": streaming}[name]
     return fn(models, controls, first, length, key=key, tracker=tracker, mesh=mesh, **options)
-
-
-def _streaming(*args, **kwargs):
-    from jaxdrive.generate.streaming import streaming
-    return streaming(*args, **kwargs)
-
-
-def check_taps(models: Models, taps) -> tuple[int, ...]:
-    """``--taps`` of ``streaming`` (None: the model's own): offsets within its buffer, and only for
-    a model with HTFT layers; ``ValueError`` naming ``--taps``."""
-    from jaxdrive.models.htft import check_taps as check_offsets
-    main = models.main
-    if taps is None:
-        return main.stream_taps
-    taps = check_offsets(taps, main.stream_buffer, "--taps")
-    if taps and not main.dit.config.htft_layers:
-        raise ValueError(f"--taps: HTFT streaming needs a model with HTFT layers (model.htft_layers, STAGE stage 2), "
-                         f"got taps {list(taps)} for a model without them")
-    return taps
 
 
 def sequential_calls(name: str, models: Models, length: int, given: int, **options) -> int:

@@ -33,12 +33,13 @@ import numpy as np
 
 from jaxdrive import flow
 from jaxdrive.generate.guidance import sampler_guidance
+from jaxdrive.generate.windows import STREAM_WINDOW as WINDOW       # anchor, condition, new
 from jaxdrive.generate.windows import Tracker, WindowModel, to_mesh
 from jaxdrive.models.conditions import Conditions
 from jaxdrive.models.htft import buffer_init, buffer_push, buffer_select
+from jaxdrive.models.htft import check_taps as check_offsets
 from jaxdrive.parallel.rules import constrain, reshard_like
 
-WINDOW = 3                        # anchor, condition, new
 NEW = 2                           # the new frame's slot
 COND_MASK = (True, True, False)
 
@@ -197,16 +198,29 @@ def buffer_bytes(model: WindowModel, batch: int, views: int, latent_hw: tuple[in
     return int(sum(x.size * x.dtype.itemsize for x in jax.tree_util.tree_leaves(shapes)))
 
 
+def check_taps(models, taps) -> tuple[int, ...]:
+    """``--taps`` of ``streaming`` for ``models`` (a :class:`jaxdrive.generate.strategies.Models`;
+    None: the model's own): offsets within its buffer, and only for a model with HTFT layers;
+    ``ValueError`` naming ``--taps``."""
+    main = models.main
+    if taps is None:
+        return main.stream_taps
+    taps = check_offsets(taps, main.stream_buffer, "--taps")
+    if taps and not main.dit.config.htft_layers:
+        raise ValueError(f"--taps: HTFT streaming needs a model with HTFT layers (model.htft_layers, STAGE stage 2), "
+                         f"got taps {list(taps)} for a model without them")
+    return taps
+
+
 def streaming(models, controls: Conditions, first, length: int, *, key, tracker: Tracker | None = None, mesh=None,
               taps=None) -> Iterator[np.ndarray]:
     """STAGE's streaming strategy (module docstring): the given frames ``first [B, V, k, h, w, C]``
     (the first is the anchor) are observed into the buffer, then each next latent frame is
     sampled from the anchor and the frame before it and yielded at once. ``taps`` default to the
     model's (its run's ``stream.taps``); ``()`` turns HTFT off."""
-    from jaxdrive.generate.strategies import check_taps as check_taps_option
     tracker = tracker or Tracker()
     model = models.main
-    taps = check_taps_option(models, taps)
+    taps = check_taps(models, taps)
     first = np.asarray(first, np.float32)
     b, v, given, h, w, _ = first.shape
     htft = bool(taps)

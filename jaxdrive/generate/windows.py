@@ -32,6 +32,10 @@ from jaxdrive.models.conditions import Conditions
 from jaxdrive.models.dit import DiT
 from jaxdrive.validate import check_positive_int
 
+# the latent frames of one streaming sampler call (STAGE, :mod:`jaxdrive.generate.streaming`):
+# anchor, condition, new; here because every window-sized model reads it, the streaming one included
+STREAM_WINDOW = 3
+
 
 @dataclasses.dataclass(frozen=True)
 class WindowModel:
@@ -88,9 +92,8 @@ class WindowModel:
             lengths = {spec.codec.latent_frames(k[2]) for k in parse_bucket_specs(d.buckets)}
         # the resolution rule counts the frames one sampler call denoises: a streaming model's
         # window is [anchor, condition, new] (as its training step counts it), not data.frames
-        from jaxdrive.generate.streaming import WINDOW
         shift = f.shift if f.shift > 0 else flow.resolution_shift(
-            d.height, d.width, WINDOW if spec.stream.enabled else spec.latent_window)
+            d.height, d.width, STREAM_WINDOW if spec.stream.enabled else spec.latent_window)
         return cls(DiT(spec.model), params, window=spec.latent_window, cond_frames=max(1, f.cond_frames),
                    steps=spec.steps if steps is None else check_positive_int("steps", steps), guidance=guidance,
                    control_guidance=controls,
@@ -145,7 +148,7 @@ class Tracker:
         once per shape and process (the last :data:`KEEP_PROGRAMS` are kept: a second run of a
         strategy compiles nothing). ``probe``: compiled to read its memory, not counted among the
         programs the run used."""
-        fn = _SAMPLE if fn is None else fn
+        fn = jitted_sample_window if fn is None else fn
         leaves, tree = jax.tree_util.tree_flatten(args)
         key = (fn, model, static, tree) + tuple((x.shape, str(x.dtype), getattr(x, "sharding", None))
                                                  for x in leaves)
@@ -347,4 +350,4 @@ def sample_window(model: WindowModel, params, x_cond, cond_mask, controls: Condi
     return jnp.where(keep, out, model.in_range(out))
 
 
-_SAMPLE = jax.jit(sample_window, static_argnums=(0,))
+jitted_sample_window = jax.jit(sample_window, static_argnums=(0,))

@@ -165,7 +165,7 @@ class DiTConfig:
     ``bbox_embedder``); jaxdrive's default is the +-51.2 m of the nuScenes detection range its
     data follows, one scale for x, y, z and for corners in a camera's frame (``box_per_view``).
     ``None`` keeps raw metres (runs trained before the normalisation: their saved config lacks
-    the field and loads with ``None``, see :func:`jaxdrive.train.run.load_run_config`).
+    the field and loads with ``None``, see :func:`jaxdrive.train.common.load_run_config`).
     ``box_freqs``: the Fourier frequency count of the corners, ``temperature^(i / n)``, ``i < n``
     (:func:`jaxdrive.models.embeddings.fourier_features`; with the default 8 and temperature 100
     the highest is ~56 rad per unit, a ~6 m wavelength at the default range, where it was ~0.1 m

@@ -174,7 +174,7 @@ class TemporalEncoder(nn.Module):
         return jnp.moveaxis(seq, -2, 1)
 
 
-def _align(module, name, x, mask, latent_frames, ratio, width, dtype):
+def align_frames(module, name, x, mask, latent_frames, ratio, width, dtype):
     """Per-frame features ``[B, Fc, ..., D]`` -> ``[B, F', ..., D]`` (downsampled when pixel-framed).
     The downsampling parameters exist either way (created at initialisation from one frame), so
     one model takes both kinds of input."""
@@ -225,7 +225,7 @@ class WaypointEncoder(_PerFrameFourier):
     @nn.compact
     def __call__(self, waypoints, latent_frames):
         h = FourierMLP(self.width, self.num_freqs, self.temperature, self.dtype)(waypoints)
-        return _align(self, "waypoints", h, None, latent_frames, self.ratio, self.width, self.dtype)[0]
+        return align_frames(self, "waypoints", h, None, latent_frames, self.ratio, self.width, self.dtype)[0]
 
 
 def latent_frame_times(frame_times, latent_frames: int, ratio: int):
@@ -271,7 +271,7 @@ class TrajectoryEncoder(nn.Module):
         h = FourierMLP(self.width, self.num_freqs, self.temperature, self.dtype)(
             rel.reshape(*rel.shape[:-2], 12))
         h = TemporalEncoder(self.width, self.layers, self.heads, self.impl, self.dtype)(h)
-        return _align(self, "trajectory", h, None, latent_frames, self.ratio, self.width, self.dtype)[0]
+        return align_frames(self, "trajectory", h, None, latent_frames, self.ratio, self.width, self.dtype)[0]
 
 
 def box_visibility(corners_cam, intrinsics, image_hw, min_depth: float = 0.1):
@@ -352,7 +352,7 @@ class BoxEncoder(nn.Module):
         h = Dense(self.width, ("mlp", "embed"), dtype=self.dtype, name="fc2")(jax.nn.silu(h))
         h = h * mask[..., None]
         h = TemporalEncoder(self.width, self.layers, self.heads, self.impl, self.dtype)(h, mask)
-        h, mask = _align(self, "boxes", h, mask, latent_frames, self.ratio, self.width, self.dtype)
+        h, mask = align_frames(self, "boxes", h, mask, latent_frames, self.ratio, self.width, self.dtype)
         return h, mask
 
 
@@ -396,7 +396,7 @@ class MapEncoder(nn.Module):
         x = jax.image.resize(x, (x.shape[0], *grid_hw, x.shape[-1]), "linear")
         x = Dense(self.width, ("channels", "embed"), dtype=self.dtype, name="proj")(x)
         x = merge(split(x, 0, b), 2)                                   # [B, Fm, S, D]
-        return _align(self, "bev_map", x, None, latent_frames, self.ratio, self.width, self.dtype)[0]
+        return align_frames(self, "bev_map", x, None, latent_frames, self.ratio, self.width, self.dtype)[0]
 
 
 class CaptionEncoder(nn.Module):

@@ -41,7 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdrive.models.dit_controls import Conv3x3, _align
+from jaxdrive.models.dit_controls import Conv3x3, align_frames
 from jaxdrive.models.tokens import merge, reshape, split
 from jaxdrive.validate import check_positive_int, check_shape
 
@@ -209,7 +209,7 @@ def layout_canvas(boxes, box_classes, box_valid, intrinsics, cam_to_ego, image_h
 class LayoutEncoder(nn.Module):
     """The layout canvas (:func:`layout_canvas`) on the latent grid ``grid_hw`` -> features
     ``[B, V, F', h, w, hidden]``: two 3x3 convolutions (SiLU) per frame and view, then the VAE's
-    temporal alignment (:func:`jaxdrive.models.dit_controls._align`: pixel-frame canvases are
+    temporal alignment (:func:`jaxdrive.models.dit_controls.align_frames`: pixel-frame canvases are
     grouped as the causal VAE groups frames and mapped by a learned linear layer). The DiT
     patchifies the result and adds it to the tokens through a zero-initialised projection.
     Without ``bev_map`` the ``map_channels`` road channels are zero (no road anywhere)."""
@@ -235,5 +235,5 @@ class LayoutEncoder(nn.Module):
         x = jax.nn.silu(Conv3x3(self.hidden, 1, self.dtype, name="conv_in")(x))
         x = jax.nn.silu(Conv3x3(self.hidden, 1, self.dtype, name="conv_out")(x))
         x = split(split(x, 0, b), 1, f)                                        # [B, F, V, h, w, hidden]
-        x = _align(self, "layout", x, None, latent_frames, self.ratio, self.hidden, self.dtype)[0]
+        x = align_frames(self, "layout", x, None, latent_frames, self.ratio, self.hidden, self.dtype)[0]
         return jnp.moveaxis(x, 2, 1)                                           # [B, V, F', h, w, hidden]

@@ -18,6 +18,7 @@ only has to learn where that baseline goes wrong (stopping, following, turning, 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import flax.linen as nn
@@ -25,13 +26,29 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
-from jaxdrive.config import PredictorConfig
-from jaxdrive.data.schema import BEV_CLASSES, OBJECT_CLASSES
-from jaxdrive.data.traffic import wrap
+from jaxdrive.classes import BEV_CLASSES, OBJECT_CLASSES
+from jaxdrive.geometry import wrap
 
 POSITION_SCALE = 10.0      # metres of one unit of a position feature
 STEP_SCALE = 0.5           # metres of one unit of a predicted position correction
 YAW_SCALE = 0.1            # radians of one unit of a predicted heading correction
+
+
+@dataclasses.dataclass(frozen=True)
+class PredictorConfig:
+    """The future-controls predictor (:class:`Predictor`): a transformer over the past ``history``
+    steps of the ego pose and the agents' boxes and the BEV map around the ego, one step every
+    ``stride`` source frames of the dataset; trained by rolling it ``horizon`` steps forward
+    (:class:`jaxdrive.config.PredictorRunConfig`, which re-exports this class)."""
+
+    history: int = 8
+    horizon: int = 8
+    stride: int = 2
+    width: int = 64
+    depth: int = 2
+    heads: int = 4
+    map_patch: int = 8                 # BEV cells per side of one map token
+    max_agents: int = 20               # agent slots (a clip's box slots, padded or cut)
 
 
 @flax.struct.dataclass
@@ -53,6 +70,15 @@ class Traffic:
         return self.replace(ego=jnp.concatenate([self.ego[:, 1:], ego_next[:, None]], 1),
                             agents=jnp.concatenate([self.agents[:, 1:], agents_next[:, None]], 1),
                             seen=jnp.concatenate([self.seen[:, 1:], self.seen[:, -1:]], 1))
+
+
+def to_traffic(w: dict, history: int) -> Traffic:
+    """The history part of stacked NumPy windows (leading batch axis;
+    :func:`jaxdrive.data.traffic.window_traffic`) as a device :class:`Traffic`."""
+    f32 = lambda x: jnp.asarray(x, jnp.float32)
+    return Traffic(ego=f32(w["ego"][:, :history]), agents=f32(w["agents"][:, :history]),
+                   seen=jnp.asarray(w["seen"][:, :history]), size=f32(w["size"]), z=f32(w["z"]),
+                   classes=jnp.asarray(w["classes"], jnp.int32), ids=jnp.asarray(w["ids"], jnp.int32))
 
 
 def to_frame(poses, frame):
@@ -155,16 +181,16 @@ def rollout(model: Predictor, params, traffic: Traffic, steps: int, *, bev=None,
     """Roll ``steps`` steps forward -> ``(ego [B, S, 3], agents [B, S, N, 3], traffic)`` (the
     final history). The map of each step: ``bev [B, S, Hm, Wm, 8]`` given per step (training), or
     ``bev [B, Hm, Wm, 8]`` (the newest seen) re-cut from ``scene`` (a
-    :class:`jaxdrive.data.scene_map.SceneMap`, one clip: B = 1) at each pose, or held as it is.
-    ``ego_path [B, S, 3]``: the ego drives it (a user's route) and only the agents are predicted."""
-    from jaxdrive.data.scene_map import cut
+    :class:`jaxdrive.data.scene_map.SceneMap`, one clip: B = 1; its ``cut(pose, fallback)``) at
+    each pose, or held as it is. ``ego_path [B, S, 3]``: the ego drives it (a user's route) and
+    only the agents are predicted."""
 
     def step(state, k):
         traffic = state
         if bev is None or bev.ndim == 4:
             now = bev
             if scene is not None:
-                now = jax.vmap(lambda pose, fb: cut(scene, pose, fb))(traffic.ego[:, -1], bev)
+                now = jax.vmap(scene.cut)(traffic.ego[:, -1], bev)
         else:
             now = bev[:, k]
         ego, agents = predict_step(model, params, traffic, now)

@@ -205,7 +205,7 @@ class Decoder3D(nn.Module):
         return h, new
 
 
-def _chunk_plan(total: int, size: int) -> tuple[int, int]:
+def chunk_plan(total: int, size: int) -> tuple[int, int]:
     """diffusers' temporal chunking: ``(first chunk length, number of further chunks of size)``;
     the remainder ``total % size`` joins the first chunk."""
     n = max(total // size, 1)
@@ -217,7 +217,7 @@ def _run_chunks(apply, x, size: int):
 
     The first chunk (which holds the remainder) runs on its own; the others run in one
     ``fori_loop`` that writes each output into a preallocated buffer in place."""
-    first, rest = _chunk_plan(x.shape[1], size)
+    first, rest = chunk_plan(x.shape[1], size)
     y0, cache = apply(x[:, :first], None)
     if rest == 0:
         return y0
@@ -246,7 +246,7 @@ def _blend(a, b, extent: int, axis: int):
     return jnp.concatenate([head, jax.lax.slice_in_dim(b, extent, b.shape[axis], axis=axis)], axis=axis)
 
 
-def _tiled(apply, x, geo_h: dict, geo_w: dict, kind: str, caches=None):
+def tiled_apply(apply, x, geo_h: dict, geo_w: dict, kind: str, caches=None):
     """Run ``apply`` on overlapping spatial tiles of ``x [N, T, H, W, C]`` and blend them, in
     diffusers' order: each tile is blended with the already-blended tiles above and to its left.
 
@@ -386,7 +386,7 @@ class CausalVAE:
         apply = lambda t, cache: module.apply(weights, t, cache)
         run = (lambda t: apply(t, None)[0]) if mode == "whole" else (lambda t: _run_chunks(apply, t, chunk))
         geo = self._tiles(x, tile_key, tiled)
-        return run(x) if geo is None else _tiled(run, x, *geo, kind)
+        return run(x) if geo is None else tiled_apply(run, x, *geo, kind)
 
     def _frame_groups(self, kind: str, params, x, tiled: bool):
         """Frame-wise ``x [N, F, ...]`` in groups of ``frame_wise_batch`` k frames of every clip, one
@@ -445,7 +445,7 @@ def _clip_groups(n: int, clip_batch: int) -> tuple[int, int] | None:
     return None if k >= per else (shards, per // k)
 
 
-def _fold_views(x):
+def fold_views(x):
     """``[B, V, F, ...] -> [B * V, F, ...]`` (batch sharded over data/fsdp), and the unfold."""
     if x.ndim == 5:
         return constrain(x, ("batch", None, None, None, None)), lambda y: y
@@ -456,7 +456,7 @@ def _fold_views(x):
 
 @functools.partial(jax.jit, static_argnums=(0, 3, 4))
 def _posterior(vae: CausalVAE, params, video, mode: str, tiled: bool):
-    x, unfold = _fold_views(video)
+    x, unfold = fold_views(video)
     moments = vae._coded("encode", params, x, mode, tiled).astype(jnp.float32)
     c = vae.config.latent_channels
     mean, logvar = moments[..., :c], jnp.clip(moments[..., c:], -30.0, 20.0)
@@ -465,5 +465,5 @@ def _posterior(vae: CausalVAE, params, video, mode: str, tiled: bool):
 
 @functools.partial(jax.jit, static_argnums=(0, 3, 4))
 def _decode(vae: CausalVAE, params, latents, mode: str, tiled: bool):
-    z, unfold = _fold_views(latents)
+    z, unfold = fold_views(latents)
     return unfold(vae._coded("decode", params, z, mode, tiled).astype(jnp.float32))

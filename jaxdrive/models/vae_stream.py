@@ -9,14 +9,14 @@ the whole equal to a decode of the whole clip.
 - ``space_to_depth`` codec and the VAE's ``"frame_wise"`` mode: frame-wise, every pushed part
   decodes at once (one compilation per distinct part length).
 - VAE ``"chunked"`` mode: diffusers' chunk boundaries depend on the clip length (the remainder
-  joins the *first* chunk, :func:`jaxdrive.models.vae._chunk_plan`), so the decoder takes the
+  joins the *first* chunk, :func:`jaxdrive.models.vae.chunk_plan`), so the decoder takes the
   total up front, buffers pushed latents on the host until a chunk is complete and decodes exactly
   the chunks of the whole-clip pass, threading :class:`Decoder3D`'s causal cache from one chunk to
   the next (the first chunk without a cache, as :func:`jaxdrive.models.vae._run_chunks`). One
   jitted function, traced twice (first chunk, steady chunk) whatever the length; the cache has a
   fixed size and decoded frames go to the host, so device memory does not grow with the video.
   With spatial tiling on and frames larger than a tile, every tile keeps its own cache and the
-  tiles are blended per chunk as :func:`jaxdrive.models.vae._tiled` does: the same video as the
+  tiles are blended per chunk as :func:`jaxdrive.models.vae.tiled_apply` does: the same video as the
   whole-clip tiled decode.
 - VAE ``"whole"`` mode cannot stream (its GroupNorm statistics span the whole clip): rejected.
 
@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrive import validate
-from jaxdrive.models.vae import Decoder3D, _chunk_plan, _fold_views, _tiled
+from jaxdrive.models.vae import Decoder3D, chunk_plan, fold_views, tiled_apply
 
 STREAMING_MODES = ("chunked", "frame_wise")
 
@@ -42,11 +42,11 @@ STREAMING_MODES = ("chunked", "frame_wise")
 def _decode_chunk(vae, params, latents, cache):
     """One chunk of scaled ``latents [B, V, n, h, w, C]`` -> (video clipped to [-1, 1], cache);
     ``cache=None`` starts the video (its frame 0 is decoded as an image)."""
-    z, unfold = _fold_views(vae.unscale_latents(latents))
+    z, unfold = fold_views(vae.unscale_latents(latents))
     weights = {"params": params["decoder"]}
     apply = lambda t, k: Decoder3D(vae.config).apply(weights, t, k)
     geo = vae._tiles(z, "tile_latent", vae.config.tiling)
-    y, cache = apply(z, cache) if geo is None else _tiled(apply, z, *geo, "decode", caches=cache or {})
+    y, cache = apply(z, cache) if geo is None else tiled_apply(apply, z, *geo, "decode", caches=cache or {})
     return jnp.clip(unfold(y.astype(jnp.float32)), -1.0, 1.0), cache
 
 
@@ -65,7 +65,7 @@ class StreamDecoder:
         self.codec = codec
         self.chunked = vae is not None and vae.config.mode == "chunked"
         if self.chunked:
-            self._first, _ = _chunk_plan(self.total, vae.config.decode_chunk_latents)
+            self._first, _ = chunk_plan(self.total, vae.config.decode_chunk_latents)
         self.pushed = 0                   # latent frames received
         self._pending: list[np.ndarray] = []
         self._cache = None

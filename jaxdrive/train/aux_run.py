@@ -30,7 +30,7 @@ def fit(config, workdir, params, loss, batch, *, files=None, log=print, progress
     from jaxdrive.train.checkpoint import Checkpoints
     from jaxdrive.train.metrics import MetricsWriter
     from jaxdrive.train.optim import make_optimizer
-    from jaxdrive.train.run import _Stop
+    from jaxdrive.train.common import Stop
     from jaxdrive.train.state import apply_gradients, create_state
     from jaxdrive import compile_cache
     t, o = config.train, config.optim
@@ -59,7 +59,7 @@ def fit(config, workdir, params, loss, batch, *, files=None, log=print, progress
     writer = MetricsWriter(workdir, total_steps=t.steps, start_step=start, progress=progress)
     meta = lambda step, status: {"step": step, "status": status, "config": to_dict(config)}
     step, row, status = start, {}, "done"
-    with _Stop() as stop:                 # SIGTERM / SIGINT: save, then stop (the same command resumes)
+    with Stop() as stop:                 # SIGTERM / SIGINT: save, then stop (the same command resumes)
         while step < t.steps:
             state, metrics = train_step(state, batch(step))
             step += 1

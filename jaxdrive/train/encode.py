@@ -40,6 +40,7 @@ from tqdm import tqdm
 from jaxdrive.config import check_sections
 from jaxdrive.models.latents import LatentCodec
 from jaxdrive.parallel import Processes, global_to_host_local, host_local_to_global
+from jaxdrive.train.common import batch_axes, batch_shards, mesh_from_config
 from jaxdrive.validate import check_positive_int
 
 log = logging.getLogger(__name__)
@@ -95,7 +96,6 @@ def _encoded(windows, codec: LatentCodec, batch: int, mesh, processes: Processes
     batch axes (this process's windows on its devices); every process makes the same calls until
     all have run out (one without windows left encodes zeros of ``video_shape``), and the last
     batch is padded, so that the encoder compiles once."""
-    from jaxdrive.train.run import batch_axes
     spec = P(batch_axes(mesh) or None)
     params = jax.device_put(jax.tree_util.tree_map(np.asarray, codec.params), NamedSharding(mesh, P()))
     encode = jax.jit(codec.encode, out_shardings=NamedSharding(mesh, spec))
@@ -128,7 +128,6 @@ def encode_dataset(config, out, *, splits=None, every: int | None = None, batch:
     dataset (:func:`jaxdrive.data.tfds_io.write_dataset` with ``processes``; ``out`` on a
     filesystem all of them see), which then reads exactly as the one-process output."""
     from jaxdrive.data.tfds_io import dataset_info, open_source, write_dataset
-    from jaxdrive.train.run import batch_shards, mesh_from_config
     check_sections(config)
     d = config.data
     every = _span(d) if every is None else check_positive_int("every", every)

@@ -30,6 +30,8 @@ import jax
 import numpy as np
 from flax.traverse_util import flatten_dict, unflatten_dict
 
+from jaxdrive.train.common import CONFIG_FILE, abstract_train_state, load_run_config
+
 DIFFUSERS_WEIGHTS = ("diffusion_pytorch_model.safetensors", "diffusion_pytorch_model.safetensors.index.json")
 
 
@@ -78,7 +80,6 @@ def source_params(path, *, mesh, ema: bool = True, target_model=None) -> dict:
         from jaxdrive.convert import load_diffusers_transformer
         overrides = {} if target_model is None else {"scan_layers": target_model.scan_layers}
         return load_diffusers_transformer(p, **overrides)[1]
-    from jaxdrive.train.run import CONFIG_FILE, abstract_train_state, load_run_config
     from jaxdrive.train.checkpoint import Checkpoints
     if not (p / CONFIG_FILE).is_file():
         raise ValueError(f"train.init_from: expected a jaxdrive run directory (with {CONFIG_FILE}) or a diffusers "

@@ -7,7 +7,8 @@ BEV map of that step's true pose) and averages the position error in metres, plu
 of heading error, of the ego and of every agent seen at the target step. Same run directory
 layout as a DiT run (``config.json``, ``checkpoints/``, ``metrics.jsonl``), atomic checkpoints and
 exact resume (a step's windows are drawn from ``(train.seed, step)``); at the end the validation
-split, when there is one, is scored (:mod:`jaxdrive.eval.motion`) into ``motion.json``.
+split, when there is one, is scored (:func:`motion_errors`: ADE / FDE against the constant-velocity
+baseline, also ``python -m jaxdrive.eval.motion``) into ``motion.json``.
 """
 
 from __future__ import annotations
@@ -20,11 +21,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrive.config import PredictorRunConfig
-from jaxdrive.data.traffic import clip_tracks
-from jaxdrive.models.predictor import Predictor, Traffic, init_params, rollout, wrap
+from jaxdrive.data.scene_map import DEFAULT_RANGE, SceneMap, bev_range_of
+from jaxdrive.data.traffic import CONTROL_FIELDS, load_controls, window_traffic  # noqa: F401  (their old home)
+from jaxdrive.generate.future import FuturePredictor
+from jaxdrive.geometry import wrap
+from jaxdrive.models.predictor import (Predictor, constant_velocity_rollout, init_params, rollout, rollout_program,
+                                       to_traffic)
 from jaxdrive.validate import check_positive_int
 
-CONTROL_FIELDS = ("ego_to_world", "boxes", "box_classes", "box_ids", "box_valid", "bev_map")
 YAW_METRES = 2.0            # metres of loss per radian of heading error
 INFO_FILE = "predictor.json"
 
@@ -37,38 +41,6 @@ def check_predictor_config(config: PredictorRunConfig) -> None:
         raise ValueError(f"predictor.width: expected a multiple of predictor.heads = {p.heads}, got {p.width}")
     check_positive_int("data.batch_size", config.data.batch_size)
     check_positive_int("train.steps", config.train.steps)
-
-
-def load_controls(path, split: str, *, max_agents: int) -> list[dict]:
-    """The control fields of every clip of ``split`` (box slots padded or cut to ``max_agents``)."""
-    from jaxdrive.data.pipeline import _pad_boxes
-    from jaxdrive.data.tfds_io import open_source
-    source = open_source(path, split)
-    clips = []
-    for i in range(len(source)):
-        rec = source[i]
-        clip = {k: np.asarray(rec[k]) for k in CONTROL_FIELDS}
-        _pad_boxes(clip, max_agents, f"{split} clip {i}")
-        clip["fps"] = float(rec["fps"])
-        clips.append(clip)
-    return clips
-
-
-def window_traffic(clip: dict, frames: np.ndarray, history: int) -> dict:
-    """Numpy traffic of ``clip`` at source ``frames`` (the tracks of the last history frame):
-    ``Traffic`` fields of the first ``history`` steps and the targets of the rest."""
-    sub = {k: clip[k][frames] for k in ("ego_to_world", "boxes", "box_classes", "box_ids", "box_valid")}
-    tr = clip_tracks(sub, ref=history - 1)
-    return {"ego": tr["ego"], "agents": tr["agents"], "seen": tr["seen"], "size": tr["size"], "z": tr["z"],
-            "classes": np.maximum(tr["classes"], 0), "ids": tr["ids"], "bev": clip["bev_map"][frames]}
-
-
-def to_traffic(w: dict, history: int) -> Traffic:
-    """The history part of stacked windows (leading batch axis) as a device :class:`Traffic`."""
-    f32 = lambda x: jnp.asarray(x, jnp.float32)
-    return Traffic(ego=f32(w["ego"][:, :history]), agents=f32(w["agents"][:, :history]),
-                   seen=jnp.asarray(w["seen"][:, :history]), size=f32(w["size"]), z=f32(w["z"]),
-                   classes=jnp.asarray(w["classes"], jnp.int32), ids=jnp.asarray(w["ids"], jnp.int32))
 
 
 class Windows:
@@ -140,13 +112,11 @@ def train_predictor(config: PredictorRunConfig, workdir, *, log=print, progress:
 def _validate(config, params, workdir, log):
     """ADE / FDE on the validation split at the horizons its clips allow, into ``motion.json``."""
     from jaxdrive.data.tfds_io import open_source
-    from jaxdrive.eval.motion import format_table, motion_errors
     try:
         open_source(config.data.path, "validation")
     except ValueError:
         return None
     clips = load_controls(config.data.path, "validation", max_agents=config.predictor.max_agents)
-    from jaxdrive.data.scene_map import bev_range_of
     from jaxdrive.data.tfds_io import dataset_info
     scores = motion_errors(params, config.predictor, clips,
                            bev_range=bev_range_of(dataset_info(config.data.path)["metadata"]))
@@ -157,6 +127,80 @@ def _validate(config, params, workdir, log):
         (Path(workdir) / "motion.json").write_text(json.dumps(scores, indent=1))
     log(format_table(scores))
     return scores
+
+
+HORIZONS = (1.0, 2.0, 4.0)
+
+
+def motion_errors(params, config, clips, *, horizons=HORIZONS, bev_range=DEFAULT_RANGE):
+    """ADE / FDE of ``params`` over ``clips`` (control fields and ``fps``, as
+    :func:`jaxdrive.data.traffic.load_controls` gives): for every clip, windows start at every
+    step; from each the predictor is rolled forward open loop (its own predictions fed back, the
+    map re-cut from the clip's stitched scene map at each predicted pose,
+    :mod:`jaxdrive.data.scene_map`) and so is the constant-velocity step
+    (:func:`jaxdrive.models.predictor.constant_velocity`). At each horizon h (seconds): ADE, the
+    mean position error over the steps up to h, and FDE, the error at h, in metres, for the ego
+    and for every agent present at the window's start and seen at the step scored.
+    ``{"horizons": {h: {"ego": {"ade", "fde", "cv_ade", "cv_fde"}, "agents": {...}}}, "windows",
+    "agent_tracks"}``, horizons the clips are too short for left out; None when none fits."""
+    t, s = config.history, config.stride
+    fps = clips[0]["fps"]
+    shortest = min(len(c["ego_to_world"]) for c in clips)
+    steps = {h: int(round(h * fps / s)) for h in horizons}
+    steps = {h: k for h, k in steps.items() if k >= 1 and (t - 1 + k) * s < shortest}
+    if not steps:
+        return None
+    total = max(steps.values())
+    predicted, constant = rollout_program(config), jax.jit(constant_velocity_rollout, static_argnums=(1,))
+    sums = {(who, kind, h): 0.0 for who in ("ego", "agents") for kind in ("ade", "fde", "cv_ade", "cv_fde")
+            for h in steps}
+    counts = {(who, h): 0 for who in ("ego", "agents") for h in steps}
+    windows = tracks = 0
+    for clip in clips:
+        offsets = s * np.arange(t + total)
+        starts = range(0, len(clip["ego_to_world"]) - int(offsets[-1]), s)
+        ws = [window_traffic(clip, st + offsets, t) for st in starts]
+        batch = {k: np.stack([w[k] for w in ws]) for k in ws[0]}
+        traffic = to_traffic(batch, t)
+        scene = SceneMap.from_clip(clip["bev_map"], clip["ego_to_world"], bev_range).device()
+        bev = jnp.asarray(batch["bev"][:, t - 1], jnp.float32)
+        runs = {"": predicted(params, traffic, total, bev, scene, None), "cv_": constant(traffic, total)}
+        true_ego, true_agents = batch["ego"][:, t:], batch["agents"][:, t:]
+        seen = batch["seen"][:, t:] & batch["seen"][:, t - 1:t]
+        windows += len(ws)
+        tracks += int(batch["seen"][:, t - 1].sum())
+        for prefix, (ego, agents) in runs.items():
+            e_ego = np.linalg.norm(np.asarray(ego)[..., :2] - true_ego[..., :2], axis=-1)            # [B, S]
+            e_ag = np.linalg.norm(np.asarray(agents)[..., :2] - true_agents[..., :2], axis=-1)        # [B, S, N]
+            for h, k in steps.items():
+                sums["ego", prefix + "ade", h] += e_ego[:, :k].mean(1).sum()
+                sums["ego", prefix + "fde", h] += e_ego[:, k - 1].sum()
+                # agents: ADE over the steps each was seen, FDE where seen at h
+                m = seen[:, :k]
+                per = (e_ag[:, :k] * m).sum(1) / np.maximum(m.sum(1), 1)                              # [B, N]
+                scored = seen[:, k - 1]
+                sums["agents", prefix + "ade", h] += per[scored].sum()
+                sums["agents", prefix + "fde", h] += e_ag[:, k - 1][scored].sum()
+                if not prefix:
+                    counts["ego", h] += len(ws)
+                    counts["agents", h] += int(scored.sum())
+    out = {"horizons": {}, "windows": windows, "agent_tracks": tracks, "step_seconds": s / fps}
+    for h in steps:
+        out["horizons"][f"{h:g}s"] = {who: {kind: round(sums[who, kind, h] / max(counts[who, h], 1), 3)
+                                            for kind in ("ade", "fde", "cv_ade", "cv_fde")}
+                                      for who in ("ego", "agents")}
+    return out
+
+
+def format_table(scores: dict) -> str:
+    """The scores as a small table (metres; lower is better)."""
+    lines = [f"ADE / FDE in metres over {scores['windows']} windows ({scores['agent_tracks']} agent tracks); "
+             f"predictor vs constant velocity",
+             f"  {'horizon':8s} {'who':7s} {'ADE':>7s} {'cv ADE':>7s} {'FDE':>7s} {'cv FDE':>7s}"]
+    for h, row in scores["horizons"].items():
+        for who, r in row.items():
+            lines.append(f"  {h:8s} {who:7s} {r['ade']:7.3f} {r['cv_ade']:7.3f} {r['fde']:7.3f} {r['cv_fde']:7.3f}")
+    return "\n".join(lines)
 
 
 def load_predictor(workdir):
@@ -173,3 +217,10 @@ def load_predictor(workdir):
     config, params = load_trained(workdir, PredictorRunConfig, "predictor", init, option="--predictor",
                                   what="predictor")
     return config, params, info
+
+
+def load_future_predictor(workdir):
+    """A predictor run as :class:`jaxdrive.generate.future.FuturePredictor` (what ``jaxdrive sample
+    --predictor RUN`` rolls forward): its config, newest parameters and the seconds of its step."""
+    config, params, info = load_predictor(workdir)
+    return FuturePredictor(config.predictor, params, float(info["step_seconds"]))

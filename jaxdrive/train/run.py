@@ -27,48 +27,24 @@ import signal
 import time
 from pathlib import Path
 
-import flax.linen as nn
 import jax
 import numpy as np
-from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from jaxdrive.config import Config, check_sections, to_dict
 from jaxdrive.data.batches import TextEmbeddings, model_inputs, stack_micro_batches
 from jaxdrive.models.latents import LatentCodec
-from jaxdrive.parallel import (Processes, host_local_to_global, make_mesh, param_shardings, shard_params,
-                               wait_for_all_processes)
+from jaxdrive.parallel import Processes, host_local_to_global, shard_params, wait_for_all_processes
 from jaxdrive.train import flow_step
 from jaxdrive.train.checkpoint import Checkpoints
+from jaxdrive.train.common import (CONFIG_FILE, Stop, abstract_train_state, batch_axes, batch_shards,  # noqa: F401
+                                   load_run_config, mesh_from_config)
 from jaxdrive.train.encode import check_dataset
 from jaxdrive.train.metrics import MetricsWriter
 from jaxdrive.train.optim import make_optimizer
 from jaxdrive.train.state import create_state
 
 _log = logging.getLogger(__name__)
-CONFIG_FILE = "config.json"
-
-
-def mesh_from_config(config: Config, devices=None):
-    m = config.mesh
-    devices = list(jax.devices() if devices is None else devices)
-    sizes = {"data": m.data, "fsdp": m.fsdp, "seq": m.seq, "tensor": m.tensor}
-    fixed = int(np.prod([s for s in sizes.values() if s != -1]))
-    if -1 not in sizes.values() and fixed != len(devices):
-        raise ValueError(f"mesh: expected sizes whose product is the device count {len(devices)}, got "
-                         f"{sizes} (product {fixed})")
-    return make_mesh(**sizes, devices=devices)
-
-
-def batch_axes(mesh) -> tuple[str, ...]:
-    """The mesh axes a batch is sharded over (``data``, ``fsdp``), those the mesh has."""
-    return tuple(a for a in ("data", "fsdp") if a in mesh.axis_names)
-
-
-def batch_shards(mesh) -> int:
-    """How many parts a batch is split into: the product of the mesh's batch axes."""
-    sizes = dict(zip(mesh.axis_names, mesh.axis_sizes))
-    return int(np.prod([sizes[a] for a in batch_axes(mesh)]))
 
 
 def check_batch(config: Config, mesh, batch: int | None = None, name: str = "data.batch_size") -> tuple[int, int]:
@@ -114,26 +90,6 @@ def state_from_params(params, mesh, optim_config, total_steps: int, seed: int):
         ema = optim_config.ema_decay > 0
         state = jax.jit(lambda p: create_state(p, optimizer, seed, ema=ema))(params)
     return state, optimizer
-
-
-def abstract_train_state(model, optim_config, total_steps: int, mesh, *, seed: int = 0):
-    """``(abstract state, optimizer)`` of a :class:`jaxdrive.models.dit.DiT` config ``model``:
-    the state's ``jax.ShapeDtypeStruct`` leaves with their shardings on ``mesh``, from
-    ``jax.eval_shape``: the target a checkpoint restores into, with no parameter allocated (at 1B+
-    parameters a fresh state would double host and device memory)."""
-    from jaxdrive.models.dit import DiT
-    # parameter shapes do not depend on the input shapes (cross-view attention needs two views)
-    boxed = DiT(model).abstract_params(views=2 if model.multiview == "cross_view" else 1)
-    params = jax.tree_util.tree_map(lambda x, sh: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sh),
-                                    nn.unbox(boxed), param_shardings(boxed, mesh))
-    optimizer = make_optimizer(optim_config, total_steps, params)
-    ema = optim_config.ema_decay > 0
-    with jax.set_mesh(mesh):
-        shapes = jax.eval_shape(jax.jit(lambda p: create_state(p, optimizer, seed, ema=ema)), params)
-    # eval_shape gives abstract-mesh shardings (None for scalars): place them on this mesh
-    on_mesh = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=NamedSharding(
-        mesh, x.sharding.spec if x.sharding is not None else P()))
-    return jax.tree_util.tree_map(on_mesh, shapes), optimizer
 
 
 def check_warp(config: Config) -> None:
@@ -331,29 +287,6 @@ class Run:
                                                   teacher=t.teacher) for b in micro_batches], self.mesh)
 
 
-class _Stop:
-    """SIGTERM / SIGINT set a flag that the loop reads after the step in flight."""
-
-    def __init__(self):
-        self.signum = None
-        self._old = {}
-
-    def __enter__(self):
-        for s in (signal.SIGTERM, signal.SIGINT):
-            try:
-                self._old[s] = signal.signal(s, self._handle)
-            except ValueError:          # not the main thread: no handlers, nothing to restore
-                pass
-        return self
-
-    def _handle(self, signum, frame):
-        self.signum = signum
-
-    def __exit__(self, *exc):
-        for s, h in self._old.items():
-            signal.signal(s, h)
-
-
 class _BadRecords:
     """The clips the data pipeline skipped as unreadable (``data.skip_bad_records``), summed over
     processes. Each process counts the ``bad_records`` of its own batches; the sum (a host
@@ -449,7 +382,7 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
                            tokens_per_step=run.tokens_per_step, progress=progress)
     status, step, row, tokens, first_step = "done", start, {}, 0, None
     compiled_shapes = set()
-    with _Stop() as stop, jax.set_mesh(run.mesh):
+    with Stop() as stop, jax.set_mesh(run.mesh):
         while step < run.total_steps:
             micro = [next(it) for _ in range(cfg.optim.grad_accum)]
             bad_records.add(micro)
@@ -510,25 +443,6 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
             "compiled_steps": compiled, "first_step_seconds": first_step,
             "compile_cache": {"folder": None if cache_dir is None else str(cache_dir),
                               **{k: now[k] - cache_before[k] for k in now}}}
-
-
-def load_run_config(workdir) -> Config:
-    """The config a run in ``workdir`` was started with (``workdir/config.json``). A run saved
-    before ``model.box_range`` existed embedded its box corners in raw metres: it loads with
-    ``box_range=None``, so its parameters keep meaning what they were trained for."""
-    from jaxdrive.config import from_dict
-    path = Path(workdir) / CONFIG_FILE
-    if not path.is_file():
-        raise ValueError(f"workdir: expected a training run directory with {CONFIG_FILE}, got {str(workdir)!r}")
-    try:
-        data = json.loads(path.read_text())              # data, never executed
-    except json.JSONDecodeError as e:
-        raise ValueError(f"workdir: expected JSON in {path}, got a file that is not ({e})") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"workdir: expected a JSON object in {path}, got {type(data).__name__}")
-    if isinstance(data.get("model"), dict):
-        data["model"].setdefault("box_range", None)
-    return from_dict(Config, data)
 
 
 def restore_params(run: Run, workdir, *, ema: bool = True, log=print):

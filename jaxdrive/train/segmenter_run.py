@@ -2,7 +2,7 @@
 
 Every ``data.stride``-th frame of every view of every clip of the split, resized to ``data.height
 x data.width`` as the DiT's pipeline resizes them, is held in host memory (uint8) with its exact
-class mask (:func:`jaxdrive.eval.segmenter.class_masks` of the resized instance ids). A step draws
+class mask (:func:`jaxdrive.data.class_masks.class_masks` of the resized instance ids). A step draws
 ``data.batch_size`` frames from ``(data.shuffle_seed, step)`` alone (a resumed run sees the same
 data) and degrades them as generations are degraded, so that the evaluator scores objects, not
 sharpness: a random mix with a blurred copy, Gaussian noise, and a horizontal flip. The loss is
@@ -18,7 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrive.config import SegmenterRunConfig
-from jaxdrive.eval.segmenter import CLASSES, NUM_CLASSES, Segmenter, class_masks_of, confusion, init_params, summary
+from jaxdrive.data.class_masks import class_masks_of
+from jaxdrive.models.segmenter import CLASSES, NUM_CLASSES, Segmenter, confusion, init_params, predict, summary
 from jaxdrive.validate import check_positive_int
 
 INFO_FILE = "segmenter.json"
@@ -94,7 +95,7 @@ def pixel_loss(model: Segmenter, params, batch: dict, weights):
 
 def train_segmenter(config: SegmenterRunConfig, workdir, *, log=print, progress: bool = True, on_step=None) -> dict:
     """Train (or resume) the segmenter in ``workdir``; returns ``{"step", "status", "loss",
-    "params"}`` (and ``"validation"``, the ceiling scores of :func:`jaxdrive.eval.segmenter.summary`,
+    "params"}`` (and ``"validation"``, the ceiling scores of :func:`jaxdrive.models.segmenter.summary`,
     when the dataset has a validation split); ``status`` as a DiT run's."""
     from jaxdrive.train.aux_run import fit
     check_segmenter_config(config)
@@ -128,7 +129,6 @@ def _validate(config, params, workdir, info, log):
     from pathlib import Path
 
     from jaxdrive.data.tfds_io import open_source
-    from jaxdrive.eval.segmenter import predict
     d = config.data
     try:
         open_source(d.path, "validation")
