@@ -1,4 +1,4 @@
-"""The future-controls predictor (STAGE sec. D, MILE's role): ``--config configs/predictor.py:size=S``.
+"""The future-controls predictor (STAGE [2506.13138v1] sec. D, MILE's role): ``--config configs/predictor.py:size=S``.
 
 Trained on the controls of the same datasets as the DiTs (``jaxdrive train --config
 configs/predictor.py:size=tiny --set data.path=...``); ``jaxdrive sample --predictor RUN`` rolls it

@@ -9,7 +9,7 @@ learnable in a few dozen steps, and none that it did not:
   gave 0.05x the flow loss of a shuffled one, where box cross-attention gave 0.93x, so the boxes
   come in through the layout alone (``controls.boxes`` off) and a box dropped for guidance is
   dropped from the canvas;
-- the ego's waypoints (MiLA eq. 1-2, added to the tokens, 0.14x): the route;
+- the ego's waypoints (MiLA [2503.15875v1] eq. 1-2, added to the tokens, 0.14x): the route;
 - the cameras, the frame rate and the caption, as in tiny.py.
 
 Noise levels: SD3's resolution-dependent timestep shift (Esser et al. 2024, arXiv 2403.03206:

@@ -49,7 +49,7 @@ class DataConfig:
     shuffle_seed: int = 0
     threads: int = 0                  # grain read threads (0: in the main thread)
     text_embeddings: str = ""         # .npz of 'jaxdrive data text-embed' (models with text='embeddings')
-    # mixed resolution / length training (MagicDrive-V2 appendix B): "HxWxF:batch[:prob[:repeat]]"
+    # mixed resolution / length training (MagicDrive-V2 [2411.13807v3] appendix B): "HxWxF:batch[:prob[:repeat]]"
     # each, the batch global; F = 1 is an image bucket; repeat (default auto) repeats scarce clips
     # within an epoch (jaxdrive.data.pipeline). (): one bucket, height x width x frames at batch_size
     buckets: tuple[str, ...] = ()
@@ -122,7 +122,7 @@ class StreamConfig:
     With ``enabled`` every training example is one window ``[anchor, condition, new]`` (the first
     frame of the clip, the frame before the new one, the new one) cut from a clip of ``data.frames``
     latent frames; the HTFT buffer holds the last ``buffer`` frames' features and ``taps`` says which
-    are fused (STAGE sec. 4B: N = 10, S = {-1, -5, -10}); HTFT is on where the model has
+    are fused (STAGE [2506.13138v1] sec. 4B: N = 10, S = {-1, -5, -10}); HTFT is on where the model has
     ``htft_layers`` and ``taps`` is not empty. ``self_rollout`` (stage 3) makes the condition frames
     the model's own streaming rollout of the clip (``rollout_steps`` sampling steps, once per clip),
     ``degrade_rate`` of them DCT low-passed to ``degrade_keep`` of their frequencies and all of them

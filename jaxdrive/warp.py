@@ -1,4 +1,4 @@
-"""LongDWM's warp-guided trajectory control (LongDWM sec. 3.4, appendix A).
+"""LongDWM's warp-guided trajectory control (LongDWM [2506.01546v1] sec. 3.4, appendix A).
 
 - :func:`trajectory_poses` (appendix A.1): a few 2D trajectory points become a dense ego pose
   per frame, by an interpolating B-spline (scipy's) through the points, with the heading taken
@@ -32,7 +32,7 @@ def trajectory_poses(points, frames: int, *, times=None, degree: int = 3) -> np.
     """Ego poses ``[frames, 4, 4]`` (each frame's ego in the first frame's ego frame) along the
     trajectory ``points [K, 2]`` ((x forward, y left) metres in the first frame's ego frame, the
     first usually (0, 0)), which the ego passes at frames ``times [K]`` (default evenly from 0
-    to ``frames - 1``). LongDWM appendix A.1: an interpolating B-spline of degree
+    to ``frames - 1``). LongDWM [2506.01546v1] appendix A.1: an interpolating B-spline of degree
     ``min(degree, K - 1)`` (``scipy.interpolate.make_interp_spline``) through the points, leaving
     the first along the ego's x axis (frame 0's pose is the identity); the heading is the
     tangent's direction, held where the ego stands still (under 1 cm a frame: a stop)."""
@@ -87,7 +87,7 @@ def camera_motion(ego_poses, cam_to_ego):
 
 
 def plane_homography(intrinsics, motion, depth):
-    """LongDWM eq. 9 for the plane ``z = depth`` of camera 0: ``H = K (R + T e3^T / d) K^-1``
+    """LongDWM [2506.01546v1] eq. 9 for the plane ``z = depth`` of camera 0: ``H = K (R + T e3^T / d) K^-1``
     (``[..., 3, 3]``), so that ``P_t ~ H P_0`` for homogeneous pixels ``P_0 = (u, v, 1)``
     (``e3^T K^-1 P_0 = 1`` for intrinsics whose last row is (0, 0, 1))."""
     k = jnp.asarray(intrinsics, jnp.float32)
@@ -100,7 +100,7 @@ def plane_homography(intrinsics, motion, depth):
 @jax.jit
 def depth_free_warp(image, intrinsics, motion, depth):
     """The first frame ``image [H, W, C]`` warped to each pose of ``motion [..., 4, 4]`` (camera 0
-    -> camera t, :func:`camera_motion`) with every pixel at ``depth`` (LongDWM appendix A.2, eq.
+    -> camera t, :func:`camera_motion`) with every pixel at ``depth`` (LongDWM [2506.01546v1] appendix A.2, eq.
     9): ``(warped [..., H, W, C], hole [..., H, W])``; holes (no source pixel) are 0. Each target
     pixel ``p`` reads ``image`` at ``H^-1 p`` (:func:`plane_homography`) bilinearly."""
     image = jnp.asarray(image, jnp.float32)
@@ -130,7 +130,7 @@ def depth_free_warp(image, intrinsics, motion, depth):
 
 def inpaint_holes(frames, holes, *, radius: float = 3.0) -> np.ndarray:
     """``frames [..., H, W, 3]`` in [-1, 1] with ``holes [..., H, W]`` filled by Navier-Stokes
-    inpainting (``cv2.inpaint(..., cv2.INPAINT_NS)``, LongDWM appendix A.2), frame by frame on
+    inpainting (``cv2.inpaint(..., cv2.INPAINT_NS)``, LongDWM [2506.01546v1] appendix A.2), frame by frame on
     the host; pixels outside the holes are returned unchanged. A frame that is all hole stays 0
     (nothing to fill from)."""
     import cv2

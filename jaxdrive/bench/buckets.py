@@ -1,5 +1,5 @@
 """Mixed resolution / length training: the step time of every bucket of a config and how well the
-buckets' batch sizes balance them (MagicDrive-V2 appendix B: each bucket's batch is chosen so
+buckets' batch sizes balance them (MagicDrive-V2 [2411.13807v3] appendix B: each bucket's batch is chosen so
 that every step takes about the same time; goal max / min <= 1.25).
 
     python -m jaxdrive.bench.buckets [--config configs/magicdrive_v2.py:size=tiny,stage=3]

@@ -21,7 +21,7 @@ where the change is decided by the control alone:
 - ``map`` (the BEV map ControlNet, ``controls.map``): a 32 x 32 BEV map whose road channel is a
   random 4 x 4 pattern of 8 x 8-cell blocks; the change is +2 on the road mask resampled (mean) to
   the 4 x 4 token grid.
-- ``waypoints`` (``controls.waypoints``, MiLA eq. 1-2) and ``trajectory`` (MagicDrive-V2's ego
+- ``waypoints`` (``controls.waypoints``, MiLA [2503.15875v1] eq. 1-2) and ``trajectory`` (MagicDrive-V2's ego
   trajectory encoder, ``controls.trajectory``): the ego moves 2-6 m forward and -2..2 m sideways
   between the frames; frame 1 is frame 0 multiplied by the sign of the lateral motion (``x1 = s
   x0``, change ``(s - 1) x0``). A shift left or right would be the physical picture; the sign
@@ -40,7 +40,7 @@ where the change is decided by the control alone:
   0.995 after 60.)
 
 **Training.** ``steps`` Adam steps at ``lr`` on ``batch`` fresh clips each, levels uniform in
-[0.2, 1] for frame 1, the flow loss (MiLA eq. 15, velocity from the data prediction,
+[0.2, 1] for frame 1, the flow loss (MiLA [2503.15875v1] eq. 15, velocity from the data prediction,
 :func:`jaxdrive.flow.velocity_from_output`) over frame 1.
 
 **Figures** on ``clips`` held-out clips (drawn with the training clips, never trained on), with

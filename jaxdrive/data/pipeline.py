@@ -30,7 +30,7 @@ Choices:
   sequence shared by all shards, so all processes feed the same shapes at every step (required to
   assemble global arrays). ``batch_size`` is per process. Leftover clips are dropped and counted
   in the log.
-- Repetition (MagicDrive-V2 appendix B, scarce clips repeated within an epoch): a bucket's
+- Repetition (MagicDrive-V2 [2411.13807v3] appendix B, scarce clips repeated within an epoch): a bucket's
   ``repeat`` r takes the clips of r seeded rounds of that draw; by default the fewest rounds that
   fill its batch on every shard, each epoch, so a few clips fill every bucket (a clip then gives
   several samples, at distinct start frames while it has them). Logged once per epoch
@@ -38,7 +38,7 @@ Choices:
 - Per-sample draws (start frame, crop offset, drop masks, the stride after the head of a mixed-rate
   clip) are seeded by (seed, epoch, index, and the round after the first): the same for any shard
   count.
-- Mixed frame rates (MiLA appendix B, stage 2: 12-fps condition frames, generated frames at other
+- Mixed frame rates (MiLA [2503.15875v1] appendix B, stage 2: 12-fps condition frames, generated frames at other
   rates): ``rate_head`` frames at ``stride``, then the rest at one stride per clip drawn uniformly
   from ``rate_strides``; a clip must be long enough for the longest of them. Iterator state is grain's (the next batch index), exact on resume.
 - Resize and crop: :mod:`jaxdrive.data.resize` (intrinsics adjusted to match exactly).
@@ -321,7 +321,7 @@ class _BatchPlan:
     occurrences)``: the whole schedule (occurrences: how often the clip came earlier in the
     bucket's epoch; None for a bucket that takes one round).
 
-    Repetition (MagicDrive-V2 appendix B: "due to the limited number of full video clips, we
+    Repetition (MagicDrive-V2 [2411.13807v3] appendix B: "due to the limited number of full video clips, we
     repeat this type of data within an epoch"): an epoch draws a bucket for every clip in seeded
     rounds; a bucket of ``repeat`` r takes the clips drawn for it in the first r rounds, so about r
     times its share, a clip drawn for it in two rounds being two samples. Round 0 is the one draw

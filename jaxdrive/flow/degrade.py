@@ -1,4 +1,4 @@
-"""STAGE's DCT degradation of condition frames (STAGE sec. 4C, data augmentation).
+"""STAGE's DCT degradation of condition frames (STAGE [2506.13138v1] sec. 4C, data augmentation).
 
 STAGE low-passes the condition frame with a discrete cosine transform during training so the
 model learns to cope with the blur and artifacts of its own earlier outputs. jaxdrive keeps the

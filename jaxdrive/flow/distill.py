@@ -97,7 +97,7 @@ def coarse_from_ends(first, last, *, boundary: str = "mean"):
 
 
 def distill_loss(student, teacher, *, cond_mask=None):
-    """LongDWM eq. 8: mean squared distance from the student's coarse predictions to the frozen
+    """LongDWM [2506.01546v1] eq. 8: mean squared distance from the student's coarse predictions to the frozen
     teacher's, ``[B, ..., n + 1, h, w, C]`` each. No gradient flows into ``teacher``.
 
     ``cond_mask [B, n + 1]`` excludes clean condition frames (the student's first coarse frame).

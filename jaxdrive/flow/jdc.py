@@ -1,4 +1,4 @@
-"""Joint Denoising and Correcting flow (JDC), MiLA sec. 3.3, eq. 8-12 and appendix A.
+"""Joint Denoising and Correcting flow (JDC), MiLA [2503.15875v1] sec. 3.3, eq. 8-12 and appendix A.
 
 A predicted anchor frame ``z`` is modelled as the true frame ``x`` plus noise of scale alpha1
 (eq. 8): ``z = (1 - a1) x + a1 n1``. JDC brings it to a noise level ``g`` by
@@ -42,7 +42,7 @@ def _check_g_not_below_alpha1(g, alpha1):
 
 
 def jdc_alpha2(g, alpha1):
-    """MiLA eq. 12 solved for the second noise scale: ``a2 = (g - a1) / (1 - a1)``.
+    """MiLA [2503.15875v1] eq. 12 solved for the second noise scale: ``a2 = (g - a1) / (1 - a1)``.
 
     ``alpha1`` in [0, 1), ``g`` in [alpha1, 1]; checked when concrete, a contract when traced.
     """
@@ -55,7 +55,7 @@ def jdc_alpha2(g, alpha1):
 
 
 def jdc_noise_var(alpha1, alpha2):
-    """MiLA eq. 11: variance of ``n2``, ``(a2 - 2 a1 a2 + 2 a1) / a2``.
+    """MiLA [2503.15875v1] eq. 11: variance of ``n2``, ``(a2 - 2 a1 a2 + 2 a1) / a2``.
 
     ``alpha1`` in [0, 1), ``alpha2`` in (0, 1]; diverges as alpha2 -> 0 (while ``a2^2 s^2``
     stays finite, see :func:`jdc_renoise`).
@@ -68,7 +68,7 @@ def jdc_noise_var(alpha1, alpha2):
 
 
 def jdc_renoise(key, z, g, alpha1):
-    """MiLA eq. 9: bring predicted anchors ``z`` to noise level ``g``.
+    """MiLA [2503.15875v1] eq. 9: bring predicted anchors ``z`` to noise level ``g``.
 
     ``z [B, ..., F, h, w, C]`` (or any ``[B, ...]`` with a ``[B]`` or scalar ``g``); ``g`` a
     scalar, ``[B]`` or ``[B, F]``; ``alpha1`` the assumed noise scale of the prediction, a scalar
@@ -95,7 +95,7 @@ def jdc_renoise(key, z, g, alpha1):
 
 
 def jdc_anchor_sigma(sigma, slope=DEFAULT_ANCHOR_SLOPE):
-    """The anchors' noise level ``g`` as a function of the base level ``sigma`` (MiLA sec. 3.3).
+    """The anchors' noise level ``g`` as a function of the base level ``sigma`` (MiLA [2503.15875v1] sec. 3.3).
 
     MiLA fixes alpha1 and makes ``g(t)`` "a linear function" of the base noise level. Our
     reading: ``g = slope * sigma`` with ``0 < slope <= 1``. A linear map that reaches 0 together
@@ -116,7 +116,7 @@ def jdc_training_anchors(key, x, noise, levels, anchor_mask, alpha1=DEFAULT_ALPH
     :func:`jaxdrive.flow.frame_sigmas`); ``anchor_mask [B, F]``; ``alpha1`` a scalar in [0, 1).
 
     At sampling a predicted anchor ``z`` is re-noised to ``g`` by :func:`jdc_renoise`. Training
-    draws the prediction by MiLA eq. 8, ``z = (1 - a1) x + a1 n1`` (the truth plus alpha1 noise),
+    draws the prediction by MiLA [2503.15875v1] eq. 8, ``z = (1 - a1) x + a1 n1`` (the truth plus alpha1 noise),
     and re-noises it with :func:`jdc_renoise` (eq. 9) where ``g >= alpha1``. Where ``g < alpha1``
     (late in sampling the model has been denoising the anchor, not re-noising it) the anchor is the
     plain flow-path point ``add_noise(x, noise, g)``. Every other frame is ``add_noise(x, noise,
@@ -124,7 +124,7 @@ def jdc_training_anchors(key, x, noise, levels, anchor_mask, alpha1=DEFAULT_ALPH
 
     ``noise_eff`` is ``noise`` except on re-noised anchors, where it is ``(x_t - (1 - g) x) / g``,
     the standard-normal noise that puts ``x_t`` on the flow path of ``x`` at ``g`` (eq. 10-12;
-    appendix A). The velocity target ``noise_eff - x`` (MiLA eq. 15's y) is then exactly the
+    appendix A). The velocity target ``noise_eff - x`` (MiLA [2503.15875v1] eq. 15's y) is then exactly the
     velocity of the sample the network sees, and a data-predicting network's
     ``(x_t - x) / g`` equals it too.
     """

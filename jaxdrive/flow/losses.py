@@ -1,8 +1,8 @@
 """Training losses over per-frame noise levels.
 
-- :func:`flow_loss`: MiLA eq. 15, the rectified-flow velocity loss with frames at their own
+- :func:`flow_loss`: MiLA [2503.15875v1] eq. 15, the rectified-flow velocity loss with frames at their own
   levels (TPD), anchor frames at the JDC level g, and clean condition frames excluded.
-- :func:`structure_loss`: LongDWM eq. 4, the latent structure-preservation loss, an L2 distance
+- :func:`structure_loss`: LongDWM [2506.01546v1] eq. 4, the latent structure-preservation loss, an L2 distance
   after a 2D high-pass filter in the frequency domain of the latent height and width.
 - STAGE's foreground weight map ``W_aux`` (:mod:`jaxdrive.flow.weights`) enters either loss as
   ``weight_map``.
@@ -55,7 +55,7 @@ def _weighted_mean(sq_err, x, cond_mask, frame_weight, weight_map):
 
 
 def flow_loss(v_pred, x, noise, *, cond_mask=None, frame_weight=None, weight_map=None):
-    """MiLA eq. 15: ``mean ||(noise - x) - v_pred||^2`` over the frames being denoised.
+    """MiLA [2503.15875v1] eq. 15: ``mean ||(noise - x) - v_pred||^2`` over the frames being denoised.
 
     ``v_pred`` is the network's velocity at ``x_sigma = add_noise(x, noise, sigma)`` with per-frame
     sigma (TPD levels ``f(t, phi_s)`` for generated frames, ``g(t)`` for anchors, the mask ``m_s``
@@ -114,7 +114,7 @@ def _dft(n: int) -> np.ndarray:
 
 
 def structure_loss(x_pred, x, *, cutoff: float = 0.25, cond_mask=None, weight_map=None):
-    """LongDWM eq. 4: ``mean ||H(x_pred) - H(x)||^2``, ``H`` a 2D FFT high-pass over (h, w).
+    """LongDWM [2506.01546v1] eq. 4: ``mean ||H(x_pred) - H(x)||^2``, ``H`` a 2D FFT high-pass over (h, w).
 
     ``x_pred`` is the denoiser's data estimate (``data_from_velocity(x_t, v, sigma)``), ``x`` the
     clean latents, both ``[B, ..., F, h, w, C]``. ``cutoff`` (fraction of Nyquist, see

@@ -6,17 +6,17 @@ exactly the layouts it is asked to fill in.
 
 - ``"prefix"``: the first ``n_cond`` frames are given and the rest is predicted. The tail frame is
   an anchor candidate: MiLA's coarse stage predicts it and the (Re)fine stage starts it from that
-  prediction (MiLA sec. 3.3; appendix B, stage 3 sets "the tail anchor frame to noisy anchor frame"
+  prediction (MiLA [2503.15875v1] sec. 3.3; appendix B, stage 3 sets "the tail anchor frame to noisy anchor frame"
   for 75% of the clips).
 - ``"ends"``: the first ``n_cond`` frames and the last frame are given, the frames between are
-  interpolated (LongDWM sec. 3.2, eq. 6: the fine DiT's last frame is "dropped with a fixed ratio",
+  interpolated (LongDWM [2506.01546v1] sec. 3.2, eq. 6: the fine DiT's last frame is "dropped with a fixed ratio",
   so one model learns prediction and interpolation; ``n_cond = 1`` pins both ends). No anchors.
 - ``"anchors"``: the first ``n_cond`` frames are given; every ``anchor_every``-th frame counted
   from the last given one is an anchor candidate (MiLA's low-fps anchors inside a (Re)fine window:
   4 given + 12 generated frames with ``anchor_every = 12`` make the tail the anchor). With
   ``n_cond = 0`` the count starts at a virtual frame -1.
 
-Anchor candidates become JDC anchors (noise level ``g``, MiLA eq. 8-12) when the caller says so:
+Anchor candidates become JDC anchors (noise level ``g``, MiLA [2503.15875v1] eq. 8-12) when the caller says so:
 the sampler when it holds a prediction for them, training for a fraction of the clips.
 """
 

@@ -1,7 +1,7 @@
 """Rectified flow in the noise-level convention of jaxdrive.
 
 ``x_sigma = (1 - sigma) * x + sigma * noise``: sigma = 1 is pure noise, sigma = 0 is data; the
-network predicts the velocity ``v = noise - x`` (MiLA eq. 4-6 with MiLA's progress t = 1 - sigma;
+network predicts the velocity ``v = noise - x`` (MiLA [2503.15875v1] eq. 4-6 with MiLA's progress t = 1 - sigma;
 MagicDrive-V2 and Open-Sora v1.2 use sigma = t/1000 directly).
 
 Noise levels are per sample ``[B]`` or per frame ``[B, F]``. Arrays follow the channels-last
@@ -50,7 +50,7 @@ def _levels(sigma, x):
 def add_noise(x, noise, sigma):
     """Point on the straight path from data to noise: ``(1 - sigma) * x + sigma * noise``.
 
-    MiLA eq. 4-5 (there with progress t = 1 - sigma). ``sigma`` is ``[B]`` or ``[B, F]`` in
+    MiLA [2503.15875v1] eq. 4-5 (there with progress t = 1 - sigma). ``sigma`` is ``[B]`` or ``[B, F]`` in
     [0, 1]; values are checked when concrete, and the contract holds for traced values.
     """
     check_same_shape("noise", noise, "x", x)
@@ -59,7 +59,7 @@ def add_noise(x, noise, sigma):
 
 
 def velocity_target(x, noise):
-    """The rectified-flow velocity ``noise - x`` that the network learns (MiLA eq. 15, y)."""
+    """The rectified-flow velocity ``noise - x`` that the network learns (MiLA [2503.15875v1] eq. 15, y)."""
     check_same_shape("noise", noise, "x", x)
     return noise - x
 

@@ -21,9 +21,9 @@ def frame_sigmas(sigma, cond_mask, *, anchor_mask=None, tpd: bool = False,
     """Per-frame levels ``[B, F]`` from base levels ``sigma [B]``.
 
     - condition frames (``cond_mask [B, F]`` True) are clean: 0;
-    - JDC anchor frames (``anchor_mask [B, F]`` True, MiLA sec. 3.3) sit at
+    - JDC anchor frames (``anchor_mask [B, F]`` True, MiLA [2503.15875v1] sec. 3.3) sit at
       ``g = anchor_slope * sigma`` (:func:`jdc_anchor_sigma`);
-    - the remaining (generated) frames sit at ``sigma``, or with ``tpd=True`` at MiLA's
+    - the remaining (generated) frames sit at ``sigma``, or with ``tpd=True`` at MiLA's [2503.15875v1]
       eq. 13-14 levels ranked along the clip among the generated frames only.
 
     A frame marked both condition and anchor is a condition frame.

@@ -1,4 +1,4 @@
-"""Temporal Progressive Denoising (TPD), MiLA sec. 3.4, eq. 13-14, in the sigma convention.
+"""Temporal Progressive Denoising (TPD), MiLA [2503.15875v1] sec. 3.4, eq. 13-14, in the sigma convention.
 
 MiLA denoises frames nearer the condition frames faster so later frames can lean on them:
 
@@ -54,7 +54,7 @@ def tpd_level(sigma, phi, omega=math.pi / 2):
 
 
 def tpd_sigmas(sigma, num_frames: int, omega=math.pi / 2):
-    """MiLA eq. 13-14: base level(s) ``[...]`` -> per-frame levels ``[..., num_frames]``.
+    """MiLA [2503.15875v1] eq. 13-14: base level(s) ``[...]`` -> per-frame levels ``[..., num_frames]``.
 
     Frame ``s = 0 .. num_frames - 1`` (in order of distance from the condition frames) has phase
     ``phi_s = (pi / 2) * s / num_frames``. sigma = 1 gives all ones and sigma = 0 all zeros

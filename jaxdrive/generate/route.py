@@ -12,7 +12,7 @@ first frame). ``SPEC`` is one of
   ``"stop [V m/s]"`` (braking from V, default 10 m/s, at 3 m/s^2, then standing).
 
 Without times, the points are spread evenly over the clip. :meth:`Route.poses` gives the dense ego
-pose per frame (:func:`jaxdrive.warp.trajectory_poses`, LongDWM appendix A.1). Bad input is a
+pose per frame (:func:`jaxdrive.warp.trajectory_poses`, LongDWM [2506.01546v1] appendix A.1). Bad input is a
 ``ValueError`` naming the file and the row.
 
 On the scene's map (:func:`drive_on_map`, what ``jaxdrive sample --route`` runs for each clip):

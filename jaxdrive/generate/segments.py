@@ -1,4 +1,4 @@
-"""LongDWM's fine pass in groups of segments (LongDWM sec. 3.2 and inference: the fine model fills
+"""LongDWM's fine pass in groups of segments (LongDWM [2506.01546v1] sec. 3.2 and inference: the fine model fills
 every segment between consecutive keyframes, both ends pinned, segments stacked on the batch).
 
 Stacking every segment in one sampler call is the fewest sequential calls, but its device memory

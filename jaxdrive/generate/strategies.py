@@ -10,18 +10,18 @@ frames ``[B, V, k, h, w, C]``; ``length`` the latent frames to produce (the give
 - ``rollout``: windows of the model's length, each conditioned on the last ``overlap`` frames of
   the previous one (the recurrent baseline both papers beat; its errors accumulate and its
   sequential calls grow with the length).
-- ``coarse-to-refine`` (MiLA sec. 3.2-3.3): a coarse pass draws low-fps anchors every
+- ``coarse-to-refine`` (MiLA [2503.15875v1] sec. 3.2-3.3): a coarse pass draws low-fps anchors every
   ``anchor_every`` frames over the whole horizon (windowed when it exceeds one window, the model
   told the lower frame rate); the (Re)fine pass is recurrent at the full rate: each window
   conditions on the last frames of the previous one and on the anchors inside it, which are
   re-noised by JDC (eq. 8-12) and denoised jointly with the frames between them (TPD, eq.
   13-14), so the output's anchors are the corrected ones. Without anchors it is ``rollout``.
-- ``coarse-fine`` (LongDWM sec. 3.2 and inference): the coarse model draws keyframes every
+- ``coarse-fine`` (LongDWM [2506.01546v1] sec. 3.2 and inference): the coarse model draws keyframes every
   ``K - 1`` frames (``K`` the fine model's window); the fine model then fills every segment
   between consecutive keyframes in one batched sampler call (segments stacked on the batch axis,
   sharded over ``data``), both ends pinned. Sequential sampler calls: the coarse windows + 1
   (+ more when ``segment_batch`` caps the segments per call, which keeps device memory flat).
-- ``window`` (MagicDrive-V2 sec. 4.5, 6): the whole length in one sampler call, for a model
+- ``window`` (MagicDrive-V2 [2411.13807v3] sec. 4.5, 6): the whole length in one sampler call, for a model
   trained on several lengths (``data.buckets``), which extrapolates past them; its tokens are
   sharded over the mesh's ``seq`` axis, so the length is bounded by the mesh, not by one
   device. One sequential call; device memory grows with the length.

@@ -2,8 +2,8 @@
 
 Frame ``j`` is denoised in a window of three latent frames, ``[anchor, condition, new]`` = the
 clip's first frame (global consistency), frame ``j - 1`` (the condition frame) and the new frame,
-the first two clean and pinned, under the controls of those three frames (STAGE sec. A). With
-HTFT (STAGE sec. B), at denoising step ``i`` the ``htft_layers`` of the new window fuse the
+the first two clean and pinned, under the controls of those three frames (STAGE [2506.13138v1] sec. A). With
+HTFT (STAGE [2506.13138v1] sec. B), at denoising step ``i`` the ``htft_layers`` of the new window fuse the
 features that the same layers produced at step ``i`` for the frames at ``taps`` (-1, -5, -10) of a
 ring buffer of the last ``buffer`` (10) frames (:func:`jaxdrive.models.htft.buffer_init`: per
 layer ``[steps, B, N, S, V, D]``, preallocated). The features a frame stores are those of its

@@ -316,9 +316,9 @@ def sample_window(model: WindowModel, params, x_cond, cond_mask, controls: Condi
     under jit, its own ``params`` field is not read, so they stay a traced input): ``x_cond``
     holds the clean given frames where ``cond_mask [B, F']`` is set and, where ``anchor_mask`` is
     set, predicted anchors, which start at the JDC level ``g = jdc_slope * sigma_max`` by
-    :func:`jaxdrive.flow.jdc_renoise` (MiLA eq. 8-12) and are denoised jointly with the frames
+    :func:`jaxdrive.flow.jdc_renoise` (MiLA [2503.15875v1] eq. 8-12) and are denoised jointly with the frames
     between them (their output is the corrected anchor). The per-frame schedule is
-    :func:`jaxdrive.flow.frame_schedule`'s (TPD when the model trained with it, MiLA eq. 13-14).
+    :func:`jaxdrive.flow.frame_schedule`'s (TPD when the model trained with it, MiLA [2503.15875v1] eq. 13-14).
     ``controls.drop`` names the conditions guidance drops (against learned nulls: all at once for
     ``model.guidance``, one control at a time for ``model.control_guidance``,
     :mod:`jaxdrive.generate.guidance`). The sampled frames come out clipped to the latents'

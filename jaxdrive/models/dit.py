@@ -9,7 +9,7 @@ MagicDrive-V2, with per-frame noise levels, multi-view attention and the driving
     v = dit.forward(params, latents, sigma, Conditions(text=ids, text_mask=mask))  # latents [B, V, F', h, w, C]
 
 Layouts (``DiTConfig.layout``): ``"factorized"`` (STDiT-3 / STDiT-2 layers with spatial attention
-over all views, MiLA eq. 3, or per view plus MagicDrive-V2's cross-view attention; temporal
+over all views, MiLA [2503.15875v1] eq. 3, or per view plus MagicDrive-V2's cross-view attention; temporal
 attention with RoPE; cross-attention to text and control tokens; adaLN-single) and ``"full"``
 (CogVideoX: full 3D attention over ``[text; video]`` with expert adaLN, 3D RoPE or 3D sin-cos).
 
@@ -35,7 +35,7 @@ droppable for classifier-free guidance by ``cond.drop={name: [B] bool}``:
   so the "null" is the model without the control);
 - the projected layout (``controls.layout``) is dropped with ``boxes`` (absent boxes: likewise)
   and then adds nothing;
-- a dropped ``map`` is the all-zero map (MagicDrive-V2 appendix E, after MagicDrive); leaving
+- a dropped ``map`` is the all-zero map (MagicDrive-V2 [2411.13807v3] appendix E, after MagicDrive); leaving
   ``bev_map`` out switches the ControlNet branch off;
 - condition frames are set by ``cond_latents``/``cond_mask`` (interpolation = first and last frame
   in the mask, LongDWM's fine DiT dropping the last frame = leaving it out of the mask).
@@ -43,7 +43,7 @@ droppable for classifier-free guidance by ``cond.drop={name: [B] bool}``:
 **STAGE hook.** ``return_features=True`` also returns ``{layer: [B, F, S, V, D]}``, the outputs of
 the ``htft_layers`` before fusion; ``cond.features={layer: [B, K, S, V, D]}`` (past frames' features
 at the same layer and denoising step) with ``cond.features_mask [B, K]`` are fused after those layers by
-:class:`jaxdrive.models.htft.HTFT` (STAGE sec. 4B).
+:class:`jaxdrive.models.htft.HTFT` (STAGE [2506.13138v1] sec. 4B).
 """
 
 from __future__ import annotations
@@ -188,7 +188,7 @@ class DiT(nn.Module):
             sig = jnp.where(m, 0.0, sig)
         sig_tok = pool_frames(sig, pt)                                     # [B, Ft]
 
-        # tokens: patch embedding, positions, additive conditions (MiLA eq. 2: h_fuse = h_f + h_c)
+        # tokens: patch embedding, positions, additive conditions (MiLA [2503.15875v1] eq. 2: h_fuse = h_f + h_c)
         tokens = constrain(patchify(x, cfg.patch), VIDEO[:-1] + ("channels",))
         hid = Dense(cfg.width, ("channels", "embed"), dtype=dt, name="patch_embed")(tokens)
         if cfg.layout == "factorized":
@@ -257,12 +257,12 @@ class DiT(nn.Module):
     # ------------------------------------------------------------------ pieces
 
     def _additive(self, cfg, x, cond: Conditions, drop, hw, grid, ref):
-        """Conditions added to the tokens (MiLA eq. 2, ``h_fuse = h_f + h_c``) and the concat-mode
+        """Conditions added to the tokens (MiLA [2503.15875v1] eq. 2, ``h_fuse = h_f + h_c``) and the concat-mode
         condition frames.
 
-        Reading of MiLA eq. 1 (``h_c = MLP(FFT(c))`` over all cameras and waypoints fused): one
+        Reading of MiLA [2503.15875v1] eq. 1 (``h_c = MLP(FFT(c))`` over all cameras and waypoints fused): one
         Fourier + MLP per condition, summed: the camera term per view, the waypoint term per frame.
-        This keeps each condition droppable on its own with its own learned null (MiLA appendix B
+        This keeps each condition droppable on its own with its own learned null (MiLA [2503.15875v1] appendix B
         drops conditions independently), which one MLP over the concatenation would not allow."""
         c, dt, width = cfg.controls, cfg.compute_dtype, cfg.width
         intrinsics, cam_to_ego, waypoints = cond.intrinsics, cond.cam_to_ego, cond.waypoints

@@ -2,10 +2,10 @@
 
 Video activations are ``[B, F, S, V, D]``: F token frames, S spatial patches of one view, V views.
 Sequence parallelism shards **S** (the spatial patches) over the mesh axis ``seq`` in both
-layouts (MagicDrive-V2 appendix A: "partition each input across the spatial dimension"). Which
+layouts (MagicDrive-V2 [2411.13807v3] appendix A: "partition each input across the spatial dimension"). Which
 attentions communicate:
 
-- spatial self-attention (factorized; per frame over all views' tokens, MiLA eq. 3, or per view)
+- spatial self-attention (factorized; per frame over all views' tokens, MiLA [2503.15875v1] eq. 3, or per view)
   and cross-view attention (MagicDrive-V2): their sequences run over S, so they use the
   sequence-sharded kernels (``attn_impl``: ring / all-to-all under a ``seq`` mesh);
 - full 3D attention (CogVideoX) over ``[text; video]``: sequence-sharded likewise, the text
@@ -77,7 +77,7 @@ def _proj(cfg: DiTConfig, name: str, *, qk_norm=None, zero_out=False, eps=None):
 
 
 def spatial_attention(proj: AttnProj, x, impl: str, per_view: bool):
-    """Self-attention within each frame: over all views' patches (MiLA eq. 3,
+    """Self-attention within each frame: over all views' patches (MiLA [2503.15875v1] eq. 3,
     ``Q, K, V in R^{T x (V H W) x C}``) or, ``per_view``, within each view's patches."""
     q, (k, v) = proj.q(x), proj.kv(x)                        # [B, F, S, V, H, Dh]
     shape = q.shape
@@ -258,7 +258,7 @@ class FactorizedLayer(nn.Module):
     """One layer of the factorized layout: ``stdit3`` = spatial block then temporal block (each with
     its own table); ``stdit2`` = spatial attention, [cross-view], temporal attention,
     cross-attention and MLP under one 9-vector modulation (Open-Sora 1.1's STDiT-2 block, the
-    base of MiLA). Warp-guided frames (LongDWM sec. 3.4) enter at the layer input through a
+    base of MiLA). Warp-guided frames (LongDWM [2506.01546v1] sec. 3.4) enter at the layer input through a
     zero-initialised projection."""
 
     cfg: DiTConfig

@@ -45,7 +45,7 @@ class Controls:
       models have none: their null is the encoder's embedding of the empty prompt).
     - ``fps``: frame rate added to the timestep embedding (Open-Sora).
     - ``camera``: intrinsics + camera-to-ego per view, Fourier + MLP, added to the tokens of that
-      view (MiLA eq. 1-2). ``waypoints``: ego waypoints per frame, likewise (MiLA eq. 1-2).
+      view (MiLA [2503.15875v1] eq. 1-2). ``waypoints``: ego waypoints per frame, likewise (MiLA [2503.15875v1] eq. 1-2).
     - ``trajectory``: MagicDrive-V2's ego trajectory encoder (relative poses -> temporal
       transformer -> downsampled to latent frames), one cross-attention token per frame.
     - ``boxes``: 3D boxes (MagicDrive-V2): corners Fourier-embedded + class embedding, invisible
@@ -79,9 +79,9 @@ class Controls:
     - ``warp``: LongDWM's warp-guided frames: warped latents through a trainable patch embedding,
       injected into every layer through zero-initialised projections.
     - ``frame_time``: each frame's time in seconds (``Conditions.frame_times``), so that one clip
-      can mix frame rates (MiLA appendix B: 12-fps condition frames, then generated frames at 1-12
+      can mix frame rates (MiLA [2503.15875v1] appendix B: 12-fps condition frames, then generated frames at 1-12
       fps). Each latent frame's time relative to the window's first frame (a window cut from a
-      long clip means what the same window alone means), Fourier + MLP (MiLA eq. 1), added to
+      long clip means what the same window alone means), Fourier + MLP (MiLA [2503.15875v1] eq. 1), added to
       that frame's tokens (eq. 2). The last projection starts at zero, so a model initialised
       from a run without the control starts unchanged; a dropped or absent ``frame_times`` adds
       nothing (the model without the control).
@@ -133,12 +133,12 @@ class DiTConfig:
     + a temporal block, each with self-attention, text cross-attention and MLP; Open-Sora 1.2,
     MagicDrive-V2) or ``"stdit2"`` (a layer = spatial attention, temporal attention,
     cross-attention and MLP under one adaLN; Open-Sora 1.1, on which MiLA builds); ``multiview``
-    ``"joint"`` (spatial attention over all views' tokens of a frame, MiLA eq. 3) or
+    ``"joint"`` (spatial attention over all views' tokens of a frame, MiLA [2503.15875v1] eq. 3) or
     ``"cross_view"`` (spatial attention per view plus cross-view attention to the views at
     ``neighbor_offsets``, MagicDrive-V2). Layout ``"full"`` (CogVideoX): full 3D attention over
     ``[text; video]`` with expert adaLN, ``positions`` ``"rope"`` or ``"sincos"``.
 
-    Growing (MagicDrive-V2 sec. 4.3 / appendix B, after Open-Sora 1.2): ``temporal`` ``"off"``
+    Growing (MagicDrive-V2 [2411.13807v3] sec. 4.3 / appendix B, after Open-Sora 1.2): ``temporal`` ``"off"``
     builds the stdit3 layers without their temporal blocks (a spatial-only model, trained on
     images); ``"zero_init"`` adds them with their attention and MLP output projections
     zero-initialised, so each starts as the identity and a spatial-only model's parameters loaded

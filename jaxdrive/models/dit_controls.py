@@ -1,5 +1,5 @@
 """Condition encoders of the diffusion transformer: timestep / fps embeddings, cameras, ego
-waypoints and frame times (MiLA eq. 1-2), MagicDrive-V2's spatial-temporal trajectory, box and
+waypoints and frame times (MiLA [2503.15875v1] eq. 1-2), MagicDrive-V2's spatial-temporal trajectory, box and
 map encoders, the built-in caption encoder, and the temporal downsampling that aligns per-frame
 conditions with the latent frames of a 3D VAE.
 
@@ -8,7 +8,7 @@ frame (``F = 1 + r (F' - 1)`` with ``r`` the VAE's temporal compression, 4 for C
 Pixel-frame conditions go through :class:`TemporalDownsample`, which groups frames as the causal
 VAE does (latent frame 0 <- pixel frame 0; latent frame j <- pixel frames ``r (j - 1) + 1 .. r j``,
 the first group padded by repeating frame 0, as the VAE's causal padding does) and maps each group
-with a learned linear layer (MagicDrive-V2 sec. 4.3: downsampling "aligned with the adopted 3D
+with a learned linear layer (MagicDrive-V2 [2411.13807v3] sec. 4.3: downsampling "aligned with the adopted 3D
 VAE", which keeps each frame's information instead of repeating a reduced code).
 """
 
@@ -90,7 +90,7 @@ class TimestepMLP(nn.Module):
 
 
 class FourierMLP(nn.Module):
-    """MiLA eq. 1: ``h_c = MLP(FFT(c))``, Fourier features of the raw parameters then a 2-layer MLP.
+    """MiLA [2503.15875v1] eq. 1: ``h_c = MLP(FFT(c))``, Fourier features of the raw parameters then a 2-layer MLP.
     ``zero_out``: the last layer starts at zero (a control added to a model trained without it)."""
 
     out: int
@@ -146,7 +146,7 @@ class EncoderLayer(nn.Module):
 
 class TemporalEncoder(nn.Module):
     """A small pre-norm transformer over frames, per item, with RoPE over the frame index
-    (MagicDrive-V2 sec. 4.3: "a temporal transformer and RoPE"). ``x [B, F, *items, D]``,
+    (MagicDrive-V2 [2411.13807v3] sec. 4.3: "a temporal transformer and RoPE"). ``x [B, F, *items, D]``,
     ``mask [B, F, *items]`` (False frames are not attended to)."""
 
     width: int
@@ -187,7 +187,7 @@ def align_frames(module, name, x, mask, latent_frames, ratio, width, dtype):
 
 
 class CameraEncoder(nn.Module):
-    """Per-view camera embedding ``[B, V, D]`` (MiLA eq. 1): Fourier + MLP of the normalised
+    """Per-view camera embedding ``[B, V, D]`` (MiLA [2503.15875v1] eq. 1): Fourier + MLP of the normalised
     intrinsics ``(fx / W, fy / H, cx / W, cy / H)`` and the camera-to-ego rotation and translation.
 
     Intrinsics are in pixels of the stored resolution, ``(H, W) = image_hw``; normalising makes the
@@ -209,7 +209,7 @@ class CameraEncoder(nn.Module):
 
 
 class _PerFrameFourier(nn.Module):
-    """The fields of a per-frame Fourier + MLP encoder (MiLA eq. 1) with the VAE's frame ratio."""
+    """The fields of a per-frame Fourier + MLP encoder (MiLA [2503.15875v1] eq. 1) with the VAE's frame ratio."""
 
     width: int
     num_freqs: int
@@ -219,7 +219,7 @@ class _PerFrameFourier(nn.Module):
 
 
 class WaypointEncoder(_PerFrameFourier):
-    """Ego waypoints per frame ``[B, Fw, 2]`` -> ``[B, F', D]`` (MiLA eq. 1), downsampled to latent
+    """Ego waypoints per frame ``[B, Fw, 2]`` -> ``[B, F', D]`` (MiLA [2503.15875v1] eq. 1), downsampled to latent
     frames when given per pixel frame."""
 
     @nn.compact
@@ -242,8 +242,8 @@ def latent_frame_times(frame_times, latent_frames: int, ratio: int):
 
 class FrameTimeEncoder(_PerFrameFourier):
     """Each frame's time ``[B, Ft]`` (seconds, per pixel or latent frame) -> ``[B, F', D]``:
-    Fourier + MLP (MiLA eq. 1) of :func:`latent_frame_times`, the last layer zero-initialised
-    (``Controls.frame_time``: mixed frame rates in one clip, MiLA appendix B)."""
+    Fourier + MLP (MiLA [2503.15875v1] eq. 1) of :func:`latent_frame_times`, the last layer zero-initialised
+    (``Controls.frame_time``: mixed frame rates in one clip, MiLA [2503.15875v1] appendix B)."""
 
     @nn.compact
     def __call__(self, frame_times, latent_frames):
@@ -374,7 +374,7 @@ class Conv3x3(nn.Module):
 
 class MapEncoder(nn.Module):
     """The BEV map ``[B, Fm, Hm, Wm, C]`` -> control features ``[B, F', S, D]`` on the token grid
-    ``(gh, gw)`` (MagicDrive-V2 sec. 4.3, Fig. 4a: a conv encoder, then temporal downsampling with
+    ``(gh, gw)`` (MagicDrive-V2 [2411.13807v3] sec. 4.3, Fig. 4a: a conv encoder, then temporal downsampling with
     new parameters aligned with the VAE). Three stride-2 3x3 convolutions, a bilinear resize to
     the token grid, a linear map to the width, then :class:`TemporalDownsample`. The map is the
     same for every view; the ControlNet branch learns the view-specific use through its

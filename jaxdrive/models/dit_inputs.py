@@ -41,7 +41,7 @@ def example_inputs(cfg: DiTConfig, *, batch: int = 1, views: int = 1, frames: in
         out.update(example_cameras(batch, views, height * cfg.vae_spatial, width * cfg.vae_spatial))
     if c.waypoints:
         out["waypoints"] = np.cumsum(np.abs(f32(batch, fc, 2)), axis=1)
-    if c.frame_time:       # 12 fps, then 1 fps: a mixed-rate clip (MiLA appendix B)
+    if c.frame_time:       # 12 fps, then 1 fps: a mixed-rate clip (MiLA [2503.15875v1] appendix B)
         steps = np.where(np.arange(fc) < min(fc, 4), 1 / 12, 1.0)
         out["frame_times"] = np.tile(np.cumsum(steps) - steps[0], (batch, 1)).astype(np.float32)
     if c.trajectory:

@@ -15,7 +15,7 @@ computed with ``jax.eval_shape``) are listed in docs/guides/dit.md.
 - ``cogvideox-2b``: CogVideoX-2B's transformer (30 layers, 30 heads of 64, 3D sin-cos positions,
   time embedding 512, T5 text of 226 tokens), the layout of LongDWM's coarse DiT.
 - ``longdwm-fine``: CogVideoX-2B with first/last-frame conditions by channel concatenation and
-  warp-guided frames (LongDWM sec. 3.2, 3.4).
+  warp-guided frames (LongDWM [2506.01546v1] sec. 3.2, 3.4).
 - ``tiny``, ``tiny-full``, ``tiny-mv`` (every control of the factorized layout), ``small``,
   ``small-full``: for tests and benchmarks.
 """

@@ -121,7 +121,7 @@ def apply_rope(x, cos, sin):
 
 def fourier_features(x, num_freqs: int, temperature: float = 100.0, include_input: bool = True):
     """Fourier features of ``x [..., k]`` -> ``[..., k (1 + 2 n)]``: ``sin(f_i x), cos(f_i x)`` with
-    ``f_i = temperature^(i / n)``, ``i < n`` (MagicDrive's Fourier embedder; MiLA eq. 1's
+    ``f_i = temperature^(i / n)``, ``i < n`` (MagicDrive's Fourier embedder; MiLA [2503.15875v1] eq. 1's
     ``FFT(c)``). ``include_input`` keeps ``x`` itself first."""
     x = jnp.asarray(x, jnp.float32)
     freqs = jnp.asarray(temperature ** (np.arange(num_freqs) / num_freqs), jnp.float32)

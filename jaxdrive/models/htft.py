@@ -1,4 +1,4 @@
-"""STAGE's Hierarchical Temporal Feature Transfer (HTFT, STAGE sec. 4B) and its streaming buffer.
+"""STAGE's Hierarchical Temporal Feature Transfer (HTFT, STAGE [2506.13138v1] sec. 4B) and its streaming buffer.
 
 While frame T is denoised at step t, the intermediate features ``f_t^T`` of chosen layers attend to
 the features that the same layers produced at the same denoising step for selected past frames:
@@ -44,7 +44,7 @@ _SFV = (2, 1, 3)   # merged sequences: spatial patches (the sharded axis) major
 
 
 class HTFT(nn.Module):
-    """``F_fused = Dropout(f) + Linear(CrossAttn(Linear(GroupNorm(f)), past))`` (STAGE sec. 4B).
+    """``F_fused = Dropout(f) + Linear(CrossAttn(Linear(GroupNorm(f)), past))`` (STAGE [2506.13138v1] sec. 4B).
 
     ``f [B, F, S, V, D]``: the current features (all frames of the current clip); ``past
     [B, K, S, V, D]``: the selected past frames' features at the same layer and step;

@@ -150,7 +150,7 @@ class GroupNorm(nn.Module):
     """Group normalisation in float32 with a learned per-channel scale and bias: statistics over the
     ``D / groups`` channels of a group and every axis after the first ``keep``, which keep their
     own statistics. ``keep=1``: per example (the VAE's ``[N, T, H, W, C]``: CogVideoX's statistics
-    span time); ``keep=2``: per example and frame (HTFT's ``[B, F, S, V, D]``, STAGE sec. 4B)."""
+    span time); ``keep=2``: per example and frame (HTFT's ``[B, F, S, V, D]``, STAGE [2506.13138v1] sec. 4B)."""
 
     groups: int
     eps: float = 1e-6

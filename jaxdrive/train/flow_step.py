@@ -11,14 +11,14 @@ each micro-batch (in a ``lax.scan``):
    a condition pattern per clip (:func:`jaxdrive.flow.draw_condition_masks`: ``flow.patterns``
    prefix / ends / anchors at ``flow.pattern_rates``) with ``k`` clean condition frames at the
    start (``0..cond_frames`` per clip, or exactly ``cond_frames``), the pattern's JDC anchors (at
-   ``g = slope * sigma``, MiLA sec. 3.3) for a fraction ``jdc_anchor_rate`` of clips, and
-   per-frame levels by :func:`jaxdrive.flow.frame_sigmas` (TPD when on, MiLA eq. 13-14);
+   ``g = slope * sigma``, MiLA [2503.15875v1] sec. 3.3) for a fraction ``jdc_anchor_rate`` of clips, and
+   per-frame levels by :func:`jaxdrive.flow.frame_sigmas` (TPD when on, MiLA [2503.15875v1] eq. 13-14);
 3. noises ``x_sigma = (1 - sigma) x + sigma noise`` per frame, anchors as the sampler makes them
-   (:func:`jaxdrive.flow.jdc_training_anchors`, MiLA eq. 8-12: the truth plus alpha1 noise,
+   (:func:`jaxdrive.flow.jdc_training_anchors`, MiLA [2503.15875v1] eq. 8-12: the truth plus alpha1 noise,
    re-noised to ``g``); the condition frames sit at level 0, i.e. clean, and the DiT sees level 0
    for them (and ``cond_latents`` when it has a condition-frame control);
 4. predicts the velocity with the batch's classifier-free-guidance drops (the data pipeline draws
-   them, 15% per condition by default) and takes MiLA eq. 15's loss over the non-condition frames,
+   them, 15% per condition by default) and takes MiLA [2503.15875v1] eq. 15's loss over the non-condition frames,
    anchors included (weighted per pixel by STAGE's foreground map W_aux when
    ``flow.foreground_k > 0``), plus LongDWM's structure-preservation loss when weighted, plus
    LongDWM's fine-to-coarse distillation from a frozen fine model when ``flow.distill_teacher``

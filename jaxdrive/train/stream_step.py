@@ -1,9 +1,9 @@
-"""STAGE's training (STAGE sec. C): the loss of one micro-batch of a streaming model.
+"""STAGE's training (STAGE [2506.13138v1] sec. C): the loss of one micro-batch of a streaming model.
 
 Every clip ``x [B, V, F, h, w, C]`` (latent frames) gives one window ``[anchor, condition, new]``
 = frames ``[0, j - 1, j]`` with ``j`` drawn per clip in ``1 .. F - 1`` (so the buffer of the new
 frame holds anywhere from none to all of its taps, as at the start of a stream and later), the
-new frame noised to a level drawn per clip, the two others clean; the loss is MiLA eq. 15's over
+new frame noised to a level drawn per clip, the two others clean; the loss is MiLA [2503.15875v1] eq. 15's over
 the new frame, weighted by STAGE's W_aux when ``flow.foreground_k > 0``. The three stages are
 one step with settings (``configs/stage.py``):
 
