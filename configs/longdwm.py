@@ -32,8 +32,18 @@ Set ``data.path``, ``latents.vae_path`` and ``data.text_embeddings`` (T5, 226 to
 import dataclasses
 from pathlib import Path
 
-from jaxdrive.config import (Config, DataConfig, FlowConfig, LatentConfig, MeshConfig, OptimConfig, TrainConfig,
-                             check_arg, load_config, parse_arg)
+from jaxdrive.config import (
+    Config,
+    DataConfig,
+    FlowConfig,
+    LatentConfig,
+    MeshConfig,
+    OptimConfig,
+    TrainConfig,
+    check_arg,
+    load_config,
+    parse_arg,
+)
 from jaxdrive.models.dit_presets import preset
 
 SEGMENT = 13          # K: frames of a fine segment; keyframes every K - 1

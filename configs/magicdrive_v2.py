@@ -45,8 +45,19 @@ Set ``data.path``, ``latents.vae_path`` and ``data.text_embeddings`` at paper si
 import dataclasses
 from pathlib import Path
 
-from jaxdrive.config import (Config, DataConfig, FlowConfig, LatentConfig, MeshConfig, OptimConfig, SampleConfig,
-                             TrainConfig, check_arg, load_config, parse_arg)
+from jaxdrive.config import (
+    Config,
+    DataConfig,
+    FlowConfig,
+    LatentConfig,
+    MeshConfig,
+    OptimConfig,
+    SampleConfig,
+    TrainConfig,
+    check_arg,
+    load_config,
+    parse_arg,
+)
 from jaxdrive.models.dit_presets import preset
 
 MAX_GROUP_BATCH = {"paper": 8, "tiny": 2}

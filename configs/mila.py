@@ -29,7 +29,8 @@ uses a per-frame image VAE; a causal 3D VAE cannot compress frames of mixed rate
 anchors are single frames); JDC's g(t) is ``slope * sigma`` with slope 0.5 and alpha1 = 0.1 (the
 paper gives neither constant); memory settings the paper does not give: full rematerialisation
 and the frame-wise encode one frame of every clip per step (``latents.vae_frame_batch``), so a
-step of 4 clips a device fits 80 GiB at fsdp 8 (docs/results/memory.md). Each stage starts from the previous one with ``--set train.init_from=RUN_OF_STAGE_N-1``.
+step of 4 clips a device fits 80 GiB at fsdp 8 (docs/results/memory.md). Each stage starts from
+the previous one with ``--set train.init_from=RUN_OF_STAGE_N-1``.
 
 Set ``data.path``, ``latents.vae_path`` and ``data.text_embeddings`` for your data (paper size).
 """
@@ -37,8 +38,19 @@ Set ``data.path``, ``latents.vae_path`` and ``data.text_embeddings`` for your da
 import dataclasses
 from pathlib import Path
 
-from jaxdrive.config import (Config, DataConfig, FlowConfig, LatentConfig, MeshConfig, OptimConfig, SampleConfig,
-                             TrainConfig, check_arg, load_config, parse_arg)
+from jaxdrive.config import (
+    Config,
+    DataConfig,
+    FlowConfig,
+    LatentConfig,
+    MeshConfig,
+    OptimConfig,
+    SampleConfig,
+    TrainConfig,
+    check_arg,
+    load_config,
+    parse_arg,
+)
 from jaxdrive.models.dit_presets import preset
 
 # stage 1's trainable set, regexes over "a/b/kernel" parameter paths: MiLA's new modules (the

@@ -10,8 +10,15 @@ predicted`` (:mod:`jaxdrive.models.predictor`).
 width 128, 16 past steps, 16-step rollouts; the same code path.
 """
 
-from jaxdrive.config import (DataConfig, OptimConfig, PredictorConfig, PredictorRunConfig, TrainConfig, check_arg,
-                             parse_arg)
+from jaxdrive.config import (
+    DataConfig,
+    OptimConfig,
+    PredictorConfig,
+    PredictorRunConfig,
+    TrainConfig,
+    check_arg,
+    parse_arg,
+)
 
 
 def get_config(arg=None) -> PredictorRunConfig:

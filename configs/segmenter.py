@@ -10,8 +10,15 @@ frame; 1500 steps of 32 frames. ``size=test``: width 16, 250 steps, what the tes
 in about a minute (it fits its two training scenes; the same code path).
 """
 
-from jaxdrive.config import (DataConfig, OptimConfig, SegmenterConfig, SegmenterRunConfig, TrainConfig, check_arg,
-                             parse_arg)
+from jaxdrive.config import (
+    DataConfig,
+    OptimConfig,
+    SegmenterConfig,
+    SegmenterRunConfig,
+    TrainConfig,
+    check_arg,
+    parse_arg,
+)
 
 
 def get_config(arg=None) -> SegmenterRunConfig:

@@ -56,8 +56,19 @@ Set ``data.path``, ``latents.vae_path`` and ``data.text_embeddings`` for your da
 import dataclasses
 from pathlib import Path
 
-from jaxdrive.config import (Config, DataConfig, FlowConfig, LatentConfig, MeshConfig, OptimConfig, StreamConfig,
-                             TrainConfig, check_arg, load_config, parse_arg)
+from jaxdrive.config import (
+    Config,
+    DataConfig,
+    FlowConfig,
+    LatentConfig,
+    MeshConfig,
+    OptimConfig,
+    StreamConfig,
+    TrainConfig,
+    check_arg,
+    load_config,
+    parse_arg,
+)
 from jaxdrive.models.dit_presets import preset
 
 HTFT_TRAINABLE = ("htft_",)          # stage 2: only the HTFT modules' parameters

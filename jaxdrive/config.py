@@ -69,9 +69,9 @@ class LatentConfig:
     ``"vae"``: a saved jaxdrive VAE (``vae_path``, see ``jaxdrive convert vae``), encoding on the
     fly in ``vae_mode`` (``"frame_wise"``: ``vae_frame_batch`` frames of every clip at a time, the
     VAE's ``frame_wise_batch``, which bounds the step's encoder temporaries; 0: all at once; in any
-    mode ``vae_clip_batch`` clips of every device at a time, the VAE's ``clip_batch``). ``"space_to_depth"``: frame-wise pixel latents, each ``factor x factor``
-    patch folded into channels (exact and parameter-free: the CPU demo uses it so that it needs no
-    VAE training).
+    mode ``vae_clip_batch`` clips of every device at a time, the VAE's ``clip_batch``).
+    ``"space_to_depth"``: frame-wise pixel latents, each ``factor x factor`` patch folded into
+    channels (exact and parameter-free: the CPU demo uses it so that it needs no VAE training).
 
     ``precomputed``: ``data.path`` holds latent windows written by ``jaxdrive data encode`` (the
     train step encodes nothing); the fields above still describe the codec that made them (it
@@ -346,7 +346,8 @@ def check_arg(key: str, value, choices) -> None:
     """``ValueError`` unless the config argument ``key`` is one of ``choices`` (a config's
     ``get_config`` after :func:`parse_arg`)."""
     if value not in choices:
-        want = ", ".join(repr(c) for c in choices[:-1]) + f" or {choices[-1]!r}" if len(choices) > 1 else repr(choices[0])
+        want = (", ".join(repr(c) for c in choices[:-1]) + f" or {choices[-1]!r}" if len(choices) > 1
+                else repr(choices[0]))
         raise ValueError(f"config argument {key}: expected {want}, got {value!r}")
 
 

@@ -101,8 +101,8 @@ class Mp4Writer:
             self._stream.width, self._stream.height, self._stream.pix_fmt = frames.shape[2], frames.shape[1], "yuv420p"
             self._stream.options = {"crf": "18"}
         elif (frames.shape[1], frames.shape[2]) != (self._stream.height, self._stream.width):
-            raise ValueError(f"video: expected frames of {self._stream.height} x {self._stream.width} (the first part's "
-                             f"mosaic), got {frames.shape[1]} x {frames.shape[2]}")
+            raise ValueError(f"video: expected frames of {self._stream.height} x {self._stream.width} (the first "
+                             f"part's mosaic), got {frames.shape[1]} x {frames.shape[2]}")
         for frame in frames:
             self._container.mux(self._stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")))
         self.frames += len(frames)

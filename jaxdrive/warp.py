@@ -46,7 +46,8 @@ def trajectory_poses(points, frames: int, *, times=None, degree: int = 3) -> np.
         raise ValueError(f"frames: expected at least 1, got {frames}")
     t = np.linspace(0.0, frames - 1, len(pts)) if times is None else np.asarray(times, np.float64)
     if t.shape != (len(pts),) or not np.all(np.diff(t) > 0):
-        raise ValueError(f"times: expected {len(pts)} strictly increasing frame times, got {np.asarray(times).tolist()}")
+        raise ValueError(f"times: expected {len(pts)} strictly increasing frame times, "
+                         f"got {np.asarray(times).tolist()}")
     if degree not in (1, 2, 3):
         raise ValueError(f"degree: expected 1, 2 or 3, got {degree}")
     k = min(degree, len(pts) - 1)

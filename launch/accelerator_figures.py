@@ -117,8 +117,9 @@ def markdown(work: Path, rows: list[dict]) -> tuple[str, dict | None]:
             for r in rows:
                 if r["step"] == step and r["figure"] == "decode_seconds":
                     get = lambda f: (_value(rows, step, f, mode=r["mode"]) or {}).get("value")
-                    vrows.append([r["mode"], r["value"], get("decode_frames_per_s"), _gib(get("decode_peak_device_memory")),
-                                  _gib(get("decode_compiled_temp_memory")), get("decode_compile_time")])
+                    vrows.append([r["mode"], r["value"], get("decode_frames_per_s"),
+                                  _gib(get("decode_peak_device_memory")), _gib(get("decode_compiled_temp_memory")),
+                                  get("decode_compile_time")])
         lines += _table(["mode", "seconds", "frames/s", "peak GiB", "compiled temp GiB", "compile s"], vrows) + [""]
 
     seen, lrows = set(), []

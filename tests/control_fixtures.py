@@ -12,6 +12,6 @@ from jaxdrive.bench import controls
 STEPS = 30
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def measured(pathway: str) -> dict:
     return controls.measure(pathway, steps=STEPS)

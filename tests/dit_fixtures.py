@@ -34,7 +34,7 @@ def conditions(text, kw) -> Conditions:
     return Conditions(text=text, **kw)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def boxed_params(cfg, shapes: tuple):
     """Boxed (logically partitioned) params of ``DiT(cfg)`` for inputs built from ``shapes``
     (host initialisation: nothing to compile)."""
@@ -60,7 +60,7 @@ def params_for(cfg, shapes: tuple, *, skip=BRANCH_ZERO, scale=0.05):
                    skip=skip)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def forward_fn(cfg, **static):
     dit = DiT(cfg)
     return jax.jit(lambda p, lat, sig, text, kw: dit.forward(p, lat, sig, conditions(text, kw), **static))

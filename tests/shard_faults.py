@@ -6,7 +6,6 @@ from __future__ import annotations
 import struct
 from pathlib import Path
 
-
 _BLOCK = 1 << 16        # Riegeli's block size
 
 

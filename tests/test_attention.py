@@ -93,7 +93,8 @@ def test_auto_on_one_device_equals_xla_for_short_sequences():
     (dict(kv_mask=jnp.ones((2, 40))), "kv_mask: expected dtype bool, got float32"),
     (dict(causal_block=0), "causal_block: expected an integer >= 1, got 0"),
     (dict(impl="ring"), r"mesh: impl 'ring' needs a mesh with a 'seq' axis, got None"),
-    (dict(impl="ulysses", mesh=jax.make_mesh((8,), ("data",))), r"mesh: impl 'ulysses' needs a mesh with a 'seq' axis, got \('data',\)"),
+    (dict(impl="ulysses", mesh=jax.make_mesh((8,), ("data",))),
+     r"mesh: impl 'ulysses' needs a mesh with a 'seq' axis, got \('data',\)"),
     (dict(impl="cudnn"), "impl: 'cudnn' needs a GPU backend"),
 ])
 def test_bad_arguments(kwargs, match):
@@ -230,7 +231,8 @@ def test_a_mesh_given_outside_its_context_asks_to_enter_it(impl):
     mesh = jax.make_mesh((1, 1, 4, 1), names, axis_types=(AxisType.Explicit,) * 4, devices=jax.devices()[:4])
     other = jax.make_mesh((2, 1, 2, 1), names, axis_types=(AxisType.Explicit,) * 4, devices=jax.devices()[:4])
     loss = lambda q: jnp.sum(jnp.sin(attention(q, k, v, impl=impl, mesh=mesh, causal_block=8)))
-    enter = r"^mesh: impl '(ring|ulysses)' runs on the mesh it is given only inside it: call attention within `with jax.set_mesh\(mesh\):`"
+    enter = (r"^mesh: impl '(ring|ulysses)' runs on the mesh it is given only inside it: call attention within "
+             r"`with jax.set_mesh\(mesh\):`")
     with pytest.raises(ValueError, match=enter):
         attention(q, k, v, impl=impl, mesh=mesh, causal_block=8)
     with pytest.raises(ValueError, match=enter):

@@ -6,9 +6,10 @@ import json
 
 import numpy as np
 import pytest
-from control_fixtures import STEPS, measured
 
 from jaxdrive.bench import controls
+
+from control_fixtures import STEPS, measured
 
 # Loss ratio (true / shuffled control) each pathway must beat after STEPS = 30 Adam steps, seed 0.
 # Measured (ratio at 30 steps; at 60, the bench's default, in brackets): boxes 0.952 (0.934),
@@ -54,7 +55,8 @@ def test_toys_change_only_what_the_control_decides():
     x, cond = controls.toy_clips("map", np.random.default_rng(1), 3)          # road blocks on the token grid
     change = x[:, 0, 1] - x[:, 0, 0]
     road = cond.bev_map[:, 1, ::8, ::8, 0]                                    # one BEV cell per block
-    np.testing.assert_allclose(change, np.broadcast_to(2 * np.repeat(np.repeat(road, 2, 1), 2, 2)[..., None], change.shape), atol=1e-5)
+    np.testing.assert_allclose(change, np.broadcast_to(2 * np.repeat(np.repeat(road, 2, 1), 2, 2)[..., None],
+                                                       change.shape), atol=1e-5)
     x, cond = controls.toy_clips("camera", np.random.default_rng(1), 64)
     change = x[:, 0, 1] - x[:, 0, 0]
     assert set(np.unique(np.round(change, 5))) == {0.0, 2.0}

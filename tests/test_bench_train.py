@@ -171,10 +171,12 @@ def test_trace_costs_sum_device_events_by_op(tmp_path):
               {"ph": "M", "pid": 1, "tid": 7, "name": "thread_name", "args": {"name": "XLA Ops"}},
               {"ph": "X", "pid": 1, "tid": 5, "dur": 300.0, "name": "sm90_xmma_gemm_bf16", "args": {"hlo_op": "dot.1"}},
               {"ph": "X", "pid": 1, "tid": 5, "dur": 300.0, "name": "sm90_xmma_gemm_bf16", "args": {"hlo_op": "dot.1"}},
-              {"ph": "X", "pid": 1, "tid": 5, "dur": 200.0, "name": "cudnn_generated_fort_native_sdpa_sm90_flash_fprop_wgmma_f16",
+              {"ph": "X", "pid": 1, "tid": 5, "dur": 200.0,
+               "name": "cudnn_generated_fort_native_sdpa_sm90_flash_fprop_wgmma_f16",
                "args": {"hlo_op": "custom-call.3"}},
               {"ph": "X", "pid": 1, "tid": 5, "dur": 100.0, "name": "loop_fusion", "args": {"hlo_op": "fusion.9"}},
-              {"ph": "X", "pid": 1, "tid": 5, "dur": 50.0, "name": "input_reduce_fusion", "args": {"hlo_op": "fusion.2"}},
+              {"ph": "X", "pid": 1, "tid": 5, "dur": 50.0, "name": "input_reduce_fusion",
+               "args": {"hlo_op": "fusion.2"}},
               {"ph": "X", "pid": 1, "tid": 7, "dur": 5000.0, "name": "dot.1"},       # a derived line: not counted
               {"ph": "X", "pid": 2, "tid": 1, "dur": 9000.0, "name": "PjitFunction(step)"}]
     with gzip.open(run / "perfetto_trace.json.gz", "wt") as f:

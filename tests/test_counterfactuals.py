@@ -2,13 +2,18 @@
 
 import numpy as np
 import pytest
+from test_synthetic import instances_inside_projected_boxes
 
 from jaxdrive.cli import main
 from jaxdrive.data.synth_routes import ROUTES
-from jaxdrive.data.synthetic import (counterfactual_clip, counterfactual_split, generate_clip, read_counterfactuals,
-                                     write_synthetic_dataset)
+from jaxdrive.data.synthetic import (
+    counterfactual_clip,
+    counterfactual_split,
+    generate_clip,
+    read_counterfactuals,
+    write_synthetic_dataset,
+)
 from jaxdrive.data.tfds_io import open_source
-from test_synthetic import instances_inside_projected_boxes
 
 KW = dict(views=6, frames=25, height=32, width=56)
 START = 8

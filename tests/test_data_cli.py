@@ -76,9 +76,9 @@ def test_info_messages_reach_stderr_unless_quiet(tmp_path, capsys):
 def test_nuscenes_faults_are_named_or_skipped(tmp_path, capsys):
     import os
 
-    from nuscenes_fixture import write_fixture
-
     from jaxdrive.data import nuscenes
+
+    from nuscenes_fixture import write_fixture
     root = write_fixture(str(tmp_path / "nus"))
     first = next(nuscenes.read_clips(root, frames=4))["meta"]["sample_data_tokens"][3][0]   # CAM_BACK
     image = tmp_path / "nus" / nuscenes.load_tables(root)["sample_data"][first]["filename"]

@@ -40,7 +40,8 @@ def test_caption_template():
 @pytest.mark.parametrize("mutate, match", [
     (lambda c: c.pop("boxes"), r"scene-1: field 'boxes' is missing \(expected float32 \['F', 'N', 7\]\)"),
     (lambda c: c.update(video=c["video"].astype(np.float32)), "field 'video': expected dtype uint8, got float32"),
-    (lambda c: c.update(waypoints=np.zeros((4, 2), np.float32)), r"field 'waypoints': expected shape \['F', 2\] with F = 3"),
+    (lambda c: c.update(waypoints=np.zeros((4, 2), np.float32)),
+     r"field 'waypoints': expected shape \['F', 2\] with F = 3"),
     (lambda c: c.update(bev_map=np.zeros((3, 8, 8, 6), np.uint8)), "field 'bev_map': expected shape"),
     (lambda c: c.update(fps=0.0), "field 'fps': expected a positive float"),
 ])

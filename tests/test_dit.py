@@ -2,8 +2,8 @@
 zero-initialised branches, classifier-free-guidance nulls, scan/remat, presets and bad input."""
 
 import dataclasses
-import json
 import functools
+import json
 
 import flax.linen as nn
 import flax.traverse_util
@@ -11,15 +11,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from dit_fixtures import BRANCH_ZERO, boxed_params, conditions, forward_fn, max_rel, params_for, perturb, split_inputs
 
 from jaxdrive.models.dit import DiT, param_count
 from jaxdrive.models.dit_blocks import CrossView
 from jaxdrive.models.dit_config import CONDITIONS
 from jaxdrive.models.dit_controls import frame_mode, group_frames
 from jaxdrive.models.dit_inputs import example_inputs
-from jaxdrive.models.params import host_init
 from jaxdrive.models.dit_presets import PRESETS, preset
+from jaxdrive.models.params import host_init
+
+from dit_fixtures import BRANCH_ZERO, boxed_params, conditions, forward_fn, max_rel, params_for, perturb, split_inputs
 
 # 6 views x (1 + 4k) frames with k = 1: 5 pixel frames of conditions, 2 latent frames
 MV = preset("tiny-mv", depth=1)                       # every control; one layer keeps compiling short
@@ -125,7 +126,7 @@ TINY = preset("tiny", controls=dict(cond_frames="replace"))
 TINY_SHAPES = (("batch", 2), ("views", 2), ("frames", 4), ("height", 4), ("width", 4))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _apply_with_intermediates(cfg):
     dit = DiT(cfg)
     return jax.jit(lambda p, lat, sig, text, kw: dit.apply({"params": p}, lat, sig, conditions(text, kw),
@@ -241,8 +242,8 @@ def test_scan_and_remat_match_the_python_loop(dtype):
 
     def loss(cfg):
         dit = DiT(cfg)
-        return jax.jit(jax.value_and_grad(lambda p, x: jnp.sum(dit.forward(p, x, sig, conditions(text, kw)) * jnp.sin(x)),
-                                          argnums=1))
+        return jax.jit(jax.value_and_grad(
+            lambda p, x: jnp.sum(dit.forward(p, x, sig, conditions(text, kw)) * jnp.sin(x)), argnums=1))
     (v1, g1), (v2, g2) = loss(base)(params, lat), loss(scanned)(stacked, lat)
     tol = 1e-5 if dtype == "float32" else 2e-2
     np.testing.assert_allclose(v2, v1, rtol=tol)
@@ -280,13 +281,15 @@ def _init_error(cfg, **changes):
 
 
 @pytest.mark.parametrize("changes,pattern", [
-    (dict(intrinsics=np.zeros((2, 5, 3, 3), np.float32)), r"intrinsics: expected shape \[2, 6, 3, 3\], got \[2, 5, 3, 3\]"),
+    (dict(intrinsics=np.zeros((2, 5, 3, 3), np.float32)),
+     r"intrinsics: expected shape \[2, 6, 3, 3\], got \[2, 5, 3, 3\]"),
     (dict(cam_to_ego=np.zeros((2, 4, 4, 4), np.float32)), r"cam_to_ego: expected shape \[2, 6, 4, 4\]"),
     (dict(boxes=np.zeros((2, 4, 2, 7), np.float32)), r"boxes: expected 2 \(latent\) or 5 \(pixel\) frames"),
     (dict(bev_map=np.zeros((2, 3, 16, 16, 8), np.float32)), r"bev_map: expected 2 \(latent\) or 5 \(pixel\)"),
     (dict(bev_map=np.zeros((2, 5, 16, 16, 3), np.float32)), r"bev_map: expected shape \[2, \*, \*, \*, 8\]"),
     (dict(waypoints=np.zeros((2, 3, 2), np.float32)), r"waypoints: expected 2 \(latent\) or 5 \(pixel\)"),
-    (dict(sigma=np.zeros((2, 3), np.float32)), r"sigma: expected shape \[B\] = \[2\] or \[B, F'\] = \[2, 2\], got \[2, 3\]"),
+    (dict(sigma=np.zeros((2, 3), np.float32)),
+     r"sigma: expected shape \[B\] = \[2\] or \[B, F'\] = \[2, 2\], got \[2, 3\]"),
     (dict(sigma=np.zeros((3,), np.float32)), r"sigma: expected shape \[2\], got \[3\]"),
     (dict(sigma=np.full((2,), 1.5, np.float32)), r"sigma: expected values in \[0.0, 1.0\], got"),
     (dict(drop={"weather": np.zeros(2, bool)}), r"drop: expected condition names .* got 'weather'"),
@@ -370,7 +373,8 @@ def test_reference_input_is_the_newest_given_frame_on_every_frame():
     for f in range(4):
         np.testing.assert_array_equal(r[0, :, f, ..., :3], cond[0, :, 1])      # the newer of two given frames
         np.testing.assert_array_equal(r[1, :, f, ..., :3], cond[1, :, 0])
-    np.testing.assert_array_equal(r[..., 3], np.broadcast_to(np.array([1, 1, 0])[:, None, None, None, None], r.shape[:-1]))
+    np.testing.assert_array_equal(r[..., 3], np.broadcast_to(np.array([1, 1, 0])[:, None, None, None, None],
+                                                              r.shape[:-1]))
     np.testing.assert_array_equal(r[2], 0)                                      # nothing given: zeros
     np.testing.assert_array_equal(reference_input(x, None, None), 0)
 
@@ -398,8 +402,10 @@ def test_reference_frame_control_reaches_every_frame_through_a_zero_initialised_
         preset("tiny", controls=dict(cond_frames="replace", reference_frame="copy"))
     with pytest.raises(ValueError, match=r"'residual' .* needs prediction='data', got prediction='velocity'"):
         preset("tiny", controls=dict(cond_frames="replace", reference_frame="residual"))
-    with pytest.raises(ValueError, match=r"out_channels: a residual to the given frame needs in_channels = 4 outputs, got 8"):
-        preset("tiny", prediction="data", out_channels=8, controls=dict(cond_frames="replace", reference_frame="residual"))
+    with pytest.raises(ValueError, match=r"out_channels: a residual to the given frame needs in_channels = 4 outputs, "
+                                         r"got 8"):
+        preset("tiny", prediction="data", out_channels=8,
+               controls=dict(cond_frames="replace", reference_frame="residual"))
 
 
 def test_residual_reference_frame_starts_by_repeating_the_newest_given_frame():

@@ -79,8 +79,8 @@ def test_parity_with_diffusers(case, tmp_path):
     dit, params = load_diffusers_transformer(tmp_path)
     assert dit.config.layout == "full" and dit.config.timestep_scale == 1000.0
     lat = x.numpy().transpose(0, 1, 3, 4, 2)[:, None]   # [B, V = 1, F', h, w, C]
-    got = jax.jit(lambda p, l, s, e: dit.forward(p, l, s, Conditions(text=e)))(params, lat, t.numpy() / 1000.0,
-                                                                               text.numpy())
+    got = jax.jit(lambda p, lat, s, e: dit.forward(p, lat, s, Conditions(text=e)))(params, lat, t.numpy() / 1000.0,
+                                                                                   text.numpy())
     got = np.asarray(got)[:, 0].transpose(0, 1, 4, 2, 3)
     assert got.shape == want.shape
     assert np.abs(got - want).max() <= 1e-4, np.abs(got - want).max()
@@ -103,7 +103,8 @@ def test_file_errors_name_the_file(tmp_path):
     _save(tmp_path)
     weights = tmp_path / "diffusion_pytorch_model.safetensors"
     weights.write_bytes(b"\x10\x00\x00\x00\x00\x00\x00\x00{not json")
-    with pytest.raises(ValueError, match="diffusion_pytorch_model.safetensors: (corrupt|not a complete) safetensors file"):
+    with pytest.raises(ValueError, match="diffusion_pytorch_model.safetensors: (corrupt|not a complete) "
+                                         "safetensors file"):
         load_diffusers_transformer(tmp_path)
     weights.unlink()
     (tmp_path / "diffusion_pytorch_model.bin").write_bytes(b"pickle")

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from jaxdrive.models.embeddings import apply_rope, fourier_features, rope_3d, sincos_3d, timestep_embedding
+from jaxdrive.models.htft import HTFT, buffer_init, buffer_push, buffer_select
 from jaxdrive.models.params import Init, host_init
 from jaxdrive.models.tokens import from_sequence, to_sequence
-from jaxdrive.models.htft import HTFT, buffer_init, buffer_push, buffer_select
 
 
 def test_timestep_and_sincos_match_diffusers():

@@ -10,12 +10,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from dit_fixtures import boxed_params, conditions, max_rel, params_for, split_inputs, tree_max_rel
 
 from jaxdrive.models.dit import DiT
 from jaxdrive.models.dit_inputs import example_inputs
 from jaxdrive.models.dit_presets import preset
 from jaxdrive.parallel import make_mesh, shard_params
+
+from dit_fixtures import boxed_params, conditions, max_rel, params_for, split_inputs, tree_max_rel
 
 CASES = {
     "factorized-joint": (preset("tiny", depth=1), dict(data=2, seq=4), 2),

@@ -97,7 +97,8 @@ def test_eval_scores_a_folder_of_mp4s_against_the_dataset(clips21, segmenter_run
         assert row["psnr"] > 30 and row["miou"] > ceiling[span]["miou"] - 0.1, (span, row)
         assert scores["swapped"][span]["psnr"] < row["psnr"] - 10 and scores["swapped"][span]["miou"] < row["miou"]
     for args, message in (
-            (["--videos", str(tmp_path / "none"), "--data", str(clips21)], "--videos: expected a folder with .mp4 files"),
+            (["--videos", str(tmp_path / "none"), "--data", str(clips21)],
+             "--videos: expected a folder with .mp4 files"),
             (["--videos", str(tmp_path / "same"), "--workdir", str(tmp_path)], "--workdir / --videos: expected one"),
             (["--videos", str(tmp_path / "same"), "--data", str(clips21), "--split", "train", "--given", "13"],
              "--given: expected fewer than the videos' 13 frames, got 13"),

@@ -155,7 +155,8 @@ def test_i3d_logits_match_cd_fvd(i3d_weights, tmp_path):
     assert np.abs(got - want).max() <= 1e-4 * np.abs(want).max()
     out = tmp_path / "i3d.safetensors"
     assert cli(["convert", "i3d", "--from", str(path), "--out", str(out)]) == 0
-    np.testing.assert_array_equal(np.asarray(load_i3d(out)[1]["logits"]["shift"]), np.asarray(params["logits"]["shift"]))
+    np.testing.assert_array_equal(np.asarray(load_i3d(out)[1]["logits"]["shift"]),
+                                  np.asarray(params["logits"]["shift"]))
     with pytest.raises(ValueError, match=r"--i3d .*: expected the I3D tensor 'Conv3d_1a_7x7.conv3d.weight'"):
         load_i3d(_other_network(tmp_path))
     with pytest.raises(ValueError, match=r"videos: expected at least 9 frames \(FVD uses 16\), got 4"):

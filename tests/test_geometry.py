@@ -49,8 +49,8 @@ _corners_jit = jax.jit(box_corners)
 
 
 @given(finite, finite, finite, size, size, size, angle)
-def test_yaw_is_a_rotation_about_the_centre(x, y, z, l, w, h, yaw):
-    boxes = np.array([[x, y, z, l, w, h, 0.0], [x, y, z, l, w, h, yaw]], np.float32)
+def test_yaw_is_a_rotation_about_the_centre(x, y, z, length, w, h, yaw):
+    boxes = np.array([[x, y, z, length, w, h, 0.0], [x, y, z, length, w, h, yaw]], np.float32)
     flat, turned = np.asarray(_corners_jit(boxes), np.float64)
     cos, sin = np.cos(np.float32(yaw)), np.sin(np.float32(yaw))
     rot = np.array([[cos, -sin, 0], [sin, cos, 0], [0, 0, 1]])

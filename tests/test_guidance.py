@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 
@@ -12,7 +11,7 @@ import numpy as np
 import pytest
 
 from jaxdrive.cli import main as cli
-from jaxdrive.config import check_sections, load_config, override, to_dict
+from jaxdrive.config import check_sections, load_config, to_dict
 from jaxdrive.generate.guidance import CONTROLS, check_controls, sampler_guidance
 from jaxdrive.models.conditions import Conditions
 
@@ -74,10 +73,11 @@ def test_per_control_variants_null_only_their_control():
 
 
 def test_mila_stage1_trains_the_box_encoder_when_boxes_are_on():
+    import flax.linen as nn
+
     from jaxdrive.models.dit import DiT
     from jaxdrive.models.dit_inputs import example_inputs
     from jaxdrive.train.optim import trainable_labels
-    import flax.linen as nn
 
     def labels(*sets):
         config = load_config(f"{ROOT / 'configs' / 'mila.py'}:size=tiny,stage=1", list(sets))

@@ -97,8 +97,10 @@ def test_the_name_map_renames_source_paths():
 def test_layers_move_between_scanned_runs_of_other_bounds_and_unrolled_layers():
     # STAGE stage 2 adds an HTFT layer after layer 1, which splits the scanned run 0..3 in two
     layer = lambda i: np.full((2, 3), i, np.float32)
-    source = {"layers_0_4": {"kernel": np.stack([layer(i) for i in range(4)])}, "head": {"bias": np.ones(3, np.float32)}}
-    new = {"layers_0_2": {"kernel": np.zeros((2, 2, 3), np.float32)}, "layers_2": {"kernel": np.zeros((2, 3), np.float32)},
+    source = {"layers_0_4": {"kernel": np.stack([layer(i) for i in range(4)])},
+              "head": {"bias": np.ones(3, np.float32)}}
+    new = {"layers_0_2": {"kernel": np.zeros((2, 2, 3), np.float32)},
+           "layers_2": {"kernel": np.zeros((2, 3), np.float32)},
            "layers_3_5": {"kernel": np.zeros((2, 2, 3), np.float32)}, "head": {"bias": np.zeros(3, np.float32)}}
     merged, report = merge_params(new, source)
     np.testing.assert_array_equal(merged["layers_0_2"]["kernel"], np.stack([layer(0), layer(1)]))

@@ -12,12 +12,12 @@ import pytest
 
 from jaxdrive.cli import main as cli
 from jaxdrive.config import load_config
+from jaxdrive.data.batches import model_inputs
 from jaxdrive.data.pipeline import collate, sample_clip, take_window
 from jaxdrive.data.tfds_io import dataset_info, open_source
 from jaxdrive.generate.rollout import rollout, window_starts
 from jaxdrive.generate.samples import dataset_inputs
 from jaxdrive.models.latents import LatentCodec
-from jaxdrive.data.batches import model_inputs
 from jaxdrive.train import flow_step
 from jaxdrive.train.metrics import read_metrics
 from jaxdrive.train.run import Run, train
@@ -150,7 +150,8 @@ def test_sampling_conditions_on_the_stored_windows(datasets):
     with pytest.raises(ValueError, match=r"frames: expected at most the 5 frames of the dataset's latent windows"):
         dataset_inputs(run.sampling(), frames=9)
     missing = dataclasses.replace(run.sampling(), data=dataclasses.replace(run.sampling().data, path="no/such/dir"))
-    with pytest.raises(ValueError, match=r"path: expected a TFDS dataset directory, got no/such/dir \(it does not exist\)"):
+    with pytest.raises(ValueError, match=r"path: expected a TFDS dataset directory, got no/such/dir "
+                                         r"\(it does not exist\)"):
         dataset_inputs(missing, frames=3)           # named, where it once failed on len(None)
 
     # the rollout pins the stored condition latents (a stand-in velocity keeps the compile cheap)

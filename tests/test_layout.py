@@ -9,8 +9,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from control_fixtures import measured
-from dit_fixtures import conditions, forward_fn, max_rel, params_for, perturb, split_inputs
 
 from jaxdrive import geometry
 from jaxdrive.config import Config, override, to_dict
@@ -22,6 +20,9 @@ from jaxdrive.models.dit_inputs import example_inputs
 from jaxdrive.models.dit_presets import preset
 from jaxdrive.models.layout import box_hits, camera_rays, layout_canvas
 from jaxdrive.train.run import CONFIG_FILE, load_run_config
+
+from control_fixtures import measured
+from dit_fixtures import conditions, forward_fn, max_rel, params_for, perturb, split_inputs
 
 LAYOUT = preset("tiny", depth=1, controls=dict(layout=True))
 SHAPES = (("batch", 2), ("views", 2), ("frames", 2), ("height", 8), ("width", 8))

@@ -120,7 +120,9 @@ def test_flow_loss_is_the_mean_over_non_condition_frames(mask_bits, seed):
 def test_high_pass_is_the_fft_high_pass_and_runs_sharded():
     """The DFT-by-matrices high-pass equals NumPy's FFT one, and its loss and gradient inside a
     sharded program (where XLA's CPU FFT failed on its input layout) equal the unsharded ones."""
-    from jax.sharding import AxisType, NamedSharding, PartitionSpec as P
+    from jax.sharding import AxisType, NamedSharding
+    from jax.sharding import PartitionSpec as P
+
     from jaxdrive.flow.losses import high_pass, high_pass_mask, structure_loss
     rng = np.random.default_rng(0)
     x = rng.normal(size=(2, 2, 3, 8, 14, 4)).astype(np.float32)

@@ -10,9 +10,19 @@ import pytest
 from jax.sharding import AxisType, NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from jaxdrive.parallel import (ACTIVATION_RULES, PARAM_RULES, constrain, global_to_host_local,
-                               host_local_to_global, logical_to_spec, make_hybrid_mesh, make_mesh,
-                               param_shardings, parse_mesh_spec, shard_params)
+from jaxdrive.parallel import (
+    ACTIVATION_RULES,
+    PARAM_RULES,
+    constrain,
+    global_to_host_local,
+    host_local_to_global,
+    logical_to_spec,
+    make_hybrid_mesh,
+    make_mesh,
+    param_shardings,
+    parse_mesh_spec,
+    shard_params,
+)
 from jaxdrive.parallel.host import _first_host, _resolve
 
 AXES = ("data", "fsdp", "seq", "tensor")

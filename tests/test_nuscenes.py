@@ -11,10 +11,10 @@ import pytest
 
 sys.path.insert(0, os.path.dirname(__file__))
 
-import nuscenes_fixture as fx  # noqa: E402
-
 from jaxdrive.data import nuscenes as ns  # noqa: E402
 from jaxdrive.data.schema import BEV_CLASSES, CAMERAS, OBJECT_CLASSES, check_clip  # noqa: E402
+
+import nuscenes_fixture as fx  # noqa: E402
 
 STEP = fx.SWEEPS + 1
 FRAMES = (fx.KEYFRAMES - 1) * STEP + 1  # CAM_FRONT frames per scene inside the keyframe span

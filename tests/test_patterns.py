@@ -57,7 +57,8 @@ def test_batched_n_cond_gives_one_row_per_clip():
 
 
 @pytest.mark.parametrize("call, match", [
-    (lambda: flow.pattern_masks("middle", 4, 1), r"pattern: expected one of \['prefix', 'ends', 'anchors'\], got 'middle'"),
+    (lambda: flow.pattern_masks("middle", 4, 1),
+     r"pattern: expected one of \['prefix', 'ends', 'anchors'\], got 'middle'"),
     (lambda: flow.pattern_masks("anchors", 4, 1), r"anchor_every: expected an integer >= 1, got 0"),
     (lambda: flow.pattern_masks("anchors", 4, 1, anchor_every=-2), "anchor_every: expected an integer >= 1"),
     (lambda: flow.pattern_masks("prefix", 4, 4), r"n_cond: expected values in \[0, 3\] for pattern 'prefix'"),
@@ -151,7 +152,8 @@ def test_draw_levels_puts_the_patterns_anchors_at_g():
     (dict(patterns=("prefix", "prefix")), "patterns: expected distinct names"),
     (dict(patterns=("prefix", "tail")), r"patterns: expected one of .*got 'tail'"),
     (dict(patterns=("prefix", "ends"), pattern_rates=(1.0,)), "pattern_rates: expected 2 rates"),
-    (dict(patterns=("prefix", "ends"), pattern_rates=(0.7, 0.7)), "pattern_rates: expected non-negative rates summing to 1"),
+    (dict(patterns=("prefix", "ends"), pattern_rates=(0.7, 0.7)),
+     "pattern_rates: expected non-negative rates summing to 1"),
     (dict(patterns=("prefix", "ends"), pattern_rates=(1.5, -0.5)), "pattern_rates: expected non-negative"),
     (dict(patterns=("anchors",)), "anchor_every: expected an integer >= 1, got 0"),
     (dict(anchor_rate=1.5), r"anchor_rate: expected a value in \[0, 1\]"),
@@ -186,7 +188,8 @@ def test_defaults_and_command_line_keys():
     (dict(patterns=("prefix", "middle")), "flow.patterns: expected one of"),
     (dict(patterns=()), "flow.patterns: expected distinct names"),
     (dict(patterns=("prefix", "ends"), pattern_rates=(0.5,)), "flow.pattern_rates: expected 2 rates"),
-    (dict(patterns=("prefix", "ends"), pattern_rates=(0.5, 0.6)), "flow.pattern_rates: expected non-negative rates summing to 1"),
+    (dict(patterns=("prefix", "ends"), pattern_rates=(0.5, 0.6)),
+     "flow.pattern_rates: expected non-negative rates summing to 1"),
     (dict(patterns=("prefix", "anchors")), "flow.anchor_every: expected an integer >= 1, got 0"),
     (dict(anchor_every=-1), "flow.anchor_every: expected an integer >= 0"),
     (dict(jdc_alpha1=1.0), r"flow.jdc_alpha1: expected values in \[0.0, 1.0\)"),

@@ -2,9 +2,9 @@ import re
 
 import numpy as np
 import pytest
+from test_tfds_io import random_clip
 
 from jaxdrive.data import pipeline, resize, schema, tfds_io
-from test_tfds_io import random_clip
 
 
 def make_clips(n=24, V=3, H=12, W=20, base_frames=9, seed=0):
@@ -184,8 +184,9 @@ def test_empty_bucket_names_bucket_and_reason():
     it = iter(pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1, (4, 6, 9): 50}, shard_index=0, shard_count=1))
     assert any(next(it)["video"].shape[0] == 50 for _ in range(60))
     # automatic repetition needs a long enough clip on every shard: here only the odd clips are
-    with pytest.raises(ValueError, match=r"bucket \(H, W, F\) = \(4, 6, 13\): zero samples after bucketing: expected "
-                                         r"a clip of at least 13 source frames on every shard, got none on shard 0 of 2"):
+    with pytest.raises(ValueError, match=r"bucket \(H, W, F\) = \(4, 6, 13\): zero samples after bucketing: "
+                                         r"expected a clip of at least 13 source frames on every shard, got none on "
+                                         r"shard 0 of 2"):
         pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1, (4, 6, 13): 1}, shard_index=1, shard_count=2,
                                frame_counts=[9 + 7 * (i % 2) for i in range(24)])
 

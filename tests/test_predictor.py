@@ -103,7 +103,8 @@ def test_a_720_step_rollout_keeps_the_tracks_and_stays_finite(clip):
     tr = clip_tracks(clip)
     hist = slice(40 - SMALL.history, 40)
     traffic = Traffic(ego=jnp.asarray(tr["ego"][hist], jnp.float32)[None],
-                      agents=jnp.asarray(tr["agents"][hist], jnp.float32)[None], seen=jnp.asarray(tr["seen"][hist])[None],
+                      agents=jnp.asarray(tr["agents"][hist], jnp.float32)[None],
+                      seen=jnp.asarray(tr["seen"][hist])[None],
                       size=jnp.asarray(tr["size"], jnp.float32)[None], z=jnp.asarray(tr["z"], jnp.float32)[None],
                       classes=jnp.asarray(np.maximum(tr["classes"], 0))[None], ids=jnp.asarray(tr["ids"])[None])
     params = init_params(SMALL, jax.random.key(1), bev_size=clip["bev_map"].shape[1:3])
@@ -194,7 +195,8 @@ def test_a_signal_saves_the_predictor_and_the_same_command_resumes(data, tmp_pat
 
 
 @pytest.mark.parametrize("sets, match", [
-    (["predictor.width=30", "predictor.heads=4"], "predictor.width: expected a multiple of predictor.heads = 4, got 30"),
+    (["predictor.width=30", "predictor.heads=4"],
+     "predictor.width: expected a multiple of predictor.heads = 4, got 30"),
     (["predictor.history=1"], "predictor.history: expected"),
     (["predictor.horizon=40"], "data.path: expected clips of at least 95 frames"),
 ])
@@ -222,7 +224,8 @@ def test_controls_past_the_log_continue_the_clip_and_a_route_moves_only_the_ego(
         assert len(out[k]) == 50, k
         np.testing.assert_array_equal(out[k][:20], s[k][:20])             # recorded frames untouched
     present = s["box_valid"][19]
-    np.testing.assert_array_equal(out["box_ids"][20:, present], np.broadcast_to(s["box_ids"][19, present], (30, present.sum())))
+    np.testing.assert_array_equal(out["box_ids"][20:, present],
+                                  np.broadcast_to(s["box_ids"][19, present], (30, present.sum())))
     ego = planar(out["ego_to_world"].astype(np.float64))
     step = ego[19, :2] - ego[18, :2]                   # a fresh predictor: constant velocity, frame by frame
     np.testing.assert_allclose(ego[20:, :2] - ego[19:-1, :2], np.broadcast_to(step, (30, 2)), atol=1e-3)
@@ -239,9 +242,10 @@ def test_controls_past_the_log_continue_the_clip_and_a_route_moves_only_the_ego(
     np.testing.assert_allclose(world(routed)[:, present], world(s)[:, present], atol=1e-3)
     far = tmp_path / "far.csv"
     far.write_text("x,y\n0,0\n10,0\n900,0\n")
-    with pytest.raises(ValueError, match=rf"route {far} row 4: expected a point on the scene's map .* got \(900.0, 0.0\)"):
+    with pytest.raises(ValueError, match=rf"route {far} row 4: expected a point on the scene's map .* "
+                                         r"got \(900.0, 0.0\)"):
         future_controls(s, clip, frames=20, keep=20, route=load_route(str(far), duration=19 / 12))
-    from jaxdrive.generate.route import RouteWarning     # a manoeuvre always runs, beyond the map too
+    from jaxdrive.generate.route import RouteWarning  # a manoeuvre always runs, beyond the map too
     with pytest.warns(RouteWarning, match=r"manoeuvre 'straight': it drives beyond the scene's map .* from frame"):
         fast = future_controls(s, clip, frames=20, keep=20, route=load_route("straight 300 m/s", duration=19 / 12))
     assert 0 < fast["route_drive"]["beyond_map_from"]["frame"] < 20 and np.isfinite(fast["bev_map"]).all()

@@ -127,8 +127,8 @@ def _on_road_truth(poses, crosses, margin=0.9):
 
 @pytest.mark.parametrize("name, side", [("left turn", 1), ("right turn", -1)])
 def test_a_turn_starts_at_the_intersection_ahead_and_stays_on_the_road(name, side):
-    from jaxdrive.generate.route import TURN_RADIUS
     from jaxdrive.data.synth_world import ROAD
+    from jaxdrive.generate.route import TURN_RADIUS
     sample, clip = _town([40.0])
     route = load_route(name, duration=(FRAMES - 1) / FPS)
     where_it_is = route.poses(FRAMES, FPS)                   # the manoeuvre alone: mid-block, off the road
@@ -150,8 +150,8 @@ def test_a_turn_starts_at_the_intersection_ahead_and_stays_on_the_road(name, sid
 
 
 def test_without_an_intersection_in_reach_a_turn_starts_where_the_clip_is_with_one_warning():
-    from jaxdrive.generate.route import drive_on_map
     from jaxdrive.data.scene_map import SceneMap
+    from jaxdrive.generate.route import drive_on_map
     frames = 49                       # 4 s: the turn may start up to 32 m ahead; the cross street is farther
     sample, clip = _town([75.0], frames=frames)
     route = load_route("left turn", duration=(frames - 1) / FPS)
@@ -183,8 +183,8 @@ def test_a_turn_that_drives_beyond_the_scene_map_still_runs_with_one_warning(tmp
     assert 50.0 < beyond["y"] < 50.0 + 12.0 / FPS + 1.0        # ~50 m from the recorded path (ego frame)
     assert beyond["frame"] == int(np.argmax(poses[:, 1, 3] - (-1.75) > 50.0))
     assert _on_road_truth(poses[:beyond["frame"]].astype(np.float64), [20.0]).all()
-    assert len(warned) == 1 and f"beyond the scene's map (the BEV maps the clip recorded) from frame {beyond['frame']}" \
-        in str(warned[0].message)
+    assert len(warned) == 1 and (f"beyond the scene's map (the BEV maps the clip recorded) from frame {beyond['frame']}"
+                                 in str(warned[0].message))
     on_map, drive, warned = _drive(load_route("left turn", duration=3.0), *_town([20.0], frames=37))
     assert drive["beyond_map_from"] is None and warned == []
     far = tmp_path / "far.csv"                        # the same path as a file is refused, unless allowed

@@ -24,7 +24,7 @@ from jaxdrive.models.latents import LatentCodec
 from strategy_fixtures import C, H, W, horizon_inputs
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def tiny_model(window: int, **kw) -> WindowModel:
     cfg = preset("tiny", in_channels=C, vae_spatial=4, vae_temporal=1, text_dim=64, text_len=16, patch=(1, 2, 2),
                  prediction="data", controls=dict(text=None, waypoints=True, fps=True, cond_frames="replace",
@@ -162,7 +162,8 @@ def test_strategies_reject_what_they_cannot_do_before_compiling():
     with pytest.raises(ValueError, match=r"--fine-workdir: expected a model trained for interpolation"):
         S.check_strategy("coarse-fine", S.Models(m, tiny_model(7)), 25, 1)
     fine = dataclasses.replace(tiny_model(7), patterns=("prefix", "ends"))
-    with pytest.raises(ValueError, match=r"frames: coarse-fine reaches 1 \+ n \* 6 latent frames .* got 24; e.g. 19 or 25"):
+    with pytest.raises(ValueError, match=r"frames: coarse-fine reaches 1 \+ n \* 6 latent frames .* got 24; "
+                                         r"e.g. 19 or 25"):
         S.check_strategy("coarse-fine", S.Models(m, fine), 24, 1)
     with pytest.raises(ValueError, match=r"workdir: coarse-to-refine needs a model trained to correct JDC anchors"):
         S.check_strategy("coarse-to-refine", S.Models(m), 25, 2)

@@ -22,13 +22,13 @@ from jaxdrive.generate.windows import Tracker, WindowModel, sample_window
 from jaxdrive.models.dit import DiT
 from jaxdrive.models.dit_presets import preset
 from jaxdrive.models.latents import LatentCodec
-from strategy_fixtures import C, H, W, horizon_inputs
 
+from strategy_fixtures import C, H, W, horizon_inputs
 
 TAPS, BUFFER = (-1, -2, -4), 4
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def model(htft: bool = True, steps: int = 3) -> WindowModel:
     cfg = preset("tiny", in_channels=C, vae_spatial=4, vae_temporal=1, patch=(1, 2, 2), prediction="data",
                  htft_layers=(0,) if htft else (),
@@ -259,9 +259,10 @@ def test_a_scanned_stage_1_model_loads_into_stage_2_with_its_outputs_unchanged()
     passes made its compile take over 15 minutes): stage 2's HTFT layer splits stage 1's scanned run
     in two, and ``train.init_from`` moves the layers across; HTFT's zero output layer then leaves
     the stage-1 outputs as they were, past features or not."""
-    from dit_fixtures import perturb
     from jaxdrive.models.dit_inputs import example_inputs
     from jaxdrive.train.init_from import merge_params
+
+    from dit_fixtures import perturb
     cfg = preset("tiny", depth=4, in_channels=C, vae_spatial=4, vae_temporal=1, patch=(1, 2, 2), prediction="data",
                  scan_layers=True)
     stage1, stage2 = DiT(cfg), DiT(cfg.replace(htft_layers=(1,)))
@@ -284,6 +285,7 @@ def test_the_stage_3_step_holds_each_model_pass_once_whatever_the_depth():
     with scanned layers (``configs/stage.py`` at paper size), hold each layer run once: the
     lowered program's matmuls do not grow with the depth (unrolled, each pass held every layer's)."""
     from pathlib import Path
+
     from jaxdrive.config import load_config
     from jaxdrive.train import stream_step
     config = Path(__file__).resolve().parents[1] / "configs" / "stage.py"

@@ -136,9 +136,9 @@ def test_errors_name_the_path(tmp_path):
 
 @pytest.mark.parametrize("how", ["overwrite", "truncate"])
 def test_a_damaged_shard_names_its_file_and_keeps_the_other_records(tmp_path, how):
-    from shard_faults import damaged_dataset
-
     from jaxdrive.data.faults import BadRecordError
+
+    from shard_faults import damaged_dataset
     path, clips, bad, shard = damaged_dataset(tmp_path / "clips", how)
     src = tfds_io.open_source(path, "train")
     for i, clip in enumerate(clips):

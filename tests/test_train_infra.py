@@ -126,7 +126,8 @@ def test_checkpoints_fall_back_past_a_damaged_one_and_reshard(tmp_path):
     assert len(messages) == 1 and "checkpoints/3 is incomplete or damaged" in messages[0]
     mesh = make_mesh(data=2, fsdp=4)
     sharded = jax.tree_util.tree_map(
-        lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=NamedSharding(mesh, P("fsdp") if a.ndim == 2 else P())),
+        lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype,
+                                       sharding=NamedSharding(mesh, P("fsdp") if a.ndim == 2 else P())),
         abstract)
     state, _, _ = ck.restore(2, sharded)
     assert state.params["w"].sharding.spec == P("fsdp")
@@ -171,6 +172,7 @@ def test_a_checkpoint_of_another_model_is_a_value_error_saying_what_differs(tmp_
     other = jax.eval_shape(lambda: _state_after(0).replace(params={"w": jnp.zeros((8, 4)), "c": jnp.zeros(2)}))
     with pytest.raises(ValueError, match=r"workdir: expected checkpoints of this config's model .* got step 1 with "
                                          r"other parameters \(3 differ: w: expected shape \[8, 4\], got \[4, 4\]; "
-                                         r"c: expected in the checkpoint, missing; b: in the checkpoint, not in this model\)"):
+                                         r"c: expected in the checkpoint, missing; b: in the checkpoint, "
+                                         r"not in this model\)"):
         ck.restore_latest(other)
     ck.close()

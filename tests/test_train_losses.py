@@ -160,7 +160,8 @@ def test_teacher_segments_one_at_a_time_match_the_folded_batch():
     sigma = jnp.array([0.3, 0.8])
     cond = jnp.zeros((b, 3), bool).at[:, 0].set(True)
     levels, cond_dense = distill_step.dense_levels(sigma, cond, f, k)
-    assert levels.shape == (b, f) and bool(jnp.all(levels[:, 0] == 0)) and bool(jnp.all(levels[:, 1:] == sigma[:, None]))
+    assert (levels.shape == (b, f) and bool(jnp.all(levels[:, 0] == 0))
+            and bool(jnp.all(levels[:, 1:] == sigma[:, None])))
     x_t = flow.add_noise(x, jax.random.normal(keys[1], x.shape), levels)
     controls = Conditions(text=jax.random.randint(keys[2], (b, cfg.text_len), 0, 512),
                           text_mask=jnp.ones((b, cfg.text_len), bool), fps=jnp.array([12.0, 6.0]),

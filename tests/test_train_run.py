@@ -12,8 +12,8 @@ import pytest
 
 from jaxdrive.cli import main as cli
 from jaxdrive.config import FlowConfig, load_config
-from jaxdrive.models.latents import depth_to_space, space_to_depth
 from jaxdrive.data.batches import model_inputs
+from jaxdrive.models.latents import depth_to_space, space_to_depth
 from jaxdrive.train import flow_step
 from jaxdrive.train.metrics import read_metrics
 from jaxdrive.train.run import Run, train
@@ -218,8 +218,8 @@ def test_demo_recipe_learns_a_continuation_not_noise(dataset, tmp_path):
     """A short run of the demo recipe (configs/tiny.py on 2 views, 5 frames): its first sampled
     window must have the spread of real latents (the 64-wide velocity model once gave 3x the
     data's standard deviation, saturated colour noise) and beat noise on PSNR by a margin."""
-    from jaxdrive.generate.samples import generate
     from jaxdrive.eval.frames import clip_quality
+    from jaxdrive.generate.samples import generate
     config = load_config(TINY, [f"data.path={dataset}", "data.views=2", "data.frames=5", "train.steps=150",
                                 "train.checkpoint_every=0", "train.log_every=50", "optim.warmup_steps=10",
                                 "mesh.data=2", "mesh.seq=4"])
@@ -268,9 +268,9 @@ def test_a_corrupt_shard_stops_the_run_or_is_skipped_and_counted(dataset, tmp_pa
     batch full, and metrics.jsonl counts the clips replaced (kept by the checkpoint for a resume)."""
     import re
 
-    from shard_faults import shard_files, truncate
-
     from jaxdrive.data.tfds_io import open_source, write_dataset
+
+    from shard_faults import shard_files, truncate
     splits = {s: [open_source(dataset, s)[i] for i in range(len(open_source(dataset, s)))]
               for s in ("train", "validation")}
     data = write_dataset(tmp_path / "data", splits, shard_bytes=1)           # one clip per shard

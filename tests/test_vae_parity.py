@@ -42,7 +42,7 @@ def tmp_dir(tmp_path_factory):
     return tmp_path_factory.mktemp("vae_parity")
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _pair(name, root):
     """(diffusers model, jaxdrive vae, params, directory) for CONFIGS[name]."""
     cfg = CONFIGS[name]
@@ -177,7 +177,8 @@ def test_import_errors_name_the_file_and_the_keys(tmp_dir, tmp_path):
                      add={"encoder.extra.weight": np.zeros((2, 2), np.float32)})
     with pytest.raises(ValueError, match=r"diffusion_pytorch_model.safetensors: weights do not match") as e:
         load_diffusers_vae(bad)
-    assert "unknown keys (1): ['encoder.extra.weight']" in str(e.value) and "decoder/mid_block_resnets_0/norm1/conv_y/kernel" in str(e.value)
+    assert ("unknown keys (1): ['encoder.extra.weight']" in str(e.value)
+            and "decoder/mid_block_resnets_0/norm1/conv_y/kernel" in str(e.value))
     wrong = _copy_with(path, tmp_path / "shape",
                        add={"encoder.conv_in.conv.bias": np.zeros((5,), np.float32)})
     with pytest.raises(ValueError, match=r"shape mismatches .*encoder/conv_in/bias: expected \[8\], got \[5\]"):

@@ -4,8 +4,7 @@ warp (appendix A.2, eq. 9) and its Navier-Stokes inpainting."""
 import numpy as np
 import pytest
 
-from jaxdrive.warp import (camera_motion, depth_free_warp, inpaint_holes, plane_homography, trajectory_poses,
-                           warp_views)
+from jaxdrive.warp import camera_motion, depth_free_warp, inpaint_holes, plane_homography, trajectory_poses, warp_views
 
 K = np.asarray([[100.0, 0.0, 50.0], [0.0, 100.0, 40.0], [0.0, 0.0, 1.0]], np.float32)
 H, W = 80, 100

@@ -94,6 +94,7 @@ def _warp_model():
     from jaxdrive.generate.windows import WindowModel
     from jaxdrive.models.dit import DiT
     from jaxdrive.models.dit_presets import preset
+
     from strategy_fixtures import C, H, W
     cfg = preset("tiny", in_channels=C, vae_spatial=4, vae_temporal=1, patch=(1, 2, 2), prediction="data",
                  controls=dict(waypoints=True, fps=True, warp=True, cond_frames="replace"))
@@ -121,6 +122,7 @@ def test_every_window_warps_its_own_first_frame_and_the_warp_steers_it():
     import jax
 
     from jaxdrive.generate import strategies as S
+
     from strategy_fixtures import horizon_inputs
     m = _warp_model()
     first, controls = horizon_inputs(10, given=2)

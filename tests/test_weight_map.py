@@ -42,9 +42,9 @@ wmap = jax.jit(partial(foreground_weight_map, map_hw=MAP_HW, image_hw=IMAGE_HW))
 # in one sign, membership = "inside some triangle of the vertices" (Caratheodory), float64.
 
 def ref_object_mask(box, K_, cam_to_ego, near):
-    x, y, z, l, w, h, yaw = map(float, box)
+    x, y, z, length, w, h, yaw = map(float, box)
     signs = np.array(list(itertools.product([-0.5, 0.5], repeat=3)))
-    local = signs * [l, w, h]
+    local = signs * [length, w, h]
     rot = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
     corners = local @ rot.T + [x, y, z]
     r, t = cam_to_ego[:3, :3].astype(np.float64), cam_to_ego[:3, 3].astype(np.float64)

@@ -120,7 +120,7 @@ def tiled_grads(q, k, v, mask, lse, delta, do, *, scale, causal_block, bq, bk, q
     return _fori(0, nk, key_tile, acc)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _kernel(scale: float, causal_block, bq: int, bk: int):
     """The custom-VJP kernel for fixed static settings (arrays already padded to the tiles)."""
     settings = dict(scale=scale, causal_block=causal_block, bq=bq, bk=bk)

@@ -31,7 +31,7 @@ from jaxdrive.attention import softmax_blocks as sb
 from jaxdrive.attention.blockwise import tiled_attend, tiled_grads
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _ring_kernel(scale: float, causal_block, axis: str, n: int, has_mask: bool, bq: int, bk: int):
     """Per-device custom-VJP ring attention (runs inside ``shard_map``) for fixed static settings.
 

@@ -67,9 +67,9 @@ def attend_block(q, k, v, *, scale, kv_mask=None, causal_block=None, q_start=0, 
     m = jnp.max(s, axis=-1, keepdims=True)
     m = jnp.where(jnp.isfinite(m), m, 0.0)            # rows with no allowed key
     p = jnp.exp(s - m)
-    l = jnp.sum(p, axis=-1, keepdims=True)
-    o = jnp.einsum("bhqk,bkhd->bqhd", p / jnp.where(l > 0, l, 1.0), v.astype(jnp.float32))
-    lse = jnp.where(l[..., 0] > 0, m[..., 0] + jnp.log(jnp.where(l[..., 0] > 0, l[..., 0], 1.0)), NEG_INF)
+    total = jnp.sum(p, axis=-1, keepdims=True)
+    o = jnp.einsum("bhqk,bkhd->bqhd", p / jnp.where(total > 0, total, 1.0), v.astype(jnp.float32))
+    lse = jnp.where(total[..., 0] > 0, m[..., 0] + jnp.log(jnp.where(total[..., 0] > 0, total[..., 0], 1.0)), NEG_INF)
     return o, lse
 
 

@@ -34,7 +34,7 @@ def available() -> bool:
     return jax.default_backend() == "tpu"
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _block_causal_mask(shape: tuple[int, int], block: int):
     from jax.experimental.pallas.ops.tpu.splash_attention import splash_attention_mask as masks
 
@@ -53,7 +53,7 @@ def _block_causal_mask(shape: tuple[int, int], block: int):
     return BlockCausalMask()
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _kernel(shape: tuple[int, int], heads: int, causal_block, tile_q: int, tile_k: int, interpret: bool):
     from jax.experimental.pallas.ops.tpu.splash_attention import splash_attention_kernel as splash
     from jax.experimental.pallas.ops.tpu.splash_attention import splash_attention_mask as masks

@@ -69,7 +69,7 @@ def _seq_in_tiles(x, axis, n, tile, dtype):
     return jax.lax.fori_loop(1, c // tile, step, first)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _ulysses_kernel(scale: float, causal_block, axis: str, n: int, has_mask: bool, bq: int, bk: int):
     """Per-device custom-VJP all-to-all attention (runs inside ``shard_map``), K/V in pieces.
 

@@ -127,9 +127,10 @@ def run(config_arg: str, sets, repeats: int, views: int, rebalance: bool = False
 def _fit_batch(points, target: float, groups: int, max_batch: int) -> int:
     """The batch (a multiple of ``groups``, at most ``max_batch``) that the least-squares line
     ``step time = a + c * batch`` through a bucket's measured ``points`` puts at ``target``
-    seconds (through the origin while only one batch size is measured). All points, not the last two: a CPU's step times jitter by 10-20%, and a secant
-    through two noisy points can slope the wrong way (round 4 of a 9-bucket run sent a bucket from
-    batch 120 to 2). The slope is kept at least a fifth of the proportional one (time / batch)."""
+    seconds (through the origin while only one batch size is measured). All points, not the
+    last two: a CPU's step times jitter by 10-20%, and a secant through two noisy points can
+    slope the wrong way (round 4 of a 9-bucket run sent a bucket from batch 120 to 2). The
+    slope is kept at least a fifth of the proportional one (time / batch)."""
     import numpy as np
     b, t = (np.asarray(v, float) for v in zip(*points))
     proportional = t.mean() / b.mean()

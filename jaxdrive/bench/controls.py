@@ -143,7 +143,7 @@ def _box_cover(boxes, cams):
     return np.asarray(_cover(boxes, cams["intrinsics"], cams["cam_to_ego"]))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _cover_fn():
     import jax
 
@@ -208,7 +208,8 @@ def toy_clips(pathway: str, rng: np.random.Generator, batch: int):
             for f in range(2):
                 poses[:, f, 0, 0], poses[:, f, 0, 1], poses[:, f, 1, 0], poses[:, f, 1, 1] = c, -s, s, c
             poses[:, 0, :2, 3] = rng.uniform(-50, 50, (batch, 2))
-            poses[:, 1, :2, 3] = poses[:, 0, :2, 3] + np.stack([c * forward - s * lateral, s * forward + c * lateral], -1)
+            poses[:, 1, :2, 3] = poses[:, 0, :2, 3] + np.stack([c * forward - s * lateral,
+                                                                s * forward + c * lateral], -1)
             kw = dict(ego_to_world=poses)
     elif pathway == "warp":
         shift = rng.integers(-2, 3, (batch, 2))
@@ -229,7 +230,7 @@ def shuffled(pathway: str, cond):
     return cond.replace(**{k: np.roll(np.asarray(getattr(cond, k)), 1, axis=0) for k in FIELDS[pathway]})
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _functions(cfg, lr: float):
     """The jitted train step and data prediction of ``DiT(cfg)`` (compiled once per pathway and
     learning rate in a process)."""

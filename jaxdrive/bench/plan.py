@@ -54,8 +54,14 @@ def measure(config) -> dict:
     import jax.numpy as jnp
 
     from jaxdrive.config import MeshConfig
-    from jaxdrive.train.plan import (abstract_batch, accelerator_attention, plan_memory, planned_bucket,
-                                     resident_bytes, transient_bytes)
+    from jaxdrive.train.plan import (
+        abstract_batch,
+        accelerator_attention,
+        plan_memory,
+        planned_bucket,
+        resident_bytes,
+        transient_bytes,
+    )
     from jaxdrive.train.run import Run
     config = accelerator_attention(dataclasses.replace(config, mesh=MeshConfig(data=1)), {})
     device = jax.devices()[:1]

@@ -146,7 +146,8 @@ def trace_costs(log_dir, *, steps: int = 1, top: int = 3) -> dict:
               "top": [{"op": op, "ms_per_step": round(total[op] / 1e3 / steps, 3),
                        "share": round(total[op] / whole, 4) if whole else None, "events": count[op],
                        "kernel": kernel[op][:200], "category": _category(op, kernel[op])} for op in ranked],
-              "categories": {c: round(d / 1e3 / steps, 3) for c, d in sorted(categories.items(), key=lambda kv: -kv[1])}}
+              "categories": {c: round(d / 1e3 / steps, 3)
+                             for c, d in sorted(categories.items(), key=lambda kv: -kv[1])}}
     with open(os.path.join(str(log_dir), "top_costs.json"), "w") as f:
         json.dump(result, f, indent=1)
     return result

@@ -515,7 +515,8 @@ def run(presets, *, batch: int, frames: int, height: int, width: int, repeats: i
                 row["mfu"] = round(achieved / peak_t, 4)
                 figure(BENCH, "mfu", row["mfu"], "fraction", peak_tflops=peak_t, peak_source=peak_note, **ctx)
             if measured is not None and achieved is not None:
-                row.update(mfu_measured=float(f"{achieved / measured:.4g}"), measured_peak_tflops=float(f"{measured:.4g}"))
+                row.update(mfu_measured=float(f"{achieved / measured:.4g}"),
+                           measured_peak_tflops=float(f"{measured:.4g}"))
                 figure(BENCH, "mfu_measured", row["mfu_measured"], "fraction", peak_tflops=row["measured_peak_tflops"],
                        peak_source=f"measured bf16 {peak_size}^3 matmul", **ctx)
         rows.append(row)
@@ -555,7 +556,8 @@ def run(presets, *, batch: int, frames: int, height: int, width: int, repeats: i
              params=rj["params"], torch_threads=rt["threads"], diffusers_config=dcfg,
              meaning="jaxdrive tokens/s / diffusers PyTorch tokens/s", **base)
         if micro:
-            for row in op_rows(preset(partner), tokens=batch * (rj["video_tokens"] // batch + dcfg["max_text_seq_length"]),
+            for row in op_rows(preset(partner),
+                               tokens=batch * (rj["video_tokens"] // batch + dcfg["max_text_seq_length"]),
                                threads=rt["threads"], repeats=max(20, 4 * repeats)):
                 rows.append(dict(row, preset=name, **base))
                 figure(BENCH, "op_time", row["step_ms"], "ms", **{k: v for k, v in rows[-1].items() if k != "step_ms"})

@@ -21,11 +21,10 @@ own for a figure of its own).
 from __future__ import annotations
 
 import argparse
+import time
 
 import jax
 import jax.numpy as jnp
-
-import time
 
 from jaxdrive.bench.report import best_time, emit, peak_device_bytes, table, temp_bytes
 

@@ -10,7 +10,8 @@ import logging
 import sys
 
 import jaxdrive
-from jaxdrive.cli import bench, convert, data, eval as eval_cli, plan, train
+from jaxdrive.cli import bench, convert, data, plan, train
+from jaxdrive.cli import eval as eval_cli
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -10,8 +10,8 @@ import numpy as np
 
 def _convert_vae(args, rest) -> int:
     from jaxdrive.convert.diffusers_vae import load_diffusers_vae
-    from jaxdrive.models.pretrained import save_pretrained
     from jaxdrive.models.params import count_params
+    from jaxdrive.models.pretrained import save_pretrained
 
     vae, params = load_diffusers_vae(args.src)
     path = save_pretrained(args.dst, vae, params, overwrite=args.overwrite)

@@ -45,7 +45,7 @@ def _data_synth(args, rest) -> int:
 def _data_nuscenes(args, rest) -> int:
     import numpy as np
 
-    from jaxdrive.data.nuscenes import read_clips, scene_names, load_tables
+    from jaxdrive.data.nuscenes import load_tables, read_clips, scene_names
     from jaxdrive.data.tfds_io import write_dataset
 
     if (args.height is None) != (args.width is None):
@@ -149,7 +149,8 @@ def add_commands(sub) -> None:
                           "the log, the count in the summary) instead of stopping with an error naming it")
     nus.set_defaults(run=_data_nuscenes)
     text = dsub.add_parser("text-embed", help="precompute T5 embeddings of a dataset's captions "
-                                              "(needs the t5 extra, pip install \"jaxdrive[t5]\", and local T5 weights)")
+                                              "(needs the t5 extra, pip install \"jaxdrive[t5]\", and local T5 "
+                                              "weights)")
     text.add_argument("--dataset", required=True, help="TFDS dataset directory")
     text.add_argument("--encoder", required=True, help="folder of a T5 encoder (safetensors) and tokenizer")
     text.add_argument("--out", required=True, help="output .npz: captions, embeddings [N, L, D], mask [N, L]")

@@ -198,10 +198,10 @@ def _eval_videos(args) -> int:
     ``jaxdrive sample`` writes them) against the clip of the same rank in the split."""
     import numpy as np
 
+    from jaxdrive.data.class_masks import class_masks_of
     from jaxdrive.data.pipeline import sample_clip
     from jaxdrive.data.tfds_io import open_source
     from jaxdrive.eval.compare import controllability, parse_buckets, repeat_baseline, repeat_name, score, write_outputs
-    from jaxdrive.data.class_masks import class_masks_of
     from jaxdrive.media import read_mp4
     from jaxdrive.validate import check_positive_int
     for name in ("strategies", "fine_workdir", "frames", "routes", "cfg", "cfg_boxes", "cfg_route"):

@@ -97,9 +97,8 @@ def sample_strategy(args) -> int:
 
     from jaxdrive.generate.long_video import sample_long
     from jaxdrive.generate.samples import dataset_inputs
-    from jaxdrive.generate.strategies import NEEDS_FINE, Models, check_strategy, check_taps
+    from jaxdrive.generate.strategies import NEEDS_FINE, STRATEGIES, Models, check_strategy, check_taps
     from jaxdrive.validate import check_choice, check_positive_int
-    from jaxdrive.generate.strategies import STRATEGIES
     check_choice("--strategy", args.strategy, STRATEGIES)
     if args.strategy in NEEDS_FINE and not args.fine_workdir:
         raise ValueError(f"--fine-workdir: strategy {args.strategy!r} needs a fine model run, got none")
@@ -160,7 +159,7 @@ def sample_strategy(args) -> int:
     codec = horizon_spec.codec
     first = first_latents(inputs, codec, models.main.window, given)
     if any(m is not None and m.dit.config.controls.warp for m in (shapes.main, shapes.fine)):
-        from jaxdrive.generate.warps import WarpGuide      # LongDWM: each window's first frame warped
+        from jaxdrive.generate.warps import WarpGuide  # LongDWM: each window's first frame warped
         options["warp"] = WarpGuide.from_inputs(inputs, codec, depth=horizon_spec.data.warp_depth)
     # a driven route is not the recorded clip: its frames are no reference to score against
     recorded = np.asarray(inputs["video"][0]) if "video" in inputs and not args.route else None

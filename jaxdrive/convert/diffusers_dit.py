@@ -1,7 +1,8 @@
 """diffusers ``CogVideoXTransformer3DModel`` folders -> a ``"full"``-layout :class:`DiT` and its params.
 
     dit, params = load_diffusers_transformer("CogVideoX-2b/transformer")
-    out = dit.forward(params, latents, sigma, Conditions(text=text))   # latents [B, 1, F', h, w, C], sigma [B], text [B, L, D]
+    out = dit.forward(params, latents, sigma, Conditions(text=text))   # latents [B, 1, F', h, w, C], sigma [B],
+                                                                       # text [B, L, D]
 
 The imported model embeds ``sigma * 1000`` as its timestep (CogVideoX's DDPM timesteps are
 ``t = 1000 sigma`` in jaxdrive's noise-level convention) and returns what the original network
@@ -90,7 +91,7 @@ def convert_state_dict(sd: dict, cfg: DiTConfig, source: str = "state dict") -> 
             return None
         return default
 
-    d, h, dh = cfg.width, cfg.heads, cfg.head_dim
+    d, h = cfg.width, cfg.heads
     pt, p, _ = cfg.patch
     cin, cout = cfg.in_channels, cfg.out_dim
     params: dict = {}

@@ -40,7 +40,8 @@ Choices:
   count.
 - Mixed frame rates (MiLA [2503.15875v1] appendix B, stage 2: 12-fps condition frames, generated frames at other
   rates): ``rate_head`` frames at ``stride``, then the rest at one stride per clip drawn uniformly
-  from ``rate_strides``; a clip must be long enough for the longest of them. Iterator state is grain's (the next batch index), exact on resume.
+  from ``rate_strides``; a clip must be long enough for the longest of them. Iterator state is
+  grain's (the next batch index), exact on resume.
 - Resize and crop: :mod:`jaxdrive.data.resize` (intrinsics adjusted to match exactly).
 - Unreadable clips (``skip_bad_records``; a corrupt or truncated ArrayRecord shard): dropping
   one would leave a short batch, or a shard one batch behind the others, and break the invariant

@@ -54,7 +54,7 @@ class SceneMap:
     size: tuple[int, int] = flax.struct.field(pytree_node=False)
 
     @classmethod
-    def from_clip(cls, bev_map, ego_to_world, bev_range=DEFAULT_RANGE) -> "SceneMap":
+    def from_clip(cls, bev_map, ego_to_world, bev_range=DEFAULT_RANGE) -> SceneMap:
         """Stitch ``bev_map [F, Hm, Wm, 8]`` recorded at ``ego_to_world [F, 4, 4]``; each world cell
         takes the nearest BEV cell of the newest frame that saw it."""
         bev_map, poses = np.asarray(bev_map), np.asarray(ego_to_world, np.float64)
@@ -121,7 +121,7 @@ class SceneMap:
         """:func:`cut` of this map (what the predictor's rollout calls, jitted, at each pose)."""
         return cut(self, pose, fallback)
 
-    def device(self, multiple: int = 128) -> "SceneMap":
+    def device(self, multiple: int = 128) -> SceneMap:
         """The arrays as device arrays (what :func:`cut` under jit takes), padded with unseen cells
         to a ``multiple`` of cells per side, so that scenes of similar extent share one program."""
         pad = [(0, -n % multiple) for n in self.covered.shape]

@@ -115,7 +115,8 @@ def raycast(cam_to_world, intrinsics, boxes, height, width, *, max_depth=120.0):
                 axis.reshape(nv, height, width), local.reshape(nv, height, width, 3))
     rot_c, pos_c = cam_to_world[:, :3, :3], cam_to_world[:, :3, 3]
     # Drop boxes beyond max_depth of every camera before any per-pair work.
-    reach = np.linalg.norm(boxes[:, None, :3] - pos_c[None], axis=-1).min(1) - 0.5 * np.linalg.norm(boxes[:, 3:6], axis=1)
+    reach = (np.linalg.norm(boxes[:, None, :3] - pos_c[None], axis=-1).min(1)
+             - 0.5 * np.linalg.norm(boxes[:, 3:6], axis=1))
     index = np.flatnonzero(reach < max_depth)
     boxes = boxes[index]
     rot_b = yaw_matrix(boxes[:, 6])                                  # [B, 3, 3]

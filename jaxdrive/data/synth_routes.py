@@ -43,7 +43,7 @@ import dataclasses
 
 import numpy as np
 
-from jaxdrive.data.synth_agents import EGO_CENTRE, EGO_SIZE, rect_corners, overlaps
+from jaxdrive.data.synth_agents import EGO_CENTRE, EGO_SIZE, overlaps, rect_corners
 from jaxdrive.data.synth_world import LANE, ROAD, EgoRoute, along_path, road_classes, straight_path, turn_path
 
 ROUTES = ("recorded", "stop", "slower", "faster", "lane-left", "lane-right", "branch")

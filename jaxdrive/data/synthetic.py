@@ -19,13 +19,22 @@ from __future__ import annotations
 import numpy as np
 
 from jaxdrive.data import schema
-from jaxdrive.data.bev import cell_centres
 from jaxdrive.data import synth_routes as routes
+from jaxdrive.data.bev import cell_centres
 from jaxdrive.data.synth_agents import simulate, traffic
 from jaxdrive.data.synth_render import camera_rig, pixel_rays, raycast, yaw_matrix
-from jaxdrive.data.synth_shade import (DAYTIME, LOOKS, box_colour, ego_headlights, fog, ground_colour,
-                                      lamp_light, rain_streaks, sky_colour)
 from jaxdrive.data.synth_routes import ROUTES
+from jaxdrive.data.synth_shade import (
+    DAYTIME,
+    LOOKS,
+    box_colour,
+    ego_headlights,
+    fog,
+    ground_colour,
+    lamp_light,
+    rain_streaks,
+    sky_colour,
+)
 from jaxdrive.data.synth_world import AGENT_KIND, LAMP, ego_route, road_classes, static_scenery
 from jaxdrive.validate import check_choice, check_positive_int, check_range
 

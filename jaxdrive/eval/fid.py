@@ -49,7 +49,7 @@ class FeatureStats:
         self.mean = np.zeros(self.dim, np.float64)
         self._scatter = np.zeros((self.dim, self.dim), np.float64)
 
-    def add(self, features) -> "FeatureStats":
+    def add(self, features) -> FeatureStats:
         x = np.asarray(features, np.float64)
         if x.ndim != 2 or x.shape[1] != self.dim:
             raise ValueError(f"features: expected [N, {self.dim}], got {list(x.shape)}")
@@ -71,5 +71,5 @@ class FeatureStats:
             raise ValueError(f"samples: expected at least 2 for a covariance, got {self.count}")
         return self._scatter / (self.count - 1)
 
-    def fid(self, other: "FeatureStats") -> float:
+    def fid(self, other: FeatureStats) -> float:
         return frechet_distance(self.mean, self.cov, other.mean, other.cov)

@@ -29,8 +29,16 @@ import jax
 import numpy as np
 
 from jaxdrive.data.class_masks import class_masks, class_masks_of  # noqa: F401
-from jaxdrive.models.segmenter import (CLASSES, NUM_CLASSES, Segmenter, SegmenterConfig, confusion,  # noqa: F401
-                                       init_params, predict, summary)
+from jaxdrive.models.segmenter import (  # noqa: F401
+    CLASSES,
+    NUM_CLASSES,
+    Segmenter,
+    SegmenterConfig,
+    confusion,
+    init_params,
+    predict,
+    summary,
+)
 
 
 class TrainedSegmenter:

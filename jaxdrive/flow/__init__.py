@@ -7,15 +7,28 @@ Convention: ``x_sigma = (1 - sigma) x + sigma noise`` (sigma = 1 noise, 0 data),
 """
 
 from jaxdrive.flow.degrade import dct_lowpass, degrade_frames
-from jaxdrive.flow.distill import (coarse_from_ends, coarse_from_segments, coarse_indices, dense_to_coarse,
-                                   distill_loss, split_segments)
+from jaxdrive.flow.distill import (
+                                   coarse_from_ends,
+                                   coarse_from_segments,
+                                   coarse_indices,
+                                   dense_to_coarse,
+                                   distill_loss,
+                                   split_segments,
+)
 from jaxdrive.flow.jdc import jdc_alpha2, jdc_anchor_sigma, jdc_noise_var, jdc_renoise, jdc_training_anchors
-from jaxdrive.flow.losses import (flow_loss, high_pass, high_pass_mask, per_frame_flow_loss,
-                                  structure_loss)
+from jaxdrive.flow.losses import flow_loss, high_pass, high_pass_mask, per_frame_flow_loss, structure_loss
 from jaxdrive.flow.patterns import PATTERNS, check_patterns, draw_condition_masks, max_cond, pattern_masks
-from jaxdrive.flow.rectified import (add_noise, data_from_velocity, euler_step, expand_per_frame,
-                                     noise_from_velocity, velocity_from_data, velocity_from_noise,
-                                     velocity_from_output, velocity_target)
+from jaxdrive.flow.rectified import (
+                                   add_noise,
+                                   data_from_velocity,
+                                   euler_step,
+                                   expand_per_frame,
+                                   noise_from_velocity,
+                                   velocity_from_data,
+                                   velocity_from_noise,
+                                   velocity_from_output,
+                                   velocity_target,
+)
 from jaxdrive.flow.sampler import sample
 from jaxdrive.flow.schedule import frame_schedule, frame_sigmas
 from jaxdrive.flow.timesteps import resolution_shift, sample_sigmas, sampling_sigmas, shift_sigmas

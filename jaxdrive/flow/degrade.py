@@ -17,7 +17,7 @@ from jaxdrive.flow.rectified import expand_per_frame
 from jaxdrive.validate import check_range, check_shape
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def dct_matrix(n: int) -> np.ndarray:
     """The orthonormal DCT-II matrix ``D [n, n]``: ``coeffs = D @ signal``, ``signal = D.T @ coeffs``."""
     k = np.arange(n)[:, None]

@@ -41,7 +41,8 @@ def check_scale(name: str, value) -> float:
 
 
 def check_controls(model, drop_prob: float, scales: Mapping[str, float | None], *,
-                   option: Callable[[str], str] = lambda c: f"control_guidance[{c!r}]") -> tuple[tuple[str, float], ...]:
+                   option: Callable[[str], str] = lambda c: f"control_guidance[{c!r}]"
+                   ) -> tuple[tuple[str, float], ...]:
     """The per-control scales ``scales`` (control name -> scale; None: not guided on its own)
     checked against a model (its :class:`jaxdrive.models.dit_config.DiTConfig` ``model`` and the
     ``data.drop_prob`` it trained with); returns ``((control, scale), ...)`` in :data:`CONTROLS`

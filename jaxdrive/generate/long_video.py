@@ -49,8 +49,8 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
     driven route came from (``jaxdrive sample --route``), for the report; ``control_source``: where the
     controls came from (recorded, predicted), for the report; ``scene``: the first clip's
     ``bev_map``, ``ego_to_world``, ``boxes``, ``box_valid`` per frame, ``predicted_from`` (the
-    first frame not recorded) and optionally ``route_drive`` (for the report): each frame-grid row then starts with its BEV map, the ego's path drawn on it
-    (:func:`jaxdrive.media.bev_image`)."""
+    first frame not recorded) and optionally ``route_drive`` (for the report): each frame-grid row
+    then starts with its BEV map, the ego's path drawn on it (:func:`jaxdrive.media.bev_image`)."""
     tracker = Tracker()
     start = time.perf_counter()
     parts = run_strategy(strategy, models, controls, first, length, key=key, tracker=tracker, mesh=mesh, **options)

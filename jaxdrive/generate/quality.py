@@ -98,7 +98,7 @@ class FrameScores:
         self._noise = None
         self.rows: list[dict] = []
 
-    def add(self, generated) -> "FrameScores":
+    def add(self, generated) -> FrameScores:
         """Score the next frames ``[V, n, H, W, 3]`` of the generated clip."""
         g = np.asarray(generated, np.float32)
         lo, r = len(self.rows), self.recorded

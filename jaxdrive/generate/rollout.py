@@ -39,7 +39,8 @@ def rollout(dit: DiT, codec, params, codec_params, inputs: dict, *, total_frames
     frames). ``window``: latent frames per window (the training length);
     ``overlap``: frames each next window conditions on (``1 <= overlap < window``); ``guidance``,
     ``control_guidance``: as :class:`jaxdrive.generate.windows.WindowModel` takes them."""
-    from jaxdrive.generate.strategies import Models, rollout as rollout_strategy
+    from jaxdrive.generate.strategies import Models
+    from jaxdrive.generate.strategies import rollout as rollout_strategy
     check_positive_int("total_frames", total_frames)
     check_positive_int("window", window)
     check_positive_int("overlap", overlap)

@@ -15,10 +15,8 @@ from pathlib import Path
 
 import jax
 import numpy as np
-from jax.sharding import NamedSharding
+from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
-
-from jax.sharding import Mesh
 
 from jaxdrive import flow
 from jaxdrive.config import DataConfig, FlowConfig, StreamConfig

@@ -65,8 +65,8 @@ def _pass(model: WindowModel, horizon: Horizon, positions, controls: Conditions,
     """Windows of ``model`` over the horizon ``positions`` (:func:`window_starts`): the first
     conditions on its ``given`` known frames, each next on the ``overlap`` frames before it; with
     ``anchors``, known frames inside a window that are not given are JDC anchors; ``warp``: the
-    warped frames' guide of a model trained with them. Results go back into ``horizon``. A generator: yields the number of positions finished after each window,
-    returns the next random key."""
+    warped frames' guide of a model trained with them. Results go back into ``horizon``. A generator:
+    yields the number of positions finished after each window, returns the next random key."""
     positions = np.asarray(positions)
     window = min(model.window, len(positions))
     b = horizon.latents.shape[0]

@@ -33,7 +33,7 @@ import numpy as np
 
 from jaxdrive import flow
 from jaxdrive.generate.guidance import sampler_guidance
-from jaxdrive.generate.windows import STREAM_WINDOW as WINDOW       # anchor, condition, new
+from jaxdrive.generate.windows import STREAM_WINDOW as WINDOW  # anchor, condition, new
 from jaxdrive.generate.windows import Tracker, WindowModel, to_mesh
 from jaxdrive.models.conditions import Conditions
 from jaxdrive.models.htft import buffer_init, buffer_push, buffer_select
@@ -52,8 +52,8 @@ def window_frames(j, temporal: int):
     (repeated). ``j``: an int or an int array ``[B]`` (then ``[B, 1 + 2 t]``)."""
     j = jnp.asarray(j, jnp.int32)[..., None]
 
-    def latent(l):
-        return jnp.where(l >= 1, temporal * (l - 1) + 1 + jnp.arange(temporal), 0)
+    def latent(frame):
+        return jnp.where(frame >= 1, temporal * (frame - 1) + 1 + jnp.arange(temporal), 0)
     return jnp.concatenate([jnp.zeros_like(j), latent(j - 1), latent(j)], axis=-1)
 
 
@@ -67,8 +67,8 @@ def window_controls(controls: Conditions, j, temporal: int) -> Conditions:
         def take(name, v):
             v = np.asarray(v)
             if v.shape[1] <= pos.max():
-                raise ValueError(f"controls.{name}: expected at least {pos.max() + 1} frames for frame {int(np.max(j))}, "
-                                 f"got {v.shape[1]}")
+                raise ValueError(f"controls.{name}: expected at least {pos.max() + 1} frames for frame "
+                                 f"{int(np.max(j))}, got {v.shape[1]}")
             return v[:, pos]
         return controls.per_frame(take)
 

@@ -39,7 +39,7 @@ class WarpGuide:
             raise ValueError(f"depth: expected a positive plane depth in metres, got {self.depth}")
 
     @classmethod
-    def from_inputs(cls, inputs: dict, codec, depth: float) -> "WarpGuide":
+    def from_inputs(cls, inputs: dict, codec, depth: float) -> WarpGuide:
         """From :func:`jaxdrive.data.batches.model_inputs` of a model with ``controls.warp`` (its
         ``warp`` entry: the clips' poses and cameras)."""
         w = inputs["warp"]

@@ -44,9 +44,10 @@ class WindowModel:
     TPD, JDC slope and alpha1, the condition ``patterns`` and ``anchor_every``), the sampling
     ``steps``, the plain guidance scale ``guidance`` and the per-control ones ``control_guidance``
     (``((control, scale), ...)``, :mod:`jaxdrive.generate.guidance`). ``stride``: source frames
-    between its training frames (a coarse model's low rate). ``streaming``: trained frame by frame (STAGE, ``stream.enabled``),
-    with an HTFT buffer of ``stream_buffer`` frames fusing ``stream_taps`` (empty: HTFT off).
-    ``value_range``: the interval its codec's latents lie in (``LatentCodec.value_range``), or None."""
+    between its training frames (a coarse model's low rate). ``streaming``: trained frame by frame
+    (STAGE, ``stream.enabled``), with an HTFT buffer of ``stream_buffer`` frames fusing
+    ``stream_taps`` (empty: HTFT off). ``value_range``: the interval its codec's latents lie in
+    (``LatentCodec.value_range``), or None."""
 
     dit: DiT
     params: Any = dataclasses.field(compare=False, hash=False, repr=False)
@@ -78,7 +79,7 @@ class WindowModel:
 
     @classmethod
     def from_sampling(cls, spec, params, *, steps: int | None = None, guidance: float | None = None,
-                      control_guidance: Mapping[str, float | None] | None = None) -> "WindowModel":
+                      control_guidance: Mapping[str, float | None] | None = None) -> WindowModel:
         """From a run's :class:`jaxdrive.generate.samples.Sampling` and its parameters; ``lengths``:
         the latent frame counts it trained on (several with ``data.buckets`` of several lengths).
         ``guidance`` None: the run's (``sample.cfg``); ``control_guidance``: control -> scale,
@@ -297,7 +298,7 @@ class Horizon:
     known: np.ndarray
 
     @classmethod
-    def start(cls, first: np.ndarray, length: int) -> "Horizon":
+    def start(cls, first: np.ndarray, length: int) -> Horizon:
         first = np.asarray(first, np.float32)
         shape = first.shape[:2] + (length,) + first.shape[3:]
         latents = np.zeros(shape, np.float32)

@@ -80,7 +80,7 @@ class Conditions:
     frame_times: Any = None
 
     @classmethod
-    def from_batch(cls, batch: Mapping, cfg: DiTConfig, *, text=None, text_mask=None) -> "Conditions":
+    def from_batch(cls, batch: Mapping, cfg: DiTConfig, *, text=None, text_mask=None) -> Conditions:
         """The conditions ``cfg``'s controls read from a data-pipeline batch
         (:mod:`jaxdrive.data.pipeline`: NumPy arrays in the dataset's layouts), as float32 /
         bool arrays; ``text``/``text_mask`` come prepared (token ids or embeddings, see
@@ -111,19 +111,19 @@ class Conditions:
                       if name in batch.get("drop", {}) for t in targets if t in on}
         return cls(**kw)
 
-    def check(self, cfg: DiTConfig, latents, sigma) -> "Conditions":
+    def check(self, cfg: DiTConfig, latents, sigma) -> Conditions:
         """Validate against ``cfg`` and the latents ``[B, V, F', h, w, C]`` / levels ``[B]`` or
         ``[B, F']``; ``ValueError`` naming the field, the expected and the actual value, before
         anything is traced (value ranges only when concrete). Returns ``self``."""
         _check(cfg, latents, sigma, self)
         return self
 
-    def per_frame(self, fn: Callable[[str, Any], Any]) -> "Conditions":
+    def per_frame(self, fn: Callable[[str, Any], Any]) -> Conditions:
         """A copy with every given per-frame field ``k`` replaced by ``fn(k, value)`` (windows,
         segments and coarse frames of a clip)."""
         return self.replace(**{k: fn(k, getattr(self, k)) for k in PER_FRAME if getattr(self, k) is not None})
 
-    def with_drops(self, names, value: bool, batch: int) -> "Conditions":
+    def with_drops(self, names, value: bool, batch: int) -> Conditions:
         """A copy whose ``drop`` sets each of ``names`` to ``value`` for all ``batch`` clips
         (classifier-free guidance: all kept, or all nulls)."""
         return self.replace(drop={n: jnp.full((batch,), value, bool) for n in names})

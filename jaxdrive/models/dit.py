@@ -58,16 +58,25 @@ import numpy as np
 from jaxdrive.models.conditions import Conditions
 from jaxdrive.models.dit_blocks import LayerContext, layer_class
 from jaxdrive.models.dit_config import DiTConfig, check_config, layer_runs
-from jaxdrive.models.dit_controls import (BoxEncoder, CameraEncoder, CaptionEncoder, FrameTimeEncoder,
-                                          MapEncoder, TimestepMLP, TrajectoryEncoder, WaypointEncoder,
-                                          null_param, use_null)
+from jaxdrive.models.dit_controls import (
+    BoxEncoder,
+    CameraEncoder,
+    CaptionEncoder,
+    FrameTimeEncoder,
+    MapEncoder,
+    TimestepMLP,
+    TrajectoryEncoder,
+    WaypointEncoder,
+    null_param,
+    use_null,
+)
 from jaxdrive.models.dit_inputs import example_inputs
-from jaxdrive.models.layout import LayoutEncoder
 from jaxdrive.models.embeddings import rope_3d, sincos_2d, sincos_3d
+from jaxdrive.models.htft import HTFT
 from jaxdrive.models.layers import MLP, Dense, LayerNorm, modulate
+from jaxdrive.models.layout import LayoutEncoder
 from jaxdrive.models.params import ZEROS, Init, abstract_params, count_params, host_params, normal, param
 from jaxdrive.models.tokens import TEXT, VIDEO, pool_frames, reshape
-from jaxdrive.models.htft import HTFT
 from jaxdrive.parallel.rules import constrain
 
 POLICIES = {"full": jax.checkpoint_policies.nothing_saveable,
@@ -119,7 +128,7 @@ class _Body(nn.Module):
         return carry, out
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _body_class(remat: str, scanned: bool):
     if remat == "none":
         return _Body
@@ -396,8 +405,8 @@ class DiT(nn.Module):
                 image_hw = (hw[0] * cfg.vae_spatial, hw[1] * cfg.vae_spatial)
                 bt, bm = BoxEncoder(width, cfg.heads, c.encoder_layers, c.num_classes, cfg.box_freqs,
                                     c.fourier_temperature, cfg.vae_temporal, c.box_per_view, cfg.local_attn_impl,
-                                    dt, cfg.box_range, name="boxes_embed")(boxes, box_classes, box_valid, nf, intrinsics,
-                                                             cam_to_ego, image_hw)
+                                    dt, cfg.box_range, name="boxes_embed")(boxes, box_classes, box_valid, nf,
+                                                                           intrinsics, cam_to_ego, image_hw)
                 bt = pool_frames(bt, pt)
                 bm = jnp.any(bm.reshape(b, ft, pt, *bm.shape[2:]), axis=2)
                 # per-sample over the batch axes only: the encoder's reshapes over views may leave
@@ -494,7 +503,7 @@ class DiT(nn.Module):
         output is a linear map of its own hidden state, so neighbouring tokens' outputs meet at a
         seam the network never sees; two convolutions over the output, the input (and the given
         frame) smooth across it. The last one starts at zero: the network's output unchanged."""
-        split = lambda a: constrain(a, ("batch", "views", "out_frames", None, None, None))   # per frame: frames over seq
+        split = lambda a: constrain(a, ("batch", "views", "out_frames", None, None, None))  # per frame: frames over seq
         h = jnp.concatenate([split(a) for a in [out, x] + ([ref] if ref is not None else [])], axis=-1)
         h = jax.nn.silu(_conv3x3(self, "final_conv_1", h, cfg.final_conv, Init("lecun", fan_in_axes=3)))
         return _conv3x3(self, "final_conv_2", h, out.shape[-1], ZEROS)

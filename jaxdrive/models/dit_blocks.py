@@ -121,7 +121,7 @@ def temporal_attention(proj: AttnProj, x, impl: str, theta: float):
     return _out(proj, o)
 
 
-def context_attention(proj: AttnProj, x, ctx: "LayerContext", impl: str):
+def context_attention(proj: AttnProj, x, ctx: LayerContext, impl: str):
     """Cross-attention of the video tokens to the context: text tokens ``ctx.text [B, L, D]``
     (with ``text_mask``) and per-(frame, view) control tokens ``ctx.tokens [B, F, V, N, D]``
     (with ``tokens_mask``): the tokens of frame f, view v see the text and their own controls

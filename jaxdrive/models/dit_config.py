@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 
 import jax.numpy as jnp
 
-from jaxdrive.flow.rectified import PREDICTIONS    # the one list of output kinds (pure math, no jaxdrive deps)
 from jaxdrive.attention import IMPLS
+from jaxdrive.flow.rectified import PREDICTIONS  # the one list of output kinds (pure math, no jaxdrive deps)
 from jaxdrive.validate import check_choice, check_positive_int
 
 LAYOUTS = ("factorized", "full")
@@ -45,7 +45,8 @@ class Controls:
       models have none: their null is the encoder's embedding of the empty prompt).
     - ``fps``: frame rate added to the timestep embedding (Open-Sora).
     - ``camera``: intrinsics + camera-to-ego per view, Fourier + MLP, added to the tokens of that
-      view (MiLA [2503.15875v1] eq. 1-2). ``waypoints``: ego waypoints per frame, likewise (MiLA [2503.15875v1] eq. 1-2).
+      view (MiLA [2503.15875v1] eq. 1-2). ``waypoints``: ego waypoints per frame, likewise
+      (MiLA [2503.15875v1] eq. 1-2).
     - ``trajectory``: MagicDrive-V2's ego trajectory encoder (relative poses -> temporal
       transformer -> downsampled to latent frames), one cross-attention token per frame.
     - ``boxes``: 3D boxes (MagicDrive-V2): corners Fourier-embedded + class embedding, invisible

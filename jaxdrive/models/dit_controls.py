@@ -21,12 +21,12 @@ import numpy as np
 
 from jaxdrive import geometry
 from jaxdrive.attention import attention
-from jaxdrive.parallel.rules import constrain
-from jaxdrive.validate import check_trailing_shape
 from jaxdrive.models.embeddings import apply_rope, fourier_features, rope_1d, timestep_embedding
 from jaxdrive.models.layers import MLP, AttnProj, Dense, LayerNorm, lookup
 from jaxdrive.models.params import ZEROS, Init, normal, param
 from jaxdrive.models.tokens import merge, split
+from jaxdrive.parallel.rules import constrain
+from jaxdrive.validate import check_trailing_shape
 
 
 def frame_mode(name: str, frames: int, latent_frames: int, ratio: int) -> str:

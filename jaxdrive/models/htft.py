@@ -74,7 +74,8 @@ class HTFT(nn.Module):
             mask = merge(merge(m, 1), 1)
         o = attention(to_sequence(q, _SFV), to_sequence(k, _SFV), to_sequence(v, _SFV), impl=self.impl,
                       kv_mask=mask)
-        h = proj.out(constrain(from_sequence(o, q.shape, _SFV), ("batch", "frames", "tokens", "views", "heads", "head_dim")))
+        h = proj.out(constrain(from_sequence(o, q.shape, _SFV),
+                               ("batch", "frames", "tokens", "views", "heads", "head_dim")))
         out = Dense(self.width, ("embed", None), dtype=self.dtype, kernel_init=ZEROS,
                     name="linear_out")(h)
         return nn.Dropout(self.dropout)(f, deterministic=deterministic) + out

@@ -20,7 +20,7 @@ import dataclasses
 import jax.numpy as jnp
 
 from jaxdrive import validate
-from jaxdrive.models.tokens import reshape   # keeps the batch sharding under Explicit meshes
+from jaxdrive.models.tokens import reshape  # keeps the batch sharding under Explicit meshes
 
 
 def space_to_depth(video, factor: int):
@@ -52,7 +52,7 @@ class LatentCodec:
     params: object = dataclasses.field(default=None, compare=False, hash=False)
 
     @classmethod
-    def from_config(cls, config, *, shardings=None) -> "LatentCodec":
+    def from_config(cls, config, *, shardings=None) -> LatentCodec:
         """From a :class:`jaxdrive.config.LatentConfig`; loads the VAE of ``config.vae_path``."""
         validate.check_choice("latents.source", config.source, ("vae", "space_to_depth"))
         if config.source == "space_to_depth":

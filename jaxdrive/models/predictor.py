@@ -65,7 +65,7 @@ class Traffic:
     classes: jax.Array
     ids: jax.Array
 
-    def advance(self, ego_next, agents_next) -> "Traffic":
+    def advance(self, ego_next, agents_next) -> Traffic:
         """The history one step on: ``ego_next [B, 3]``, ``agents_next [B, N, 3]`` appended."""
         return self.replace(ego=jnp.concatenate([self.ego[:, 1:], ego_next[:, None]], 1),
                             agents=jnp.concatenate([self.agents[:, 1:], agents_next[:, None]], 1),

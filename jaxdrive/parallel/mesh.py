@@ -97,10 +97,11 @@ def make_hybrid_mesh(ici: Mapping[str, int] | None = None, dcn: Mapping[str, int
                      axis_types: AxisType | Sequence[AxisType] = AxisType.Explicit) -> Mesh:
     """A multi-host mesh: axis ``a`` has size ``ici[a] * dcn[a]`` (missing entries are 1).
 
-    ``dcn`` splits axes across granules (TPU slices, or processes on GPU / CPU): the product of ``dcn`` must equal the number of granules. ``ici`` splits
-    axes within one granule: its product must equal the devices per granule. One ``-1`` is allowed
-    in each mapping. Put the communication-heavy axes (``tensor``, ``seq``) in ``ici`` and
-    ``data`` (or ``fsdp``) in ``dcn``. The result has the axis order of :func:`make_mesh`.
+    ``dcn`` splits axes across granules (TPU slices, or processes on GPU / CPU): the product of
+    ``dcn`` must equal the number of granules. ``ici`` splits axes within one granule: its
+    product must equal the devices per granule. One ``-1`` is allowed in each mapping. Put the
+    communication-heavy axes (``tensor``, ``seq``) in ``ici`` and ``data`` (or ``fsdp``) in
+    ``dcn``. The result has the axis order of :func:`make_mesh`.
     """
     devices = list(jax.devices() if devices is None else devices)
     if not devices:

@@ -27,12 +27,12 @@ def fit(config, workdir, params, loss, batch, *, files=None, log=print, progress
     ``config.json``. Returns ``{"step", "status", "loss", "params"}`` (EMA parameters when kept);
     ``status`` as a DiT run's: ``"done"``, ``"interrupted"`` or ``"diverged"``.
     ``on_step(step, metrics)`` is called after every step (tests)."""
+    from jaxdrive import compile_cache
     from jaxdrive.train.checkpoint import Checkpoints
+    from jaxdrive.train.common import Stop
     from jaxdrive.train.metrics import MetricsWriter
     from jaxdrive.train.optim import make_optimizer
-    from jaxdrive.train.common import Stop
     from jaxdrive.train.state import apply_gradients, create_state
-    from jaxdrive import compile_cache
     t, o = config.train, config.optim
     compile_cache.enable(t.compile_cache)
     workdir = Path(workdir)

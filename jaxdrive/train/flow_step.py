@@ -50,6 +50,7 @@ from jaxdrive.models.latents import LatentCodec
 from jaxdrive.train import distill_step
 from jaxdrive.train.state import TrainState, apply_gradients
 
+
 # ------------------------------------------------------------------------------ the loss
 @dataclasses.dataclass(frozen=True)
 class FlowTraining:

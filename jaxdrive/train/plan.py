@@ -171,7 +171,8 @@ def abstract_batch(run, bucket):
 
 def planned_bucket(run):
     """The bucket whose micro-batch has the most tokens (ties: the first)."""
-    return max(run.buckets, key=lambda b: run.tokens(b.batch_size, b.height, b.width, run.codec.latent_frames(b.frames)))
+    return max(run.buckets,
+               key=lambda b: run.tokens(b.batch_size, b.height, b.width, run.codec.latent_frames(b.frames)))
 
 
 def accelerator_attention(config, sizes: dict):
@@ -206,8 +207,8 @@ def plan_memory(config, mesh, *, device_memory: int | None = None, devices=None,
     n = math.prod(sizes.values())
     if n > len(devices):
         raise ValueError(f"mesh: expected at most {len(devices)} devices (those there are), got {sizes} (product {n})")
-    if device_memory is not None and (isinstance(device_memory, bool) or not isinstance(device_memory, (int, np.integer))
-                                      or device_memory <= 0):
+    if device_memory is not None and (isinstance(device_memory, bool)
+                                      or not isinstance(device_memory, (int, np.integer)) or device_memory <= 0):
         raise ValueError(f"device_memory: expected a positive number of bytes, got {device_memory!r}")
     what = None
     if codec is None:
@@ -238,7 +239,8 @@ def plan_memory(config, mesh, *, device_memory: int | None = None, devices=None,
                           aliased=int(a.alias_size_in_bytes), temp=int(a.temp_size_in_bytes))
         per_device["total"] = resident_bytes(per_device) + transient_bytes(a)
     return {"mesh": sizes, "devices": n, "bucket": "x".join(map(str, bucket.key)), "batch": bucket.batch_size,
-            "tokens": run.tokens(bucket.batch_size, bucket.height, bucket.width, run.codec.latent_frames(bucket.frames)),
+            "tokens": run.tokens(bucket.batch_size, bucket.height, bucket.width,
+                                 run.codec.latent_frames(bucket.frames)),
             "codec": what or codec.source, "per_device": per_device, "compile_seconds": seconds,
             "device_memory": device_memory,
             "fits": None if device_memory is None or not compile_step else per_device["total"] <= device_memory}

@@ -25,8 +25,14 @@ from jaxdrive.data.scene_map import DEFAULT_RANGE, SceneMap, bev_range_of
 from jaxdrive.data.traffic import CONTROL_FIELDS, load_controls, window_traffic  # noqa: F401  (their old home)
 from jaxdrive.generate.future import FuturePredictor
 from jaxdrive.geometry import wrap
-from jaxdrive.models.predictor import (Predictor, constant_velocity_rollout, init_params, rollout, rollout_program,
-                                       to_traffic)
+from jaxdrive.models.predictor import (
+    Predictor,
+    constant_velocity_rollout,
+    init_params,
+    rollout,
+    rollout_program,
+    to_traffic,
+)
 from jaxdrive.validate import check_positive_int
 
 YAW_METRES = 2.0            # metres of loss per radian of heading error

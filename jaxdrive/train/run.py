@@ -37,8 +37,15 @@ from jaxdrive.models.latents import LatentCodec
 from jaxdrive.parallel import Processes, host_local_to_global, shard_params, wait_for_all_processes
 from jaxdrive.train import flow_step
 from jaxdrive.train.checkpoint import Checkpoints
-from jaxdrive.train.common import (CONFIG_FILE, Stop, abstract_train_state, batch_axes, batch_shards,  # noqa: F401
-                                   load_run_config, mesh_from_config)
+from jaxdrive.train.common import (  # noqa: F401
+    CONFIG_FILE,
+    Stop,
+    abstract_train_state,
+    batch_axes,
+    batch_shards,
+    load_run_config,
+    mesh_from_config,
+)
 from jaxdrive.train.encode import check_dataset
 from jaxdrive.train.metrics import MetricsWriter
 from jaxdrive.train.optim import make_optimizer
@@ -171,7 +178,8 @@ class Run:
     def tokens(self, batch: int, height: int, width: int, latent_frames: int) -> int:
         """Video tokens of a global batch of ``batch`` clips at ``height x width`` pixels."""
         m, sp = self.training.model, self.codec.spatial
-        return batch * self.config.data.views * latent_frames * (height // (sp * m.patch[1])) * (width // (sp * m.patch[2]))
+        return (batch * self.config.data.views * latent_frames * (height // (sp * m.patch[1]))
+                * (width // (sp * m.patch[2])))
 
     def batch_tokens(self, batch) -> int:
         """Video tokens of a global batch from :meth:`global_batch` (its bucket's shape)."""
