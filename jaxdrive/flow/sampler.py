@@ -178,7 +178,7 @@ def _batched_velocity(velocity_fn, variants, combine, per_step: bool = False):
         return lambda x, s, inp=None: _like(velocity_fn(x, s, variants[0]), x)
     stacked = jax.tree_util.tree_map(lambda *leaves: _interleave(leaves), *variants)
 
-    def velocity(x, sigma, inp=None):
+    def stacked_velocity(x, sigma, inp=None):
         args = (_interleave([x] * n), _interleave([sigma] * n), stacked)
         out = None
         if per_step:
@@ -189,7 +189,7 @@ def _batched_velocity(velocity_fn, variants, combine, per_step: bool = False):
         v = v.reshape((x.shape[0], n) + v.shape[1:])
         v = _like(combine([v[:, i] for i in range(n)]), x)
         return (v, out) if per_step else v
-    return velocity
+    return stacked_velocity
 
 
 def sample(velocity_fn: Callable, x, sigmas, *, cond=None, null_cond=None, guidance_scale=None,

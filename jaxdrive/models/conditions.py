@@ -121,12 +121,15 @@ class Conditions:
     def per_frame(self, fn: Callable[[str, Any], Any]) -> Conditions:
         """A copy with every given per-frame field ``k`` replaced by ``fn(k, value)`` (windows,
         segments and coarse frames of a clip)."""
-        return self.replace(**{k: fn(k, getattr(self, k)) for k in PER_FRAME if getattr(self, k) is not None})
+        # flax.struct.dataclass adds .replace at runtime; its stub does not declare it
+        return self.replace(**{k: fn(k, getattr(self, k))  # type: ignore[attr-defined]
+                               for k in PER_FRAME if getattr(self, k) is not None})
 
     def with_drops(self, names, value: bool, batch: int) -> Conditions:
         """A copy whose ``drop`` sets each of ``names`` to ``value`` for all ``batch`` clips
         (classifier-free guidance: all kept, or all nulls)."""
-        return self.replace(drop={n: jnp.full((batch,), value, bool) for n in names})
+        # flax.struct.dataclass adds .replace at runtime; its stub does not declare it
+        return self.replace(drop={n: jnp.full((batch,), value, bool) for n in names})  # type: ignore[attr-defined]
 
     def given(self) -> dict:
         """The fields that are given, by name."""
@@ -202,7 +205,8 @@ def _check(cfg: DiTConfig, latents, sigma, cond: Conditions) -> None:
     if kw.get("bev_map") is not None:
         check_shape("bev_map", kw["bev_map"], [b, None, None, None, c.map_channels])
         frame_mode("bev_map", np.shape(kw["bev_map"])[1], nf, r)
-        fb, fm = np.shape(kw.get("boxes"))[1:2], np.shape(kw["bev_map"])[1]
+        boxes = kw.get("boxes")
+        fb, fm = (() if boxes is None else np.shape(boxes)[1:2]), np.shape(kw["bev_map"])[1]
         if c.layout and fb and fb[0] != fm:
             raise ValueError(f"bev_map: the layout (controls.layout) draws each frame's boxes and map together, "
                              f"expected {fb[0]} frames as the boxes, got {fm}")

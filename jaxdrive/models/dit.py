@@ -220,14 +220,17 @@ class DiT(nn.Module):
         t = t + extra[:, None]
         ctx = LayerContext()
         if cfg.layout == "full":
-            ctx = ctx.replace(t=t, t_text=temb(jnp.max(sig_tok, axis=1) * cfg.timestep_scale) + extra)
+            # flax.struct.dataclass adds .replace at runtime; its stub does not declare it
+            ctx = ctx.replace(t=t,  # type: ignore[attr-defined]
+                              t_text=temb(jnp.max(sig_tok, axis=1) * cfg.timestep_scale) + extra)
             if cfg.positions == "rope":
                 ctx = ctx.replace(rope=rope_3d(nf // pt, *grid, cfg.head_dim, theta=cfg.rope_theta,
                                                base=cfg.rope_base))
         else:
             k = 6 if cfg.block == "stdit3" else 9
-            ctx = ctx.replace(t0=Dense(k * cfg.width, ("embed", None), dtype=dt, kernel_init=normal(0.02),
-                                       name="t_block")(jax.nn.silu(t)))
+            # flax.struct.dataclass adds .replace at runtime; its stub does not declare it
+            ctx = ctx.replace(t0=Dense(k * cfg.width, ("embed", None), dtype=dt,  # type: ignore[attr-defined]
+                                       kernel_init=normal(0.02), name="t_block")(jax.nn.silu(t)))
         self.sow("intermediates", "modulation", t if ctx.t0 is None else ctx.t0)
 
         # context: text and control tokens; warp tokens
@@ -240,7 +243,7 @@ class DiT(nn.Module):
             ctx = ctx.replace(warp=use_null(drop.get("warp"), wt,
                                             null_param(self, "warp_null", (cfg.width,), ("embed",))))
 
-        carry = hid
+        carry: jax.Array | tuple[jax.Array, jax.Array] = hid      # (video, text) in the full layout
         if cfg.layout == "full":
             carry = (hid, constrain(Dense(cfg.width, ("text_embed", "embed"), dtype=dt, name="text_proj")(
                 text_ctx), TEXT))
@@ -260,6 +263,7 @@ class DiT(nn.Module):
         if cfg.final_conv:
             out = out + self._final_conv(cfg, out, x, ref)
         if cfg.controls.reference_frame == "residual":
+            assert ref is not None                          # made above: reference_frame is set
             out = out + ref[..., :-1]                       # the change from the newest given frame
         return (out, feats) if return_features else out
 

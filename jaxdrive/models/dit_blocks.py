@@ -49,15 +49,15 @@ class LayerContext:
     tokens with ``text_mask``, control ``tokens [B, F, V, N, D]`` with ``tokens_mask`` and ``warp``
     tokens. A pytree, so ``nn.scan`` broadcasts it to every layer."""
 
-    t0: object = None
-    t: object = None
-    t_text: object = None
-    rope: object = None
-    text: object = None
-    text_mask: object = None
-    tokens: object = None
-    tokens_mask: object = None
-    warp: object = None
+    t0: jax.Array | None = None
+    t: jax.Array | None = None
+    t_text: jax.Array | None = None
+    rope: tuple[jax.Array | np.ndarray, jax.Array | np.ndarray] | None = None     # (cos, sin)
+    text: jax.Array | None = None
+    text_mask: jax.Array | None = None
+    tokens: jax.Array | None = None
+    tokens_mask: jax.Array | None = None
+    warp: jax.Array | None = None
 
 # Token order of merged video sequences: S (sharded) major, then F, then V.
 SFV = (2, 1, 3)
@@ -139,6 +139,7 @@ def context_attention(proj: AttnProj, x, ctx: LayerContext, impl: str):
     b, f, _, nv = shape[:4]
     kc, vc = proj.kv(tokens)                                 # [B, F, V, N, H, Dh]
     mc = ctx.tokens_mask
+    assert mc is not None                                    # control tokens come with their mask
     if text is not None:
         kt, vt = proj.kv(text)                               # [B, L, H, Dh]
         # the text's sharding may differ from the control tokens' (text replicated, boxes per sample)

@@ -361,5 +361,5 @@ def layer_runs(cfg) -> list[tuple[int, int]]:
     bounds = {0, cfg.depth} | {i + 1 for i in cfg.htft_layers} | set(cfg.scan_breaks)
     if cfg.controls.map:
         bounds.add(cfg.controls.map_blocks)
-    bounds = sorted(bounds)
-    return list(zip(bounds[:-1], bounds[1:]))
+    edges = sorted(bounds)
+    return list(zip(edges[:-1], edges[1:]))

@@ -5,6 +5,8 @@ The checks of real inputs live with them: :meth:`jaxdrive.models.conditions.Cond
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from jaxdrive.models.conditions import Conditions
@@ -25,9 +27,12 @@ def example_inputs(cfg: DiTConfig, *, batch: int = 1, views: int = 1, frames: in
     height = 2 * ph if height is None else height
     width = 2 * pw if width is None else width
     c = cfg.controls
-    f32 = lambda *s: rng.standard_normal(s).astype(np.float32)
-    out = {"latents": f32(batch, views, frames, height, width, cfg.in_channels),
-           "sigma": rng.uniform(0, 1, (batch, frames)).astype(np.float32)}
+
+    def f32(*s: int) -> np.ndarray:
+        return rng.standard_normal(s).astype(np.float32)
+
+    out: dict[str, Any] = {"latents": f32(batch, views, frames, height, width, cfg.in_channels),
+                           "sigma": rng.uniform(0, 1, (batch, frames)).astype(np.float32)}
     fc = 1 + cfg.vae_temporal * (frames - 1) if pixel_frames else frames
     if c.text == "embeddings":
         out["text"] = f32(batch, text_len, cfg.text_dim)

@@ -16,11 +16,15 @@ weights as an input (not as constants baked into the program).
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING
 
 import jax.numpy as jnp
 
 from jaxdrive import validate
 from jaxdrive.models.tokens import reshape  # keeps the batch sharding under Explicit meshes
+
+if TYPE_CHECKING:
+    from jaxdrive.models.vae import CausalVAE
 
 
 def space_to_depth(video, factor: int):
@@ -48,7 +52,7 @@ class LatentCodec:
     source: str = "space_to_depth"
     factor: int = 4
     scale: float = 1.0
-    vae: object = None                # a CausalVAE when source == "vae"
+    vae: CausalVAE | None = None      # a CausalVAE when source == "vae"
     params: object = dataclasses.field(default=None, compare=False, hash=False)
 
     @classmethod

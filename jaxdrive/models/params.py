@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
+from typing import Any
 
 import flax.linen as nn
 import jax
@@ -108,13 +109,16 @@ def record_inits():
 
 def param(module: nn.Module, name: str, init: Init, shape, names):
     """``module.param`` boxed with logical ``names`` (float32), gathered for use (:func:`constrain`)."""
-    value = module.param(name, nn.with_logical_partitioning(init, tuple(names)), tuple(shape), jnp.float32)
+    # unbox=True (flax's default) spelled out: the stub's overload for it types the unboxed value
+    value: jax.Array = module.param(name, nn.with_logical_partitioning(init, tuple(names)), tuple(shape),
+                                    jnp.float32, unbox=True)
     if _RECORDER is not None:
+        assert module.scope is not None      # bound: module.param above raises on an unbound module
         _RECORDER[tuple(module.scope.path) + (name,)] = (init, len(shape))
     return constrain(value, tuple(names))
 
 
-def abstract_params(module: nn.Module, *args, **kwargs):
+def abstract_params(module: nn.Module, *args, **kwargs) -> tuple[Any, dict]:
     """``(boxed params tree of jax.ShapeDtypeStruct, {path: (Init, rank)})`` of ``module`` for
     these call arguments, from ``jax.eval_shape`` (nothing is compiled or allocated)."""
     with record_inits() as rec:

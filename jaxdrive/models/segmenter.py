@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from typing import cast
 
 import flax.linen as nn
 import jax
@@ -78,7 +79,9 @@ def init_params(config: SegmenterConfig, key, size: tuple[int, int] = (32, 56)):
 
 @functools.partial(jax.jit, static_argnums=0)
 def _classes(config: SegmenterConfig, params, frames):
-    return jnp.argmax(Segmenter(config).apply({"params": params}, frames), -1).astype(jnp.int32)
+    # apply without mutable= returns the output alone (the stub's return also allows the (output, vars) tuple)
+    logits = cast(jax.Array, Segmenter(config).apply({"params": params}, frames))
+    return jnp.argmax(logits, -1).astype(jnp.int32)
 
 
 def predict(config: SegmenterConfig, params, frames, *, batch_size: int = 256, mesh=None) -> np.ndarray:

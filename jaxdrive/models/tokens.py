@@ -67,7 +67,7 @@ def from_sequence(y, shape: Sequence[int], order: Sequence[int]):
     for i in range(len(order) - 1):
         y = split(y, 1 + i, sizes[i])
     perm = [0, *order] + [i for i in range(1, len(shape)) if i not in order]
-    inv = np.argsort(perm)
+    inv = np.argsort(perm).tolist()
     return jnp.transpose(y, inv)
 
 

@@ -413,13 +413,13 @@ class CausalVAE:
         n = x.shape[0]
         per = n // (shards * steps)
         each = lambda t: self._run(kind, params, t, mode, tiled)
-        groups = jnp.moveaxis(x.reshape(shards, steps, per, *x.shape[1:]), 1, 0)        # [steps, shards, per, ...]
-        groups = groups.reshape(steps, shards * per, *x.shape[1:])
-        out = jax.lax.map(each, groups)                                                   # [steps, shards * per, ...]
+        batches = jnp.moveaxis(x.reshape(shards, steps, per, *x.shape[1:]), 1, 0)       # [steps, shards, per, ...]
+        batches = batches.reshape(steps, shards * per, *x.shape[1:])
+        out = jax.lax.map(each, batches)                                                  # [steps, shards * per, ...]
         out = jnp.moveaxis(out.reshape(steps, shards, per, *out.shape[2:]), 0, 1)
         return out.reshape(n, *out.shape[3:])
 
-    def _tiles(self, x, tile_key: str, tiled: bool):
+    def _tiles(self, x, tile_key: str, tiled: bool) -> tuple[dict, dict] | None:
         """``(geometry of height, of width)`` when ``x [N, T, H, W, C]`` is tiled, else None: with
         tiling on, a frame larger than one tile (``tile_key``: "tile_sample" or "tile_latent")."""
         if not tiled:

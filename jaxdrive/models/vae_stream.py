@@ -69,7 +69,7 @@ class StreamDecoder:
         self.pushed = 0                   # latent frames received
         self._pending: list[np.ndarray] = []
         self._cache = None
-        self._shape = None                # [B, V, h, w, C] of the first part
+        self._shape: tuple[int, int, int, int, int] | None = None    # [B, V, h, w, C] of the first part
         self._flushed = False
 
     def push(self, latents) -> np.ndarray:
@@ -128,6 +128,7 @@ class StreamDecoder:
                              f"(total_latent_frames = {self.total}, {self.pushed} pushed), got {n}")
 
     def _empty(self) -> np.ndarray:
+        assert self._shape is not None      # set by the first push; flush() follows every frame pushed
         b, v, h, w, _ = self._shape
         s = self.codec.spatial
         return np.zeros((b, v, 0, h * s, w * s, 3), np.float32)
