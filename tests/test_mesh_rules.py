@@ -13,6 +13,8 @@ from jax.sharding import PartitionSpec as P
 from jaxdrive.parallel import (
     ACTIVATION_RULES,
     PARAM_RULES,
+    batch_axes,
+    batch_shards,
     constrain,
     global_to_host_local,
     host_local_to_global,
@@ -24,6 +26,7 @@ from jaxdrive.parallel import (
     shard_params,
 )
 from jaxdrive.parallel.host import _first_host, _resolve
+from jaxdrive.parallel.rules import LOGICAL_AXIS_RULES
 
 AXES = ("data", "fsdp", "seq", "tensor")
 
@@ -83,6 +86,18 @@ def test_parse_mesh_spec():
 
 
 # ---------------------------------------------------------------- rules
+@pytest.mark.parametrize("kw, axes, shards", [
+    (dict(data=2, fsdp=2, seq=2), ("data", "fsdp"), 4), (dict(data=1, fsdp=1, seq=8), ("data", "fsdp"), 1),
+    (dict(fsdp=4, tensor=2), ("data", "fsdp"), 4)])
+def test_a_batch_splits_over_the_data_and_fsdp_axes(kw, axes, shards):
+    """The one definition of a batch's mesh axes, which the "batch" rule, the samplers, the
+    trainers and the planner share."""
+    mesh = make_mesh(**kw)
+    assert batch_axes(mesh) == axes and batch_shards(mesh) == shards
+    assert LOGICAL_AXIS_RULES["batch"][0] == axes
+    assert batch_axes(None) == () and batch_shards(None) == 1
+
+
 def test_logical_to_spec_tables():
     names = ("batch", "views", "tokens", "embed")
     assert logical_to_spec(names) == P(("data", "fsdp"), None, "seq", None)

@@ -17,8 +17,8 @@ from jax.sharding import PartitionSpec as P
 
 from jaxdrive import validate
 from jaxdrive.attention import softmax_blocks as sb
+from jaxdrive.parallel.mesh import BATCH_AXES
 
-BATCH_AXES = ("data", "fsdp")
 HEAD_AXIS = "tensor"
 
 

@@ -25,6 +25,7 @@ from jaxdrive.generate.rollout import rollout, to_numpy_video
 from jaxdrive.models.dit import DiT
 from jaxdrive.models.dit_config import DiTConfig
 from jaxdrive.models.latents import LatentCodec
+from jaxdrive.parallel.mesh import batch_axes
 from jaxdrive.validate import check_positive_int
 
 
@@ -221,8 +222,8 @@ def generate(spec: Sampling, params, *, frames: int | None = None, views=None, s
     inputs = dataset_inputs(spec, frames=frames, views=views, clips=clips, seed=seed)
     d, f = spec.data, spec.flow
     shift = f.shift if f.shift > 0 else flow.resolution_shift(d.height, d.width, window)
-    axes = tuple(a for a in ("data", "fsdp") if a in mesh.axis_names) or None    # as the DiT shards its batch
-    batch_sharding = NamedSharding(mesh, P(axes))              # every process holds the same clips
+    # the batch as the DiT shards it; every process holds the same clips
+    batch_sharding = NamedSharding(mesh, P(batch_axes(mesh) or None))
     inputs = jax.tree_util.tree_map(lambda x: jax.device_put(np.asarray(x), batch_sharding), inputs)
     cond = min(cond, window - 1)
     with jax.set_mesh(mesh):

@@ -19,9 +19,10 @@ import jax
 import numpy as np
 
 from jaxdrive import flow
-from jaxdrive.generate.windows import Horizon, WindowModel, abstract_on_mesh, batch_axes, window_controls
+from jaxdrive.generate.windows import Horizon, WindowModel, abstract_on_mesh, window_controls
 from jaxdrive.models.conditions import Conditions
 from jaxdrive.parallel.memory import device_budget, footprint_bytes
+from jaxdrive.parallel.mesh import batch_shards
 from jaxdrive.validate import check_positive_int
 
 AUTO = "auto"
@@ -66,7 +67,7 @@ def choose_segment_batch(fine: WindowModel, horizon: Horizon, controls: Conditio
     naming ``--device-memory`` when not even the smallest group fits."""
     check_positive_int("segments", segments)
     b = horizon.latents.shape[0]
-    _, shards = batch_axes(mesh)
+    shards = batch_shards(mesh)
     unit = shards // math.gcd(shards, b)              # segments whose clips fill every batch shard
     groups = sorted(set(range(unit, segments + 1, unit)) | {segments})
     # the fine params already on a device are arguments of the call: free memory counts them once

@@ -30,6 +30,7 @@ from jaxdrive.flow.jdc import DEFAULT_ALPHA1, DEFAULT_ANCHOR_SLOPE
 from jaxdrive.generate.guidance import check_controls, check_scale, sampler_guidance
 from jaxdrive.models.conditions import Conditions
 from jaxdrive.models.dit import DiT
+from jaxdrive.parallel.mesh import batch_axes, batch_shards
 from jaxdrive.validate import check_positive_int
 
 # the latent frames of one streaming sampler call (STAGE, :mod:`jaxdrive.generate.streaming`):
@@ -187,22 +188,13 @@ class Tracker:
         self.peak_bytes = max(self.peak_bytes, int(live + temp))
 
 
-def batch_axes(mesh) -> tuple[tuple[str, ...], int]:
-    """The mesh's axes a sampler call's batch is split over (``data``, ``fsdp``) and their size."""
-    if mesh is None:
-        return (), 1
-    sizes = dict(zip(mesh.axis_names, mesh.axis_sizes))
-    axes = tuple(a for a in ("data", "fsdp") if a in sizes)
-    return axes, math.prod(sizes[a] for a in axes)
-
-
 def _placement(mesh, shape):
     """Where an array of ``shape`` goes: its batch (axis 0) over the mesh's ``data``/``fsdp``
     axes when they divide it, else replicated (without a mesh: the default device)."""
     if mesh is None:
         return jax.sharding.SingleDeviceSharding(jax.devices()[0])
-    axes, shards = batch_axes(mesh)
-    return NamedSharding(mesh, P(axes or None) if len(shape) and shape[0] % shards == 0 else P())
+    divides = len(shape) and shape[0] % batch_shards(mesh) == 0
+    return NamedSharding(mesh, P(batch_axes(mesh) or None) if divides else P())
 
 
 def to_mesh(tree, mesh):

@@ -5,13 +5,12 @@ evaluation networks' features (:mod:`jaxdrive.eval.features`) and the segmenter'
 
 from __future__ import annotations
 
-import math
-
 import jax
 import numpy as np
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from jaxdrive.parallel.mesh import batch_axes, batch_shards
 from jaxdrive.validate import check_positive_int
 
 
@@ -25,10 +24,8 @@ def extract(fn, params, items, *, batch_size: int = 16, mesh=None) -> np.ndarray
     items = np.asarray(items)
     shards, sharding = 1, None
     if mesh is not None:
-        sizes = dict(zip(mesh.axis_names, mesh.axis_sizes))
-        axes = tuple(a for a in ("data", "fsdp") if a in sizes)
-        shards = math.prod(sizes[a] for a in axes)
-        sharding = NamedSharding(mesh, P(axes or None))
+        shards = batch_shards(mesh)
+        sharding = NamedSharding(mesh, P(batch_axes(mesh) or None))
     step = -(-batch_size // shards) * shards
     out = []
     for lo in range(0, len(items), step):

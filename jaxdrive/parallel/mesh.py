@@ -162,6 +162,23 @@ def explicit_mesh():
     return mesh
 
 
+BATCH_AXES = ("data", "fsdp")       # the mesh axes a batch of examples is split over (rules.py's "batch" rule)
+
+
+def batch_axes(mesh) -> tuple[str, ...]:
+    """The mesh axes a batch is sharded over (``data``, ``fsdp``), those ``mesh`` has (none
+    without a mesh)."""
+    return () if mesh is None else tuple(a for a in BATCH_AXES if a in mesh.axis_names)
+
+
+def batch_shards(mesh) -> int:
+    """How many parts a batch is split into: the product of ``mesh``'s batch axes (1 without)."""
+    if mesh is None:
+        return 1
+    sizes = dict(zip(mesh.axis_names, mesh.axis_sizes))
+    return math.prod(int(sizes[a]) for a in batch_axes(mesh))
+
+
 def mesh_axis_size(name: str) -> int:
     """Size of mesh axis ``name`` in the context mesh (1 without a mesh or without that axis)."""
     mesh = context_mesh()

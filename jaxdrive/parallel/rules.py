@@ -43,7 +43,7 @@ import jax
 from flax.core import meta
 from jax.sharding import AxisType, NamedSharding, PartitionSpec
 
-from jaxdrive.parallel.mesh import entry_axes
+from jaxdrive.parallel.mesh import BATCH_AXES, entry_axes
 
 _log = logging.getLogger(__name__)
 
@@ -51,7 +51,7 @@ Axes = str | tuple[str, ...] | None
 
 # name: (activation axes, parameter axes, meaning)
 LOGICAL_AXIS_RULES: dict[str, tuple[Axes, Axes, str]] = {
-    "batch": (("data", "fsdp"), None, "examples; FSDP shards the batch like data parallelism"),
+    "batch": (BATCH_AXES, None, "examples; FSDP shards the batch like data parallelism"),
     "views": (None, None, "camera views V (cross-view attention needs all views local)"),
     "frames": (None, None, "latent or pixel frames F when not folded into tokens"),
     "out_frames": ("seq", None, "frames of the DiT's per-frame output head (final layer, unpatchify, final "

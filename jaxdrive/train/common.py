@@ -17,7 +17,7 @@ from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from jaxdrive.config import Config
-from jaxdrive.parallel import make_mesh, param_shardings
+from jaxdrive.parallel import batch_axes, batch_shards, make_mesh, param_shardings  # noqa: F401  (re-exported)
 from jaxdrive.train.optim import make_optimizer
 from jaxdrive.train.state import create_state
 
@@ -33,17 +33,6 @@ def mesh_from_config(config: Config, devices=None):
         raise ValueError(f"mesh: expected sizes whose product is the device count {len(devices)}, got "
                          f"{sizes} (product {fixed})")
     return make_mesh(**sizes, devices=devices)
-
-
-def batch_axes(mesh) -> tuple[str, ...]:
-    """The mesh axes a batch is sharded over (``data``, ``fsdp``), those the mesh has."""
-    return tuple(a for a in ("data", "fsdp") if a in mesh.axis_names)
-
-
-def batch_shards(mesh) -> int:
-    """How many parts a batch is split into: the product of the mesh's batch axes."""
-    sizes = dict(zip(mesh.axis_names, mesh.axis_sizes))
-    return int(np.prod([sizes[a] for a in batch_axes(mesh)]))
 
 
 def abstract_train_state(model, optim_config, total_steps: int, mesh, *, seed: int = 0):

@@ -43,7 +43,7 @@ from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from jaxdrive.parallel.memory import parse_bytes  # noqa: F401  (the planner's sizes: jaxdrive plan, bench train)
-from jaxdrive.parallel.mesh import MESH_AXES, parse_mesh_spec
+from jaxdrive.parallel.mesh import MESH_AXES, batch_axes, parse_mesh_spec
 
 STATE_PARTS = ("params", "opt_state", "ema")
 
@@ -162,8 +162,7 @@ def abstract_batch(run, bucket):
                                  _zeros((len(captions), model.text_len), bool))
     inputs = model_inputs(pipeline_batch(run, micro, bucket.height, bucket.width, bucket.frames), model, text,
                           foreground=run.training.flow.foreground_k > 0, teacher=run.training.teacher)
-    axes = tuple(a for a in ("data", "fsdp") if a in run.mesh.axis_names)
-    sharding = NamedSharding(run.mesh, P(None, axes or None))
+    sharding = NamedSharding(run.mesh, P(None, batch_axes(run.mesh) or None))
     a = run.config.optim.grad_accum
     return jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct((a, *np.shape(x)), np.asarray(x).dtype,
                                                                  sharding=sharding), inputs)
