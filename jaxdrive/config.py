@@ -462,7 +462,7 @@ def check_sections(config) -> None:
         raise ValueError(f"data.rate_strides: expected () with flow.distill_teacher (distillation cuts a uniform "
                          f"dense clip into segments), got {d.rate_strides!r}")
     if d.buckets:
-        from jaxdrive.data.pipeline import parse_bucket_specs
+        from jaxdrive.data.buckets import parse_bucket_specs
         parse_bucket_specs(d.buckets)
         for name, value, ok in (("latents.precomputed", config.latents.precomputed, False),
                                 ("flow.distill_teacher", f.distill_teacher, ""), ("optim.grad_accum", o.grad_accum, 1)):

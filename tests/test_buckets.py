@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 
 from jaxdrive.config import load_config
-from jaxdrive.data.pipeline import parse_bucket_specs, parse_buckets
+from jaxdrive.data.buckets import parse_bucket_specs, parse_buckets
 from jaxdrive.train.metrics import read_metrics
 from jaxdrive.train.run import Run, train
 

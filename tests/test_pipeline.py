@@ -5,6 +5,7 @@ import pytest
 from test_tfds_io import random_clip
 
 from jaxdrive.data import pipeline, resize, schema, tfds_io
+from jaxdrive.data.buckets import Bucket, frame_offsets, frames_for, parse_buckets
 
 
 def make_clips(n=24, V=3, H=12, W=20, base_frames=9, seed=0):
@@ -131,7 +132,7 @@ def test_repeating_buckets_resume_exactly_across_an_epoch_boundary(caplog):
     hold a clip more than once, and a state saved in epoch 1 resumes it exactly."""
     clips, buckets = CLIPS[:4], {(8, 8, 5): (2, 1.0, 2), (4, 6, 9): 3}
     kw = dict(seed=3, shard_index=0, shard_count=1, num_threads=2)
-    plan = pipeline._BatchPlan([9, 10, 11, 12], pipeline.parse_buckets(buckets), stride=1, seed=3, shard_index=0,
+    plan = pipeline._BatchPlan([9, 10, 11, 12], parse_buckets(buckets), stride=1, seed=3, shard_index=0,
                                shard_count=1, num_epochs=None)
     first = len(plan._epoch(0))
     assert {b for b, *_ in plan._epoch(0)} == {0, 1} and first < 5          # both buckets; epoch 1 from batch 5 on
@@ -222,13 +223,13 @@ def test_argument_errors():
         pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1}, shard_index=2, shard_count=2)
     with pytest.raises(ValueError, match="views: expected indices"):
         pipeline.sample_clip(CLIPS[0], size=(8, 8), frames=5, views=["CAM_BACK"])
-    assert pipeline.frames_for(4) == 17 and schema.CAMERAS[0] == "CAM_FRONT"
+    assert frames_for(4) == 17 and schema.CAMERAS[0] == "CAM_FRONT"
 
 
 def test_mixed_rate_clip_frames_times_and_fps():
     """MiLA stage 2: condition frames at one stride, the generated frames at another."""
-    np.testing.assert_array_equal(pipeline.frame_offsets(7, 1, 4, 12), [0, 1, 2, 3, 15, 27, 39])
-    assert pipeline.Bucket(8, 8, 7, 1, 1.0).needed(1, 4, 12) == 1 + 3 * 1 + 3 * 12      # 40
+    np.testing.assert_array_equal(frame_offsets(7, 1, 4, 12), [0, 1, 2, 3, 15, 27, 39])
+    assert Bucket(8, 8, 7, 1, 1.0).needed(1, 4, 12) == 1 + 3 * 1 + 3 * 12      # 40
     clip = CLIPS[7]                                                # 16 frames
     fps = clip["fps"]
     cases = [  # (head, stride, tail_stride) -> source offsets from the start; the generated part's stride

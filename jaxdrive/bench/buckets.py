@@ -149,7 +149,7 @@ def _drawing_run(config, groups: int):
     configured probabilities)."""
     import dataclasses
 
-    from jaxdrive.data.pipeline import parse_bucket_specs
+    from jaxdrive.data.buckets import parse_bucket_specs
     from jaxdrive.train.run import Run
     if not config.data.buckets:
         return Run(config)

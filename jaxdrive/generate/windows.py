@@ -85,7 +85,7 @@ class WindowModel:
         the latent frame counts it trained on (several with ``data.buckets`` of several lengths).
         ``guidance`` None: the run's (``sample.cfg``); ``control_guidance``: control -> scale,
         checked against the model (:func:`jaxdrive.generate.guidance.check_controls`)."""
-        from jaxdrive.data.pipeline import parse_bucket_specs
+        from jaxdrive.data.buckets import parse_bucket_specs
         guidance = spec.guidance if guidance is None else guidance
         controls = check_controls(spec.model, spec.data.drop_prob, control_guidance or {})
         d, f = spec.data, spec.flow

@@ -70,9 +70,9 @@ def check_batch(config: Config, mesh, batch: int | None = None, name: str = "dat
 
 def training_buckets(config: Config, compression: int):
     """The (H, W, F) buckets a run trains on, each with its global batch
-    (:class:`jaxdrive.data.pipeline.Bucket`): ``data.buckets``, or the one bucket
+    (:class:`jaxdrive.data.buckets.Bucket`): ``data.buckets``, or the one bucket
     ``data.height x data.width x data.frames`` at ``data.batch_size``."""
-    from jaxdrive.data.pipeline import parse_bucket_specs, parse_buckets
+    from jaxdrive.data.buckets import parse_bucket_specs, parse_buckets
     d = config.data
     specs = parse_bucket_specs(d.buckets) if d.buckets else {(d.height, d.width, d.frames): (d.batch_size, 1.0)}
     try:
