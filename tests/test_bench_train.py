@@ -7,6 +7,7 @@ import json
 import flax.linen as nn
 import pytest
 
+from jaxdrive.bench import flops as model_flops
 from jaxdrive.bench import train as bench
 from jaxdrive.bench.report import trace_costs
 from jaxdrive.convert.diffusers_dit import config_from_diffusers
@@ -66,7 +67,7 @@ def test_json_rows_hold_the_step_and_single_op_comparisons(capsys):
 
 def _flops(cfg, **shapes):
     params = nn.unbox(DiT(cfg).abstract_params(views=1, frames=shapes["frames"]))
-    return bench.step_flops(cfg, params, views=1, **shapes)
+    return model_flops.step_flops(cfg, params, views=1, **shapes)
 
 
 def test_full_layout_flops_are_6_params_tokens_plus_attention():
@@ -105,10 +106,10 @@ def test_factorized_flops_count_spatial_temporal_and_text_attention():
 def test_peak_is_known_for_accelerators_and_given_on_cpu():
     class Dev:
         platform, device_kind = "tpu", "TPU v5 lite"
-    assert bench.peak_tflops(Dev(), None) == (197.0, "dense bf16 peak of 'TPU v5 lite'")
+    assert model_flops.peak_tflops(Dev(), None) == (197.0, "dense bf16 peak of 'TPU v5 lite'")
     Dev.platform, Dev.device_kind = "cpu", "cpu"
-    assert bench.peak_tflops(Dev(), None)[0] is None
-    assert bench.peak_tflops(Dev(), 1.5) == (1.5, "--peak-tflops")
+    assert model_flops.peak_tflops(Dev(), None)[0] is None
+    assert model_flops.peak_tflops(Dev(), 1.5) == (1.5, "--peak-tflops")
 
 
 def test_accelerator_settings_reach_the_model_and_the_measured_peak_gives_an_mfu(capsys, monkeypatch):
