@@ -128,7 +128,7 @@ def write_mp4(path, video, fps: float = 12.0) -> Path:
     return Path(path)
 
 
-# BEV panel colours (schema.BEV_CLASSES order)
+# BEV panel colours (jaxdrive.classes.BEV_CLASSES order)
 BEV_COLOURS = ((70, 70, 78), (150, 150, 160), (110, 100, 90), (230, 230, 230), (60, 90, 60), (240, 200, 40),
                (220, 220, 220), (80, 80, 90))
 PAINT_ORDER = (0, 4, 2, 7, 1, 3, 5, 6)       # areas first, then crossings, stop lines and dividers on top

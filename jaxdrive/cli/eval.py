@@ -264,7 +264,7 @@ def _eval_videos(args) -> int:
 
 def _feature_functions(args, mesh) -> dict:
     """FID / FVD feature functions of ``--inception`` / ``--i3d`` (batch-sharded over ``mesh``)."""
-    from jaxdrive.eval.features import extract
+    from jaxdrive.parallel.batches import extract
     features = {}
     if args.inception:
         from jaxdrive.eval.inception import load_fid_inception

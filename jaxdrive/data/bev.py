@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxdrive.data.schema import BEV_CLASSES
+from jaxdrive.classes import BEV_CLASSES
 
 POLYGON_LAYERS = ("drivable_area", "ped_crossing", "walkway", "stop_line", "carpark_area", "road_block")
 LINE_LAYERS = ("road_divider", "lane_divider")

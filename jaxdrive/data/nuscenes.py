@@ -28,7 +28,7 @@ pixel-centre convention (``c_x, c_y`` + 0.5, see :mod:`jaxdrive.geometry`) and s
 ``image_hw``; calibrations are taken from each view's first frame of the clip.
 
 BEV map. ``bev_map[f]`` rasterises the map expansion around the ego of frame f (ego at the
-centre, ego x up, ego y left), channels :data:`~jaxdrive.data.schema.BEV_CLASSES`: polygons
+centre, ego x up, ego y left), channels :data:`~jaxdrive.classes.BEV_CLASSES`: polygons
 (even-odd fill, holes cut out) for the area layers, 1-cell polylines for the dividers. A cell is
 set when its centre is inside. Without ``maps/expansion/<location>.json`` the map is zeros and
 one warning per location is logged.
@@ -44,9 +44,10 @@ from collections.abc import Iterator, Sequence
 
 import numpy as np
 
+from jaxdrive.classes import BEV_CLASSES, OBJECT_CLASSES
 from jaxdrive.data.bev import LINE_LAYERS, POLYGON_LAYERS, rasterize_map
 from jaxdrive.data.faults import BadRecordError, OncePerFile
-from jaxdrive.data.schema import BEV_CLASSES, CAMERAS, OBJECT_CLASSES, caption
+from jaxdrive.data.schema import CAMERAS, caption
 from jaxdrive.validate import check_positive_int
 
 log = logging.getLogger(__name__)

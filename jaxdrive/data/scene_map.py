@@ -21,8 +21,8 @@ import flax.struct
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdrive.classes import BEV_CLASSES
 from jaxdrive.data.bev import cell_centres
-from jaxdrive.data.schema import BEV_CLASSES
 
 DEFAULT_RANGE = (100.0, 100.0)   # metres (x, y) a BEV map spans: the synthetic world's and nuScenes' default
 # the surfaces a car drives on: walkways are not, the divider lines lie on drivable area anyway (a

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxdrive.data.schema import OBJECT_CLASSES
+from jaxdrive.classes import OBJECT_CLASSES
 from jaxdrive.data.synth_world import LANE, ROAD, SIDEWALK, STOP
 
 # class name -> (probability, (length, width, height), cruise speed range m/s)

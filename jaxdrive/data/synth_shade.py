@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxdrive.data.schema import OBJECT_CLASSES
+from jaxdrive.classes import OBJECT_CLASSES
 from jaxdrive.data.synth_world import AGENT_KIND, BUILDING, LAMP, ROAD, nearest_cross, road_classes
 
 LOOKS = {

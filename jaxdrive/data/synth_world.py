@@ -37,7 +37,7 @@ def nearest_cross(x, crosses):
 
 
 def road_classes(x, y, crosses, *, pad: float = 0.0) -> np.ndarray:
-    """MagicDrive's 8 BEV road classes (schema.BEV_CLASSES order) at world points -> bool [..., 8].
+    """MagicDrive's 8 BEV road classes (jaxdrive.classes.BEV_CLASSES order) at world points -> bool [..., 8].
 
     ``pad`` widens painted lines (half a BEV cell, so that thin lines are not missed by sampling).
     Lane dividers are solid here (the polylines a map stores); the renderer dashes them.

@@ -6,7 +6,7 @@ BEVFusion's mAP and CVT's road mIoU on images). jaxdrive's synthetic world
 knows every pixel's object (``instance_ids``, the track id of the box that drew it), so it can do
 better: a small U-Net (:class:`Segmenter`, ~470k parameters at width 32) is trained on recorded
 synthetic frames to give each pixel its class (:data:`CLASSES`: background, then
-``schema.OBJECT_CLASSES``); its mIoU on held-out recorded frames against their exact class masks
+``jaxdrive.classes.OBJECT_CLASSES``); its mIoU on held-out recorded frames against their exact class masks
 is the ceiling, and its mIoU on generated frames against the class masks of the boxes they were
 conditioned on says how well generation follows the boxes. A generation whose boxes were
 shuffled between clips (``jaxdrive eval --shuffle-boxes``) scores against the masks of the boxes
