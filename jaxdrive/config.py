@@ -285,17 +285,17 @@ def _parse(name: str, text: str, tp) -> Any:
 def override(config, assignment: str):
     """``config`` with ``"a.b=value"`` applied (a new frozen dataclass; ``config`` is unchanged)."""
     if "=" not in assignment:
-        raise ValueError(f"--set: expected key=value, got {assignment!r}")
+        raise ValueError(f"override: expected key=value, got {assignment!r}")
     key, text = assignment.split("=", 1)
     path = key.strip().split(".")
 
     def apply(node, prefix, rest):
         if not dataclasses.is_dataclass(node):
-            raise ValueError(f"--set {key}: {'.'.join(prefix) or 'config'} is not a section")
+            raise ValueError(f"override {key}: {'.'.join(prefix) or 'config'} is not a section")
         fields = _field_types(type(node))
         if rest[0] not in fields:
             where = ".".join(prefix) or "config"
-            raise ValueError(f"--set {key}: unknown key {rest[0]!r} in {where}; expected one of {sorted(fields)}")
+            raise ValueError(f"override {key}: unknown key {rest[0]!r} in {where}; expected one of {sorted(fields)}")
         name = ".".join(prefix + [rest[0]])
         if len(rest) == 1:
             value = _parse(name, text.strip(), fields[rest[0]])

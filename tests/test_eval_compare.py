@@ -15,10 +15,10 @@ def test_horizon_buckets_default_to_thirds_and_must_lie_in_the_generated_frames(
     assert parse_buckets(None, 2, 26) == [(2, 10), (10, 18), (18, 26), (2, 26)]        # + the whole span
     assert parse_buckets("2-12,13-25", 2, 26) == [(2, 13), (13, 26), (2, 26)]
     assert parse_buckets("2-25", 2, 26) == [(2, 26)]
-    with pytest.raises(ValueError, match=r"--buckets: expected ranges within the generated frames 2-25, got 13-40 "
+    with pytest.raises(ValueError, match=r"^buckets: expected ranges within the generated frames 2-25, got 13-40 "
                                          r"\(clips shorter than the horizon buckets\)"):
         parse_buckets("2-12,13-40", 2, 26)
-    with pytest.raises(ValueError, match="--buckets: expected ranges like 2-12,13-24, got 'early'"):
+    with pytest.raises(ValueError, match="^buckets: expected ranges like 2-12,13-24, got 'early'"):
         parse_buckets("early", 2, 26)
 
 

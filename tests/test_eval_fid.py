@@ -92,7 +92,7 @@ def test_the_converted_safetensors_load_the_same_and_foreign_files_are_refused(w
     state = torch.load(path, weights_only=True)
     other = tmp_path / "other.pth"
     torch.save({k: v for k, v in state.items() if not k.startswith("Mixed_7c")}, other)
-    with pytest.raises(ValueError, match=r"--inception .*other.pth: expected the FID Inception's tensor "
+    with pytest.raises(ValueError, match=r"^path .*other.pth: expected the FID Inception's tensor "
                                          r"'Mixed_7c.branch1x1.conv.weight'"):
         load_fid_inception(other)
     wrong = tmp_path / "wrong.pth"
@@ -102,11 +102,11 @@ def test_the_converted_safetensors_load_the_same_and_foreign_files_are_refused(w
         load_fid_inception(wrong)
     cut = tmp_path / "cut.pth"
     cut.write_bytes(path.read_bytes()[:100_000])
-    with pytest.raises(ValueError, match="--inception: could not read .*cut.pth as a state dict"):
+    with pytest.raises(ValueError, match="^path: could not read .*cut.pth as a state dict"):
         load_fid_inception(cut)
     cut_st = tmp_path / "cut.safetensors"
     cut_st.write_bytes(out.read_bytes()[:100_000])
-    with pytest.raises(ValueError, match="--inception: .*cut.safetensors"):
+    with pytest.raises(ValueError, match="^path: .*cut.safetensors"):
         load_fid_inception(cut_st)
     assert cli(["convert", "inception", "--from", str(other), "--out", str(tmp_path / "x.safetensors")]) == 2
     assert "--from" in capsys.readouterr().err
@@ -157,7 +157,7 @@ def test_i3d_logits_match_cd_fvd(i3d_weights, tmp_path):
     assert cli(["convert", "i3d", "--from", str(path), "--out", str(out)]) == 0
     np.testing.assert_array_equal(np.asarray(load_i3d(out)[1]["logits"]["shift"]),
                                   np.asarray(params["logits"]["shift"]))
-    with pytest.raises(ValueError, match=r"--i3d .*: expected the I3D tensor 'Conv3d_1a_7x7.conv3d.weight'"):
+    with pytest.raises(ValueError, match=r"^path .*: expected the I3D tensor 'Conv3d_1a_7x7.conv3d.weight'"):
         load_i3d(_other_network(tmp_path))
     with pytest.raises(ValueError, match=r"videos: expected at least 9 frames \(FVD uses 16\), got 4"):
         model.logits(params, videos[:, :4])

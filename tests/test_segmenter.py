@@ -70,7 +70,7 @@ def test_segmenter_learns_the_classes_and_its_score_needs_the_right_boxes(segmen
     own = summary(confusion(pred, masks))["miou"]
     other = summary(confusion(pred, np.roll(masks, len(masks) // 2, axis=0)))["miou"]   # another scene's masks
     assert own > 0.3 and other < 0.5 * own, (own, other)
-    with pytest.raises(ValueError, match="--segmenter: expected a segmenter run directory"):
+    with pytest.raises(ValueError, match="^workdir: expected a segmenter run directory"):
         load_segmenter(clips21)
 
 

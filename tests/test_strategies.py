@@ -157,21 +157,23 @@ def test_every_window_strategy_keeps_its_sampled_frames_in_the_latents_range(nam
 
 def test_strategies_reject_what_they_cannot_do_before_compiling():
     m = tiny_model(5)
-    with pytest.raises(ValueError, match=r"--fine-workdir: strategy 'coarse-fine' needs a fine model run"):
+    with pytest.raises(ValueError, match=r"^models.fine: strategy 'coarse-fine' needs a fine model run"):
         S.check_strategy("coarse-fine", S.Models(m), 25, 1)
-    with pytest.raises(ValueError, match=r"--fine-workdir: expected a model trained for interpolation"):
+    with pytest.raises(ValueError, match=r"^models.fine: expected a model trained for interpolation"):
         S.check_strategy("coarse-fine", S.Models(m, tiny_model(7)), 25, 1)
     fine = dataclasses.replace(tiny_model(7), patterns=("prefix", "ends"))
     with pytest.raises(ValueError, match=r"frames: coarse-fine reaches 1 \+ n \* 6 latent frames .* got 24; "
                                          r"e.g. 19 or 25"):
         S.check_strategy("coarse-fine", S.Models(m, fine), 24, 1)
-    with pytest.raises(ValueError, match=r"workdir: coarse-to-refine needs a model trained to correct JDC anchors"):
+    with pytest.raises(ValueError, match=r"^models.main: coarse-to-refine needs a model trained to correct JDC "
+                                         r"anchors"):
         S.check_strategy("coarse-to-refine", S.Models(m), 25, 2)
-    with pytest.raises(ValueError, match=r"--workdir: coarse-to-refine draws spaced anchors, which needs frame-wise"):
+    with pytest.raises(ValueError, match=r"^models.main: coarse-to-refine draws spaced anchors, which needs "
+                                         r"frame-wise"):
         S.check_strategy("coarse-to-refine", S.Models(dataclasses.replace(m, temporal=4, jdc_anchor_rate=0.5)), 25, 2)
     with pytest.raises(ValueError, match=r"strategy: expected one of"):
         S.check_strategy("one-shot", S.Models(m), 25, 2)
-    with pytest.raises(ValueError, match=r"--strategy: 'window' samples the whole length at once, which needs a model "
+    with pytest.raises(ValueError, match=r"^strategy: 'window' samples the whole length at once, which needs a model "
                                          r"trained on several lengths \(data.buckets, MagicDrive-V2\), got one trained "
                                          r"on \[5\] latent frames only"):
         S.check_strategy("window", S.Models(m), 25, 2)
@@ -245,17 +247,17 @@ def test_the_automatic_segment_batch_is_the_largest_group_that_fits_the_budget()
         tracker = Tracker()
         got = choose(budget, tracker)
         n = got["segment_batch"]
-        assert got["footprint_bytes"] == got["probed"][str(n)] <= budget and got["budget_source"] == "--device-memory"
+        assert got["footprint_bytes"] == got["probed"][str(n)] <= budget and got["budget_source"] == "device_memory"
         assert got["probed"][str(n + 1)] > budget                     # the next group would not fit
         assert tracker.programs == 0                                  # probes are not the run's programs
-    with pytest.raises(ValueError, match=r"--device-memory: expected a budget that holds one fine call of 1 "
+    with pytest.raises(ValueError, match=r"^device_memory: expected a budget that holds one fine call of 1 "
                                          r"segment\(s\) \(\d+ bytes per device\), got 1000 bytes"):
         choose(1000)
 
 
-@pytest.mark.parametrize("value, message", [("0", "--segment-batch: expected 'auto' or a positive number"),
-                                            ("many", "--segment-batch: expected 'auto' or a positive number"),
-                                            (-2, "--segment-batch: expected 'auto' or a positive number")])
+@pytest.mark.parametrize("value, message", [("0", "^segment_batch: expected 'auto' or a positive number"),
+                                            ("many", "^segment_batch: expected 'auto' or a positive number"),
+                                            (-2, "^segment_batch: expected 'auto' or a positive number")])
 def test_segment_batch_rejects_what_is_not_a_group(value, message):
     from jaxdrive.generate.segments import check_segment_batch
     with pytest.raises(ValueError, match=message):
@@ -268,8 +270,8 @@ def test_device_memory_budgets_parse_and_reject_what_is_no_size():
     assert parse_bytes("16GiB") == 16 * 2**30 and parse_bytes("512 MiB") == 512 * 2**20
     assert parse_bytes("8e9") == 8 * 10**9 == parse_bytes("8GB") and parse_bytes(4096) == 4096
     for bad in ("lots", "12 parsecs", "0", -5, True):
-        with pytest.raises(ValueError, match=r"--device-memory: expected a positive size"):
+        with pytest.raises(ValueError, match=r"^device_memory: expected a positive size"):
             parse_bytes(bad)
-    assert device_budget("1GiB") == (2**30, "--device-memory", True)
+    assert device_budget("1GiB") == (2**30, "device_memory", True)
     budget, source, strict = device_budget()                         # a CPU: its share, a preference
     assert 0 < budget <= host_memory_bytes() / 4 and source.startswith("CPU") and not strict

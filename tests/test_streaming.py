@@ -231,15 +231,15 @@ def test_training_sees_what_the_sampler_buffer_holds_and_stage_3_conditions_on_i
 
 def test_streaming_rejects_what_it_cannot_do():
     first, controls = horizon_inputs(6, given=1)
-    with pytest.raises(ValueError, match=r"--taps: expected offsets in \[-4, -1\]"):
+    with pytest.raises(ValueError, match=r"^taps: expected offsets in \[-4, -1\]"):
         list(S.run_strategy("streaming", S.Models(model()), controls, first, 6, key=jax.random.key(0), taps=(-1, -5)))
-    with pytest.raises(ValueError, match=r"--taps: HTFT streaming needs a model with HTFT layers"):
+    with pytest.raises(ValueError, match=r"^taps: HTFT streaming needs a model with HTFT layers"):
         S.check_taps(S.Models(model(htft=False)), (-1,))
     assert S.check_taps(S.Models(model(htft=False)), ()) == ()
     windowed = dataclasses.replace(model(), streaming=False)
-    with pytest.raises(ValueError, match=r"--workdir: 'streaming' needs a model trained frame by frame"):
+    with pytest.raises(ValueError, match=r"^models.main: 'streaming' needs a model trained frame by frame"):
         S.check_strategy("streaming", S.Models(windowed), 6, 1)
-    with pytest.raises(ValueError, match=r"--strategy: a model trained frame by frame"):
+    with pytest.raises(ValueError, match=r"^strategy: a model trained frame by frame"):
         S.check_strategy("rollout", S.Models(model()), 6, 1)
 
 

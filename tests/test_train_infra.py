@@ -37,7 +37,7 @@ def test_override_parses_by_type_and_names_bad_keys():
         override(c, "data.frame=3")
     with pytest.raises(ValueError, match=r"data.frames: expected int, got '2.5'"):
         override(c, "data.frames=2.5")
-    with pytest.raises(ValueError, match=r"--set: expected key=value"):
+    with pytest.raises(ValueError, match=r"^override: expected key=value"):
         override(c, "data.frames")
     with pytest.raises(ValueError, match=r"data.frames.x: .*not a section|data.frames is not a section"):
         override(c, "data.frames.x=1")
@@ -170,9 +170,15 @@ def test_a_checkpoint_of_another_model_is_a_value_error_saying_what_differs(tmp_
     ck.save(1, _state_after(1), {}, {"step": 1})
     ck.wait()
     other = jax.eval_shape(lambda: _state_after(0).replace(params={"w": jnp.zeros((8, 4)), "c": jnp.zeros(2)}))
-    with pytest.raises(ValueError, match=r"workdir: expected checkpoints of this config's model .* got step 1 with "
+    with pytest.raises(ValueError, match=r"^workdir: expected checkpoints of this config's model .* got step 1 with "
                                          r"other parameters \(3 differ: w: expected shape \[8, 4\], got \[4, 4\]; "
                                          r"c: expected in the checkpoint, missing; b: in the checkpoint, "
                                          r"not in this model\)"):
+        ck.restore_latest(other)
+    ck.close()
+    # reached through another option (train.init_from, --segmenter, --fine-workdir): that option is named
+    ck = Checkpoints(tmp_path, keep=3, option="train.init_from")
+    with pytest.raises(ValueError, match=r"^train.init_from: expected checkpoints of this config's model .*; use a "
+                                         r"new train.init_from or the config it was trained with"):
         ck.restore_latest(other)
     ck.close()

@@ -12,6 +12,7 @@ import sys
 import jaxdrive
 from jaxdrive.cli import bench, convert, data, plan, train
 from jaxdrive.cli import eval as eval_cli
+from jaxdrive.cli.options import as_flags
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -52,6 +53,12 @@ def stderr_logging(*, quiet: bool = False):
         logger.propagate = propagate
 
 
+def command_parser(parser: argparse.ArgumentParser, command: str) -> argparse.ArgumentParser:
+    """The sub-parser of ``command`` (its options name the library's arguments in errors)."""
+    group = next(a for a in parser._actions if isinstance(a.choices, dict))    # no public accessor
+    return group.choices[command]
+
+
 def main(argv=None) -> int:
     from jaxdrive.xla_flags import deterministic_cpu
     deterministic_cpu()                 # before JAX starts its backend (jaxdrive.xla_flags says why)
@@ -66,6 +73,7 @@ def main(argv=None) -> int:
     with stderr_logging(quiet=args.quiet):
         try:
             return args.run(args, rest)
-        except ValueError as e:  # bad input: one line that names the argument, not a traceback
-            print(f"jaxdrive {args.command}: error: {e}", file=sys.stderr)
+        except ValueError as e:  # bad input: one line that names the option, not a traceback
+            print(f"jaxdrive {args.command}: error: {as_flags(str(e), command_parser(parser, args.command))}",
+                  file=sys.stderr)
             return 2

@@ -268,11 +268,11 @@ def _feature_functions(args, mesh) -> dict:
     features = {}
     if args.inception:
         from jaxdrive.eval.inception import load_fid_inception
-        model, params = load_fid_inception(args.inception)
+        model, params = load_fid_inception(args.inception, option="inception")
         features["fid_features"] = lambda x: extract(lambda p, b: model.features(p, b), params, x, mesh=mesh)
     if args.i3d:
         from jaxdrive.eval.i3d import load_i3d
-        model3, params3 = load_i3d(args.i3d)
+        model3, params3 = load_i3d(args.i3d, option="i3d")
         features["fvd_features"] = lambda x: extract(lambda p, b: model3.logits(p, b), params3, x, batch_size=4,
                                                      mesh=mesh)
     return features
@@ -283,7 +283,7 @@ def _load_segmenter(args, size):
     if not args.segmenter:
         return None
     from jaxdrive.eval.segmenter import load_segmenter
-    segmenter = load_segmenter(args.segmenter)
+    segmenter = load_segmenter(args.segmenter, option="segmenter")
     if segmenter.size != tuple(size):
         raise ValueError(f"--segmenter: expected a segmenter trained at the frame size {size[0]} x {size[1]}, got "
                          f"one trained at {segmenter.size[0]} x {segmenter.size[1]}")

@@ -3,6 +3,16 @@
 from __future__ import annotations
 
 import os
+import re
+
+# Library errors name the library's argument ("fine_workdir: ..."); these are the ones whose
+# command-line option is not the argument's own name with dashes (see ``as_flags``).
+LIBRARY_NAMES = {
+    "models.main": "--workdir",
+    "models.fine": "--fine-workdir",
+    "override": "--set",
+}
+_LEADING_NAME = re.compile(r"[A-Za-z_][\w.]*(?=:| [^ :]+:)")     # "name: ..." or "name key: ..."
 
 
 def add_config(parser, what: str, *, required: bool = True) -> None:
@@ -107,3 +117,30 @@ def load_config(path, mesh: str | None, sets, extra=()):
     from jaxdrive.config import load_config as load
     config = load(path, list(extra) + list(sets or []))
     return config_with_mesh(config, mesh) if mesh else config
+
+
+def _option_names(parser) -> dict:
+    """dest -> its first long option (``--fine-workdir``) over ``parser`` and its subcommands.
+    argparse keeps its actions in ``_actions``: there is no public accessor."""
+    names = {}
+    for action in parser._actions:
+        if isinstance(action.choices, dict):          # a sub-command group: its parsers' options too
+            for sub in action.choices.values():
+                names.update(_option_names(sub))
+        longs = [o for o in action.option_strings if o.startswith("--")]
+        if longs and action.dest not in names:
+            names[action.dest] = longs[0]
+    return names
+
+
+def as_flags(message: str, parser) -> str:
+    """A library error as the command line's: the leading library argument of ``message``
+    (``segment_batch: ...``, ``models.fine: ...``, ``override a.b: ...``) becomes the option of
+    ``parser`` (the invoked command) that sets it (``--segment-batch``), so a user reads the flag
+    they typed. Names the command has no option for (config keys such as ``flow.jdc_slope``) stay."""
+    match = _LEADING_NAME.match(message)
+    if not match:
+        return message
+    name = match.group()
+    flag = LIBRARY_NAMES.get(name) or _option_names(parser).get(name)
+    return flag + message[match.end():] if flag else message

@@ -52,12 +52,12 @@ def load_runs(args):
                 raise ValueError(f"--fine-workdir: expected latents like --workdir's ({name} {a}), got {name} {b}")
     controls = guidance_options(args, (spec, fine_spec))
 
-    def model(s, r=None, workdir=None):
-        params = None if r is None else restore_params(r, workdir, ema=ema)[1]
+    def model(s, r=None, workdir=None, option="workdir"):
+        params = None if r is None else restore_params(r, workdir, ema=ema, option=option)[1]
         return WindowModel.from_sampling(s, params, steps=args.steps, guidance=args.cfg, control_guidance=controls)
     load_main = lambda: model(spec, run, args.workdir)
     if fine_spec is not None:
-        load_fine = lambda: model(fine_spec, fine_run, args.fine_workdir)
+        load_fine = lambda: model(fine_spec, fine_run, args.fine_workdir, "fine_workdir")
     horizon_spec = fine_spec or spec
     length = horizon_spec.codec.latent_frames(args.frames)
     if horizon_spec.codec.temporal > 1 and (args.frames - 1) % horizon_spec.codec.temporal:
@@ -139,7 +139,7 @@ def sample_strategy(args) -> int:
     predictor = None
     if args.predictor:
         from jaxdrive.train.predictor_run import load_future_predictor
-        predictor = load_future_predictor(args.predictor)
+        predictor = load_future_predictor(args.predictor, option="predictor")
     elif args.controls == "predicted":
         raise ValueError("--controls: 'predicted' needs --predictor RUN (a run of configs/predictor.py), got none")
     from jaxdrive.data.scene_map import bev_range_of

@@ -36,11 +36,11 @@ def parse_buckets(text: str | None, given: int, frames: int) -> list[tuple[int, 
             try:
                 a, b = (int(v) for v in part.split("-"))
             except ValueError:
-                raise ValueError(f"--buckets: expected ranges like 2-12,13-24, got {text!r}") from None
+                raise ValueError(f"buckets: expected ranges like 2-12,13-24, got {text!r}") from None
             out.append((a, b + 1))
     for a, b in out:
         if not given <= a < b <= frames:
-            raise ValueError(f"--buckets: expected ranges within the generated frames {given}-{frames - 1}, got "
+            raise ValueError(f"buckets: expected ranges within the generated frames {given}-{frames - 1}, got "
                              f"{a}-{b - 1} (clips shorter than the horizon buckets)")
     whole = (min(a for a, _ in out), max(b for _, b in out))
     return out + [whole] if len(out) > 1 and whole not in out else out
@@ -273,17 +273,17 @@ def merge(dirs) -> tuple[dict, dict, dict | None, dict]:
         try:
             report = json.loads(path.read_text())
         except (OSError, ValueError) as e:
-            raise ValueError(f"--merge: expected eval.json of jaxdrive eval under {str(d)!r}, got {e}") from None
+            raise ValueError(f"merge: expected eval.json of jaxdrive eval under {str(d)!r}, got {e}") from None
         spans = [list(r["buckets"]) for r in report["strategies"].values()]
         if first is None:
             first, ceiling, want = report, report.get("recorded_controllability"), spans[0]
         for key in same:
             if report.get(key) != first.get(key):
-                raise ValueError(f"--merge: expected the same {key} in every eval.json, got {first.get(key)!r} in "
+                raise ValueError(f"merge: expected the same {key} in every eval.json, got {first.get(key)!r} in "
                                  f"{dirs[0]} and {report.get(key)!r} in {d}")
         if any(s != want for s in spans):
-            raise ValueError(f"--merge: expected the same horizon buckets in every eval.json (give --buckets), got "
-                             f"{want} in {dirs[0]} and {spans[0]} in {d}")
+            raise ValueError(f"merge: expected the same horizon buckets in every eval.json (evaluate with the same "
+                             f"buckets), got {want} in {dirs[0]} and {spans[0]} in {d}")
         run = Path(report.get("workdir") or report.get("videos") or str(d)).name
         for name, r in report["strategies"].items():
             if name.startswith(REPEAT) or name.startswith("warp @ "):   # the data's, not a model's: once, last

@@ -133,6 +133,6 @@ def params_from_state_dict(state: dict, *, source: str = "weights") -> dict:
     return params
 
 
-def load_i3d(path, *, option: str = "--i3d"):
+def load_i3d(path, *, option: str = "path"):
     """``(model, params)`` from cd-fvd's ``i3d_pretrained_400.pt`` or its safetensors copy."""
     return I3D(), params_from_state_dict(read_state_dict(path, option=option), source=f"{option} {path}")

@@ -157,6 +157,6 @@ def params_from_state_dict(state: dict, *, source: str = "weights") -> dict:
             for name, (cin, cout, (kh, kw), _, _) in LAYERS.items()}
 
 
-def load_fid_inception(path, *, option: str = "--inception"):
+def load_fid_inception(path, *, option: str = "path"):
     """``(model, params)`` from pytorch-fid's ``.pth`` or its safetensors copy."""
     return FIDInception(), params_from_state_dict(read_state_dict(path, option=option), source=f"{option} {path}")

@@ -30,38 +30,38 @@ WARP = "warp"
 def parse_routes(text: str) -> list[str]:
     """``--routes "recorded,stop"`` -> at least one route name (:func:`jaxdrive.data.synth_routes.parse_routes`)."""
     from jaxdrive.data.synth_routes import parse_routes as parse
-    names = parse(text, "--routes")
+    names = parse(text, "routes")
     if not names:
-        raise ValueError(f"--routes: expected at least one route, got {text!r}")
+        raise ValueError(f"routes: expected at least one route, got {text!r}")
     return names
 
 
 def route_clips(dataset, routes, clips: int, given_frames: int, stride: int = 1) -> dict:
     """Which clips every route is scored on: ``{"indices": [validation clip of each sample],
     "rows": {route: [row of its split for each sample]}, "splits": {route: split}}``, the first
-    ``clips`` validation clips that have every route. ``ValueError`` naming ``--routes`` when the
+    ``clips`` validation clips that have every route. ``ValueError`` naming ``routes`` when the
     dataset has no counterfactuals, lacks a route, has too few clips with all of them, or when
     its routes change before the given frames end (``given_frames`` pixel frames at ``stride``)."""
     from jaxdrive.data.synthetic import read_counterfactuals
     meta = read_counterfactuals(dataset)
     others = [r for r in routes if r != RECORDED]
     if others and not meta:
-        raise ValueError(f"--routes: expected a dataset with counterfactual routes (jaxdrive data synth "
+        raise ValueError(f"routes: expected a dataset with counterfactual routes (jaxdrive data synth "
                          f"--counterfactuals ...), got {dataset} without any")
     stored = meta.get("routes", {})
     missing = [r for r in others if r not in stored]
     if missing:
-        raise ValueError(f"--routes: expected routes stored in {dataset} ({', '.join(stored) or 'none'}), got "
+        raise ValueError(f"routes: expected routes stored in {dataset} ({', '.join(stored) or 'none'}), got "
                          f"{', '.join(missing)}")
     if others and (given_frames - 1) * stride >= meta["start"]:
-        raise ValueError(f"--routes: expected the given frames to end before the routes change (source frame "
+        raise ValueError(f"routes: expected the given frames to end before the routes change (source frame "
                          f"{meta['start']}), got {given_frames} given frames at stride {stride}")
     have = [set(stored[r]["clips"]) for r in others]
     common = sorted(set.intersection(*have)) if have else None
     indices = list(range(clips)) if common is None else common[:clips]
     if len(indices) < clips:
-        raise ValueError(f"--clips: expected at most {len(indices)} (the validation clips that have every route of "
-                         f"--routes {','.join(routes)}), got {clips}")
+        raise ValueError(f"clips: expected at most {len(indices)} (the validation clips that have every route of "
+                         f"routes {','.join(routes)}), got {clips}")
     rows = {r: list(range(clips)) if r == RECORDED else [stored[r]["clips"].index(i) for i in indices]
             for r in routes}
     splits = {r: None if r == RECORDED else stored[r]["split"] for r in routes}

@@ -52,8 +52,9 @@ class TrainedSegmenter:
         return predict(self.config.segmenter, self.params, frames, batch_size=batch_size, mesh=mesh)
 
 
-def load_segmenter(workdir, *, option: str = "--segmenter") -> TrainedSegmenter:
-    """The newest checkpoint of a segmenter run (``jaxdrive train --config configs/segmenter.py``)."""
+def load_segmenter(workdir, *, option: str = "workdir") -> TrainedSegmenter:
+    """The newest checkpoint of a segmenter run (``jaxdrive train --config configs/segmenter.py``);
+    errors name ``option`` (how the caller calls ``workdir``)."""
     from jaxdrive.config import SegmenterRunConfig
     from jaxdrive.train.aux_run import load_trained
     init = lambda c: init_params(c.segmenter, jax.random.key(0), (c.data.height, c.data.width))

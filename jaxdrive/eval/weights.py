@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 
-def read_state_dict(path, *, option: str = "--inception") -> dict:
+def read_state_dict(path, *, option: str = "path") -> dict:
     """The tensors of a ``.pth`` state dict (torch's ``weights_only`` loader) or a ``.safetensors``
     file, as NumPy arrays; an unreadable file is a ``ValueError`` naming ``option``."""
     path = Path(path)

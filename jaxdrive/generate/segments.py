@@ -43,13 +43,13 @@ def fine_group(fine: WindowModel, horizon: Horizon, group, controls: Conditions,
 
 
 def check_segment_batch(segment_batch):
-    """``"auto"`` or a positive int; ``ValueError`` naming ``--segment-batch`` otherwise."""
+    """``"auto"`` or a positive int; ``ValueError`` naming ``segment_batch`` otherwise."""
     if segment_batch == AUTO or segment_batch is None:
         return AUTO
     if isinstance(segment_batch, str) and segment_batch.strip().isdigit():
         segment_batch = int(segment_batch)
     if isinstance(segment_batch, bool) or not isinstance(segment_batch, (int, np.integer)) or segment_batch < 1:
-        raise ValueError(f"--segment-batch: expected 'auto' or a positive number of segments per fine call, "
+        raise ValueError(f"segment_batch: expected 'auto' or a positive number of segments per fine call, "
                          f"got {segment_batch!r}")
     return int(segment_batch)
 
@@ -64,7 +64,7 @@ def choose_segment_batch(fine: WindowModel, horizon: Horizon, controls: Conditio
     Memory grows with the group, so a line through the smallest and the largest group predicts
     the answer and a walk from there confirms it (a few compiles; the chosen one is reused by the
     run). Without ``device_memory`` on a CPU (no hard budget) it is the smallest group. ``ValueError``
-    naming ``--device-memory`` when not even the smallest group fits."""
+    naming ``device_memory`` when not even the smallest group fits."""
     check_positive_int("segments", segments)
     b = horizon.latents.shape[0]
     shards = batch_shards(mesh)
@@ -88,7 +88,7 @@ def choose_segment_batch(fine: WindowModel, horizon: Horizon, controls: Conditio
     if not strict:             # a CPU: a batched call runs no faster there than its segments one by one
         best = lo
     elif footprint(lo) > budget:
-        raise ValueError(f"--device-memory: expected a budget that holds one fine call of {lo} segment(s) "
+        raise ValueError(f"device_memory: expected a budget that holds one fine call of {lo} segment(s) "
                          f"({footprint(lo)} bytes per device), got {budget} bytes ({source})")
     elif footprint(hi) <= budget:
         best = hi

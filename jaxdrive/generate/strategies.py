@@ -230,10 +230,10 @@ def check_strategy(name: str, models: Models, length: int, given: int) -> None:
         raise ValueError(f"frames: expected more latent frames than the {given} given ones, got {length}")
     main, fine = models.main, models.fine
     if name in NEEDS_FINE and fine is None:
-        raise ValueError(f"--fine-workdir: strategy {name!r} needs a fine model run, got none")
+        raise ValueError(f"models.fine: strategy {name!r} needs a fine model run, got none")
     if name == "coarse-fine":
         if "ends" not in fine.patterns:
-            raise ValueError(f"--fine-workdir: expected a model trained for interpolation (flow.patterns with 'ends', "
+            raise ValueError(f"models.fine: expected a model trained for interpolation (flow.patterns with 'ends', "
                              f"LongDWM's fine DiT), got one trained with patterns {list(fine.patterns)}")
         seg = fine.window - 1
         if (length - 1) % seg:
@@ -243,29 +243,29 @@ def check_strategy(name: str, models: Models, length: int, given: int) -> None:
         if given > fine.window - 1:
             raise ValueError(f"frames: expected at most {fine.window - 1} given frames for a fine window of "
                              f"{fine.window}, got {given}")
-        for role, m in (("--workdir", main), ("--fine-workdir", fine)):
+        for role, m in (("models.main", main), ("models.fine", fine)):
             if m.temporal != 1:
                 raise ValueError(f"{role}: coarse-fine needs frame-wise latents (keyframes are single latent "
                                  f"frames), got temporal compression {m.temporal}")
     if name == "coarse-to-refine":
         refine = fine or main
         if main.temporal != 1:
-            raise ValueError(f"--workdir: coarse-to-refine draws spaced anchors, which needs frame-wise latents, "
+            raise ValueError(f"models.main: coarse-to-refine draws spaced anchors, which needs frame-wise latents, "
                              f"got temporal compression {main.temporal}")
         if not refine.trained_anchors:
-            raise ValueError(f"--{'fine-' if fine else ''}workdir: coarse-to-refine needs a model trained to correct "
+            raise ValueError(f"models.{'fine' if fine else 'main'}: coarse-to-refine needs a model trained to correct "
                              f"JDC anchors (flow.jdc_anchor_rate > 0, MiLA stage 3), got jdc_anchor_rate = 0")
         if refine.jdc_slope < refine.jdc_alpha1:
             raise ValueError(f"flow.jdc_slope: expected >= flow.jdc_alpha1 = {refine.jdc_alpha1} (JDC re-noises "
                              f"anchors to g = slope * sigma_max >= alpha1), got {refine.jdc_slope}")
     if name == "streaming" and not main.streaming:
-        raise ValueError("--workdir: 'streaming' needs a model trained frame by frame (stream.enabled, STAGE's "
+        raise ValueError("models.main: 'streaming' needs a model trained frame by frame (stream.enabled, STAGE's "
                          f"configs/stage.py), got one trained on windows of {main.window} latent frames")
     if name != "streaming" and main.streaming:
-        raise ValueError(f"--strategy: a model trained frame by frame (stream.enabled) samples with 'streaming', "
+        raise ValueError(f"strategy: a model trained frame by frame (stream.enabled) samples with 'streaming', "
                          f"got {name!r}")
     if name == "window" and len(main.lengths) < 2:
-        raise ValueError(f"--strategy: 'window' samples the whole length at once, which needs a model trained on "
+        raise ValueError(f"strategy: 'window' samples the whole length at once, which needs a model trained on "
                          f"several lengths (data.buckets, MagicDrive-V2), got one trained on "
                          f"{list(main.lengths) or [main.window]} latent frames only")
     if main.window < 2 or (fine is not None and fine.window < 2):
@@ -279,7 +279,7 @@ def run_strategy(name: str, models: Models, controls: Conditions, first, length:
     check_strategy(name, models, length, first.shape[2])
     warped = [m for m in (models.main, models.fine) if m is not None and m.dit.config.controls.warp]
     if warped and name == "streaming":
-        raise ValueError("--strategy: a model trained with warped frames (controls.warp) samples windows, "
+        raise ValueError("strategy: a model trained with warped frames (controls.warp) samples windows, "
                          "got 'streaming'")
     if warped and options.get("warp") is None:
         raise ValueError("warp: a model trained with warped frames (controls.warp) needs the poses to warp along "

@@ -199,15 +199,15 @@ def buffer_bytes(model: WindowModel, batch: int, views: int, latent_hw: tuple[in
 
 
 def check_taps(models, taps) -> tuple[int, ...]:
-    """``--taps`` of ``streaming`` for ``models`` (a :class:`jaxdrive.generate.strategies.Models`;
+    """``taps`` of ``streaming`` for ``models`` (a :class:`jaxdrive.generate.strategies.Models`;
     None: the model's own): offsets within its buffer, and only for a model with HTFT layers;
-    ``ValueError`` naming ``--taps``."""
+    ``ValueError`` naming ``taps``."""
     main = models.main
     if taps is None:
         return main.stream_taps
-    taps = check_offsets(taps, main.stream_buffer, "--taps")
+    taps = check_offsets(taps, main.stream_buffer, "taps")
     if taps and not main.dit.config.htft_layers:
-        raise ValueError(f"--taps: HTFT streaming needs a model with HTFT layers (model.htft_layers, STAGE stage 2), "
+        raise ValueError(f"taps: HTFT streaming needs a model with HTFT layers (model.htft_layers, STAGE stage 2), "
                          f"got taps {list(taps)} for a model without them")
     return taps
 

@@ -35,7 +35,7 @@ def footprint_bytes(compiled) -> int | None:
                - a.alias_size_in_bytes)
 
 
-def parse_bytes(text, name: str = "--device-memory") -> int:
+def parse_bytes(text, name: str = "device_memory") -> int:
     """``"80GiB"``, ``"16GB"``, ``"512MiB"``, ``"1e9"`` (or a number of bytes) -> bytes, a positive
     int; ``ValueError`` naming ``name`` otherwise."""
     m = None if isinstance(text, bool) else re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:e[0-9]+)?)\s*([a-z]*)\s*",
@@ -59,7 +59,7 @@ def device_budget(device_memory=None, *, counted_bytes: int = 0) -> tuple[int, s
     device and counted in the program's footprint), else the CPU share of the host (not a
     hard limit: swap, not an out-of-memory error, lies beyond it)."""
     if device_memory is not None:
-        return parse_bytes(device_memory), "--device-memory", True
+        return parse_bytes(device_memory), "device_memory", True
     devices = jax.local_devices()
     stats = [d.memory_stats() for d in devices if d.platform != "cpu"]
     stats = [s for s in stats if s and "bytes_limit" in s]

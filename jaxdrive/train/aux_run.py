@@ -102,7 +102,7 @@ def load_trained(workdir, cls, section: str, init, *, option: str, what: str):
         raise ValueError(f"{option}: expected a {what} run directory (config.json with a {section!r} section), "
                          f"got {str(workdir)!r}")
     config = from_dict(cls, data)
-    meta = Checkpoints(workdir, asynchronous=False)
+    meta = Checkpoints(workdir, asynchronous=False, option=option)
     if not meta.steps():
         meta.close()
         raise ValueError(f"{option}: expected checkpoints under {Path(workdir) / 'checkpoints'}, found none")

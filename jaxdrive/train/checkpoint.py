@@ -22,8 +22,12 @@ _log = logging.getLogger(__name__)
 
 
 class Checkpoints:
-    def __init__(self, workdir, *, keep: int = 3, asynchronous: bool = True):
+    """The checkpoints under ``workdir``; ``option`` is how the caller names ``workdir`` in errors
+    (``train.init_from`` for a run it starts from, ``fine_workdir`` for a sampler's fine model)."""
+
+    def __init__(self, workdir, *, keep: int = 3, asynchronous: bool = True, option: str = "workdir"):
         self.directory = Path(workdir).absolute() / "checkpoints"
+        self.option = option
         options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=True,
                                                enable_async_checkpointing=asynchronous)
         self.manager = ocp.CheckpointManager(self.directory, options=options,
@@ -82,9 +86,10 @@ class Checkpoints:
                     f"({type(e).__name__}: {str(e)[:200]}); using the one before it")
                 continue
             if differences:
-                raise ValueError(f"workdir: expected checkpoints of this config's model in {self.directory}, got "
+                raise ValueError(f"{self.option}: expected checkpoints of this config's model in {self.directory}, got "
                                  f"step {step} with other parameters ({len(differences)} differ: "
-                                 f"{'; '.join(differences[:4])}); use a new workdir or the config it was trained with")
+                                 f"{'; '.join(differences[:4])}); use a new {self.option} or the config it was "
+                                 f"trained with")
             try:
                 return (step, *self.restore(step, abstract_state))
             except Exception as e:  # orbax raises many types for a damaged checkpoint

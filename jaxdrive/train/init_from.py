@@ -86,7 +86,7 @@ def source_params(path, *, mesh, ema: bool = True, target_model=None) -> dict:
                          f"transformer folder (with {DIFFUSERS_WEIGHTS[0]}), got {str(path)!r}")
     src = load_run_config(p)
     abstract, _ = abstract_train_state(src.model, src.optim, src.train.steps, mesh, seed=src.train.seed)
-    ckpts = Checkpoints(p, keep=src.train.keep_checkpoints, asynchronous=False)
+    ckpts = Checkpoints(p, keep=src.train.keep_checkpoints, asynchronous=False, option="train.init_from")
     try:
         restored = ckpts.restore_latest(abstract, log=lambda *a: None)
     finally:

@@ -48,7 +48,7 @@ from jaxdrive.parallel.mesh import MESH_AXES, batch_axes, parse_mesh_spec
 STATE_PARTS = ("params", "opt_state", "ema")
 
 
-def parse_mesh(spec, devices: int | None = None, name: str = "--mesh") -> dict[str, int]:
+def parse_mesh(spec, devices: int | None = None, name: str = "mesh") -> dict[str, int]:
     """``"data=2,fsdp=2,seq=2"`` (or a dict) -> sizes of all four mesh axes. ``-1`` (the rest)
     only with ``devices``; with ``devices`` the product must equal it. ``ValueError`` naming ``name``."""
     try:

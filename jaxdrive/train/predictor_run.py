@@ -209,24 +209,26 @@ def format_table(scores: dict) -> str:
     return "\n".join(lines)
 
 
-def load_predictor(workdir):
+def load_predictor(workdir, *, option: str = "workdir"):
     """``(config, params, info)`` of a predictor run: its newest checkpoint's parameters (EMA when
-    kept) and ``info`` (``bev_size``, the ``fps`` of its data and ``step_seconds``)."""
+    kept) and ``info`` (``bev_size``, the ``fps`` of its data and ``step_seconds``). Errors name
+    ``option`` (how the caller calls ``workdir``)."""
     from jaxdrive.train.aux_run import load_trained
     path = Path(workdir) / INFO_FILE
     info = json.loads(path.read_text()) if path.is_file() else None
 
     def init(c):
         if info is None:
-            raise ValueError(f"--predictor: expected {path} (written by the predictor's training), found none")
+            raise ValueError(f"{option}: expected {path} (written by the predictor's training), found none")
         return init_params(c.predictor, jax.random.key(0), bev_size=tuple(info["bev_size"]))
-    config, params = load_trained(workdir, PredictorRunConfig, "predictor", init, option="--predictor",
+    config, params = load_trained(workdir, PredictorRunConfig, "predictor", init, option=option,
                                   what="predictor")
     return config, params, info
 
 
-def load_future_predictor(workdir):
+def load_future_predictor(workdir, *, option: str = "workdir"):
     """A predictor run as :class:`jaxdrive.generate.future.FuturePredictor` (what ``jaxdrive sample
-    --predictor RUN`` rolls forward): its config, newest parameters and the seconds of its step."""
-    config, params, info = load_predictor(workdir)
+    --predictor RUN`` rolls forward): its config, newest parameters and the seconds of its step.
+    Errors name ``option``."""
+    config, params, info = load_predictor(workdir, option=option)
     return FuturePredictor(config.predictor, params, float(info["step_seconds"]))

@@ -220,7 +220,7 @@ class Run:
             t = self._teacher_config
             abstract, _ = abstract_train_state(t.model, t.optim, t.train.steps, self.mesh, seed=t.train.seed)
             _, teacher = restore_latest_params(abstract, self.config.flow.distill_teacher,
-                                               keep=t.train.keep_checkpoints)
+                                               keep=t.train.keep_checkpoints, option="flow.distill_teacher")
         return {"codec": self.codec.params, "teacher": teacher}
 
     def sampling(self):
@@ -453,20 +453,22 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
                               **{k: now[k] - cache_before[k] for k in now}}}
 
 
-def restore_params(run: Run, workdir, *, ema: bool = True, log=print):
-    """``(step, params)`` of the newest readable checkpoint of ``workdir`` (EMA when kept)."""
+def restore_params(run: Run, workdir, *, ema: bool = True, log=print, option: str = "workdir"):
+    """``(step, params)`` of the newest readable checkpoint of ``workdir`` (EMA when kept);
+    errors name ``option`` (how the caller calls ``workdir``)."""
     return restore_latest_params(run.abstract_state()[0], workdir, keep=run.config.train.keep_checkpoints,
-                                 ema=ema, log=log)
+                                 ema=ema, log=log, option=option)
 
 
-def restore_latest_params(abstract, workdir, *, keep: int, ema: bool = True, log=print):
+def restore_latest_params(abstract, workdir, *, keep: int, ema: bool = True, log=print, option: str = "workdir"):
     """``(step, params)`` of the newest readable checkpoint of ``workdir`` restored into the
-    abstract train state ``abstract`` (:func:`abstract_train_state`; EMA when kept)."""
-    ckpts = Checkpoints(workdir, keep=keep, asynchronous=False)
+    abstract train state ``abstract`` (:func:`abstract_train_state`; EMA when kept); errors name
+    ``option``."""
+    ckpts = Checkpoints(workdir, keep=keep, asynchronous=False, option=option)
     restored = ckpts.restore_latest(abstract, log=log)
     ckpts.close()
     if restored is None:
-        raise ValueError(f"workdir: expected checkpoints under {Path(workdir) / 'checkpoints'}, found none")
+        raise ValueError(f"{option}: expected checkpoints under {Path(workdir) / 'checkpoints'}, found none")
     step, state = restored[0], restored[1]
     return step, (state.ema if ema and state.ema is not None else state.params)
 
