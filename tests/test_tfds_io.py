@@ -114,6 +114,38 @@ def test_failure_leaves_nothing(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+class _SecondOfTwo:
+    """Process 1 of a two-process write, as :class:`jaxdrive.parallel.Processes` looks to it
+    (the gathers answer for both)."""
+    index, count = 1, 2
+
+    def gather(self, value: int) -> list[int]:
+        return [value, value]
+
+
+@pytest.mark.parametrize("failure", [RuntimeError("renderer crashed"), "bad dtype"])
+def test_a_failed_process_of_several_names_the_temporary_dataset_and_its_removal(tmp_path, failure):
+    """Process 1 of 2 fails while writing its shards: it stops at once (the others may still write
+    into the shared temporary directory, so it cannot remove it) and its error names that
+    directory and the command that removes it."""
+    def clips():
+        yield random_clip(0)
+        if isinstance(failure, Exception):
+            raise failure
+        bad = random_clip(1)
+        bad["video"] = bad["video"].astype(np.float32)
+        yield bad
+
+    out = tmp_path / "clips"
+    kind = RuntimeError if isinstance(failure, Exception) else ValueError
+    with pytest.raises(kind) as info:
+        tfds_io.write_dataset(out, {"train": clips()}, processes=_SecondOfTwo())
+    left = [p for p in tmp_path.iterdir()]
+    assert not out.exists() and len(left) == 1 and left[0].name.startswith(".clips.tmp-"), left
+    text = str(info.value) + "".join(getattr(info.value, "__notes__", []))
+    assert f"the partial dataset stays in {left[0]}: remove it with rm -rf '{left[0]}'" in text, text
+
+
 def test_overwrite_and_existing(tmp_path):
     out = tfds_io.write_dataset(tmp_path / "c", {"train": [random_clip(0)]})
     with pytest.raises(ValueError, match="already exists"):

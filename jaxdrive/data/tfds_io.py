@@ -205,8 +205,10 @@ def write_dataset(out_dir, splits: Mapping[str, Iterable[dict]], *, name: str = 
     shards into one temporary directory beside ``out_dir`` (a filesystem all of them see); then
     process 0 numbers the shards in process order, writes the metadata and moves the dataset into
     place. The dataset reads as the records of process 0, then 1, ...; a process may hold none. A
-    process that fails while writing raises at once (the others stop at their next collective)
-    and leaves the hidden temporary directory; nothing ever appears under ``out_dir``.
+    process that fails while writing raises at once (the others stop at their next collective):
+    the hidden temporary directory stays, and the error names it and the command that removes it
+    (the failing process cannot: the others may still be writing there); nothing ever appears
+    under ``out_dir``.
     """
     out_dir = Path(out_dir)
     if compression not in ("bytes", "zlib"):
@@ -230,7 +232,8 @@ def write_dataset(out_dir, splits: Mapping[str, Iterable[dict]], *, name: str = 
         _write_part(tmp, index, splits, _Features(compression, kind), shard_bytes)
     except Exception as e:
         if count > 1:       # stop now: the others may be inside a collective of their records' making
-            _reraise(e, out_dir, "the others stop at their next collective; the temporary directory stays")
+            _reraise(e, out_dir, f"the others stop at their next collective; the partial dataset stays in {tmp}: "
+                                 f"remove it with rm -rf '{tmp}'")
         error = e
     gather(1)                                                       # every part is written here
     if index == 0:
@@ -252,9 +255,10 @@ def write_dataset(out_dir, splits: Mapping[str, Iterable[dict]], *, name: str = 
 
 
 def _reraise(error: Exception, out_dir: Path, note: str):
-    """``error`` naming the dataset: a ``ValueError`` with it in the message, others with a note."""
+    """``error`` naming the dataset and ``note``: a ``ValueError`` with both in its message,
+    others with a note."""
     if isinstance(error, ValueError):
-        raise ValueError(f"writing dataset {out_dir}: {error}") from error
+        raise ValueError(f"writing dataset {out_dir}: {error} ({note})") from error
     error.add_note(f"while writing dataset {out_dir} ({note})")
     raise error
 
