@@ -2,7 +2,8 @@
 ``launch/local.py``): ``JAXDRIVE_TEST_KILL=PROCESS:WHEN`` makes process PROCESS kill itself with
 SIGKILL, as a host lost without warning: ``WHEN`` is ``step:N`` (after step N, before its
 checkpoint, if any, is saved) or ``save:N`` (as soon as checkpoint N's asynchronous write has
-started, before it is committed)."""
+started, before it is committed). ``term:N`` sends that process alone SIGTERM after step N, as a
+scheduler preempting one host (not the whole pod) would."""
 
 import os
 import signal
@@ -16,15 +17,22 @@ def _kill_here(process: int) -> None:
         os.kill(os.getpid(), signal.SIGKILL)
 
 
+def _terminate_here(process: int) -> None:
+    import jax
+    if jax.process_index() == process:
+        print(f"fault: process {process} gets SIGTERM", flush=True)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
 def main() -> int:
     process, when, n = os.environ["JAXDRIVE_TEST_KILL"].split(":")
     process, n = int(process), int(n)
     from jaxdrive.train import run
-    if when == "step":
-        train = run.train
+    if when in ("step", "term"):
+        train, fault = run.train, _kill_here if when == "step" else _terminate_here
 
         def killing_train(*args, **kwargs):
-            return train(*args, **kwargs, on_step=lambda step, _: step == n and _kill_here(process))
+            return train(*args, **kwargs, on_step=lambda step, _: step == n and fault(process))
         run.train = killing_train
     elif when == "save":
         save = run.Checkpoints.save
@@ -35,7 +43,7 @@ def main() -> int:
                 _kill_here(process)
         run.Checkpoints.save = killing_save
     else:
-        raise ValueError(f"JAXDRIVE_TEST_KILL: expected PROCESS:step:N or PROCESS:save:N, got {when!r}")
+        raise ValueError(f"JAXDRIVE_TEST_KILL: expected PROCESS:step:N, PROCESS:save:N or PROCESS:term:N, got {when!r}")
     from jaxdrive.cli import main as cli
     return cli(sys.argv[1:])
 

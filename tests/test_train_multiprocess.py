@@ -1,7 +1,9 @@
 """``jaxdrive train`` as 2 processes x 4 fake CPU devices (gloo), launched by ``launch/local.py``:
 a process lost to SIGKILL (after a step, and in the middle of an asynchronous checkpoint write)
 and the run relaunched gives the losses of the run that was never killed, bit for bit; a 2 x 4
-checkpoint resumes on 1 x 8 and on 1 x 2 with the same losses (so 2 processes compute what 1 does).
+checkpoint resumes on 1 x 8 and on 1 x 2 with the same losses (so 2 processes compute what 1 does);
+SIGTERM to one process alone stops both at the same step with one checkpoint, and unreadable
+clips skipped by each process are summed over both.
 
 The dataset holds copies of one clip with exactly the training length and no condition drops,
 so every process feeds the same samples whichever clips the data sharding gives it; what is
@@ -22,6 +24,7 @@ import pytest
 from jaxdrive.train.checkpoint import Checkpoints
 from jaxdrive.train.metrics import read_metrics
 
+from shard_faults import shard_files, truncate
 from train_fixtures import write_same_clips
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -118,3 +121,49 @@ def test_a_two_process_checkpoint_resumes_on_one_process(same_clips, never_kille
     assert [r["step"] for r in read_metrics(workdir)] == list(range(1, STEPS + 1))
     for key, rtol in (("loss", 1e-5), ("grad_norm", 1e-4)):
         np.testing.assert_allclose(losses(workdir, key)[2:], losses(never_killed, key)[2:], rtol=rtol, err_msg=key)
+
+
+def _bad_records_per_process(data, steps: int, processes: int, monkeypatch) -> list[list[int]]:
+    """Each process's ``bad_records`` per step, from its own shard of the pipeline the run builds
+    (``Run.dataset`` with the process index and count it would see)."""
+    import jax
+
+    from jaxdrive.config import load_config
+    from jaxdrive.train.run import Run
+    cfg = load_config(ROOT / "configs" / "tiny.py", [f"data.path={data}", *SETS, "data.skip_bad_records=true"])
+    out = []
+    for p in range(processes):
+        with monkeypatch.context() as m:
+            m.setattr(jax, "process_index", lambda: p)
+            m.setattr(jax, "process_count", lambda: processes)
+            it = iter(Run(cfg).dataset())
+            out.append([int(next(it)["bad_records"]) for _ in range(steps)])
+    return out
+
+
+def test_sigterm_to_one_process_stops_both_at_one_step_and_bad_records_are_summed(tmp_path, monkeypatch):
+    """A scheduler preempting one host sends SIGTERM to that process only. The processes agree on
+    it after the step in flight, save one checkpoint together and stop (143); the relaunch resumes
+    there. Two of the four clips sit in truncated shards (data.skip_bad_records): each process
+    counts the ones it replaced, and metrics.jsonl holds the sum over both, step by step, across
+    the resume."""
+    data = write_same_clips(tmp_path / "data", seed=7, frames=5, copies=4, shard_bytes=1)   # a clip a shard
+    for shard in shard_files(data)[1:3]:
+        truncate(shard)
+    per_process = _bad_records_per_process(data, STEPS, 2, monkeypatch)
+    assert all(sum(c) > 0 for c in per_process), per_process           # both processes meet bad clips
+    workdir = tmp_path / "run"
+    first = launch(data, workdir, kill="1:term:3", sets=["data.skip_bad_records=true"])
+    assert first.returncode == 143, output(first)                     # "interrupted", not a hang or a kill
+    saved = [line for line in first.stdout.splitlines() if "signal SIGTERM: saved checkpoint" in line]
+    assert sorted(line[:3] for line in saved) == ["[0]", "[1]"], output(first)   # both processes, at step 3
+    assert all(line.split("saved checkpoint ")[1].startswith(str(workdir / "checkpoints" / "3")) for line in saved)
+    assert committed(workdir) == [2, 3]
+
+    second = launch(data, workdir, sets=["data.skip_bad_records=true"])
+    assert second.returncode == 0, output(second)
+    assert resumed_from(second) == {3}, output(second)
+    rows = read_metrics(workdir)
+    assert [r["step"] for r in rows] == list(range(1, STEPS + 1))
+    expected = np.cumsum(np.sum(per_process, axis=0)).tolist()
+    assert [r["bad_records"] for r in rows] == expected, (expected, per_process)

@@ -14,13 +14,15 @@ def write_synthetic(out, *, first: int = 0, train: int = 3, frames: int = 9, vie
     return out
 
 
-def write_same_clips(out, *, seed: int, frames: int, copies: int):
+def write_same_clips(out, *, seed: int, frames: int, copies: int, shard_bytes: int | None = None):
     """``copies`` copies of one synthetic clip (6 views of 32 x 56) as the train split at ``out``:
-    whichever clips a pipeline picks, in whatever order, it feeds the same samples. Returns ``out``."""
+    whichever clips a pipeline picks, in whatever order, it feeds the same samples (``shard_bytes``
+    1: one clip per shard). Returns ``out``."""
     from jaxdrive.data.synthetic import generate_clip
     from jaxdrive.data.tfds_io import write_dataset
     write_dataset(out, {"train": (generate_clip(seed, views=6, frames=frames, height=32, width=56)
-                                  for _ in range(copies))}, name="jaxdrive_synthetic")
+                                  for _ in range(copies))}, name="jaxdrive_synthetic",
+                  **({} if shard_bytes is None else {"shard_bytes": shard_bytes}))
     return out
 
 

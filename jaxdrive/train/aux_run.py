@@ -73,7 +73,7 @@ def fit(config, workdir, params, loss, batch, *, files=None, log=print, progress
                 log(f"stopping: {bad} non-finite losses in a row at step {step} (train.max_bad_steps = "
                     f"{t.max_bad_steps}); the checkpoint holds the last good parameters")
                 break
-            if stop.signum is not None:
+            if stop.agreed() is not None:
                 status = "interrupted"
                 break
             if t.checkpoint_every and step % t.checkpoint_every == 0:

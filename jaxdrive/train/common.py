@@ -18,6 +18,7 @@ from jax.sharding import PartitionSpec as P
 
 from jaxdrive.config import Config
 from jaxdrive.parallel import batch_axes, batch_shards, make_mesh, param_shardings  # noqa: F401  (re-exported)
+from jaxdrive.parallel.host import Processes
 from jaxdrive.train.optim import make_optimizer
 from jaxdrive.train.state import create_state
 
@@ -76,7 +77,8 @@ def load_run_config(workdir) -> Config:
 
 
 class Stop:
-    """SIGTERM / SIGINT set a flag that the loop reads after the step in flight."""
+    """SIGTERM / SIGINT set a flag that the loop reads after the step in flight, through
+    :meth:`agreed` where several processes run it."""
 
     def __init__(self):
         self.signum = None
@@ -92,6 +94,17 @@ class Stop:
 
     def _handle(self, signum, frame):
         self.signum = signum
+
+    def agreed(self) -> int | None:
+        """The signal any process of the job got (the lowest-numbered one's), else None; every
+        process must call it at the same point of its loop. A signal sent to one process only (a
+        preempted host, not the whole pod) stops them all at the same step: alone it would save a
+        checkpoint, a collective write, that the others never join, and hang there."""
+        processes = Processes()
+        if processes.count == 1:
+            return self.signum
+        got = [s for s in processes.gather(self.signum or 0) if s]
+        return got[0] if got else None
 
     def __exit__(self, *exc):
         for s, h in self._old.items():

@@ -427,17 +427,19 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
             if cfg.train.sample_every and step % cfg.train.sample_every == 0:
                 from jaxdrive.generate.samples import write_samples
                 write_samples(run.sampling(), state, workdir / "samples" / f"step_{step:07d}", log=log)
-            if stop.signum is not None:
+            signum = stop.agreed()                     # one process's signal stops every process
+            if signum is not None:
                 status = "interrupted"
                 _save(ckpts, step, state, it, cfg, log=log, status=status, **counts())
-                log(f"signal {signal.Signals(stop.signum).name}: saved checkpoint "
+                log(f"signal {signal.Signals(signum).name}: saved checkpoint "
                     f"{ckpts.directory / str(step)}; run the same command to resume")
                 break
         else:
             if not _save(ckpts, step, state, it, cfg, log=log, status=status, **counts()):
                 status = "save_failed"
     try:
-        ckpts.close()                    # waits for the last asynchronous write
+        with Stop():                     # a late SIGTERM (the launcher stopping the others) waits for the commit
+            ckpts.close()                # waits for the last asynchronous write
     except Exception as e:
         status = "save_failed"
         log(f"the last checkpoint could not be written ({type(e).__name__}: {str(e)[:200]}); "
