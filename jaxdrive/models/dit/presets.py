@@ -1,7 +1,7 @@
 """Named DiT configurations: the papers' backbones and tiny / small ones for tests and benchmarks.
 
 ``preset(name, **overrides)`` returns a checked :class:`DiTConfig`; ``controls=dict(...)``
-overrides fields of the controls. Parameter counts (``python -m jaxdrive.models.dit_presets``,
+overrides fields of the controls. Parameter counts (``python -m jaxdrive.models.dit.presets``,
 computed with ``jax.eval_shape``) are listed in docs/guides/dit.md.
 
 - ``stdit3-xl/2``: Open-Sora 1.2's STDiT-3 XL/2 (28 layers of a spatial + a temporal block, width
@@ -22,7 +22,7 @@ computed with ``jax.eval_shape``) are listed in docs/guides/dit.md.
 
 from __future__ import annotations
 
-from jaxdrive.models.dit_config import Controls, DiTConfig, check_config
+from jaxdrive.models.dit.config import Controls, DiTConfig, check_config
 from jaxdrive.validate import check_choice
 
 _ALL_CONTROLS = Controls(text="embeddings", fps=True, camera=True, waypoints=True, trajectory=True,
@@ -67,7 +67,7 @@ def preset(name: str, **overrides) -> DiTConfig:
 
 def main() -> None:
     """Print each preset's parameter count (eval_shape, nothing allocated)."""
-    from jaxdrive.models.dit import param_count
+    from jaxdrive.models.dit.model import param_count
     for name in PRESETS:
         print(f"{name:16s} {param_count(PRESETS[name]):>15,d}")
 

@@ -4,7 +4,7 @@
     out = dit.forward(params, latents, sigma, cond)
 
 Every field is optional (None: not given) and each belongs to a control of
-:class:`jaxdrive.models.dit_config.Controls` (:data:`CONTROL_OF`); a field given while its
+:class:`jaxdrive.models.dit.config.Controls` (:data:`CONTROL_OF`); a field given while its
 control is off is an error. Per-frame fields (:data:`PER_FRAME`) are per latent frame ``F'`` or
 per pixel frame ``1 + vae_temporal (F' - 1)``:
 
@@ -18,7 +18,7 @@ per pixel frame ``1 + vae_temporal (F' - 1)``:
   ``warp`` (warped-frame latents, like the latents);
 - ``features {layer: [B, K, S, V, D]}`` + ``features_mask [B, K]`` (STAGE's HTFT);
 - ``drop {condition: [B] bool}``: classifier-free-guidance drops (names from
-  :data:`jaxdrive.models.dit_config.CONDITIONS`).
+  :data:`jaxdrive.models.dit.config.CONDITIONS`).
 
 A :func:`flax.struct.dataclass`, so it is a pytree: it goes through ``jax.jit``, ``lax.scan`` and
 ``tree_map`` (stacking micro-batches, sharding a batch) as a whole; ``cond.replace(...)`` changes
@@ -35,8 +35,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from jaxdrive.models.dit_config import CONDITIONS, DiTConfig
-from jaxdrive.models.dit_controls import frame_mode
+from jaxdrive.models.dit.config import CONDITIONS, DiTConfig
+from jaxdrive.models.dit.controls import frame_mode
 from jaxdrive.parallel.mesh import mesh_axis_size
 from jaxdrive.validate import check_range, check_shape
 

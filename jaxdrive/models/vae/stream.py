@@ -9,14 +9,14 @@ the whole equal to a decode of the whole clip.
 - ``space_to_depth`` codec and the VAE's ``"frame_wise"`` mode: frame-wise, every pushed part
   decodes at once (one compilation per distinct part length).
 - VAE ``"chunked"`` mode: diffusers' chunk boundaries depend on the clip length (the remainder
-  joins the *first* chunk, :func:`jaxdrive.models.vae.chunk_plan`), so the decoder takes the
+  joins the *first* chunk, :func:`jaxdrive.models.vae.model.chunk_plan`), so the decoder takes the
   total up front, buffers pushed latents on the host until a chunk is complete and decodes exactly
   the chunks of the whole-clip pass, threading :class:`Decoder3D`'s causal cache from one chunk to
-  the next (the first chunk without a cache, as :func:`jaxdrive.models.vae._run_chunks`). One
+  the next (the first chunk without a cache, as :func:`jaxdrive.models.vae.model._run_chunks`). One
   jitted function, traced twice (first chunk, steady chunk) whatever the length; the cache has a
   fixed size and decoded frames go to the host, so device memory does not grow with the video.
   With spatial tiling on and frames larger than a tile, every tile keeps its own cache and the
-  tiles are blended per chunk as :func:`jaxdrive.models.vae.tiled_apply` does: the same video as the
+  tiles are blended per chunk as :func:`jaxdrive.models.vae.model.tiled_apply` does: the same video as the
   whole-clip tiled decode.
 - VAE ``"whole"`` mode cannot stream (its GroupNorm statistics span the whole clip): rejected.
 
@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrive import validate
-from jaxdrive.models.vae import Decoder3D, chunk_plan, fold_views, tiled_apply
+from jaxdrive.models.vae.model import Decoder3D, chunk_plan, fold_views, tiled_apply
 
 STREAMING_MODES = ("chunked", "frame_wise")
 

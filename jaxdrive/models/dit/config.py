@@ -54,7 +54,7 @@ class Controls:
       attention tokens per (frame, view). ``box_per_view``: corners in each camera's frame and
       boxes behind / outside a camera masked for that view.
     - ``map``: the BEV map as a ControlNet branch over the first ``map_blocks`` layers.
-    - ``layout``: the projected layout canvas (:mod:`jaxdrive.models.layout`, in the style of
+    - ``layout``: the projected layout canvas (:mod:`jaxdrive.models.dit.layout`, in the style of
       Ctrl-V's and CoGen's layout conditioning): per frame and camera, the boxes' filled
       silhouettes by class (nearest in front), a near-box channel and the BEV map's road classes
       on the visible ground, ray cast with the clip's own cameras at the latent grid

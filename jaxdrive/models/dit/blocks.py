@@ -32,7 +32,7 @@ from flax import struct
 from jax.sharding import PartitionSpec
 
 from jaxdrive.attention import attention
-from jaxdrive.models.dit_config import DiTConfig
+from jaxdrive.models.dit.config import DiTConfig
 from jaxdrive.models.embeddings import apply_rope, rope_1d
 from jaxdrive.models.layers import MLP, AttnProj, Dense, LayerNorm, modulate
 from jaxdrive.models.params import ZEROS, normal, param

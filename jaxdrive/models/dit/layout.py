@@ -41,7 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdrive.models.dit_controls import Conv3x3, align_frames
+from jaxdrive.models.dit.controls import Conv3x3, align_frames
 from jaxdrive.models.tokens import merge, reshape, split
 from jaxdrive.validate import check_positive_int, check_shape
 
@@ -209,7 +209,7 @@ def layout_canvas(boxes, box_classes, box_valid, intrinsics, cam_to_ego, image_h
 class LayoutEncoder(nn.Module):
     """The layout canvas (:func:`layout_canvas`) on the latent grid ``grid_hw`` -> features
     ``[B, V, F', h, w, hidden]``: two 3x3 convolutions (SiLU) per frame and view, then the VAE's
-    temporal alignment (:func:`jaxdrive.models.dit_controls.align_frames`: pixel-frame canvases are
+    temporal alignment (:func:`jaxdrive.models.dit.controls.align_frames`: pixel-frame canvases are
     grouped as the causal VAE groups frames and mapped by a learned linear layer). The DiT
     patchifies the result and adds it to the tokens through a zero-initialised projection.
     Without ``bev_map`` the ``map_channels`` road channels are zero (no road anywhere)."""

@@ -1,6 +1,6 @@
 """Example inputs of the DiT for initialisation, parameter counts, benchmarks and tests.
 
-The checks of real inputs live with them: :meth:`jaxdrive.models.conditions.Conditions.check`.
+The checks of real inputs live with them: :meth:`jaxdrive.models.dit.conditions.Conditions.check`.
 """
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from jaxdrive.models.conditions import Conditions
-from jaxdrive.models.dit_config import DiTConfig
+from jaxdrive.models.dit.conditions import Conditions
+from jaxdrive.models.dit.config import DiTConfig
 
 
 def example_inputs(cfg: DiTConfig, *, batch: int = 1, views: int = 1, frames: int = 1, height: int | None = None,
@@ -19,7 +19,7 @@ def example_inputs(cfg: DiTConfig, *, batch: int = 1, views: int = 1, frames: in
     """Keyword arguments for ``DiT.init`` / ``DiT.__call__`` with every input ``cfg`` takes:
     ``latents [batch, views, frames, height, width, C]`` (height/width default to one patch grid
     of 2 x 2 tokens), ``sigma [batch, frames]``, and ``cond``, a
-    :class:`~jaxdrive.models.conditions.Conditions` with each enabled control (per-frame controls
+    :class:`~jaxdrive.models.dit.conditions.Conditions` with each enabled control (per-frame controls
     per pixel frame when ``pixel_frames``). Random values, deterministic in ``seed``."""
     rng = np.random.default_rng(seed)
     pt, ph, pw = cfg.patch
