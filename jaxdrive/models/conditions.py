@@ -1,0 +1,14 @@
+"""Deprecated: this module moved to :mod:`jaxdrive.models.dit.conditions`. It re-exports that module
+(private names too) and warns on import; it goes in the next release."""
+
+import warnings
+
+from jaxdrive.models.dit import conditions as _new
+from jaxdrive.models.dit.conditions import *  # noqa: F403
+
+warnings.warn("jaxdrive.models.conditions moved to jaxdrive.models.dit.conditions"
+              " (the old path goes in the next release)", DeprecationWarning, stacklevel=2)
+
+
+def __getattr__(name: str):
+    return getattr(_new, name)
