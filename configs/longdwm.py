@@ -44,7 +44,7 @@ from jaxdrive.config import (
     load_config,
     parse_arg,
 )
-from jaxdrive.models.dit_presets import preset
+from jaxdrive.models.dit.presets import preset
 
 SEGMENT = 13          # K: frames of a fine segment; keyframes every K - 1
 

@@ -58,7 +58,7 @@ from jaxdrive.config import (
     load_config,
     parse_arg,
 )
-from jaxdrive.models.dit_presets import preset
+from jaxdrive.models.dit.presets import preset
 
 MAX_GROUP_BATCH = {"paper": 8, "tiny": 2}
 # (height, width): frames, per stage (table I); 0 stands for the stage's longest ("full") clip

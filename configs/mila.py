@@ -51,7 +51,7 @@ from jaxdrive.config import (
     load_config,
     parse_arg,
 )
-from jaxdrive.models.dit_presets import preset
+from jaxdrive.models.dit.presets import preset
 
 # stage 1's trainable set, regexes over "a/b/kernel" parameter paths: MiLA's new modules (the
 # Fourier + MLP condition embeddings; its multi-view spatial attention is the spatial attention

@@ -7,7 +7,7 @@ Needs a VAE: ``jaxdrive convert vae CogVideoX-2b/vae runs/vae`` (or a fine-tuned
 """
 
 from jaxdrive.config import Config, DataConfig, FlowConfig, LatentConfig, OptimConfig, TrainConfig
-from jaxdrive.models.dit_presets import preset
+from jaxdrive.models.dit.presets import preset
 
 
 def get_config() -> Config:

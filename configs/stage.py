@@ -69,7 +69,7 @@ from jaxdrive.config import (
     load_config,
     parse_arg,
 )
-from jaxdrive.models.dit_presets import preset
+from jaxdrive.models.dit.presets import preset
 
 HTFT_TRAINABLE = ("htft_",)          # stage 2: only the HTFT modules' parameters
 

@@ -4,7 +4,7 @@ Set ``data.path``, ``latents.vae_path`` and ``data.text_embeddings``.
 """
 
 from jaxdrive.config import Config, DataConfig, FlowConfig, LatentConfig, MeshConfig, OptimConfig, TrainConfig
-from jaxdrive.models.dit_presets import preset
+from jaxdrive.models.dit.presets import preset
 
 
 def get_config() -> Config:

@@ -26,7 +26,7 @@ to guide against.
 """
 
 from jaxdrive.config import Config, DataConfig, FlowConfig, LatentConfig, OptimConfig, TrainConfig
-from jaxdrive.models.dit_presets import preset
+from jaxdrive.models.dit.presets import preset
 
 
 def get_config() -> Config:

@@ -26,7 +26,7 @@ from typing import Any
 
 from jaxdrive import validate
 from jaxdrive.flow.patterns import check_patterns
-from jaxdrive.models.dit_config import DiTConfig, check_config
+from jaxdrive.models.dit.config import DiTConfig, check_config
 from jaxdrive.models.predictor import PredictorConfig
 from jaxdrive.models.segmenter import SegmenterConfig
 
@@ -200,7 +200,7 @@ class MeshConfig:
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    """A whole run: the DiT (``model``, e.g. a :func:`jaxdrive.models.dit_presets.preset`) and
+    """A whole run: the DiT (``model``, e.g. a :func:`jaxdrive.models.dit.presets.preset`) and
     the sections above. ``--set model.depth=4`` and ``--set model.controls.fps=false`` work too."""
 
     model: DiTConfig = DiTConfig()

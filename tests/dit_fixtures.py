@@ -14,8 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax.traverse_util import flatten_dict, unflatten_dict
 
-from jaxdrive.models.conditions import Conditions
 from jaxdrive.models.dit import DiT
+from jaxdrive.models.dit.conditions import Conditions
 
 # Zero-initialised projections of the control branches (they must leave the output unchanged).
 # "out" is a ControlNet branch layer's output projection (distinct from attention's "to_out").

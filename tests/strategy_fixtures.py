@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from jaxdrive.models.conditions import Conditions
+from jaxdrive.models.dit.conditions import Conditions
 
 H, W, C = 4, 8, 48                         # latents of 16 x 32 pixels, space-to-depth 4
 

@@ -12,7 +12,7 @@ from jaxdrive.bench import train as bench
 from jaxdrive.bench.report import trace_costs
 from jaxdrive.convert.diffusers_dit import config_from_diffusers
 from jaxdrive.models.dit import DiT
-from jaxdrive.models.dit_presets import preset
+from jaxdrive.models.dit.presets import preset
 
 
 def _rows(out):

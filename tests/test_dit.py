@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 
 from jaxdrive.models.dit import DiT, param_count
-from jaxdrive.models.dit_blocks import CrossView
-from jaxdrive.models.dit_config import CONDITIONS
-from jaxdrive.models.dit_controls import frame_mode, group_frames
-from jaxdrive.models.dit_inputs import example_inputs
-from jaxdrive.models.dit_presets import PRESETS, preset
+from jaxdrive.models.dit.blocks import CrossView
+from jaxdrive.models.dit.config import CONDITIONS
+from jaxdrive.models.dit.controls import frame_mode, group_frames
+from jaxdrive.models.dit.inputs import example_inputs
+from jaxdrive.models.dit.presets import PRESETS, preset
 from jaxdrive.models.params import host_init
 
 from dit_fixtures import BRANCH_ZERO, boxed_params, conditions, forward_fn, max_rel, params_for, perturb, split_inputs
@@ -253,7 +253,7 @@ def test_scan_and_remat_match_the_python_loop(dtype):
 
 def test_a_scan_break_gives_a_layer_its_own_name_and_changes_nothing_else():
     """MiLA's paper config scans its layers but trains the last one by name in stage 1."""
-    from jaxdrive.models.dit_config import layer_runs
+    from jaxdrive.models.dit.config import layer_runs
     base = preset("tiny", depth=3)
     broken = dataclasses.replace(base, scan_layers=True, scan_breaks=(2,))
     assert layer_runs(broken) == [(0, 2), (2, 3)] and layer_runs(base) == [(0, 3)]
@@ -424,7 +424,7 @@ def test_residual_reference_frame_starts_by_repeating_the_newest_given_frame():
 def test_final_convolutions_start_as_a_no_op_and_are_3x3_convolutions():
     """U-ViT's final convolutions (``final_conv``): zero-initialised, the model's output is that of
     the same model without them; each is a "same" 3x3 convolution (checked against XLA's)."""
-    from jaxdrive.models.dit import _conv3x3
+    from jaxdrive.models.dit.model import _conv3x3
     from jaxdrive.models.params import Init
     cfg = preset("tiny", prediction="data", final_conv=8,
                  controls=dict(cond_frames="replace", reference_frame="residual"))
@@ -463,7 +463,7 @@ FT_ON, FT_OFF = preset("tiny", controls=dict(frame_time=True)), preset("tiny")
 
 
 def test_latent_frames_take_the_time_of_their_newest_pixel_frame_relative_to_the_first():
-    from jaxdrive.models.dit_controls import latent_frame_times
+    from jaxdrive.models.dit.controls import latent_frame_times
     t = np.array([[10.0, 10.1, 10.2, 10.3, 10.4, 11.4, 12.4, 13.4, 14.4]], np.float32)
     np.testing.assert_allclose(latent_frame_times(t, 3, 4), [[0.0, 0.4, 4.4]], atol=1e-5)   # pixel 0, 4, 8
     np.testing.assert_allclose(latent_frame_times(t[:, ::4], 3, 4), [[0.0, 0.4, 4.4]], atol=1e-5)  # per latent frame
@@ -517,7 +517,7 @@ def test_frame_time_control_starts_as_a_no_op_and_reads_relative_times():
 
 
 def test_frame_times_from_a_batch_and_bad_frame_times():
-    from jaxdrive.models.conditions import Conditions
+    from jaxdrive.models.dit.conditions import Conditions
     batch = {"fps": np.ones(2), "frame_times": np.tile(np.arange(9.0), (2, 1))}
     c = Conditions.from_batch(batch, FT_ON)
     assert c.frame_times.dtype == np.float32 and c.frame_times.shape == (2, 9)

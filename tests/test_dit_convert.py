@@ -15,7 +15,7 @@ torch = pytest.importorskip("torch")
 diffusers = pytest.importorskip("diffusers")
 
 from jaxdrive.convert import load_diffusers_transformer  # noqa: E402
-from jaxdrive.models.conditions import Conditions  # noqa: E402
+from jaxdrive.models.dit.conditions import Conditions  # noqa: E402
 
 BASE = dict(num_attention_heads=2, attention_head_dim=16, in_channels=4, out_channels=4, time_embed_dim=24,
             text_embed_dim=12, num_layers=2, sample_width=8, sample_height=6, sample_frames=9, patch_size=2,

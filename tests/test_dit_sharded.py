@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from jaxdrive.models.dit import DiT
-from jaxdrive.models.dit_inputs import example_inputs
-from jaxdrive.models.dit_presets import preset
+from jaxdrive.models.dit.inputs import example_inputs
+from jaxdrive.models.dit.presets import preset
 from jaxdrive.parallel import make_mesh, shard_params
 
 from dit_fixtures import boxed_params, conditions, max_rel, params_for, split_inputs, tree_max_rel

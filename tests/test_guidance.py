@@ -13,7 +13,7 @@ import pytest
 from jaxdrive.cli import main as cli
 from jaxdrive.config import check_sections, load_config, to_dict
 from jaxdrive.generate.guidance import CONTROLS, check_controls, sampler_guidance
-from jaxdrive.models.conditions import Conditions
+from jaxdrive.models.dit.conditions import Conditions
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -76,7 +76,7 @@ def test_mila_stage1_trains_the_box_encoder_when_boxes_are_on():
     import flax.linen as nn
 
     from jaxdrive.models.dit import DiT
-    from jaxdrive.models.dit_inputs import example_inputs
+    from jaxdrive.models.dit.inputs import example_inputs
     from jaxdrive.train.optim import trainable_labels
 
     def labels(*sets):

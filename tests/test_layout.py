@@ -1,4 +1,4 @@
-"""The projected layout control (``controls.layout``, :mod:`jaxdrive.models.layout`) and the box
+"""The projected layout control (``controls.layout``, :mod:`jaxdrive.models.dit.layout`) and the box
 corners' normalised range (``model.box_range``, ``model.box_freqs``): the rasterisation against
 the synthetic world's instance ids and worked numbers, the zero-initialised gate, guidance's drop,
 and bad input."""
@@ -13,12 +13,12 @@ import pytest
 from jaxdrive import geometry
 from jaxdrive.config import Config, override, to_dict
 from jaxdrive.data.synthetic import generate_clip
-from jaxdrive.models.conditions import Conditions
 from jaxdrive.models.dit import DiT
-from jaxdrive.models.dit_controls import box_corner_features
-from jaxdrive.models.dit_inputs import example_inputs
-from jaxdrive.models.dit_presets import preset
-from jaxdrive.models.layout import box_hits, camera_rays, layout_canvas
+from jaxdrive.models.dit.conditions import Conditions
+from jaxdrive.models.dit.controls import box_corner_features
+from jaxdrive.models.dit.inputs import example_inputs
+from jaxdrive.models.dit.layout import box_hits, camera_rays, layout_canvas
+from jaxdrive.models.dit.presets import preset
 from jaxdrive.train.run import CONFIG_FILE, load_run_config
 
 from control_fixtures import measured

@@ -53,7 +53,7 @@ def test_paper_configs_take_their_argument(arg):
         import jax
 
         from jaxdrive.models.dit import DiT
-        from jaxdrive.models.dit_inputs import example_inputs
+        from jaxdrive.models.dit.inputs import example_inputs
         from jaxdrive.train.optim import trainable_labels
         m = config.model
         assert m.scan_layers and m.scan_breaks == (m.depth - 1,)

@@ -18,7 +18,7 @@ from jaxdrive.generate import strategies as S
 from jaxdrive.generate.long_video import sample_long
 from jaxdrive.generate.windows import Tracker, WindowModel
 from jaxdrive.models.dit import DiT
-from jaxdrive.models.dit_presets import preset
+from jaxdrive.models.dit.presets import preset
 from jaxdrive.models.latents import LatentCodec
 
 from strategy_fixtures import C, H, W, horizon_inputs

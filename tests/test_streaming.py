@@ -20,7 +20,7 @@ from jaxdrive.generate import streaming as ST
 from jaxdrive.generate.long_video import sample_long
 from jaxdrive.generate.windows import Tracker, WindowModel, sample_window
 from jaxdrive.models.dit import DiT
-from jaxdrive.models.dit_presets import preset
+from jaxdrive.models.dit.presets import preset
 from jaxdrive.models.latents import LatentCodec
 
 from strategy_fixtures import C, H, W, horizon_inputs
@@ -259,7 +259,7 @@ def test_a_scanned_stage_1_model_loads_into_stage_2_with_its_outputs_unchanged()
     passes made its compile take over 15 minutes): stage 2's HTFT layer splits stage 1's scanned run
     in two, and ``train.init_from`` moves the layers across; HTFT's zero output layer then leaves
     the stage-1 outputs as they were, past features or not."""
-    from jaxdrive.models.dit_inputs import example_inputs
+    from jaxdrive.models.dit.inputs import example_inputs
     from jaxdrive.train.init_from import merge_params
 
     from dit_fixtures import perturb

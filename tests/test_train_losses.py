@@ -10,8 +10,8 @@ import pytest
 
 from jaxdrive import flow
 from jaxdrive.config import load_config
-from jaxdrive.models.conditions import Conditions
 from jaxdrive.models.dit import DiT
+from jaxdrive.models.dit.conditions import Conditions
 from jaxdrive.train import distill_step, flow_step
 from jaxdrive.train.run import Run
 

@@ -8,7 +8,7 @@ Weights go through the real import path (``save_pretrained`` -> safetensors ->
 - spatial tiling with diffusers' ``enable_tiling`` path.
 
 An even number of latent frames is where jaxdrive departs from diffusers on purpose (see
-``jaxdrive.models.vae_layers.Upsample3D``): diffusers decodes ``F'`` even into ``4 F'`` frames,
+``jaxdrive.models.vae.layers.Upsample3D``): diffusers decodes ``F'`` even into ``4 F'`` frames,
 jaxdrive into ``1 + 4 (F' - 1)``; encoding is compared there too.
 """
 

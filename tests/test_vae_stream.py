@@ -1,4 +1,4 @@
-"""Streaming decode (jaxdrive.models.vae_stream): the parts pushed in any pattern concatenate to
+"""Streaming decode (jaxdrive.models.vae.stream): the parts pushed in any pattern concatenate to
 the whole-clip decode, in every streaming mode, with a bounded number of compilations."""
 
 import itertools
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from test_vae import TINY, random_params
 
-from jaxdrive.models import vae_stream
 from jaxdrive.models.latents import LatentCodec
 from jaxdrive.models.vae import CausalVAE, VAEConfig
+from jaxdrive.models.vae import stream as vae_stream
 
 
 def _codec(params, **changes):

@@ -93,7 +93,7 @@ def _warp_model():
 
     from jaxdrive.generate.windows import WindowModel
     from jaxdrive.models.dit import DiT
-    from jaxdrive.models.dit_presets import preset
+    from jaxdrive.models.dit.presets import preset
 
     from strategy_fixtures import C, H, W
     cfg = preset("tiny", in_channels=C, vae_spatial=4, vae_temporal=1, patch=(1, 2, 2), prediction="data",

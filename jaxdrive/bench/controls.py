@@ -114,7 +114,7 @@ def check_options(*, steps: int, batch: int, clips: int, lr: float, seed: int = 
 
 def config(pathway: str):
     """The one-layer DiT with only ``pathway``'s control (module docstring)."""
-    from jaxdrive.models.dit_presets import preset
+    from jaxdrive.models.dit.presets import preset
     check_pathways([pathway])
     return preset("tiny", depth=1, heads=2, head_dim=16, in_channels=CHANNELS, prediction="data",
                   controls=dict(text=None, fps=False, cond_frames="replace", reference_frame="residual",
@@ -124,7 +124,7 @@ def config(pathway: str):
 def _cameras(batch: int, yaw=None, focal_scale=None):
     """One camera at (1, 0, 1.5) m per clip, 70-degree field of view (times ``1 / focal_scale``),
     turned by ``yaw`` (radians, left positive) about the ego's z axis."""
-    from jaxdrive.models.dit_inputs import example_cameras
+    from jaxdrive.models.dit.inputs import example_cameras
     cams = example_cameras(batch, 1, 8 * H, 8 * W)
     if yaw is not None:
         c, s = np.cos(yaw), np.sin(yaw)
@@ -139,7 +139,7 @@ def _cameras(batch: int, yaw=None, focal_scale=None):
 
 def _box_cover(boxes, cams):
     """The fraction of each latent cell that ``boxes [B, 1, N, 7]`` cover in the clip's camera,
-    ``[B, 1 (view), h, w, 1]`` (:func:`jaxdrive.models.layout.layout_canvas`, 2 x 2 rays a cell)."""
+    ``[B, 1 (view), h, w, 1]`` (:func:`jaxdrive.models.dit.layout.layout_canvas`, 2 x 2 rays a cell)."""
     return np.asarray(_cover(boxes, cams["intrinsics"], cams["cam_to_ego"]))
 
 
@@ -147,7 +147,7 @@ def _box_cover(boxes, cams):
 def _cover_fn():
     import jax
 
-    from jaxdrive.models.layout import layout_canvas
+    from jaxdrive.models.dit.layout import layout_canvas
 
     def cover(boxes, intrinsics, cam_to_ego):
         b, _, n = boxes.shape[:3]
@@ -172,9 +172,9 @@ def _ahead_in_view(intrinsics, cam_to_ego):
 
 def toy_clips(pathway: str, rng: np.random.Generator, batch: int):
     """``batch`` clips of ``pathway``'s toy (module docstring): ``(x [B, 1, 2, h, w, C], cond)``,
-    ``cond`` a :class:`~jaxdrive.models.conditions.Conditions` with the control and frame 0 as the
+    ``cond`` a :class:`~jaxdrive.models.dit.conditions.Conditions` with the control and frame 0 as the
     given frame."""
-    from jaxdrive.models.conditions import Conditions
+    from jaxdrive.models.dit.conditions import Conditions
     check_pathways([pathway])
     x0 = rng.standard_normal((batch, 1, H, W, CHANNELS)).astype(np.float32)     # [B, V, h, w, C]
     kw = {}
@@ -239,7 +239,7 @@ def _functions(cfg, lr: float):
     import optax
 
     from jaxdrive import flow
-    from jaxdrive.models.dit import DiT
+    from jaxdrive.models.dit.model import DiT
 
     dit, opt = DiT(cfg), optax.adam(lr)
 

@@ -28,9 +28,9 @@ def run(presets, seq_sizes, repeats):
     import jax.numpy as jnp
 
     from jaxdrive.bench.report import best_time, emit, table
-    from jaxdrive.models.dit import DiT, param_count
-    from jaxdrive.models.dit_inputs import example_inputs
-    from jaxdrive.models.dit_presets import preset
+    from jaxdrive.models.dit.inputs import example_inputs
+    from jaxdrive.models.dit.model import DiT, param_count
+    from jaxdrive.models.dit.presets import preset
     from jaxdrive.parallel import make_mesh, shard_params
 
     name = "dit"

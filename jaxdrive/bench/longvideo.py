@@ -42,7 +42,7 @@ CONFIG = Path(__file__).resolve().parents[2] / "configs" / "tiny.py"
 
 def _models(config, views: int, steps: int):
     from jaxdrive.generate.windows import WindowModel
-    from jaxdrive.models.dit import DiT
+    from jaxdrive.models.dit.model import DiT
     d = config.data
     dit = DiT(config.model)
     window = d.frames

@@ -38,7 +38,7 @@ def _real_codec(latents):
     import jax
 
     from jaxdrive.models.latents import LatentCodec
-    from jaxdrive.models.vae import CausalVAE, VAEConfig
+    from jaxdrive.models.vae.model import CausalVAE, VAEConfig
     from jaxdrive.train.plan import abstract_codec
     _, what = abstract_codec(latents)
     if latents.source != "vae" or "has none" not in what:

@@ -99,9 +99,9 @@ def model_rows(presets, *, steps: int, frames: int, height: int, width: int, rep
 
     from jaxdrive.bench.train import cpu_count, diffusers_config
     from jaxdrive.convert.diffusers_dit import config_from_diffusers
-    from jaxdrive.models.dit import DiT
-    from jaxdrive.models.dit_inputs import example_inputs
-    from jaxdrive.models.dit_presets import preset
+    from jaxdrive.models.dit.inputs import example_inputs
+    from jaxdrive.models.dit.model import DiT
+    from jaxdrive.models.dit.presets import preset
     from jaxdrive.models.params import count_params
 
     threads = threads or cpu_count()

@@ -162,8 +162,8 @@ def jax_step(cfg, mesh, *, batch: int | None, frames: int, height: int, width: i
 
     from jaxdrive.bench.report import footprint_bytes, peak_device_bytes, trace_costs
     from jaxdrive.config import FlowConfig
-    from jaxdrive.models.dit import DiT
-    from jaxdrive.models.dit_inputs import example_inputs
+    from jaxdrive.models.dit.inputs import example_inputs
+    from jaxdrive.models.dit.model import DiT
     from jaxdrive.models.params import count_params
     from jaxdrive.train import flow_step
     from jaxdrive.train.run import global_micro_batches, sharded_state
@@ -348,7 +348,7 @@ def run(presets, *, batch: int, frames: int, height: int, width: int, repeats: i
     def figure(*args, **kwargs):
         return None if as_json else emit(*args, **kwargs)
     from jaxdrive.convert.diffusers_dit import config_from_diffusers
-    from jaxdrive.models.dit_presets import PRESETS, preset
+    from jaxdrive.models.dit.presets import PRESETS, preset
     from jaxdrive.parallel import make_mesh
 
     device = jax.devices()[0]

@@ -44,7 +44,7 @@ def _memory(compiled):
 def run(frames_list, size, speed_size, speed_frames, mode_list, *, speed_modes=("chunked",),
         speed_ops=("encode", "decode"), speed_repeats: int = 2, dtype: str = "float32", arch: str = "cogvideox-2b",
         memory: bool = True):
-    from jaxdrive.models.vae import CausalVAE, VAEConfig
+    from jaxdrive.models.vae.model import CausalVAE, VAEConfig
 
     vae = CausalVAE(VAEConfig(dtype=dtype, **ARCHS[arch]))
     c = vae.config
@@ -116,7 +116,7 @@ def run(frames_list, size, speed_size, speed_frames, mode_list, *, speed_modes=(
 
 
 def main(argv=None):
-    from jaxdrive.models.vae import VAEConfig
+    from jaxdrive.models.vae.model import VAEConfig
 
     parser = argparse.ArgumentParser(prog="jaxdrive bench vae", description=__doc__.split("\n\n")[0])
     parser.add_argument("--frames", type=int, nargs="+", default=[33, 241],

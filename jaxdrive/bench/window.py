@@ -31,8 +31,8 @@ def _model(views: int):
     import jax.numpy as jnp
 
     from jaxdrive.generate.windows import WindowModel
-    from jaxdrive.models.dit import DiT
-    from jaxdrive.models.dit_presets import preset
+    from jaxdrive.models.dit.model import DiT
+    from jaxdrive.models.dit.presets import preset
     cfg = preset("tiny", in_channels=C, vae_spatial=4, vae_temporal=1, patch=(1, 2, 2), prediction="data",
                  final_conv=32, controls=dict(text=None, waypoints=True, fps=True, cond_frames="replace",
                                               reference_frame="residual"))
@@ -48,7 +48,7 @@ def footprint(model, mesh, frames: int, views: int) -> int:
     import numpy as np
 
     from jaxdrive.generate.windows import jitted_sample_window, to_mesh
-    from jaxdrive.models.conditions import Conditions
+    from jaxdrive.models.dit.conditions import Conditions
     m = dataclasses.replace(model, window=frames)
     x = np.zeros((1, views, frames, H, W, C), np.float32)
     cond = np.zeros((1, frames), bool)

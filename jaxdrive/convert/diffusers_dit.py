@@ -24,8 +24,8 @@ import einops
 import numpy as np
 
 from jaxdrive.convert.safetensors_io import read_config, read_weights
-from jaxdrive.models.dit import DiT
-from jaxdrive.models.dit_config import Controls, DiTConfig, check_config, layer_runs
+from jaxdrive.models.dit.config import Controls, DiTConfig, check_config, layer_runs
+from jaxdrive.models.dit.model import DiT
 
 CLASS_NAME = "CogVideoXTransformer3DModel"
 
@@ -173,7 +173,7 @@ def load_diffusers_transformer(path, **overrides):
     import flax.linen as nn
     import jax
 
-    from jaxdrive.models.dit_inputs import example_inputs
+    from jaxdrive.models.dit.inputs import example_inputs
 
     cfg = config_from_diffusers(read_config(path, CLASS_NAME), **overrides)
     scan = cfg.scan_layers

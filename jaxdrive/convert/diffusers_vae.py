@@ -1,4 +1,4 @@
-"""diffusers ``AutoencoderKLCogVideoX`` (safetensors) -> :class:`jaxdrive.models.vae.CausalVAE`.
+"""diffusers ``AutoencoderKLCogVideoX`` (safetensors) -> :class:`jaxdrive.models.vae.model.CausalVAE`.
 
 PyTorch names map to jaxdrive's parameter paths by rule: list indices join their module
 (``down_blocks.0.resnets.1`` -> ``down_blocks_0_resnets_1``), the wrapper ``.conv`` of causal and
@@ -15,7 +15,7 @@ import jax
 import numpy as np
 
 from jaxdrive.convert.safetensors_io import WEIGHTS, assemble_params, read_config, read_weights
-from jaxdrive.models.vae import CausalVAE, VAEConfig
+from jaxdrive.models.vae.model import CausalVAE, VAEConfig
 
 CLASS_NAME = "AutoencoderKLCogVideoX"
 

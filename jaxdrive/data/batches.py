@@ -6,7 +6,7 @@
 The train step (:mod:`jaxdrive.train.flow_step`) and the samplers (:mod:`jaxdrive.generate`) both
 take what :func:`model_inputs` makes; neither prepares a batch itself. Captions become token ids of
 the built-in caption encoder or looked-up precomputed T5 embeddings (:class:`TextEmbeddings`);
-everything else is read by :meth:`jaxdrive.models.conditions.Conditions.from_batch`.
+everything else is read by :meth:`jaxdrive.models.dit.conditions.Conditions.from_batch`.
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxdrive.models.conditions import Conditions
-from jaxdrive.models.dit_config import DiTConfig
+from jaxdrive.models.dit.conditions import Conditions
+from jaxdrive.models.dit.config import DiTConfig
 
 LOSS_FIELDS = ("boxes", "box_valid", "intrinsics", "cam_to_ego")   # what STAGE's W_aux reads
 POSES = "poses"     # a distillation teacher's inputs carry the clip's ego_to_world under this key
@@ -60,7 +60,7 @@ def text_inputs(captions, model: DiTConfig, text_embeddings: TextEmbeddings | No
 
 
 def conditions(batch: dict, model: DiTConfig, text_embeddings: TextEmbeddings | None = None) -> Conditions:
-    """The :class:`~jaxdrive.models.conditions.Conditions` of ``model`` from a pipeline batch."""
+    """The :class:`~jaxdrive.models.dit.conditions.Conditions` of ``model`` from a pipeline batch."""
     text, mask = text_inputs(batch["caption"], model, text_embeddings) if "caption" in batch else (None, None)
     return Conditions.from_batch(batch, model, text=text, text_mask=mask)
 

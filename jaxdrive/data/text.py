@@ -1,5 +1,5 @@
 """Text for the DiT, on the data side: the built-in caption tokenizer (whose ids feed
-:class:`jaxdrive.models.dit_controls.CaptionEncoder`) and T5 embeddings precomputed from a local
+:class:`jaxdrive.models.dit.controls.CaptionEncoder`) and T5 embeddings precomputed from a local
 encoder.
 
 **Built-in.** Captions follow MiLA's template (``jaxdrive.data.schema.CAPTION_TEMPLATE``): its

@@ -26,7 +26,7 @@ from collections.abc import Callable, Mapping
 
 import jax.numpy as jnp
 
-from jaxdrive.models.conditions import BATCH_DROPS
+from jaxdrive.models.dit.conditions import BATCH_DROPS
 from jaxdrive.validate import check_range
 
 CONTROLS = {"boxes": BATCH_DROPS["boxes"], "route": BATCH_DROPS["trajectory"]}
@@ -44,7 +44,7 @@ def check_controls(model, drop_prob: float, scales: Mapping[str, float | None], 
                    option: Callable[[str], str] = lambda c: f"control_guidance[{c!r}]"
                    ) -> tuple[tuple[str, float], ...]:
     """The per-control scales ``scales`` (control name -> scale; None: not guided on its own)
-    checked against a model (its :class:`jaxdrive.models.dit_config.DiTConfig` ``model`` and the
+    checked against a model (its :class:`jaxdrive.models.dit.config.DiTConfig` ``model`` and the
     ``data.drop_prob`` it trained with); returns ``((control, scale), ...)`` in :data:`CONTROLS`
     order, the form :class:`jaxdrive.generate.windows.WindowModel` keeps. ``option`` names a
     control's option in the errors (the CLI's ``--cfg-boxes``)."""

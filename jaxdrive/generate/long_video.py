@@ -34,7 +34,7 @@ import numpy as np
 from jaxdrive.generate.guidance import describe
 from jaxdrive.generate.strategies import Models, run_strategy
 from jaxdrive.generate.windows import Tracker
-from jaxdrive.models.conditions import Conditions
+from jaxdrive.models.dit.conditions import Conditions
 
 GRID_FRAMES = 6
 

@@ -20,7 +20,7 @@ import numpy as np
 from tqdm import tqdm
 
 from jaxdrive.generate.windows import WindowModel, window_starts
-from jaxdrive.models.dit import DiT
+from jaxdrive.models.dit.model import DiT
 from jaxdrive.validate import check_positive_int
 
 

@@ -22,8 +22,8 @@ from jaxdrive import flow
 from jaxdrive.config import DataConfig, FlowConfig, StreamConfig
 from jaxdrive.generate.guidance import check_controls, check_scale, describe
 from jaxdrive.generate.rollout import rollout, to_numpy_video
-from jaxdrive.models.dit import DiT
-from jaxdrive.models.dit_config import DiTConfig
+from jaxdrive.models.dit.config import DiTConfig
+from jaxdrive.models.dit.model import DiT
 from jaxdrive.models.latents import LatentCodec
 from jaxdrive.parallel.mesh import batch_axes
 from jaxdrive.validate import check_positive_int

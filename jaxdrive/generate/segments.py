@@ -20,7 +20,7 @@ import numpy as np
 
 from jaxdrive import flow
 from jaxdrive.generate.windows import Horizon, WindowModel, abstract_on_mesh, window_controls
-from jaxdrive.models.conditions import Conditions
+from jaxdrive.models.dit.conditions import Conditions
 from jaxdrive.parallel.memory import device_budget, footprint_bytes
 from jaxdrive.parallel.mesh import batch_shards
 from jaxdrive.validate import check_positive_int

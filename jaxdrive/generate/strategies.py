@@ -43,7 +43,7 @@ from jaxdrive import flow
 from jaxdrive.generate.segments import AUTO, check_segment_batch, choose_segment_batch, fine_group
 from jaxdrive.generate.streaming import check_taps, streaming  # noqa: F401  (check_taps: its old home)
 from jaxdrive.generate.windows import Horizon, Tracker, WindowModel, to_mesh, window_controls, window_starts
-from jaxdrive.models.conditions import Conditions
+from jaxdrive.models.dit.conditions import Conditions
 from jaxdrive.validate import check_choice, check_positive_int
 
 STRATEGIES = ("rollout", "coarse-to-refine", "coarse-fine", "window", "streaming")

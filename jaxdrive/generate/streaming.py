@@ -35,7 +35,7 @@ from jaxdrive import flow
 from jaxdrive.generate.guidance import sampler_guidance
 from jaxdrive.generate.windows import STREAM_WINDOW as WINDOW  # anchor, condition, new
 from jaxdrive.generate.windows import Tracker, WindowModel, to_mesh
-from jaxdrive.models.conditions import Conditions
+from jaxdrive.models.dit.conditions import Conditions
 from jaxdrive.models.htft import buffer_init, buffer_push, buffer_select
 from jaxdrive.models.htft import check_taps as check_offsets
 from jaxdrive.parallel.rules import constrain, reshard_like

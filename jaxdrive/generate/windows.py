@@ -28,8 +28,8 @@ from jax.sharding import PartitionSpec as P
 from jaxdrive import flow
 from jaxdrive.flow.jdc import DEFAULT_ALPHA1, DEFAULT_ANCHOR_SLOPE
 from jaxdrive.generate.guidance import check_controls, check_scale, sampler_guidance
-from jaxdrive.models.conditions import Conditions
-from jaxdrive.models.dit import DiT
+from jaxdrive.models.dit.conditions import Conditions
+from jaxdrive.models.dit.model import DiT
 from jaxdrive.parallel.mesh import batch_axes, batch_shards
 from jaxdrive.validate import check_positive_int
 

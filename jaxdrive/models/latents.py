@@ -24,7 +24,7 @@ from jaxdrive import validate
 from jaxdrive.models.tokens import reshape  # keeps the batch sharding under Explicit meshes
 
 if TYPE_CHECKING:
-    from jaxdrive.models.vae import CausalVAE
+    from jaxdrive.models.vae.model import CausalVAE
 
 
 def space_to_depth(video, factor: int):
@@ -112,10 +112,10 @@ class LatentCodec:
         return jnp.clip(video, -1.0, 1.0)
 
     def stream_decoder(self, total_latent_frames: int):
-        """A :class:`jaxdrive.models.vae_stream.StreamDecoder` for a clip of ``total_latent_frames``
+        """A :class:`jaxdrive.models.vae.stream.StreamDecoder` for a clip of ``total_latent_frames``
         latent frames: ``push(part)`` returns the frames that are final, ``flush()`` the rest, and
         together they equal :meth:`decode` of the whole clip (the VAE's ``"whole"`` mode is rejected)."""
-        from jaxdrive.models.vae_stream import StreamDecoder
+        from jaxdrive.models.vae.stream import StreamDecoder
         return StreamDecoder(self, total_latent_frames)
 
     def check_model(self, dit_config) -> None:

@@ -8,7 +8,7 @@ accepts ``shardings`` (a tree of ``jax.sharding.Sharding``, e.g. from
 :func:`jaxdrive.parallel.param_shardings`) to place parameters straight onto a mesh.
 
 Model kinds register here by their config class: ``"vae"`` is
-:class:`jaxdrive.models.vae.CausalVAE`.
+:class:`jaxdrive.models.vae.model.CausalVAE`.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ FORMAT_VERSION = 1
 
 
 def _kinds() -> dict:
-    from jaxdrive.models.vae import CausalVAE, VAEConfig
+    from jaxdrive.models.vae.model import CausalVAE, VAEConfig
     return {"vae": (CausalVAE, VAEConfig)}
 
 

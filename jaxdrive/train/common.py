@@ -37,11 +37,11 @@ def mesh_from_config(config: Config, devices=None):
 
 
 def abstract_train_state(model, optim_config, total_steps: int, mesh, *, seed: int = 0):
-    """``(abstract state, optimizer)`` of a :class:`jaxdrive.models.dit.DiT` config ``model``:
+    """``(abstract state, optimizer)`` of a :class:`jaxdrive.models.dit.model.DiT` config ``model``:
     the state's ``jax.ShapeDtypeStruct`` leaves with their shardings on ``mesh``, from
     ``jax.eval_shape``: the target a checkpoint restores into, with no parameter allocated (at 1B+
     parameters a fresh state would double host and device memory)."""
-    from jaxdrive.models.dit import DiT
+    from jaxdrive.models.dit.model import DiT
     # parameter shapes do not depend on the input shapes (cross-view attention needs two views)
     boxed = DiT(model).abstract_params(views=2 if model.multiview == "cross_view" else 1)
     params = jax.tree_util.tree_map(lambda x, sh: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sh),

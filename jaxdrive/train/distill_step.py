@@ -24,7 +24,7 @@ from jax.sharding import PartitionSpec
 
 from jaxdrive import flow
 from jaxdrive.data.batches import POSES
-from jaxdrive.models.conditions import Conditions
+from jaxdrive.models.dit.conditions import Conditions
 from jaxdrive.parallel.mesh import explicit_mesh, spec_of
 
 
@@ -62,7 +62,7 @@ def teacher_coarse_estimate(teacher, params, x, x_t, levels, cond, inputs: dict,
                             boundary: str):
     """The frozen fine model's data estimates at the coarse frames, ``[B, V, n + 1, h, w, C]``.
 
-    ``teacher``: the fine :class:`jaxdrive.models.dit.DiT`; ``x``, ``x_t`` the clean and noisy
+    ``teacher``: the fine :class:`jaxdrive.models.dit.model.DiT`; ``x``, ``x_t`` the clean and noisy
     dense latents; ``levels``, ``cond`` ``[B, F]`` dense levels and condition frames;
     ``inputs`` the fine model's ``{"cond": Conditions, POSES: ego poses}``
     (:func:`jaxdrive.data.batches.model_inputs` with ``teacher``)."""

@@ -2,7 +2,7 @@
 
 One step (:func:`make_train_step`) takes the train state and a stack of ``grad_accum``
 micro-batches ``[A, b, ...]`` (each made on the host by :func:`jaxdrive.data.batches.model_inputs`:
-the video or latents and the model's :class:`~jaxdrive.models.conditions.Conditions`), and for
+the video or latents and the model's :class:`~jaxdrive.models.dit.conditions.Conditions`), and for
 each micro-batch (in a ``lax.scan``):
 
 1. encodes the video to latents ``x`` (:class:`jaxdrive.models.latents.LatentCodec`; a VAE runs
@@ -44,8 +44,8 @@ import optax
 
 from jaxdrive import flow
 from jaxdrive.config import FlowConfig, StreamConfig
-from jaxdrive.models.dit import DiT
-from jaxdrive.models.dit_config import DiTConfig
+from jaxdrive.models.dit.config import DiTConfig
+from jaxdrive.models.dit.model import DiT
 from jaxdrive.models.latents import LatentCodec
 from jaxdrive.train import distill_step
 from jaxdrive.train.state import TrainState, apply_gradients

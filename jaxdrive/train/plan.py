@@ -11,7 +11,7 @@ the config's bucket with the most tokens, built by :func:`~jaxdrive.data.batches
 from a pipeline batch of zero-stride NumPy views (the tree the loop feeds, at no memory), sharded
 over ``data`` x ``fsdp`` as :meth:`Run.global_batch` shards it. A VAE that encodes in the step is
 the one ``latents.vae_path`` describes (only its ``model.json`` is read) or, where that path holds
-none, CogVideoX-2B's (:class:`~jaxdrive.models.vae.VAEConfig`'s defaults), its parameters shapes
+none, CogVideoX-2B's (:class:`~jaxdrive.models.vae.model.VAEConfig`'s defaults), its parameters shapes
 only. The jitted train step (:meth:`Run.step_fn`) is lowered on these shapes and compiled, and
 ``compiled.memory_analysis()`` gives its arguments, outputs (less those aliasing the donated
 state) and temporaries: activations kept for the backward pass and scratch. ``total`` is what
@@ -107,7 +107,7 @@ def abstract_codec(latents):
 
     from jaxdrive.models.latents import LatentCodec
     from jaxdrive.models.pretrained import MODEL_FILE, load_pretrained_model
-    from jaxdrive.models.vae import CausalVAE, VAEConfig
+    from jaxdrive.models.vae.model import CausalVAE, VAEConfig
     if latents.source != "vae":
         return LatentCodec.from_config(latents), latents.source
     if (Path(latents.vae_path) / MODEL_FILE).is_file():

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import optax
 
 from jaxdrive import validate
-from jaxdrive.models.vae import CausalVAE
+from jaxdrive.models.vae.model import CausalVAE
 
 
 @dataclasses.dataclass(frozen=True)

@@ -30,7 +30,7 @@ stage 3 encodes 3 clips x 6 views of 9 frames at 848 x 1600 per device on the fl
 convolution activation at once). Equal either way.
 
 A video generated part by part decodes as its latents come, equal to the whole-clip decode, with
-:mod:`jaxdrive.models.vae_stream` (``"chunked"`` and ``"frame_wise"`` only).
+:mod:`jaxdrive.models.vae.stream` (``"chunked"`` and ``"frame_wise"`` only).
 
 Spatial tiling (``config.tiling`` or ``tiled=``) follows diffusers' ``tiled_encode`` /
 ``tiled_decode``: overlapping tiles of ``tile_sample_height x tile_sample_width`` pixels, blended
@@ -49,10 +49,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrive import validate
-from jaxdrive.models import vae_layers as L
 from jaxdrive.models.layers import GroupNorm
 from jaxdrive.models.params import abstract_params, host_params_for_key
 from jaxdrive.models.tokens import merge, split
+from jaxdrive.models.vae import layers as L
 from jaxdrive.parallel.mesh import entry_axes
 from jaxdrive.parallel.rules import constrain, logical_to_spec
 
@@ -253,7 +253,7 @@ def tiled_apply(apply, x, geo_h: dict, geo_w: dict, kind: str, caches=None):
     Tiles of one shape (interior, right edge, bottom edge, corner) go through one ``lax.map``:
     one tile at a time, as tiling is for memory, and one compilation per shape.
 
-    With ``caches`` (a streaming decode, :mod:`jaxdrive.models.vae_stream`): ``apply(tile, cache)
+    With ``caches`` (a streaming decode, :mod:`jaxdrive.models.vae.stream`): ``apply(tile, cache)
     -> (y, cache)`` and every tile keeps its own causal cache, ``{tile shape: caches stacked over
     the tiles of that shape}`` (``{}`` for the first chunk); returns ``(video, new caches)``."""
     size_h = geo_h["tile_sample"] if kind == "encode" else geo_h["tile_latent"]

@@ -2,7 +2,7 @@
 MagicDrive-V2, with per-frame noise levels, multi-view attention and the driving controls.
 
     from jaxdrive.models.dit import DiT
-    from jaxdrive.models.dit_presets import preset
+    from jaxdrive.models.dit.presets import preset
 
     dit = DiT(preset("tiny"))
     params = dit.init_params(seed=0)                  # on the host; or dit.init(key, ...) on devices
@@ -22,10 +22,10 @@ whole clip's level for an imported model, whose sigma is ``[B]``; a choice, CogV
 level per clip).
 
 **Sequence parallelism** shards the spatial patches S of the activations ``[B, F, S, V, D]`` over
-``seq``; :mod:`jaxdrive.models.dit_blocks` lists which attentions communicate.
+``seq``; :mod:`jaxdrive.models.dit.blocks` lists which attentions communicate.
 
-**Conditions** come as one :class:`jaxdrive.models.conditions.Conditions` (``cond``), each field
-for a control of ``DiTConfig.controls`` (:class:`jaxdrive.models.dit_config.Controls`), each
+**Conditions** come as one :class:`jaxdrive.models.dit.conditions.Conditions` (``cond``), each field
+for a control of ``DiTConfig.controls`` (:class:`jaxdrive.models.dit.config.Controls`), each
 droppable for classifier-free guidance by ``cond.drop={name: [B] bool}``:
 
 - learned nulls replace the embedding of a dropped ``text``, ``fps``, ``camera``, ``waypoints``,
@@ -55,10 +55,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdrive.models.conditions import Conditions
-from jaxdrive.models.dit_blocks import LayerContext, layer_class
-from jaxdrive.models.dit_config import DiTConfig, check_config, layer_runs
-from jaxdrive.models.dit_controls import (
+from jaxdrive.models.dit.blocks import LayerContext, layer_class
+from jaxdrive.models.dit.conditions import Conditions
+from jaxdrive.models.dit.config import DiTConfig, check_config, layer_runs
+from jaxdrive.models.dit.controls import (
     BoxEncoder,
     CameraEncoder,
     CaptionEncoder,
@@ -70,11 +70,11 @@ from jaxdrive.models.dit_controls import (
     null_param,
     use_null,
 )
-from jaxdrive.models.dit_inputs import example_inputs
+from jaxdrive.models.dit.inputs import example_inputs
+from jaxdrive.models.dit.layout import LayoutEncoder
 from jaxdrive.models.embeddings import rope_3d, sincos_2d, sincos_3d
 from jaxdrive.models.htft import HTFT
 from jaxdrive.models.layers import MLP, Dense, LayerNorm, modulate
-from jaxdrive.models.layout import LayoutEncoder
 from jaxdrive.models.params import ZEROS, Init, abstract_params, count_params, host_params, normal, param
 from jaxdrive.models.tokens import TEXT, VIDEO, pool_frames, reshape
 from jaxdrive.parallel.rules import constrain
@@ -177,7 +177,7 @@ class DiT(nn.Module):
                  deterministic=True):
         """Network output ``[B, V, F', h, w, C_out]`` (and ``{layer: features}`` with
         ``return_features``) for ``latents [B, V, F', h, w, C]`` at levels ``sigma [B]``/``[B, F']``
-        under the conditions ``cond`` (:class:`~jaxdrive.models.conditions.Conditions`; None: none
+        under the conditions ``cond`` (:class:`~jaxdrive.models.dit.conditions.Conditions`; None: none
         given). ``deterministic=False`` enables HTFT's dropout (rng ``"dropout"``).
         """
         cfg = check_config(self.config)
@@ -324,7 +324,7 @@ class DiT(nn.Module):
         return add
 
     def _layout(self, cfg, cond: Conditions, drop, hw, nf):
-        """The projected layout control (``controls.layout``, :mod:`jaxdrive.models.layout`):
+        """The projected layout control (``controls.layout``, :mod:`jaxdrive.models.dit.layout`):
         the canvas of the boxes and the BEV map in every camera on the latent grid ``hw``,
         encoded, patchified, then a zero-initialised projection per token (the gate: a model
         initialised from a run without the control starts unchanged) -> ``[B, Ft, S, V, D]``.
@@ -465,7 +465,7 @@ class DiT(nn.Module):
         return carry, (jnp.stack(outs) if emit else None)
 
     def _stack(self, cfg, carry, ctx, residuals, features, features_mask, deterministic):
-        """The base layers, run by run (:func:`jaxdrive.models.dit_config.layer_runs`)."""
+        """The base layers, run by run (:func:`jaxdrive.models.dit.config.layer_runs`)."""
         feats = {}
         for start, end in layer_runs(cfg):
             res = None
