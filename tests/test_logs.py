@@ -1,0 +1,40 @@
+"""jaxdrive's messages (jaxdrive.logs): library code logs, the command shows the log on stderr in
+order with what it prints, and the deprecated ``log=`` callables still get the messages."""
+
+import logging
+import warnings
+
+import pytest
+
+from jaxdrive.logs import deprecated_log
+
+logger = logging.getLogger("jaxdrive.test_logs")
+
+
+@deprecated_log
+def work(x, *, scale=1):
+    logger.info("working on %d", x)
+    logger.debug("a detail")
+    logger.warning("%d looks odd", x * scale)
+    return x * scale
+
+
+def test_without_log_nothing_is_deprecated_and_the_messages_go_to_the_log(caplog):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with caplog.at_level(logging.INFO, logger="jaxdrive"):
+            assert work(3, scale=2) == 6
+    assert [(r.levelno, r.getMessage()) for r in caplog.records] == [(logging.INFO, "working on 3"),
+                                                                    (logging.WARNING, "6 looks odd")]
+
+
+def test_a_log_callable_still_gets_the_messages_with_a_deprecation_warning(caplog):
+    root = logging.getLogger("jaxdrive")
+    level, handlers = root.level, list(root.handlers)
+    messages = []
+    with pytest.warns(DeprecationWarning, match=r"test_logs\.work\(log=\.\.\.\) is deprecated") as caught:
+        assert work(3, log=messages.append) == 3
+    assert caught[0].filename == __file__                          # the warning points at the caller
+    assert messages == ["working on 3", "3 looks odd"]             # INFO and above, as before, not DEBUG
+    assert (root.level, root.handlers) == (level, handlers)        # the forwarding is gone again
+    assert work(4) == 4 and messages == ["working on 3", "3 looks odd"]
