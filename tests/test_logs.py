@@ -6,7 +6,9 @@ import warnings
 
 import pytest
 
+from jaxdrive.generate.long_video import sample_long
 from jaxdrive.logs import deprecated_log
+from jaxdrive.train.run import Run, restore_params, train
 
 logger = logging.getLogger("jaxdrive.test_logs")
 
@@ -38,3 +40,8 @@ def test_a_log_callable_still_gets_the_messages_with_a_deprecation_warning(caplo
     assert messages == ["working on 3", "3 looks odd"]             # INFO and above, as before, not DEBUG
     assert (root.level, root.handlers) == (level, handlers)        # the forwarding is gone again
     assert work(4) == 4 and messages == ["working on 3", "3 looks odd"]
+
+
+def test_the_documented_entry_points_take_the_deprecated_keyword():
+    for fn in (train, restore_params, Run.init_state, sample_long):
+        assert getattr(fn, "__wrapped__", None) is not None, fn
