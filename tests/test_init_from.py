@@ -2,6 +2,7 @@
 keeps its own initialisation for what the source lacks, and refuses shapes that differ."""
 
 import json
+import logging
 from pathlib import Path
 
 import flax.linen as nn
@@ -36,7 +37,7 @@ def source_run(dataset, tmp_path_factory):
     """A run directory whose EMA differs from its raw parameters (seed 7, not the new runs' 0)."""
     workdir = tmp_path_factory.mktemp("stage1")
     cfg = config(dataset, "train.seed=7")
-    state = Run(cfg).init_state(log=lambda *a: None)[0]
+    state = Run(cfg).init_state()[0]
     state = state.replace(ema=jax.tree_util.tree_map(lambda x: x + 1.0, state.ema))
     ckpts = Checkpoints(workdir, asynchronous=False)
     ckpts.save(3, state, {}, {"step": 3})
@@ -49,13 +50,14 @@ def flat(tree):
     return {k: np.asarray(v) for k, v in flatten_dict(jax.device_get(tree), sep="/").items()}
 
 
-def test_a_later_stage_loads_what_the_source_has_and_keeps_its_own_init_for_the_rest(dataset, source_run):
+def test_a_later_stage_loads_what_the_source_has_and_keeps_its_own_init_for_the_rest(dataset, source_run, caplog):
     workdir, saved = source_run
-    logs = []
     # stage 2 adds a control (boxes: a new encoder, its null, ...) to the stage-1 model
     run = Run(config(dataset, f"train.init_from={workdir}", "model.controls.boxes=true"))
-    state = run.init_state(log=logs.append)[0]
-    fresh = flat(Run(config(dataset, "model.controls.boxes=true")).init_state(log=lambda *a: None)[0].params)
+    with caplog.at_level(logging.INFO, logger="jaxdrive.train.run"):
+        state = run.init_state()[0]
+    logs = [r.getMessage() for r in caplog.records if r.name == "jaxdrive.train.run"]
+    fresh = flat(Run(config(dataset, "model.controls.boxes=true")).init_state()[0].params)
     got, ema, raw = flat(state.params), flat(saved.ema), flat(saved.params)
     added = sorted(set(got) - set(ema))
     assert added and any("boxes" in k for k in added)
@@ -67,7 +69,7 @@ def test_a_later_stage_loads_what_the_source_has_and_keeps_its_own_init_for_the_
     assert any(f"loaded {len(ema)} parameters" in line for line in logs)
     # the raw parameters by choice
     raw_run = Run(config(dataset, f"train.init_from={workdir}", "train.init_from_ema=false"))
-    got_raw = flat(raw_run.init_state(log=lambda *a: None)[0].params)
+    got_raw = flat(raw_run.init_state()[0].params)
     name = sorted(raw)[0]
     np.testing.assert_array_equal(got_raw[name], raw[name])
     assert not np.array_equal(raw[name], ema[name])
@@ -78,7 +80,7 @@ def test_a_shape_mismatch_names_the_parameter(dataset, source_run):
     run = Run(config(dataset, f"train.init_from={workdir}", "model.head_dim=32"))
     with pytest.raises(ValueError, match=r"train.init_from: parameter '.*': expected shape \[.*\] \(the new model\), "
                                          r"got \[.*\] in "):
-        run.init_state(log=lambda *a: None)
+        run.init_state()
 
 
 def test_the_name_map_renames_source_paths():

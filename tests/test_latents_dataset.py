@@ -214,7 +214,7 @@ def test_rollout_progress_counts_windows(datasets, capsys):
 
 def test_train_on_precomputed_latents(datasets, tmp_path):
     cfg = config(datasets[1], "train.steps=2", "train.checkpoint_every=2")
-    out = train(cfg, tmp_path / "run", progress=False, log=lambda *a: None)
+    out = train(cfg, tmp_path / "run", progress=False)
     assert out["status"] == "done" and out["step"] == 2
     assert (tmp_path / "run" / "checkpoints" / "2").is_dir()
     rows = read_metrics(tmp_path / "run")

@@ -38,7 +38,7 @@ def test_state_bytes_equal_a_real_runs_arrays(config):
     plan = plan_memory(config, {"data": 1}, compile_step=False)
     pd = plan["per_device"]
     one = dataclasses.replace(config, mesh=MeshConfig(data=1))
-    state, _, _ = Run(one, devices=jax.devices()[:1]).init_state(log=lambda *a: None)
+    state, _, _ = Run(one, devices=jax.devices()[:1]).init_state()
     params = nbytes(state.params)
     assert pd["params"] == params > 0
     assert pd["ema"] == params

@@ -194,7 +194,7 @@ def test_device_memory_is_flat_in_the_length_at_the_defaults(tmp_path):
         for length in (145, 721):
             first, controls = horizon_inputs(length, views=6, given=given)
             report = sample_long(name, models, codec, controls, first, length, tmp_path / f"{name}{length}",
-                                 key=jax.random.key(0), fps=12.0, log=lambda *a: None)
+                                 key=jax.random.key(0), fps=12.0)
             peaks[length], reports[length] = report["peak_device_bytes"], report
             options = {"segment_batch": report["segment_batch"]["segment_batch"]} if name == "coarse-fine" else {}
             assert report["sequential_sampler_calls"] == S.sequential_calls(name, models, length, given, **options)

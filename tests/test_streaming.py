@@ -166,7 +166,7 @@ def test_streaming_memory_is_flat_and_it_compiles_once(tmp_path):
     for length in (33, 721):
         first, controls = horizon_inputs(length, views=2, given=1)
         reports[length] = sample_long("streaming", S.Models(m), codec, controls, first, length, tmp_path / str(length),
-                                      key=jax.random.key(0), fps=12.0, log=lambda *a: None)
+                                      key=jax.random.key(0), fps=12.0)
     small, big = reports[33], reports[721]
     assert small["compiled_programs"] == big["compiled_programs"] == 1
     assert big["sequential_sampler_calls"] == 720

@@ -2,6 +2,7 @@
 skipping, and checkpoints (fallback past a damaged one, restore onto another mesh)."""
 
 import dataclasses
+import logging
 
 import jax
 import jax.numpy as jnp
@@ -107,7 +108,11 @@ def _state_after(steps):
     return state
 
 
-def test_checkpoints_fall_back_past_a_damaged_one_and_reshard(tmp_path):
+def warnings_of(caplog, name="jaxdrive.train.checkpoint") -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.name == name and r.levelno == logging.WARNING]
+
+
+def test_checkpoints_fall_back_past_a_damaged_one_and_reshard(tmp_path, caplog):
     ck = Checkpoints(tmp_path, keep=2)
     for step in (1, 2, 3):
         ck.save(step, _state_after(step), {"next_index": step}, {"step": step})
@@ -120,10 +125,12 @@ def test_checkpoints_fall_back_past_a_damaged_one_and_reshard(tmp_path):
     for f in (tmp_path / "checkpoints" / "3" / "state").rglob("*"):      # damage the newest
         if f.is_file() and f.name != "commit_success.txt":
             f.write_bytes(b"garbage")
-    messages = []
-    step, state, data, _ = ck.restore_latest(abstract, log=messages.append)
+    with caplog.at_level(logging.WARNING, logger="jaxdrive.train.checkpoint"):
+        step, state, data, _ = ck.restore_latest(abstract)
     assert (step, data) == (2, {"next_index": 2})
+    messages = warnings_of(caplog)
     assert len(messages) == 1 and "checkpoints/3 is incomplete or damaged" in messages[0]
+    assert ck.skipped == messages
     mesh = make_mesh(data=2, fsdp=4)
     sharded = jax.tree_util.tree_map(
         lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype,
@@ -149,7 +156,7 @@ def _damage(step_dir, how):
 
 
 @pytest.mark.parametrize("how", ["truncated array file", "missing metadata file", "empty step folder"])
-def test_each_kind_of_damaged_checkpoint_is_named_and_the_newest_intact_one_used(tmp_path, how):
+def test_each_kind_of_damaged_checkpoint_is_named_and_the_newest_intact_one_used(tmp_path, how, caplog):
     ck = Checkpoints(tmp_path, keep=3)
     for step in (1, 2):
         ck.save(step, _state_after(step), {"next_index": step}, {"step": step})
@@ -157,10 +164,11 @@ def test_each_kind_of_damaged_checkpoint_is_named_and_the_newest_intact_one_used
     _damage(tmp_path / "checkpoints" / "2", how)
     ck.close()
     ck = Checkpoints(tmp_path, keep=3)
-    messages = []
-    step, state, data, _ = ck.restore_latest(jax.eval_shape(lambda: _state_after(0)), log=messages.append)
+    with caplog.at_level(logging.WARNING, logger="jaxdrive.train.checkpoint"):
+        step, state, data, _ = ck.restore_latest(jax.eval_shape(lambda: _state_after(0)))
     assert (step, data) == (1, {"next_index": 1})
     np.testing.assert_array_equal(state.params["w"], _state_after(1).params["w"])
+    messages = warnings_of(caplog)
     assert len(messages) == 1 and "checkpoints/2 is incomplete or damaged" in messages[0]
     ck.close()
 

@@ -3,6 +3,7 @@ step against the single-device step, exact resume after SIGTERM, non-finite loss
 run, bad configs rejected before compiling, and ``jaxdrive train`` / ``sample`` from the CLI."""
 
 import json
+import logging
 from pathlib import Path
 
 import jax
@@ -103,7 +104,7 @@ def test_resume_after_sigterm_is_bit_exact(dataset, tmp_path):
     assert [r["step"] for r in rows] == [1, 2, 3, 4] and all(np.isfinite(r["loss"]) for r in rows)
 
 
-def test_non_finite_losses_skip_and_stop_with_the_last_good_state(dataset, tmp_path, monkeypatch):
+def test_non_finite_losses_skip_and_stop_with_the_last_good_state(dataset, tmp_path, monkeypatch, caplog):
     cfg = tiny(dataset, "train.max_bad_steps=2", "train.steps=6", "train.checkpoint_every=100")
     original = Run.global_batch
     calls = []
@@ -116,9 +117,13 @@ def test_non_finite_losses_skip_and_stop_with_the_last_good_state(dataset, tmp_p
                 b["video"][0, 0, 0, 0, 0, 0] = np.nan
         return original(self, micro_batches)
     monkeypatch.setattr(Run, "global_batch", poisoned)
-    messages = []
-    out = train(cfg, tmp_path / "nan", progress=False, log=messages.append)
+    messages = []           # the deprecated log= callable still gets the messages, for one release
+    with caplog.at_level(logging.WARNING, logger="jaxdrive.train.run"), \
+            pytest.warns(DeprecationWarning, match=r"jaxdrive\.train\.run\.train\(log=\.\.\.\) is deprecated"):
+        out = train(cfg, tmp_path / "nan", progress=False, log=messages.append)
     assert out["status"] == "diverged" and out["step"] == 3
+    assert any("2 non-finite losses in a row at step 3" in r.getMessage() for r in caplog.records
+               if r.levelno == logging.WARNING)
     assert any("2 non-finite losses in a row at step 3" in m for m in messages)
     state = out["state"]
     assert int(state.skipped) == 2 and int(state.step) == 3
@@ -223,7 +228,7 @@ def test_demo_recipe_learns_a_continuation_not_noise(dataset, tmp_path):
     config = load_config(TINY, [f"data.path={dataset}", "data.views=2", "data.frames=5", "train.steps=150",
                                 "train.checkpoint_every=0", "train.log_every=50", "optim.warmup_steps=10",
                                 "mesh.data=2", "mesh.seq=4"])
-    out = train(config, tmp_path / "run", progress=False, log=lambda *a: None)
+    out = train(config, tmp_path / "run", progress=False)
     g = generate(out["run"].sampling(), out["state"].ema, frames=5, guidance=1.0, steps=10)
     data = out["run"].codec.encode(None, g.recorded)
     ratio = float(np.std(g.latents[:, :, g.cond_frames:]) / np.std(np.asarray(data)[:, :, g.cond_frames:]))
@@ -234,7 +239,7 @@ def test_demo_recipe_learns_a_continuation_not_noise(dataset, tmp_path):
 
 
 @pytest.mark.parametrize("choice", ["continue", "stop"])
-def test_a_checkpoint_that_cannot_be_written_keeps_the_earlier_ones(dataset, tmp_path, monkeypatch, choice):
+def test_a_checkpoint_that_cannot_be_written_keeps_the_earlier_ones(dataset, tmp_path, monkeypatch, choice, caplog):
     """Disk full at step 4's save (simulated): the message names it, checkpoint 2 stays readable, and
     the run goes on to step 6 or stops at 4, as train.on_save_error says."""
     from jaxdrive.train.checkpoint import Checkpoints
@@ -246,8 +251,9 @@ def test_a_checkpoint_that_cannot_be_written_keeps_the_earlier_ones(dataset, tmp
             raise OSError(28, "No space left on device")
         return save(self, step, *args, **kwargs)
     monkeypatch.setattr(Checkpoints, "save", full_disk)
-    messages = []
-    out = train(cfg, tmp_path / choice, progress=False, log=messages.append)
+    with caplog.at_level(logging.WARNING, logger="jaxdrive.train.run"):
+        out = train(cfg, tmp_path / choice, progress=False)
+    messages = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert any("checkpoints/4 could not be written (OSError: [Errno 28] No space left on device); "
                "checkpoints kept: [2]" in m for m in messages)
     steps = sorted(int(p.name) for p in (tmp_path / choice / "checkpoints").iterdir() if p.name.isdigit())

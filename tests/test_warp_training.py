@@ -60,7 +60,7 @@ def test_the_step_encodes_the_warped_clip_into_the_dit_and_learns_its_embedding(
 
     from jaxdrive.train import flow_step
     run = Run(config(data))
-    state, _, _ = run.init_state(log=lambda *a: None)
+    state, _, _ = run.init_state()
     # every layer off its zero init, at random: a constant offset made the zero-initialised warp
     # projection add the same number to every channel, which the next LayerNorm removes
     rng = np.random.default_rng(0)

@@ -50,7 +50,7 @@ def run(config_arg: str, sets, repeats: int, views: int, rebalance: bool = False
     longest = max(b.frames for b in run.buckets)
     write_synthetic_dataset(data, train=64, validation=1, views=views, frames=longest * config.data.stride,
                             overwrite=True)
-    state, optimizer, shardings = run.init_state(log=lambda *a: None)
+    state, optimizer, shardings = run.init_state()
     step, frozen = run.step_fn(optimizer, shardings), run.frozen_params()
     groups = _groups(run)
     batches, it = {}, iter(_drawing_run(config, groups).dataset())

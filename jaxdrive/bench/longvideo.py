@@ -31,7 +31,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxdrive.bench.report import emit, table
+from jaxdrive.bench.report import emit, quiet, table
 
 NAME = "longvideo"
 # each row's --strategies name (the all-in-one coarse-fine row has its own)
@@ -98,12 +98,13 @@ def run(frames_list, steps: int, views: int, strategies=None, device_memory=None
             given = 1 if name in ("coarse-fine", "streaming") else config.flow.cond_frames
             # compile outside the figure: a first run of the same length (coarse-fine's batched
             # call has a shape of its own for every length)
-            sample_long(name, models, codec, inputs["cond"], first[:, :, :given], frames, out / "warm",
-                        key=jax.random.key(0), log=lambda *a: None, **options)
-            t = time.perf_counter()
-            report = sample_long(name, models, codec, inputs["cond"], first[:, :, :given], frames, out / label,
-                                 key=jax.random.key(0), log=lambda *a: None, **options)
-            wall = time.perf_counter() - t
+            with quiet("jaxdrive.generate.long_video"):
+                sample_long(name, models, codec, inputs["cond"], first[:, :, :given], frames, out / "warm",
+                            key=jax.random.key(0), **options)
+                t = time.perf_counter()
+                report = sample_long(name, models, codec, inputs["cond"], first[:, :, :given], frames, out / label,
+                                     key=jax.random.key(0), **options)
+                wall = time.perf_counter() - t
             seconds[(label, frames)] = wall
             row = dict(strategy=label, frames=frames, seconds=round(wall, 2), s_per_frame=round(wall / frames, 4),
                        sequential_calls=report["sequential_sampler_calls"],

@@ -67,7 +67,7 @@ def measure(config) -> dict:
     device = jax.devices()[:1]
     plan = plan_memory(config, {"data": 1}, devices=device, compile_step=False)["per_device"]
     run = Run(config, devices=device, codec=_real_codec(config.latents), check_data=False)
-    state, optimizer, shardings = run.init_state(log=lambda *a: None)
+    state, optimizer, shardings = run.init_state()
     batch = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype, device=s.sharding),
                                    abstract_batch(run, planned_bucket(run)))
     frozen = run.frozen_params()

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
 import time
 
 import jax
@@ -16,6 +18,19 @@ def ensure_devices(n: int) -> None:
     initialises its backend, so call it first thing in a benchmark's ``main``."""
     add_xla_flags(f"--xla_force_host_platform_device_count={n}")
     deterministic_cpu()
+
+
+@contextlib.contextmanager
+def quiet(name: str):
+    """The logger ``name`` at WARNING while the block runs: the INFO line a library call logs each
+    time it runs, of which a benchmark's table already holds the figures."""
+    logger = logging.getLogger(name)
+    level = logger.level
+    logger.setLevel(logging.WARNING)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
 
 
 def emit(bench: str, figure: str, value, unit: str, **context) -> dict:

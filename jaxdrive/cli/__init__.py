@@ -32,14 +32,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _AfterStdout(logging.StreamHandler):
+    """A stderr handler that flushes stdout before each record, so that the command's printed
+    lines and its log lines keep their order also when both streams go to one file."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        sys.stdout.flush()
+        super().emit(record)
+
+
 @contextlib.contextmanager
 def stderr_logging(*, quiet: bool = False):
-    """jaxdrive's loggers to stderr at INFO (WARNING when ``quiet``) while the block runs, so that
-    library messages such as ``encode_dataset``'s are seen. Only the ``jaxdrive`` logger: other
+    """jaxdrive's loggers to stderr at INFO (WARNING when ``quiet``) while the block runs: the
+    library logs and never prints (:mod:`jaxdrive.logs`), and this is the one place where its
+    messages (a resumed checkpoint, the first step's time, ``encode_dataset``'s files, a damaged
+    checkpoint skipped) are shown. Only the ``jaxdrive`` logger: other
     libraries keep their own levels; the handler goes again afterwards (``main`` may run many
     times in one process, e.g. in tests, with ``sys.stderr`` replaced in between)."""
     logger = logging.getLogger("jaxdrive")
-    handler = logging.StreamHandler(sys.stderr)
+    handler = _AfterStdout(sys.stderr)
     handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
     level, propagate = logger.level, logger.propagate
     logger.addHandler(handler)

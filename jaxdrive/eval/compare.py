@@ -11,6 +11,7 @@ table of strategies x metrics) and ``quality_vs_horizon.png``.
 from __future__ import annotations
 
 import json
+import logging
 import time
 from pathlib import Path
 
@@ -18,6 +19,8 @@ import numpy as np
 
 from jaxdrive.eval.fid import FeatureStats
 from jaxdrive.generate.quality import psnr, ssim
+
+logger = logging.getLogger(__name__)
 
 FVD_FRAMES = 16
 EFFECT_METRICS = ("psnr", "ssim", "miou")    # the route effects (:mod:`jaxdrive.eval.routes`) of each row
@@ -127,15 +130,15 @@ def repeat_baseline(recorded, given: int, buckets, **features) -> dict:
 
 
 def run_strategies(strategies, models, codec, controls, first, length, recorded, buckets, *, key, mesh=None,
-                   fid_features=None, fvd_features=None, segment=None, masks=None, targets=None, keep=False,
-                   log=print) -> dict:
+                   fid_features=None, fvd_features=None, segment=None, masks=None, targets=None,
+                   keep=False) -> dict:
     """Every strategy of ``strategies`` (name -> its options) on the same inputs, decoded and
     scored (:func:`score`); returns ``{name: {"seconds", "sequential_sampler_calls",
     "peak_device_bytes", "buckets": {...}}}``. ``targets`` (label -> ``(video, masks)``): each
     generation is also scored against these other videos (the counterfactual renders of
     ``jaxdrive eval --routes``), under the result's ``"against": {label: buckets}``. ``keep``:
     the first clip's decoded video ``[V, F, H, W, 3]`` stays under ``"video"`` (pop it before
-    writing the results as JSON)."""
+    writing the results as JSON). Each strategy's time is logged at INFO."""
     from jaxdrive.generate.strategies import run_strategy
     from jaxdrive.generate.windows import Tracker
     results = {}
@@ -164,7 +167,8 @@ def run_strategies(strategies, models, codec, controls, first, length, recorded,
         if targets:
             results[name]["against"] = {label: score(video, target, buckets, segment=segment, masks=target_masks)
                                         for label, (target, target_masks) in targets.items()}
-        log(f"{name}: {video.shape[2]} frames x {video.shape[1]} views x {video.shape[0]} clips in {seconds:.1f} s")
+        logger.info("%s: %d frames x %d views x %d clips in %.1f s", name, video.shape[2], video.shape[1],
+                    video.shape[0], seconds)
     return results
 
 

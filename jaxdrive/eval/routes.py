@@ -102,7 +102,7 @@ def route_effect(results: dict, against: dict, routes) -> dict:
 
 
 def evaluate_routes(routes, plan, *, load_inputs, first_latents, strategies, models, codec, length, buckets, key,
-                    given: int, depth: float, mesh=None, segment=None, without_boxes: bool = False, log=print,
+                    given: int, depth: float, mesh=None, segment=None, without_boxes: bool = False,
                     **features) -> tuple[dict, dict, list]:
     """Every strategy under every route of ``routes`` (:func:`route_clips`'s ``plan``), scored
     against each route's render, with the ``repeat`` and ``warp`` rows per route; returns
@@ -132,7 +132,7 @@ def evaluate_routes(routes, plan, *, load_inputs, first_latents, strategies, mod
             opts["warp"] = WarpGuide.from_inputs(inp, codec, depth=depth)
         return run_strategies({n: opts for n in names}, models, codec, inp["cond"] if cond is None else cond, first,
                               length, np.asarray(inp["video"]), buckets, key=key, mesh=mesh, segment=segment,
-                              masks=masks(inp), log=log, keep=True, **features, **kw)
+                              masks=masks(inp), keep=True, **features, **kw)
     recorded = run(base, targets=targets)
     against = {name: r.pop("against") for name, r in recorded.items()}
     results, rows = {}, []

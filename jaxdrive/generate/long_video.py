@@ -20,11 +20,14 @@ and appends it to the mp4. It writes under ``out``:
   first window, all generated frames and each second (``horizon``), scored part by part as the
   frames are decoded (:class:`jaxdrive.generate.quality.FrameScores`);
 - ``quality.json``: the same scores with one row per frame.
+
+What it wrote, and the quality over all generated frames, is logged at INFO.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import time
 from pathlib import Path
 
@@ -34,13 +37,17 @@ import numpy as np
 from jaxdrive.generate.guidance import describe
 from jaxdrive.generate.strategies import Models, run_strategy
 from jaxdrive.generate.windows import Tracker
+from jaxdrive.logs import deprecated_log
 from jaxdrive.models.dit.conditions import Conditions
+
+logger = logging.getLogger(__name__)
 
 GRID_FRAMES = 6
 
 
+@deprecated_log
 def sample_long(strategy: str, models: Models, codec, controls: Conditions, first, length: int, out, *, key,
-                mesh=None, fps: float = 12.0, recorded=None, log=print, route: str | None = None,
+                mesh=None, fps: float = 12.0, recorded=None, route: str | None = None,
                 control_source: dict | None = None, scene: dict | None = None, **options) -> dict:
     """Run ``strategy`` for ``length`` latent frames and write the files of the module docstring;
     returns the report (a dict). ``recorded``: the dataset's own pixel frames ``[V, F, H, W, 3]``
@@ -50,7 +57,8 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
     controls came from (recorded, predicted), for the report; ``scene``: the first clip's
     ``bev_map``, ``ego_to_world``, ``boxes``, ``box_valid`` per frame, ``predicted_from`` (the
     first frame not recorded) and optionally ``route_drive`` (for the report): each frame-grid row
-    then starts with its BEV map, the ego's path drawn on it (:func:`jaxdrive.media.bev_image`)."""
+    then starts with its BEV map, the ego's path drawn on it (:func:`jaxdrive.media.bev_image`).
+    ``log=`` is deprecated (:func:`jaxdrive.logs.deprecated_log`)."""
     tracker = Tracker()
     start = time.perf_counter()
     parts = run_strategy(strategy, models, controls, first, length, key=key, tracker=tracker, mesh=mesh, **options)
@@ -130,12 +138,12 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
         (out / "report.json").write_text(json.dumps(report, indent=1))
         if quality is not None:
             (out / "quality.json").write_text(json.dumps(quality, indent=1))
-        log(f"{strategy}: {frames} frames x {report['views']} views in {seconds:.1f} s, "
-            f"{tracker.calls} sequential sampler calls, peak device memory {tracker.peak_bytes / 2**20:.1f} MiB: {out}")
+        logger.info("%s: %d frames x %d views in %.1f s, %d sequential sampler calls, peak device memory %.1f MiB: %s",
+                    strategy, frames, report["views"], seconds, tracker.calls, tracker.peak_bytes / 2**20, out)
         if quality is not None:
             a = quality["all_generated"]
-            log(f"all generated frames against the recorded clip: PSNR {a['psnr']:.2f} dB, SSIM {a['ssim']:.3f} "
-                f"(repeat the last given frame: {a['repeat_psnr']:.2f} dB, {a['repeat_ssim']:.3f})")
+            logger.info("all generated frames against the recorded clip: PSNR %.2f dB, SSIM %.3f (repeat the last "
+                        "given frame: %.2f dB, %.3f)", a["psnr"], a["ssim"], a["repeat_psnr"], a["repeat_ssim"])
     return report
 
 

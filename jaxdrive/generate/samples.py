@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 from pathlib import Path
 
 import jax
@@ -27,6 +28,8 @@ from jaxdrive.models.dit.model import DiT
 from jaxdrive.models.latents import LatentCodec
 from jaxdrive.parallel.mesh import batch_axes
 from jaxdrive.validate import check_positive_int
+
+logger = logging.getLogger(__name__)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -240,14 +243,14 @@ def generate(spec: Sampling, params, *, frames: int | None = None, views=None, s
                      guidance=describe(guidance, controls))
 
 
-def write_samples(spec: Sampling, state_or_params, outdir, *, log=print, fps: float | None = None,
-                  **kwargs) -> dict:
+def write_samples(spec: Sampling, state_or_params, outdir, *, fps: float | None = None, **kwargs) -> dict:
     """Generate (``kwargs`` as :func:`generate`) and write under ``outdir``: ``sample.mp4``,
     ``frames.png`` (each row: the recorded frame left, the generated one right), ``latents.npy`` and ``quality.json``
     (PSNR / SSIM of the first clip against its recorded frames, beside the repeat-the-last-frame
     and noise baselines: :func:`jaxdrive.generate.quality.clip_quality`; and the ``guidance`` used).
     Returns the paths and the
-    quality summary (``"quality"``). EMA parameters are used when the state keeps them."""
+    quality summary (``"quality"``), and logs what it wrote at INFO. EMA parameters are used when
+    the state keeps them."""
     from jaxdrive.generate.quality import clip_quality
     from jaxdrive.media import write_frame_grid, write_mp4
     params = state_or_params
@@ -271,5 +274,5 @@ def write_samples(spec: Sampling, state_or_params, outdir, *, log=print, fps: fl
             out["quality"] = q
             out["quality_json"] = outdir / "quality.json"
             out["quality_json"].write_text(json.dumps(q, indent=1))
-        log(f"wrote {video.shape[2]} frames x {video.shape[1]} views: {out['video']}, {out['grid']}")
+        logger.info("wrote %d frames x %d views: %s, %s", video.shape[2], video.shape[1], out["video"], out["grid"])
     return out

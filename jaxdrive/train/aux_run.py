@@ -12,21 +12,25 @@ and stop, and ``train.max_bad_steps`` non-finite losses in a row stop the run as
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import jax
 
 from jaxdrive.config import from_dict, to_dict
 
+logger = logging.getLogger(__name__)
 
-def fit(config, workdir, params, loss, batch, *, files=None, log=print, progress: bool = True,
+
+def fit(config, workdir, params, loss, batch, *, files=None, progress: bool = True,
         on_step=None) -> dict:
     """Train (or resume) ``params`` in ``workdir`` under ``config`` (``optim`` and ``train``
     sections): ``loss(params, batch) -> (scalar, {name: scalar})`` is jitted, ``batch(step)``
     gives the host batch of a step. ``files``: ``{name: json-able}`` written beside
     ``config.json``. Returns ``{"step", "status", "loss", "params"}`` (EMA parameters when kept);
     ``status`` as a DiT run's: ``"done"``, ``"interrupted"`` or ``"diverged"``.
-    ``on_step(step, metrics)`` is called after every step (tests)."""
+    ``on_step(step, metrics)`` is called after every step (tests). A resume is logged at INFO, a
+    diverged run at WARNING."""
     from jaxdrive import compile_cache
     from jaxdrive.train.checkpoint import Checkpoints
     from jaxdrive.train.common import Stop
@@ -39,11 +43,11 @@ def fit(config, workdir, params, loss, batch, *, files=None, log=print, progress
     optimizer = make_optimizer(o, t.steps, params)
     state = create_state(params, optimizer, t.seed, ema=o.ema_decay > 0)
     ckpts = Checkpoints(workdir, keep=t.keep_checkpoints)
-    restored = ckpts.restore_latest(state, log=log)
+    restored = ckpts.restore_latest(state)
     start = 0
     if restored is not None:
         start, state = restored[0], restored[1]
-        log(f"resuming from checkpoint {ckpts.directory / str(start)} (step {start})")
+        logger.info("resuming from checkpoint %s (step %d)", ckpts.directory / str(start), start)
     if jax.process_index() == 0:
         workdir.mkdir(parents=True, exist_ok=True)
         (workdir / "config.json").write_text(json.dumps(to_dict(config), indent=1))
@@ -70,8 +74,8 @@ def fit(config, workdir, params, loss, batch, *, files=None, log=print, progress
                 row = writer.write(step, {**jax.device_get(metrics), "bad_steps": bad})
             if bad >= t.max_bad_steps:
                 status = "diverged"
-                log(f"stopping: {bad} non-finite losses in a row at step {step} (train.max_bad_steps = "
-                    f"{t.max_bad_steps}); the checkpoint holds the last good parameters")
+                logger.warning("stopping: %d non-finite losses in a row at step %d (train.max_bad_steps = %d); "
+                               "the checkpoint holds the last good parameters", bad, step, t.max_bad_steps)
                 break
             if stop.agreed() is not None:
                 status = "interrupted"
@@ -109,11 +113,10 @@ def load_trained(workdir, cls, section: str, init, *, option: str, what: str):
     params = jax.eval_shape(lambda: init(config))
     optimizer = make_optimizer(config.optim, config.train.steps, params)
     abstract = jax.eval_shape(lambda: create_state(init(config), optimizer, 0, ema=config.optim.ema_decay > 0))
-    failures = []
-    restored = meta.restore_latest(abstract, log=failures.append)
+    restored = meta.restore_latest(abstract)
     meta.close()
     if restored is None:
         raise ValueError(f"{option}: expected checkpoints of this {what} ({getattr(config, section)}), got none "
-                         f"that load under {Path(workdir) / 'checkpoints'}: {failures[-1] if failures else ''}")
+                         f"that load under {Path(workdir) / 'checkpoints'}: {meta.skipped[-1] if meta.skipped else ''}")
     state = restored[1]
     return config, (state.ema if state.ema is not None else state.params)

@@ -7,8 +7,8 @@ by rename, so a crash mid-save leaves the previous checkpoints intact.
 
 Restoring takes an abstract state whose leaves carry the target shardings, so a run can resume
 on a different mesh shape. When the newest checkpoint cannot be read (a partial copy, a damaged
-file), :meth:`Checkpoints.restore_latest` says which one and why, and falls back to the one
-before it.
+file), :meth:`Checkpoints.restore_latest` logs a warning that says which one and why, and falls
+back to the one before it.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import orbax.checkpoint as ocp
 
-_log = logging.getLogger(__name__)
+logger = logging.getLogger(__name__)
 
 
 class Checkpoints:
@@ -32,6 +32,7 @@ class Checkpoints:
                                                enable_async_checkpointing=asynchronous)
         self.manager = ocp.CheckpointManager(self.directory, options=options,
                                              item_names=("state", "data", "meta"))
+        self.skipped: list[str] = []     # why restore_latest's last call passed over each checkpoint it skipped
 
     def steps(self) -> list[int]:
         return sorted(self.manager.all_steps())
@@ -72,18 +73,19 @@ class Checkpoints:
         lines += [f"{k}: in the checkpoint, not in this model" for k in sorted(have.keys() - want.keys())]
         return lines
 
-    def restore_latest(self, abstract_state, *, log=print):
+    def restore_latest(self, abstract_state):
         """The newest readable checkpoint as ``(step, state, data_state, meta)``, or None when
         there is none. Unreadable newer ones (a truncated array file, a missing metadata file, an
-        empty step folder) are reported through ``log`` and skipped. A readable checkpoint of
-        another model (parameter names or shapes differ) is a ``ValueError`` saying what differs,
-        not something to fall back past: the workdir belongs to another config."""
+        empty step folder) are skipped, each with a warning in the log and its message in
+        ``skipped``. A readable checkpoint of another model (parameter names or shapes differ) is a
+        ``ValueError`` saying what differs, not something to fall back past: the workdir belongs to
+        another config."""
+        self.skipped = []
         for step in reversed(self.steps()):
             try:
                 differences = self.parameter_differences(step, abstract_state.params)
             except Exception as e:  # orbax raises many types for unreadable metadata
-                log(f"checkpoint {self.directory / str(step)} is incomplete or damaged "
-                    f"({type(e).__name__}: {str(e)[:200]}); using the one before it")
+                self._damaged(step, e)
                 continue
             if differences:
                 raise ValueError(f"{self.option}: expected checkpoints of this config's model in {self.directory}, got "
@@ -93,9 +95,13 @@ class Checkpoints:
             try:
                 return (step, *self.restore(step, abstract_state))
             except Exception as e:  # orbax raises many types for a damaged checkpoint
-                log(f"checkpoint {self.directory / str(step)} is incomplete or damaged "
-                    f"({type(e).__name__}: {str(e)[:200]}); using the one before it")
+                self._damaged(step, e)
         return None
+
+    def _damaged(self, step: int, error: Exception) -> None:
+        self.skipped.append(f"checkpoint {self.directory / str(step)} is incomplete or damaged "
+                            f"({type(error).__name__}: {str(error)[:200]}); using the one before it")
+        logger.warning("%s", self.skipped[-1])
 
     def close(self) -> None:
         self.manager.wait_until_finished()

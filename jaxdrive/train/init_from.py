@@ -88,7 +88,7 @@ def source_params(path, *, mesh, ema: bool = True, target_model=None) -> dict:
     abstract, _ = abstract_train_state(src.model, src.optim, src.train.steps, mesh, seed=src.train.seed)
     ckpts = Checkpoints(p, keep=src.train.keep_checkpoints, asynchronous=False, option="train.init_from")
     try:
-        restored = ckpts.restore_latest(abstract, log=lambda *a: None)
+        restored = ckpts.restore_latest(abstract)
     finally:
         ckpts.close()
     if restored is None:

@@ -34,6 +34,7 @@ compile per probe; memory grows with the tokens, so the search assumes it is mon
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import time
 
@@ -44,6 +45,8 @@ from jax.sharding import PartitionSpec as P
 
 from jaxdrive.parallel.memory import parse_bytes  # noqa: F401  (the planner's sizes: jaxdrive plan, bench train)
 from jaxdrive.parallel.mesh import MESH_AXES, batch_axes, parse_mesh_spec
+
+logger = logging.getLogger(__name__)
 
 STATE_PARTS = ("params", "opt_state", "ema")
 
@@ -245,12 +248,11 @@ def plan_memory(config, mesh, *, device_memory: int | None = None, devices=None,
             "fits": None if device_memory is None or not compile_step else per_device["total"] <= device_memory}
 
 
-def largest_fit(config, mesh, device_memory: int, *, scales=(1.0,), devices=None, max_doublings: int = 6,
-                log=None) -> dict:
+def largest_fit(config, mesh, device_memory: int, *, scales=(1.0,), devices=None, max_doublings: int = 6) -> dict:
     """The longest clip at each resolution that fits ``device_memory`` bytes per device (module
     docstring). Returns ``{"device_memory", "resolutions": [{"height", "width", "frames", "total",
     "probes"}, ...], "largest": the entry with the most tokens}``; ``frames`` is None where not even
-    the shortest clip fits."""
+    the shortest clip fits. Each probe's total is logged at DEBUG."""
     from jaxdrive.train.run import Run
     if isinstance(device_memory, bool) or not isinstance(device_memory, (int, np.integer)) or device_memory <= 0:
         raise ValueError(f"device_memory: expected a positive number of bytes, got {device_memory!r}")
@@ -278,8 +280,7 @@ def largest_fit(config, mesh, device_memory: int, *, scales=(1.0,), devices=None
                     totals[k] = plan_memory(probe, sizes, devices=devices, codec=codec)["per_device"]["total"]
                 except ValueError:          # a clip length the config rules out (e.g. its anchor spacing)
                     totals[k] = None
-                if log:
-                    log(f"  {h}x{w}x{1 + temporal * k}: {totals[k]}")
+                logger.debug("  %dx%dx%d: %s", h, w, 1 + temporal * k, totals[k])
             return totals[k]
 
         fits = lambda k: total(k) is not None and total(k) <= device_memory

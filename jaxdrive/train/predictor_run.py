@@ -14,6 +14,7 @@ baseline, also ``python -m jaxdrive.eval.motion``) into ``motion.json``.
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import jax
@@ -34,6 +35,8 @@ from jaxdrive.models.predictor import (
     to_traffic,
 )
 from jaxdrive.validate import check_positive_int
+
+logger = logging.getLogger(__name__)
 
 YAW_METRES = 2.0            # metres of loss per radian of heading error
 INFO_FILE = "predictor.json"
@@ -89,7 +92,7 @@ def rollout_loss(model: Predictor, params, batch: dict, history: int):
     return e_ego + e_agents, {"ego_error": e_ego, "agent_error": e_agents}
 
 
-def train_predictor(config: PredictorRunConfig, workdir, *, log=print, progress: bool = True, on_step=None) -> dict:
+def train_predictor(config: PredictorRunConfig, workdir, *, progress: bool = True, on_step=None) -> dict:
     """Train (or resume) the predictor in ``workdir``; returns ``{"step", "status", "loss", "params"}``
     (and ``"motion"``, the validation scores, when the dataset has a validation split). ``status``
     as a DiT run's: ``"done"``, ``"interrupted"`` (SIGTERM / SIGINT, checkpoint saved) or
@@ -105,17 +108,17 @@ def train_predictor(config: PredictorRunConfig, workdir, *, log=print, progress:
     fps = clips[0]["fps"]          # what generation needs to run it: its map grid and its step in seconds
     info = {"bev_size": list(clips[0]["bev_map"].shape[1:3]), "fps": fps, "step_seconds": p.stride / fps}
     out = fit(config, workdir, params, lambda q, batch: rollout_loss(model, q, batch, p.history),
-              lambda step: windows.batch(d.batch_size, d.shuffle_seed, step), files={INFO_FILE: info}, log=log,
+              lambda step: windows.batch(d.batch_size, d.shuffle_seed, step), files={INFO_FILE: info},
               progress=progress, on_step=on_step)
     status, params = out["status"], out["params"]
     if status == "done":
-        motion = _validate(config, params, workdir, log)
+        motion = _validate(config, params, workdir)
         if motion is not None:
             out["motion"] = motion
     return out
 
 
-def _validate(config, params, workdir, log):
+def _validate(config, params, workdir):
     """ADE / FDE on the validation split at the horizons its clips allow, into ``motion.json``."""
     from jaxdrive.data.tfds_io import open_source
     try:
@@ -127,11 +130,11 @@ def _validate(config, params, workdir, log):
     scores = motion_errors(params, config.predictor, clips,
                            bev_range=bev_range_of(dataset_info(config.data.path)["metadata"]))
     if scores is None:
-        log("validation clips too short for a 1 s horizon: no ADE / FDE")
+        logger.warning("validation clips too short for a 1 s horizon: no ADE / FDE")
         return None
     if jax.process_index() == 0:
         (Path(workdir) / "motion.json").write_text(json.dumps(scores, indent=1))
-    log(format_table(scores))
+    logger.info("%s", format_table(scores))
     return scores
 
 

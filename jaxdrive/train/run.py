@@ -33,6 +33,7 @@ from jax.sharding import PartitionSpec as P
 
 from jaxdrive.config import Config, check_sections, to_dict
 from jaxdrive.data.batches import TextEmbeddings, model_inputs, stack_micro_batches
+from jaxdrive.logs import deprecated_log
 from jaxdrive.models.latents import LatentCodec
 from jaxdrive.parallel import Processes, host_local_to_global, shard_params, wait_for_all_processes
 from jaxdrive.train import flow_step
@@ -51,7 +52,7 @@ from jaxdrive.train.metrics import MetricsWriter
 from jaxdrive.train.optim import make_optimizer
 from jaxdrive.train.state import create_state
 
-_log = logging.getLogger(__name__)
+logger = logging.getLogger(__name__)
 
 
 def check_batch(config: Config, mesh, batch: int | None = None, name: str = "data.batch_size") -> tuple[int, int]:
@@ -243,11 +244,12 @@ class Run:
                       width=d.width // self.codec.spatial)
         return dit.init_params(self.config.train.seed, boxed=True, **shapes)
 
-    def init_state(self, *, log=print):
+    @deprecated_log
+    def init_state(self):
         """``(state, optimizer, shardings)``: a fresh state on the mesh (params FSDP / tensor
         sharded by their logical names; with ``train.init_from``, the parameters another run or a
-        diffusers folder has, :mod:`jaxdrive.train.init_from`), its optimizer and the state's
-        shardings."""
+        diffusers folder has, :mod:`jaxdrive.train.init_from`, and what it loaded in the log), its
+        optimizer and the state's shardings. ``log=`` is deprecated (:func:`jaxdrive.logs.deprecated_log`)."""
         cfg, t = self.config, self.config.train
         with jax.set_mesh(self.mesh):
             params = shard_params(self.boxed_params(), self.mesh)
@@ -255,7 +257,7 @@ class Run:
             from jaxdrive.train.init_from import init_from
             params, report = init_from(params, t.init_from, mesh=self.mesh, ema=t.init_from_ema, name_map=t.init_map,
                                        target_model=self.training.model)
-            log(report.summary())
+            logger.info("%s", report.summary())
         state, optimizer = state_from_params(params, self.mesh, cfg.optim, self.total_steps, cfg.train.seed)
         return state, optimizer, jax.tree_util.tree_map(lambda x: x.sharding, state)
 
@@ -313,8 +315,8 @@ class _BadRecords:
         return self.total
 
 
-def _save(ckpts, step, state, it, config, log=print, **extra) -> bool:
-    """Start saving checkpoint ``step``; False (and a message) when it, or the asynchronous write
+def _save(ckpts, step, state, it, config, **extra) -> bool:
+    """Start saving checkpoint ``step``; False (and a warning) when it, or the asynchronous write
     of an earlier one that surfaces here, fails: orbax commits a checkpoint by renaming its
     temporary folder, so the ones written before stay intact."""
     try:
@@ -322,8 +324,8 @@ def _save(ckpts, step, state, it, config, log=print, **extra) -> bool:
                                                  "config": to_dict(config)})
         return True
     except Exception as e:               # OSError (disk full), or orbax's wrapping of one
-        log(f"checkpoint {ckpts.directory / str(step)} could not be written ({type(e).__name__}: "
-            f"{str(e)[:200]}); checkpoints kept: {_kept(ckpts)}")
+        logger.warning("checkpoint %s could not be written (%s: %s); checkpoints kept: %s",
+                       ckpts.directory / str(step), type(e).__name__, str(e)[:200], _kept(ckpts))
         return False
 
 
@@ -347,7 +349,8 @@ def _compile_together(step_fn, compiled: set, *args) -> None:
         wait_for_all_processes(f"jaxdrive.train: step compiled for batch shape {len(compiled)}")
 
 
-def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = True) -> dict:
+@deprecated_log
+def train(config: Config, workdir, *, on_step=None, progress: bool = True) -> dict:
     """Train (or resume) in ``workdir``; returns ``{"step", "status", "loss", ...}``.
     ``status``: ``"done"``, ``"interrupted"`` (a signal), ``"diverged"`` (non-finite losses) or
     ``"save_failed"`` (a checkpoint could not be written: stopped by ``train.on_save_error="stop"``,
@@ -357,7 +360,10 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
     None without it.
     ``on_step(step, metrics)`` is called after every step (tests). The returned
     ``first_step_seconds`` is the time from this call to the end of the first step (compiling
-    included) and ``compile_cache`` what the persistent cache gave (:mod:`jaxdrive.compile_cache`)."""
+    included) and ``compile_cache`` what the persistent cache gave (:mod:`jaxdrive.compile_cache`).
+    Progress (a resume, the first step's time, written samples) is logged at INFO, what stops or
+    endangers the run (non-finite losses, a checkpoint not written, a signal) at WARNING
+    (:mod:`jaxdrive.logs`); ``log=`` is deprecated (:func:`jaxdrive.logs.deprecated_log`)."""
     from jaxdrive import compile_cache
     started = time.perf_counter()
     cache_dir, cache_before = compile_cache.enable(config.train.compile_cache), compile_cache.counts()
@@ -368,14 +374,14 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
     ckpts = Checkpoints(workdir, keep=cfg.train.keep_checkpoints)
     start = 0
     abstract, optimizer = run.abstract_state()
-    restored = ckpts.restore_latest(abstract, log=log)
+    restored = ckpts.restore_latest(abstract)
     if restored is not None:
         start, state, data_state, meta = restored
         it.set_state(data_state)
         shardings = jax.tree_util.tree_map(lambda x: x.sharding, abstract)
-        log(f"resuming from checkpoint {ckpts.directory / str(start)} (step {start})")
+        logger.info("resuming from checkpoint %s (step %d)", ckpts.directory / str(start), start)
     else:
-        state, optimizer, shardings = run.init_state(log=log)
+        state, optimizer, shardings = run.init_state()
         meta = {}
     skipping = cfg.data.skip_bad_records
     bad_records = _BadRecords(meta.get("bad_records", 0))
@@ -402,8 +408,8 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
             bad = int(metrics["bad_steps"])
             if first_step is None:
                 first_step = time.perf_counter() - started
-                log(f"first step done {first_step:.1f} s after the start; "
-                    f"{compile_cache.describe(cache_dir, cache_before)}")
+                logger.info("first step done %.1f s after the start; %s", first_step,
+                            compile_cache.describe(cache_dir, cache_before))
             if step % cfg.train.log_every == 0 or step == run.total_steps or bad:
                 # skipped (all steps so far) and the last step whose update was applied
                 row = writer.write(step, {**jax.device_get(metrics), "last_good_step": step - bad, **counts()},
@@ -413,37 +419,37 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
                 on_step(step, metrics)
             if bad >= cfg.train.max_bad_steps:
                 status = "diverged"
-                _save(ckpts, step, state, it, cfg, log=log, status=status, **counts())
-                log(f"stopping: {bad} non-finite losses in a row at step {step} (train.max_bad_steps = "
-                    f"{cfg.train.max_bad_steps}); checkpoint {ckpts.directory / str(step)} holds the last good "
-                    f"parameters")
+                _save(ckpts, step, state, it, cfg, status=status, **counts())
+                logger.warning("stopping: %d non-finite losses in a row at step %d (train.max_bad_steps = %d); "
+                               "checkpoint %s holds the last good parameters", bad, step, cfg.train.max_bad_steps,
+                               ckpts.directory / str(step))
                 break
             if cfg.train.checkpoint_every and step % cfg.train.checkpoint_every == 0:
-                if not _save(ckpts, step, state, it, cfg, log=log, **counts()) and cfg.train.on_save_error == "stop":
+                if not _save(ckpts, step, state, it, cfg, **counts()) and cfg.train.on_save_error == "stop":
                     status = "save_failed"
-                    log(f"stopping at step {step} (train.on_save_error = 'stop'); the last checkpoint is the "
-                        f"newest of {_kept(ckpts)}")
+                    logger.warning("stopping at step %d (train.on_save_error = 'stop'); the last checkpoint is "
+                                   "the newest of %s", step, _kept(ckpts))
                     break
             if cfg.train.sample_every and step % cfg.train.sample_every == 0:
                 from jaxdrive.generate.samples import write_samples
-                write_samples(run.sampling(), state, workdir / "samples" / f"step_{step:07d}", log=log)
+                write_samples(run.sampling(), state, workdir / "samples" / f"step_{step:07d}")
             signum = stop.agreed()                     # one process's signal stops every process
             if signum is not None:
                 status = "interrupted"
-                _save(ckpts, step, state, it, cfg, log=log, status=status, **counts())
-                log(f"signal {signal.Signals(signum).name}: saved checkpoint "
-                    f"{ckpts.directory / str(step)}; run the same command to resume")
+                _save(ckpts, step, state, it, cfg, status=status, **counts())
+                logger.warning("signal %s: saved checkpoint %s; run the same command to resume",
+                               signal.Signals(signum).name, ckpts.directory / str(step))
                 break
         else:
-            if not _save(ckpts, step, state, it, cfg, log=log, status=status, **counts()):
+            if not _save(ckpts, step, state, it, cfg, status=status, **counts()):
                 status = "save_failed"
     try:
         with Stop():                     # a late SIGTERM (the launcher stopping the others) waits for the commit
             ckpts.close()                # waits for the last asynchronous write
     except Exception as e:
         status = "save_failed"
-        log(f"the last checkpoint could not be written ({type(e).__name__}: {str(e)[:200]}); "
-            f"checkpoints kept: {_kept(ckpts)}")
+        logger.warning("the last checkpoint could not be written (%s: %s); checkpoints kept: %s",
+                       type(e).__name__, str(e)[:200], _kept(ckpts))
     writer.close()
     # programs the step compiled: one per bucket shape met since this process started
     compiled = step_fn._cache_size() if hasattr(step_fn, "_cache_size") else None
@@ -455,19 +461,21 @@ def train(config: Config, workdir, *, log=print, on_step=None, progress: bool = 
                               **{k: now[k] - cache_before[k] for k in now}}}
 
 
-def restore_params(run: Run, workdir, *, ema: bool = True, log=print, option: str = "workdir"):
-    """``(step, params)`` of the newest readable checkpoint of ``workdir`` (EMA when kept);
-    errors name ``option`` (how the caller calls ``workdir``)."""
+@deprecated_log
+def restore_params(run: Run, workdir, *, ema: bool = True, option: str = "workdir"):
+    """``(step, params)`` of the newest readable checkpoint of ``workdir`` (EMA when kept); a
+    damaged newer one is skipped with a warning in the log; errors name ``option`` (how the
+    caller calls ``workdir``). ``log=`` is deprecated (:func:`jaxdrive.logs.deprecated_log`)."""
     return restore_latest_params(run.abstract_state()[0], workdir, keep=run.config.train.keep_checkpoints,
-                                 ema=ema, log=log, option=option)
+                                 ema=ema, option=option)
 
 
-def restore_latest_params(abstract, workdir, *, keep: int, ema: bool = True, log=print, option: str = "workdir"):
+def restore_latest_params(abstract, workdir, *, keep: int, ema: bool = True, option: str = "workdir"):
     """``(step, params)`` of the newest readable checkpoint of ``workdir`` restored into the
     abstract train state ``abstract`` (:func:`abstract_train_state`; EMA when kept); errors name
     ``option``."""
     ckpts = Checkpoints(workdir, keep=keep, asynchronous=False, option=option)
-    restored = ckpts.restore_latest(abstract, log=log)
+    restored = ckpts.restore_latest(abstract)
     ckpts.close()
     if restored is None:
         raise ValueError(f"{option}: expected checkpoints under {Path(workdir) / 'checkpoints'}, found none")

@@ -13,6 +13,8 @@ is one, gives the ceiling mIoU into ``segmenter.json``.
 
 from __future__ import annotations
 
+import logging
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -22,6 +24,7 @@ from jaxdrive.data.class_masks import class_masks_of
 from jaxdrive.models.segmenter import CLASSES, NUM_CLASSES, Segmenter, confusion, init_params, predict, summary
 from jaxdrive.validate import check_positive_int
 
+logger = logging.getLogger(__name__)
 INFO_FILE = "segmenter.json"
 
 
@@ -93,7 +96,7 @@ def pixel_loss(model: Segmenter, params, batch: dict, weights):
     return loss, {"pixel_accuracy": accuracy}
 
 
-def train_segmenter(config: SegmenterRunConfig, workdir, *, log=print, progress: bool = True, on_step=None) -> dict:
+def train_segmenter(config: SegmenterRunConfig, workdir, *, progress: bool = True, on_step=None) -> dict:
     """Train (or resume) the segmenter in ``workdir``; returns ``{"step", "status", "loss",
     "params"}`` (and ``"validation"``, the ceiling scores of :func:`jaxdrive.models.segmenter.summary`,
     when the dataset has a validation split); ``status`` as a DiT run's."""
@@ -103,8 +106,8 @@ def train_segmenter(config: SegmenterRunConfig, workdir, *, log=print, progress:
     size = (d.height, d.width)
     frames, masks = load_frames(d.path, d.split, size=size, views=d.views, stride=d.stride)
     weights = class_weights(masks)
-    log(f"segmenter: {len(frames)} frames of {d.height} x {d.width} from split {d.split!r}; object pixels "
-        f"{(masks > 0).mean():.1%}")
+    logger.info("segmenter: %d frames of %d x %d from split %r; object pixels %s", len(frames), d.height, d.width,
+                d.split, f"{(masks > 0).mean():.1%}")
     model = Segmenter(s)
 
     def batch(step):
@@ -114,16 +117,16 @@ def train_segmenter(config: SegmenterRunConfig, workdir, *, log=print, progress:
         return {"frames": x, "masks": m}
     info = {"size": list(size), "classes": list(CLASSES), "class_weights": [round(float(w), 4) for w in weights]}
     out = fit(config, workdir, init_params(s, jax.random.key(t.seed), size),
-              lambda q, b: pixel_loss(model, q, b, weights), batch, files={INFO_FILE: info}, log=log,
+              lambda q, b: pixel_loss(model, q, b, weights), batch, files={INFO_FILE: info},
               progress=progress, on_step=on_step)
     if out["status"] == "done":
-        scores = _validate(config, out["params"], workdir, info, log)
+        scores = _validate(config, out["params"], workdir, info)
         if scores is not None:
             out["validation"] = scores
     return out
 
 
-def _validate(config, params, workdir, info, log):
+def _validate(config, params, workdir, info):
     """The ceiling: mIoU on the validation split's recorded frames, into ``segmenter.json``."""
     import json
     from pathlib import Path
@@ -141,5 +144,5 @@ def _validate(config, params, workdir, info, log):
         (Path(workdir) / INFO_FILE).write_text(json.dumps({**info, "validation": scores,
                                                            "validation_frames": len(frames)}, indent=1))
     per_class = ", ".join(f"{k} {v:.3f}" for k, v in scores["per_class"].items() if v is not None and k != "background")
-    log(f"validation ({len(frames)} recorded frames): mIoU {scores['miou']:.3f} ({per_class})")
+    logger.info("validation (%d recorded frames): mIoU %.3f (%s)", len(frames), scores["miou"], per_class)
     return scores
