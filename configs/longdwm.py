@@ -46,15 +46,20 @@ from jaxdrive.config import (
 )
 from jaxdrive.models.dit.presets import preset
 
-SEGMENT = 13          # K: frames of a fine segment; keyframes every K - 1
+SEGMENT = 13  # K: frames of a fine segment; keyframes every K - 1
 
 
 def _paper(role: str) -> Config:
     return Config(
-        model=preset("cogvideox-2b", vae_spatial=8, vae_temporal=1, remat="dots", scan_layers=True,
-                     controls=dict(cond_frames="replace")),
-        data=DataConfig(path="data/nuscenes", frames=SEGMENT, height=480, width=720, views=1, batch_size=8,
-                        threads=8),
+        model=preset(
+            "cogvideox-2b",
+            vae_spatial=8,
+            vae_temporal=1,
+            remat="dots",
+            scan_layers=True,
+            controls=dict(cond_frames="replace"),
+        ),
+        data=DataConfig(path="data/nuscenes", frames=SEGMENT, height=480, width=720, views=1, batch_size=8, threads=8),
         latents=LatentConfig(source="vae", vae_path="runs/cogvideox_vae", vae_mode="frame_wise"),
         flow=FlowConfig(shift=0.0, cond_frames=1, cond_frames_random=False, structure_weight=0.1),
         optim=OptimConfig(lr=2e-5, warmup_steps=500, ema_decay=0.0),
@@ -66,8 +71,10 @@ def _paper(role: str) -> Config:
 def _tiny(role: str) -> Config:
     base = load_config(Path(__file__).with_name("tiny.py"))
     return dataclasses.replace(
-        base, flow=dataclasses.replace(base.flow, cond_frames=1, structure_weight=0.1),
-        train=dataclasses.replace(base.train, steps=300, checkpoint_every=100))
+        base,
+        flow=dataclasses.replace(base.flow, cond_frames=1, structure_weight=0.1),
+        train=dataclasses.replace(base.train, steps=300, checkpoint_every=100),
+    )
 
 
 def get_config(arg=None) -> Config:
@@ -75,15 +82,15 @@ def get_config(arg=None) -> Config:
     check_arg("size", a.size, ("paper", "tiny"))
     check_arg("role", a.role, ("coarse", "fine", "distill"))
     config = _paper(a.role) if a.size == "paper" else _tiny(a.role)
-    seg = config.data.frames                          # K: the fine window
+    seg = config.data.frames  # K: the fine window
     d, f = config.data, config.flow
-    if a.role == "coarse":            # the coarse model's frames are the keyframes: every K - 1 frames
+    if a.role == "coarse":  # the coarse model's frames are the keyframes: every K - 1 frames
         data = dataclasses.replace(d, stride=seg - 1)
         flow = f
-    elif a.role == "fine":            # eq. 6: the last frame given (interpolation) or not (prediction)
+    elif a.role == "fine":  # eq. 6: the last frame given (interpolation) or not (prediction)
         data = d
         flow = dataclasses.replace(f, patterns=("prefix", "ends"), pattern_rates=(0.5, 0.5))
-    else:                             # eq. 7-8: the coarse frames of a dense clip of n (K - 1) + 1 frames
+    else:  # eq. 7-8: the coarse frames of a dense clip of n (K - 1) + 1 frames
         data = dataclasses.replace(d, frames=(seg - 1) * (4 if a.size == "tiny" else 12) + 1)
         flow = dataclasses.replace(f, distill_teacher="runs/longdwm_fine", distill_segment_len=seg)
     return dataclasses.replace(config, data=data, flow=flow)

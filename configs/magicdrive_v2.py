@@ -67,22 +67,25 @@ PAPER = {
     2: {(224, 400): (1, 9, 17, 33, 65), (416, 800): (1, 9, 17, 33)},
     3: {(224, 400): (1, 17, 241), (416, 800): (1, 17, 33, 65, 129), (848, 1600): (1, 9, 17, 33)},
 }
-TINY = {            # the same table at tiny resolutions, frames up to 33
+TINY = {  # the same table at tiny resolutions, frames up to 33
     1: {(16, 32): (1,)},
     2: {(16, 32): (1, 9, 17, 33), (32, 32): (1, 9, 17)},
     3: {(16, 32): (1, 17, 33), (32, 32): (1, 17, 33), (32, 56): (1, 9, 17)},
 }
 STEPS = {"paper": {1: 80_000, 2: 40_000, 3: 30_000}, "tiny": {1: 60, 2: 60, 3: 40}}
-GUIDANCE = 2.0          # the authors' released test configs' cfg_scale (module docstring)
+GUIDANCE = 2.0  # the authors' released test configs' cfg_scale (module docstring)
 
 
-def balanced_buckets(table: dict, *, spatial: int, temporal: int, patch: int, groups: int,
-                     max_group_batch: int) -> tuple[str, ...]:
+def balanced_buckets(
+    table: dict, *, spatial: int, temporal: int, patch: int, groups: int, max_group_batch: int
+) -> tuple[str, ...]:
     """``data.buckets`` for ``{(H, W): frames}``: each bucket's batch per group is the largest
     bucket's token count over its own, at least 1 and at most ``max_group_batch`` (a lone bucket
     takes the most), times ``groups``; its probability is that batch (equal batch counts per epoch)."""
+
     def tokens(h, w, f):
         return (1 + (f - 1) // temporal) * (h // (spatial * patch)) * (w // (spatial * patch))
+
     shapes = [(h, w, f) for (h, w), frames in table.items() for f in frames]
     most = max(tokens(*s) for s in shapes)
     out = []
@@ -104,20 +107,22 @@ def _paper(stage: int) -> Config:
     table = PAPER[stage]
     h, w, f = _largest(table)
     groups = 8 if stage == 3 else 32
-    buckets = balanced_buckets(table, spatial=8, temporal=4, patch=2, groups=groups,
-                               max_group_batch=MAX_GROUP_BATCH["paper"])
+    buckets = balanced_buckets(
+        table, spatial=8, temporal=4, patch=2, groups=groups, max_group_batch=MAX_GROUP_BATCH["paper"]
+    )
     return Config(
         # full rematerialisation and the 3D VAE encoding one clip's view of every device at a time:
         # its stage-3 bucket 848 x 1600 x 9, 3 clips a device, encoded at once held 420 GiB
-        model=preset("magicdrive-v2", vae_spatial=8, vae_temporal=4, remat="full", scan_layers=True,
-                     temporal=temporal),
-        data=DataConfig(path="data/nuscenes", frames=f, height=h, width=w, views=6, batch_size=groups,
-                        threads=8, buckets=buckets),
+        model=preset("magicdrive-v2", vae_spatial=8, vae_temporal=4, remat="full", scan_layers=True, temporal=temporal),
+        data=DataConfig(
+            path="data/nuscenes", frames=f, height=h, width=w, views=6, batch_size=groups, threads=8, buckets=buckets
+        ),
         latents=LatentConfig(source="vae", vae_path="runs/cogvideox_vae", vae_clip_batch=1),
         flow=FlowConfig(shift=0.0, cond_frames=1),
         optim=OptimConfig(lr=8e-5, warmup_steps=0 if stage == 1 else 3000, schedule="constant", ema_decay=0.9999),
-        train=TrainConfig(steps=STEPS["paper"][stage], log_every=50, checkpoint_every=1000,
-                          compute_dtype="bfloat16", sample_steps=30),
+        train=TrainConfig(
+            steps=STEPS["paper"][stage], log_every=50, checkpoint_every=1000, compute_dtype="bfloat16", sample_steps=30
+        ),
         mesh=MeshConfig(data=-1, fsdp=1, seq=4 if stage == 3 else 1),
         sample=SampleConfig(cfg=GUIDANCE),
     )
@@ -128,16 +133,26 @@ def _tiny(stage: int) -> Config:
     table = TINY[stage]
     h, w, f = _largest(table)
     m = base.model
-    buckets = balanced_buckets(table, spatial=base.latents.factor, temporal=1, patch=m.patch[1], groups=2,
-                               max_group_batch=MAX_GROUP_BATCH["tiny"])
-    controls = dataclasses.replace(m.controls, waypoints=False, trajectory=True, boxes=True, map=True, map_blocks=1,
-                                   map_hidden=16)
+    buckets = balanced_buckets(
+        table,
+        spatial=base.latents.factor,
+        temporal=1,
+        patch=m.patch[1],
+        groups=2,
+        max_group_batch=MAX_GROUP_BATCH["tiny"],
+    )
+    controls = dataclasses.replace(
+        m.controls, waypoints=False, trajectory=True, boxes=True, map=True, map_blocks=1, map_hidden=16
+    )
     model = m.replace(temporal={1: "off", 2: "zero_init", 3: "on"}[stage], multiview="cross_view", controls=controls)
     return dataclasses.replace(
-        base, model=model,
+        base,
+        model=model,
         data=dataclasses.replace(base.data, frames=f, height=h, width=w, batch_size=2, buckets=buckets),
         train=dataclasses.replace(base.train, steps=STEPS["tiny"][stage], checkpoint_every=20),
-        mesh=MeshConfig(data=2, seq=4), sample=SampleConfig(cfg=GUIDANCE))
+        mesh=MeshConfig(data=2, seq=4),
+        sample=SampleConfig(cfg=GUIDANCE),
+    )
 
 
 def get_config(arg=None) -> Config:

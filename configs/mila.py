@@ -58,9 +58,14 @@ from jaxdrive.models.dit.presets import preset
 # itself here, attending over all views, so it trains with the last block), the last block and
 # the output layer. The embeddings are one pattern (a pattern must match some parameter): the box
 # encoder and its null join it when boxes are on, also when --set turns them on after get_config
-STAGE1_TRAINABLE = (r"^(camera_embed|waypoints_embed|boxes_embed)/|^boxes_null$", "fps_embedder",
-                    "layers_{last}/", "final", "proj_out")
-GUIDANCE = 3.0                  # appendix B, Inference: "a fixed classifier-free guidance scale of 3.0"
+STAGE1_TRAINABLE = (
+    r"^(camera_embed|waypoints_embed|boxes_embed)/|^boxes_null$",
+    "fps_embedder",
+    "layers_{last}/",
+    "final",
+    "proj_out",
+)
+GUIDANCE = 3.0  # appendix B, Inference: "a fixed classifier-free guidance scale of 3.0"
 
 
 def _paper(stage: int) -> Config:
@@ -69,9 +74,15 @@ def _paper(stage: int) -> Config:
     # fsdp 8 fit no 80 GiB device; as set, 62 GiB (jaxdrive plan, docs/results/memory.md)
     # scanned layers (a 28-layer unrolled step took over 12 minutes to compile, scanned 90 s), the
     # last one a run of its own: stage 1 trains it by name (layers_27)
-    model = preset("mila", in_channels=16, vae_spatial=8, vae_temporal=1, remat="full", scan_layers=True,
-                   controls=dict(camera=True, waypoints=True, cond_frames="replace", fps=True,
-                                 frame_time=stage >= 2))
+    model = preset(
+        "mila",
+        in_channels=16,
+        vae_spatial=8,
+        vae_temporal=1,
+        remat="full",
+        scan_layers=True,
+        controls=dict(camera=True, waypoints=True, cond_frames="replace", fps=True, frame_time=stage >= 2),
+    )
     model = model.replace(scan_breaks=(model.depth - 1,))
     return Config(
         model=model,
@@ -79,8 +90,13 @@ def _paper(stage: int) -> Config:
         latents=LatentConfig(source="vae", vae_path="runs/cogvideox_vae", vae_mode="frame_wise", vae_frame_batch=1),
         flow=FlowConfig(shift=0.0, cond_frames=4, cond_frames_random=False, tpd=True),
         optim=OptimConfig(lr=1e-4, warmup_steps=1000, ema_decay=0.9999, weight_decay=0.0),
-        train=TrainConfig(steps={1: 2_000, 2: 20_000, 3: 8_000}[stage], log_every=50, checkpoint_every=1000,
-                          sample_every=5000, compute_dtype="bfloat16"),
+        train=TrainConfig(
+            steps={1: 2_000, 2: 20_000, 3: 8_000}[stage],
+            log_every=50,
+            checkpoint_every=1000,
+            sample_every=5000,
+            compute_dtype="bfloat16",
+        ),
         mesh=MeshConfig(data=-1, fsdp=1, seq=1),
     )
 
@@ -89,10 +105,12 @@ def _tiny(stage: int) -> Config:
     base = load_config(Path(__file__).with_name("tiny.py"))
     model = base.model.replace(controls=dataclasses.replace(base.model.controls, frame_time=stage >= 2))
     return dataclasses.replace(
-        base, model=model,
-        data=dataclasses.replace(base.data, frames=8),               # 2 given + 6 generated frames
+        base,
+        model=model,
+        data=dataclasses.replace(base.data, frames=8),  # 2 given + 6 generated frames
         flow=dataclasses.replace(base.flow, tpd=True),
-        train=dataclasses.replace(base.train, steps={1: 100, 2: 300, 3: 200}[stage], checkpoint_every=100))
+        train=dataclasses.replace(base.train, steps={1: 100, 2: 300, 3: 200}[stage], checkpoint_every=100),
+    )
 
 
 def get_config(arg=None) -> Config:
@@ -102,16 +120,17 @@ def get_config(arg=None) -> Config:
     config = _paper(a.stage) if a.size == "paper" else _tiny(a.stage)
     d, f = config.data, config.flow
     given = f.cond_frames
-    fast = config.data.stride                        # the source rate (12 fps): stride 1
+    fast = config.data.stride  # the source rate (12 fps): stride 1
     # {12, 2, 1} fps from a 12 fps source; the tiny clips are short, so {12, 2} fps
     strides = (1, 6, 12) if a.size == "paper" else (1, 6)
     data = dataclasses.replace(d, rate_strides=strides, rate_head=0 if a.stage == 1 else given * fast)
     flow = f
     if a.stage == 3:
-        flow = dataclasses.replace(f, jdc_anchor_rate=0.75)          # MiLA's tail anchor, 75% of clips
+        flow = dataclasses.replace(f, jdc_anchor_rate=0.75)  # MiLA's tail anchor, 75% of clips
     optim = config.optim
     if a.stage == 1:
         depth = config.model.depth
-        optim = dataclasses.replace(optim, trainable=tuple(p.replace("{last}", str(depth - 1))
-                                                           for p in STAGE1_TRAINABLE))
+        optim = dataclasses.replace(
+            optim, trainable=tuple(p.replace("{last}", str(depth - 1)) for p in STAGE1_TRAINABLE)
+        )
     return dataclasses.replace(config, data=data, flow=flow, optim=optim, sample=SampleConfig(cfg=GUIDANCE))

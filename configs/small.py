@@ -11,15 +11,22 @@ from jaxdrive.models.dit.presets import preset
 
 
 def get_config() -> Config:
-    model = preset("small", in_channels=16, vae_spatial=8, vae_temporal=4, text_dim=256, text_len=32,
-                   controls=dict(text="caption", fps=True, camera=True, waypoints=True, boxes=True,
-                                 cond_frames="replace"))
+    model = preset(
+        "small",
+        in_channels=16,
+        vae_spatial=8,
+        vae_temporal=4,
+        text_dim=256,
+        text_len=32,
+        controls=dict(text="caption", fps=True, camera=True, waypoints=True, boxes=True, cond_frames="replace"),
+    )
     return Config(
         model=model,
         data=DataConfig(path="data/synth", frames=17, height=256, width=448, views=6, batch_size=4, threads=4),
         latents=LatentConfig(source="vae", vae_path="runs/vae", vae_mode="chunked"),
         flow=FlowConfig(shift=0.0, cond_frames=1),
         optim=OptimConfig(lr=2e-4, warmup_steps=500, ema_decay=0.999),
-        train=TrainConfig(steps=50_000, log_every=50, checkpoint_every=1000, sample_every=5000,
-                          compute_dtype="bfloat16"),
+        train=TrainConfig(
+            steps=50_000, log_every=50, checkpoint_every=1000, sample_every=5000, compute_dtype="bfloat16"
+        ),
     )

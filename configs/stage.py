@@ -71,7 +71,7 @@ from jaxdrive.config import (
 )
 from jaxdrive.models.dit.presets import preset
 
-HTFT_TRAINABLE = ("htft_",)          # stage 2: only the HTFT modules' parameters
+HTFT_TRAINABLE = ("htft_",)  # stage 2: only the HTFT modules' parameters
 
 
 def _paper(stage: int) -> Config:
@@ -80,16 +80,28 @@ def _paper(stage: int) -> Config:
     # over 15 minutes; init_from moves the layers between the runs the HTFT layer splits
     # full rematerialisation and the frame-wise encode one frame of every clip at a time (as MiLA):
     # with them stage 3 plans 31 GiB a device at fsdp 32 (docs/results/memory.md)
-    model = preset("stdit3-xl/2", in_channels=16, vae_spatial=8, vae_temporal=1, remat="full", scan_layers=True,
-                   controls=dict(camera=True, boxes=True, map=True, map_blocks=13, cond_frames="replace", fps=True))
+    model = preset(
+        "stdit3-xl/2",
+        in_channels=16,
+        vae_spatial=8,
+        vae_temporal=1,
+        remat="full",
+        scan_layers=True,
+        controls=dict(camera=True, boxes=True, map=True, map_blocks=13, cond_frames="replace", fps=True),
+    )
     return Config(
         model=model,
         data=DataConfig(path="data/nuscenes", frames=12, height=512, width=768, views=6, batch_size=32, threads=8),
         latents=LatentConfig(source="vae", vae_path="runs/cogvideox_vae", vae_mode="frame_wise", vae_frame_batch=1),
         flow=FlowConfig(shift=0.0, cond_frames=1, foreground_k=1.0, foreground_c=0.5),
         optim=OptimConfig(lr=1e-4, warmup_steps=1000, ema_decay=0.9999),
-        train=TrainConfig(steps={1: 40_000, 2: 20_000, 3: 10_000}[stage], log_every=50, checkpoint_every=1000,
-                          compute_dtype="bfloat16", sample_steps=30),
+        train=TrainConfig(
+            steps={1: 40_000, 2: 20_000, 3: 10_000}[stage],
+            log_every=50,
+            checkpoint_every=1000,
+            compute_dtype="bfloat16",
+            sample_steps=30,
+        ),
         mesh=MeshConfig(data=-1, fsdp=1, seq=1),
         stream=StreamConfig(enabled=True, rollout_steps=10, degrade_rate=0.3, degrade_keep=0.5, cond_noise=0.02),
     )
@@ -99,11 +111,13 @@ def _tiny(stage: int) -> Config:
     base = load_config(Path(__file__).with_name("tiny.py"))
     controls = dataclasses.replace(base.model.controls, boxes=True, map=True, map_blocks=1)
     return dataclasses.replace(
-        base, model=base.model.replace(controls=controls),
-        data=dataclasses.replace(base.data, frames=12),      # frame j's taps -1, -5, -10 all inside the clip
+        base,
+        model=base.model.replace(controls=controls),
+        data=dataclasses.replace(base.data, frames=12),  # frame j's taps -1, -5, -10 all inside the clip
         flow=dataclasses.replace(base.flow, cond_frames=1, foreground_k=1.0),
         train=dataclasses.replace(base.train, steps={1: 1000, 2: 100, 3: 50}[stage], checkpoint_every=100),
-        stream=StreamConfig(enabled=True, rollout_steps=4, degrade_rate=0.0, cond_noise=0.1))
+        stream=StreamConfig(enabled=True, rollout_steps=4, degrade_rate=0.0, cond_noise=0.1),
+    )
 
 
 def get_config(arg=None) -> Config:

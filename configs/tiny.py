@@ -31,10 +31,27 @@ from jaxdrive.models.dit.presets import preset
 
 def get_config() -> Config:
     latents = LatentConfig(source="space_to_depth", factor=4)
-    model = preset("tiny", in_channels=3 * latents.factor ** 2, vae_spatial=latents.factor, vae_temporal=1,
-                   text_dim=64, text_len=16, patch=(1, 2, 2), prediction="data", final_conv=32,
-                   controls=dict(text="caption", caption_vocab=512, caption_layers=1, fps=True, camera=True,
-                                 waypoints=True, cond_frames="replace", reference_frame="residual"))
+    model = preset(
+        "tiny",
+        in_channels=3 * latents.factor**2,
+        vae_spatial=latents.factor,
+        vae_temporal=1,
+        text_dim=64,
+        text_len=16,
+        patch=(1, 2, 2),
+        prediction="data",
+        final_conv=32,
+        controls=dict(
+            text="caption",
+            caption_vocab=512,
+            caption_layers=1,
+            fps=True,
+            camera=True,
+            waypoints=True,
+            cond_frames="replace",
+            reference_frame="residual",
+        ),
+    )
     return Config(
         model=model,
         data=DataConfig(path="data/synth", frames=9, height=32, width=56, views=6, batch_size=2),

@@ -53,5 +53,4 @@ def get_config(arg: str | None = None):
     optim = dataclasses.replace(base.optim, warmup_steps=100)
     data = dataclasses.replace(base.data, path="data/world")
     flow = dataclasses.replace(base.flow, shift=3.0)
-    return dataclasses.replace(base, model=m.replace(controls=controls), train=train, optim=optim, data=data,
-                               flow=flow)
+    return dataclasses.replace(base, model=m.replace(controls=controls), train=train, optim=optim, data=data, flow=flow)

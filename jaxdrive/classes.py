@@ -8,9 +8,27 @@ so that neither layer imports the other for them.
 """
 
 # MagicDrive-V2's 10 object classes (the nuScenes detection classes); class id = index.
-OBJECT_CLASSES = ("car", "truck", "construction_vehicle", "bus", "trailer", "barrier",
-                  "motorcycle", "bicycle", "pedestrian", "traffic_cone")
+OBJECT_CLASSES = (
+    "car",
+    "truck",
+    "construction_vehicle",
+    "bus",
+    "trailer",
+    "barrier",
+    "motorcycle",
+    "bicycle",
+    "pedestrian",
+    "traffic_cone",
+)
 
 # MagicDrive's 8 BEV road classes, the channel order of ``bev_map``.
-BEV_CLASSES = ("drivable_area", "ped_crossing", "walkway", "stop_line", "carpark_area",
-               "road_divider", "lane_divider", "road_block")
+BEV_CLASSES = (
+    "drivable_area",
+    "ped_crossing",
+    "walkway",
+    "stop_line",
+    "carpark_area",
+    "road_divider",
+    "lane_divider",
+    "road_block",
+)

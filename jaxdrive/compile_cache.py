@@ -65,19 +65,21 @@ def enable(setting: str = "default") -> Path | None:
         return None
     given = jax.config.jax_compilation_cache_dir
     if setting == "default" and given:
-        folder = Path(given)                      # the user's own JAX setting wins over our default
+        folder = Path(given)  # the user's own JAX setting wins over our default
     else:
         folder = default_dir() if setting == "default" else Path(setting).expanduser()
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as e:
-        raise ValueError(f"train.compile_cache: expected a folder that can be created, got {str(folder)!r} "
-                         f"({e.strerror})") from None
+        raise ValueError(
+            f"train.compile_cache: expected a folder that can be created, got {str(folder)!r} ({e.strerror})"
+        ) from None
     jax.config.update("jax_enable_compilation_cache", True)
     if str(folder) != given:
         jax.config.update("jax_compilation_cache_dir", str(folder))
-        try:                                      # a cache JAX already opened elsewhere is re-opened here
+        try:  # a cache JAX already opened elsewhere is re-opened here
             from jax._src import compilation_cache
+
             compilation_cache.reset_cache()
         except (ImportError, AttributeError):
             pass
@@ -98,5 +100,7 @@ def describe(folder: Path | None, before: dict | None = None) -> str:
         return "XLA compilation cache off"
     now = counts()
     d = {k: now[k] - (before or {}).get(k, 0) for k in now}
-    return (f"XLA compilation cache {folder}: {d['hits']} of {d['requests']} programs read from it "
-            f"({d['saved_seconds']:.1f} s of compiling saved)")
+    return (
+        f"XLA compilation cache {folder}: {d['hits']} of {d['requests']} programs read from it "
+        f"({d['saved_seconds']:.1f} s of compiling saved)"
+    )

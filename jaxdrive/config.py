@@ -37,18 +37,18 @@ class DataConfig:
 
     path: str = "data/synth"
     split: str = "train"
-    frames: int = 9                   # pixel frames per clip, 1 + 4k for the 3D VAE
+    frames: int = 9  # pixel frames per clip, 1 + 4k for the 3D VAE
     height: int = 32
     width: int = 56
-    views: int = 6                    # the first V cameras in nuScenes order
-    stride: int = 1                   # frame stride when sampling a clip
-    rate_head: int = 0                # mixed rates: the first frames of a clip at `stride` (condition frames)
+    views: int = 6  # the first V cameras in nuScenes order
+    stride: int = 1  # frame stride when sampling a clip
+    rate_head: int = 0  # mixed rates: the first frames of a clip at `stride` (condition frames)
     rate_strides: tuple[int, ...] = ()  # ... the rest at a stride drawn per clip from these; (): `stride` throughout
-    batch_size: int = 2               # global batch; every process loads batch_size / processes
-    drop_prob: float = 0.15           # classifier-free-guidance drop per condition
+    batch_size: int = 2  # global batch; every process loads batch_size / processes
+    drop_prob: float = 0.15  # classifier-free-guidance drop per condition
     shuffle_seed: int = 0
-    threads: int = 0                  # grain read threads (0: in the main thread)
-    text_embeddings: str = ""         # .npz of 'jaxdrive data text-embed' (models with text='embeddings')
+    threads: int = 0  # grain read threads (0: in the main thread)
+    text_embeddings: str = ""  # .npz of 'jaxdrive data text-embed' (models with text='embeddings')
     # mixed resolution / length training (MagicDrive-V2 [2411.13807v3] appendix B): "HxWxF:batch[:prob[:repeat]]"
     # each, the batch global; F = 1 is an image bucket; repeat (default auto) repeats scarce clips
     # within an epoch (jaxdrive.data.pipeline). (): one bucket, height x width x frames at batch_size
@@ -80,10 +80,10 @@ class LatentConfig:
     source: str = "space_to_depth"
     vae_path: str = ""
     vae_mode: str = "chunked"
-    vae_frame_batch: int = 0          # vae_mode frame_wise: frames of each clip encoded per step (0: all at once)
-    vae_clip_batch: int = 0           # clips (x views) each device encodes per step, any mode (0: all at once)
+    vae_frame_batch: int = 0  # vae_mode frame_wise: frames of each clip encoded per step (0: all at once)
+    vae_clip_batch: int = 0  # clips (x views) each device encodes per step, any mode (0: all at once)
     factor: int = 4
-    scale: float = 1.0                # space_to_depth latents are multiplied by this (a VAE uses its scaling factor)
+    scale: float = 1.0  # space_to_depth latents are multiplied by this (a VAE uses its scaling factor)
     precomputed: bool = False
 
 
@@ -91,28 +91,28 @@ class LatentConfig:
 class FlowConfig:
     """Per-frame noise levels and losses of the rectified-flow step (``jaxdrive.flow``)."""
 
-    sigma_sampling: str = "logit_normal"   # or "uniform"
+    sigma_sampling: str = "logit_normal"  # or "uniform"
     logit_loc: float = 0.0
     logit_scale: float = 1.0
-    shift: float = 1.0                     # SD3 / Open-Sora shift; 0: the resolution/length rule
-    cond_frames: int = 1                   # clean latent condition frames at the start (max)
-    cond_frames_random: bool = True        # draw 0..cond_frames per clip (unconditional too)
-    tpd: bool = False                      # MiLA's temporal progressive denoising levels
+    shift: float = 1.0  # SD3 / Open-Sora shift; 0: the resolution/length rule
+    cond_frames: int = 1  # clean latent condition frames at the start (max)
+    cond_frames_random: bool = True  # draw 0..cond_frames per clip (unconditional too)
+    tpd: bool = False  # MiLA's temporal progressive denoising levels
     tpd_omega: float = 1.5707963267948966
-    patterns: tuple[str, ...] = ("prefix",)   # where given frames sit: prefix / ends / anchors (flow.patterns)
+    patterns: tuple[str, ...] = ("prefix",)  # where given frames sit: prefix / ends / anchors (flow.patterns)
     pattern_rates: tuple[float, ...] = ()  # each pattern's share of the clips; empty: equal shares
-    anchor_every: int = 0                  # "anchors": an anchor every S frames from the last given one
-    jdc_anchor_rate: float = 0.0           # fraction of clips whose anchor candidates are JDC anchors
+    anchor_every: int = 0  # "anchors": an anchor every S frames from the last given one
+    jdc_anchor_rate: float = 0.0  # fraction of clips whose anchor candidates are JDC anchors
     jdc_slope: float = 0.5
     jdc_alpha1: float = 0.1
-    structure_weight: float = 0.0          # LongDWM's structure-preservation loss weight
-    structure_cutoff: float = 0.25         # its high-pass cutoff, a fraction of Nyquist
-    foreground_k: float = 0.0              # STAGE's W_aux foreground constant k; 0: no weighting
-    foreground_c: float = 0.5              # STAGE's W_aux size exponent c
-    distill_teacher: str = ""              # LongDWM fine-to-coarse distillation: the fine model's run dir
-    distill_weight: float = 1.0            # weight of the distillation loss (eq. 8)
-    distill_segment_len: int = 13          # K: frames per fine segment (eq. 7)
-    distill_boundary: str = "mean"         # which prediction an interior coarse frame takes
+    structure_weight: float = 0.0  # LongDWM's structure-preservation loss weight
+    structure_cutoff: float = 0.25  # its high-pass cutoff, a fraction of Nyquist
+    foreground_k: float = 0.0  # STAGE's W_aux foreground constant k; 0: no weighting
+    foreground_c: float = 0.5  # STAGE's W_aux size exponent c
+    distill_teacher: str = ""  # LongDWM fine-to-coarse distillation: the fine model's run dir
+    distill_weight: float = 1.0  # weight of the distillation loss (eq. 8)
+    distill_segment_len: int = 13  # K: frames per fine segment (eq. 7)
+    distill_boundary: str = "mean"  # which prediction an interior coarse frame takes
 
 
 @dataclasses.dataclass(frozen=True)
@@ -144,16 +144,16 @@ class OptimConfig:
 
     lr: float = 1e-4
     warmup_steps: int = 100
-    schedule: str = "cosine"               # "cosine", "linear" or "constant" after warmup
+    schedule: str = "cosine"  # "cosine", "linear" or "constant" after warmup
     min_lr_ratio: float = 0.1
     weight_decay: float = 0.0
     b1: float = 0.9
     b2: float = 0.999
     eps: float = 1e-8
-    clip_norm: float = 1.0                 # 0: no clipping
-    grad_accum: int = 1                    # micro-batches per update (data.batch_size split; a lax.scan in the step)
-    ema_decay: float = 0.9999              # 0: no EMA
-    trainable: tuple[str, ...] = ()        # regexes over "a/b/kernel" paths; empty: all
+    clip_norm: float = 1.0  # 0: no clipping
+    grad_accum: int = 1  # micro-batches per update (data.batch_size split; a lax.scan in the step)
+    ema_decay: float = 0.9999  # 0: no EMA
+    trainable: tuple[str, ...] = ()  # regexes over "a/b/kernel" paths; empty: all
 
 
 @dataclasses.dataclass(frozen=True)
@@ -163,16 +163,16 @@ class TrainConfig:
     log_every: int = 10
     checkpoint_every: int = 500
     keep_checkpoints: int = 3
-    sample_every: int = 0                  # 0: no periodic sample videos
+    sample_every: int = 0  # 0: no periodic sample videos
     sample_steps: int = 20
-    max_bad_steps: int = 5                 # NaN/Inf losses in a row that stop the run
+    max_bad_steps: int = 5  # NaN/Inf losses in a row that stop the run
     # a checkpoint that cannot be written (disk full, lost mount): "continue" training (the next
     # save tries again) or "stop" with the previous checkpoint as the last one
     on_save_error: str = "continue"
-    compute_dtype: str = "float32"         # bfloat16 on accelerators
-    init_from: str = ""                    # a run directory or diffusers folder to start from (train/init_from.py)
-    init_from_ema: bool = True             # its EMA parameters (False: the raw ones)
-    init_map: tuple[str, ...] = ()         # "regex=replacement" renames of the source's parameter paths
+    compute_dtype: str = "float32"  # bfloat16 on accelerators
+    init_from: str = ""  # a run directory or diffusers folder to start from (train/init_from.py)
+    init_from_ema: bool = True  # its EMA parameters (False: the raw ones)
+    init_map: tuple[str, ...] = ()  # "regex=replacement" renames of the source's parameter paths
     # JAX's persistent compilation cache (jaxdrive.compile_cache): "default" (under the user's cache
     # directory), a folder, or "off"
     compile_cache: str = "default"
@@ -192,7 +192,7 @@ class SampleConfig:
 
 @dataclasses.dataclass(frozen=True)
 class MeshConfig:
-    data: int = -1                         # -1: the devices left over
+    data: int = -1  # -1: the devices left over
     fsdp: int = 1
     seq: int = 1
     tensor: int = 1
@@ -226,7 +226,6 @@ class PredictorRunConfig:
     train: TrainConfig = TrainConfig()
 
 
-
 @dataclasses.dataclass(frozen=True)
 class SegmenterRunConfig:
     """A segmenter's training run (``jaxdrive train --config configs/segmenter.py:size=tiny``):
@@ -239,6 +238,7 @@ class SegmenterRunConfig:
     data: DataConfig = DataConfig()
     optim: OptimConfig = OptimConfig()
     train: TrainConfig = TrainConfig()
+
 
 # ------------------------------------------------------------------------------------ overrides
 def _field_types(cls) -> dict[str, Any]:
@@ -319,8 +319,9 @@ def parse_arg(arg: str | None, **defaults) -> types.SimpleNamespace:
     """
     for key, default in defaults.items():
         if default is not None and type(default) not in (bool, int, float, str):
-            raise ValueError(f"parse_arg: default of {key!r}: expected a bool, int, float, str or None, "
-                             f"got {type(default).__name__}")
+            raise ValueError(
+                f"parse_arg: default of {key!r}: expected a bool, int, float, str or None, got {type(default).__name__}"
+            )
     if arg is not None and not isinstance(arg, str):
         raise ValueError(f"config argument: expected a string key=value,..., got {type(arg).__name__}")
     values, given = dict(defaults), set()
@@ -329,8 +330,7 @@ def parse_arg(arg: str | None, **defaults) -> types.SimpleNamespace:
             continue
         key, eq, text = (part.strip() for part in item.partition("="))
         if key not in defaults:
-            raise ValueError(f"config argument: unknown key {key!r}; expected one of {sorted(defaults)}, "
-                             f"got {arg!r}")
+            raise ValueError(f"config argument: unknown key {key!r}; expected one of {sorted(defaults)}, got {arg!r}")
         if key in given:
             raise ValueError(f"config argument: key {key!r} given twice in {arg!r}")
         given.add(key)
@@ -346,8 +346,9 @@ def check_arg(key: str, value, choices) -> None:
     """``ValueError`` unless the config argument ``key`` is one of ``choices`` (a config's
     ``get_config`` after :func:`parse_arg`)."""
     if value not in choices:
-        want = (", ".join(repr(c) for c in choices[:-1]) + f" or {choices[-1]!r}" if len(choices) > 1
-                else repr(choices[0]))
+        want = (
+            ", ".join(repr(c) for c in choices[:-1]) + f" or {choices[-1]!r}" if len(choices) > 1 else repr(choices[0])
+        )
         raise ValueError(f"config argument {key}: expected {want}, got {value!r}")
 
 
@@ -359,7 +360,7 @@ def split_config_path(spec) -> tuple[Path, str | None]:
         raise ValueError(f"config: expected a path FILE.py[:key=value,...], got {type(spec).__name__}")
     text = os.fspath(spec)
     cut = text.find(".py:")
-    return (Path(text), None) if cut < 0 else (Path(text[:cut + 3]), text[cut + 4:])
+    return (Path(text), None) if cut < 0 else (Path(text[: cut + 3]), text[cut + 4 :])
 
 
 def load_config(path, overrides=()):
@@ -376,13 +377,16 @@ def load_config(path, overrides=()):
     params = list(inspect.signature(module.get_config).parameters.values())
     if arg is None:
         if params and params[0].default is inspect.Parameter.empty:
-            raise ValueError(f"config: expected {path}:key=value,... (its get_config takes an argument), "
-                             f"got {str(path)!r}")
+            raise ValueError(
+                f"config: expected {path}:key=value,... (its get_config takes an argument), got {str(path)!r}"
+            )
         config = module.get_config()
     else:
         if not params:
-            raise ValueError(f"config: expected {str(path)!r} without ':...' (its get_config() takes no "
-                             f"argument), got the argument {arg!r}")
+            raise ValueError(
+                f"config: expected {str(path)!r} without ':...' (its get_config() takes no "
+                f"argument), got the argument {arg!r}"
+            )
         config = module.get_config(arg)
     for assignment in overrides:
         config = override(config, assignment)
@@ -413,10 +417,18 @@ def from_dict(cls, data: dict):
 def check_sections(config) -> None:
     """Range checks of the sections defined here (the model's config checks itself)."""
     d, o, t, f = config.data, config.optim, config.train, config.flow
-    for name, value in (("data.frames", d.frames), ("data.height", d.height), ("data.width", d.width),
-                        ("data.views", d.views), ("data.stride", d.stride), ("data.batch_size", d.batch_size),
-                        ("optim.grad_accum", o.grad_accum), ("train.steps", t.steps),
-                        ("train.log_every", t.log_every), ("train.max_bad_steps", t.max_bad_steps)):
+    for name, value in (
+        ("data.frames", d.frames),
+        ("data.height", d.height),
+        ("data.width", d.width),
+        ("data.views", d.views),
+        ("data.stride", d.stride),
+        ("data.batch_size", d.batch_size),
+        ("optim.grad_accum", o.grad_accum),
+        ("train.steps", t.steps),
+        ("train.log_every", t.log_every),
+        ("train.max_bad_steps", t.max_bad_steps),
+    ):
         validate.check_positive_int(name, value)
     validate.check_range("data.drop_prob", d.drop_prob, 0.0, 1.0)
     validate.check_range("optim.lr", o.lr, 0.0, float("inf"), lo_open=True)
@@ -439,14 +451,20 @@ def check_sections(config) -> None:
         validate.check_range("flow.distill_weight", f.distill_weight, 0.0, float("inf"))
         # eq. 7-8 put one level on the whole dense clip: per-frame schedules have no dense reading
         if f.tpd:
-            raise ValueError("flow.tpd: expected false with flow.distill_teacher (LongDWM's distillation puts "
-                             "one noise level on the whole dense clip), got true")
+            raise ValueError(
+                "flow.tpd: expected false with flow.distill_teacher (LongDWM's distillation puts "
+                "one noise level on the whole dense clip), got true"
+            )
         if f.jdc_anchor_rate > 0:
-            raise ValueError(f"flow.jdc_anchor_rate: expected 0 with flow.distill_teacher (one noise level on "
-                             f"the whole dense clip), got {f.jdc_anchor_rate}")
+            raise ValueError(
+                f"flow.jdc_anchor_rate: expected 0 with flow.distill_teacher (one noise level on "
+                f"the whole dense clip), got {f.jdc_anchor_rate}"
+            )
         if (d.frames - 1) % (f.distill_segment_len - 1):
-            raise ValueError(f"data.frames: expected n * (flow.distill_segment_len - 1) + 1 dense frames for "
-                             f"distillation (segment_len = {f.distill_segment_len}), got {d.frames}")
+            raise ValueError(
+                f"data.frames: expected n * (flow.distill_segment_len - 1) + 1 dense frames for "
+                f"distillation (segment_len = {f.distill_segment_len}), got {d.frames}"
+            )
     if f.cond_frames < 0:
         raise ValueError(f"flow.cond_frames: expected >= 0, got {f.cond_frames}")
     validate.check_positive_int("data.rate_head", d.rate_head, minimum=0)
@@ -456,17 +474,25 @@ def check_sections(config) -> None:
         if isinstance(s, bool) or not isinstance(s, int) or s < 1:
             raise ValueError(f"data.rate_strides: expected positive integers, got {d.rate_strides!r}")
     if d.rate_strides and config.latents.precomputed:
-        raise ValueError(f"data.rate_strides: expected () with latents.precomputed (stored latent windows have "
-                         f"uniform frames), got {d.rate_strides!r}")
+        raise ValueError(
+            f"data.rate_strides: expected () with latents.precomputed (stored latent windows have "
+            f"uniform frames), got {d.rate_strides!r}"
+        )
     if d.rate_strides and f.distill_teacher:
-        raise ValueError(f"data.rate_strides: expected () with flow.distill_teacher (distillation cuts a uniform "
-                         f"dense clip into segments), got {d.rate_strides!r}")
+        raise ValueError(
+            f"data.rate_strides: expected () with flow.distill_teacher (distillation cuts a uniform "
+            f"dense clip into segments), got {d.rate_strides!r}"
+        )
     if d.buckets:
         from jaxdrive.data.buckets import parse_bucket_specs
+
         parse_bucket_specs(d.buckets)
-        for name, value, ok in (("latents.precomputed", config.latents.precomputed, False),
-                                ("flow.distill_teacher", f.distill_teacher, ""), ("optim.grad_accum", o.grad_accum, 1)):
-            if value != ok:       # stored windows have one shape; a step's micro-batches must share a bucket
+        for name, value, ok in (
+            ("latents.precomputed", config.latents.precomputed, False),
+            ("flow.distill_teacher", f.distill_teacher, ""),
+            ("optim.grad_accum", o.grad_accum, 1),
+        ):
+            if value != ok:  # stored windows have one shape; a step's micro-batches must share a bucket
                 raise ValueError(f"{name}: expected {ok!r} with data.buckets, got {value!r}")
     if hasattr(config, "sample"):
         validate.check_range("sample.cfg", config.sample.cfg, 0.0, float("inf"), hi_open=True)

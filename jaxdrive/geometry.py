@@ -24,17 +24,41 @@ from jaxdrive.validate import check_trailing_shape
 # heading, l = left = +width/2): indices 0-3 are the bottom face (z - height/2), 4-7 the top face
 # (z + height/2); each face goes front-left, rear-left, rear-right, front-right, i.e.
 # counter-clockwise seen from above. Corner i + 4 is directly above corner i.
-_CORNER_SIGNS = np.array([
-    [+1, +1, -1], [-1, +1, -1], [-1, -1, -1], [+1, -1, -1],
-    [+1, +1, +1], [-1, +1, +1], [-1, -1, +1], [+1, -1, +1],
-], dtype=np.float32) * 0.5
+_CORNER_SIGNS = (
+    np.array(
+        [
+            [+1, +1, -1],
+            [-1, +1, -1],
+            [-1, -1, -1],
+            [+1, -1, -1],
+            [+1, +1, +1],
+            [-1, +1, +1],
+            [-1, -1, +1],
+            [+1, -1, +1],
+        ],
+        dtype=np.float32,
+    )
+    * 0.5
+)
 
 # The 12 edges as corner-index pairs: bottom ring, top ring, then the 4 verticals.
-BOX_EDGES = np.array([
-    [0, 1], [1, 2], [2, 3], [3, 0],
-    [4, 5], [5, 6], [6, 7], [7, 4],
-    [0, 4], [1, 5], [2, 6], [3, 7],
-], dtype=np.int32)
+BOX_EDGES = np.array(
+    [
+        [0, 1],
+        [1, 2],
+        [2, 3],
+        [3, 0],
+        [4, 5],
+        [5, 6],
+        [6, 7],
+        [7, 4],
+        [0, 4],
+        [1, 5],
+        [2, 6],
+        [3, 7],
+    ],
+    dtype=np.int32,
+)
 BOX_EDGES.setflags(write=False)
 
 # |depth| below this is treated as this (finite placeholder pixels, no NaN in values or grads).
@@ -45,8 +69,10 @@ def _broadcast_batch(name_a: str, shape_a, name_b: str, shape_b) -> None:
     try:
         np.broadcast_shapes(tuple(shape_a), tuple(shape_b))
     except ValueError:
-        raise ValueError(f"{name_b}: expected leading (batch) dimensions that broadcast against "
-                         f"{name_a}'s {list(shape_a)}, got {list(shape_b)}") from None
+        raise ValueError(
+            f"{name_b}: expected leading (batch) dimensions that broadcast against "
+            f"{name_a}'s {list(shape_a)}, got {list(shape_b)}"
+        ) from None
 
 
 def box_corners(boxes):
@@ -95,8 +121,7 @@ def project_to_image(points_cam, intrinsics):
     """
     check_trailing_shape("points_cam", points_cam, (None, 3), "[..., P, 3]")
     check_trailing_shape("intrinsics", intrinsics, (3, 3), "[..., 3, 3]")
-    _broadcast_batch("points_cam", np.shape(points_cam)[:-2], "intrinsics",
-                     np.shape(intrinsics)[:-2])
+    _broadcast_batch("points_cam", np.shape(points_cam)[:-2], "intrinsics", np.shape(intrinsics)[:-2])
     points_cam = jnp.asarray(points_cam, jnp.float32)
     intrinsics = jnp.asarray(intrinsics, jnp.float32)
     depth = points_cam[..., 2]

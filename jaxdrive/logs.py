@@ -46,11 +46,15 @@ def deprecated_log(fn):
     def wrapper(*args, log=None, **kwargs):
         if log is None:
             return fn(*args, **kwargs)
-        warnings.warn(f"{name}(log=...) is deprecated and goes in the next release: jaxdrive logs its messages to "
-                      f"the {ROOT!r} logger (logging.getLogger({ROOT!r}); jaxdrive.logs says how to see them)",
-                      DeprecationWarning, stacklevel=2)
+        warnings.warn(
+            f"{name}(log=...) is deprecated and goes in the next release: jaxdrive logs its messages to "
+            f"the {ROOT!r} logger (logging.getLogger({ROOT!r}); jaxdrive.logs says how to see them)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
         with _forwarding(log):
             return fn(*args, **kwargs)
+
     return wrapper
 
 

@@ -37,9 +37,8 @@ def view_mosaic(video) -> np.ndarray:
     """``[V, F, H, W, 3] -> [F, rows * H, cols * W, 3]`` uint8 (the layout in the module docstring)."""
     video = _with_views(video)
     layout = SIX_VIEW_LAYOUT if video.shape[0] == 6 else (tuple(range(video.shape[0])),)
-    tiles = video[[v for row in layout for v in row]]                 # views in reading order
+    tiles = video[[v for row in layout for v in row]]  # views in reading order
     return einops.rearrange(tiles, "(rows cols) f h w c -> f (rows h) (cols w) c", rows=len(layout))
-
 
 
 def split_mosaic(frames, views: int) -> np.ndarray:
@@ -51,11 +50,14 @@ def split_mosaic(frames, views: int) -> np.ndarray:
     rows, cols = len(layout), len(layout[0])
     h, w = frames.shape[1] // rows, frames.shape[2] // cols
     if views < 1 or not h or not w:
-        raise ValueError(f"views: expected a positive view count whose layout ({rows} x {cols}) fits frames of "
-                         f"{frames.shape[1]} x {frames.shape[2]}, got {views}")
-    tiles = einops.rearrange(frames[:, :rows * h, :cols * w], "f (rows h) (cols w) c -> (rows cols) f h w c",
-                             rows=rows, cols=cols)
-    order = np.argsort([v for row in layout for v in row])           # reading order -> view order
+        raise ValueError(
+            f"views: expected a positive view count whose layout ({rows} x {cols}) fits frames of "
+            f"{frames.shape[1]} x {frames.shape[2]}, got {views}"
+        )
+    tiles = einops.rearrange(
+        frames[:, : rows * h, : cols * w], "f (rows h) (cols w) c -> (rows cols) f h w c", rows=rows, cols=cols
+    )
+    order = np.argsort([v for row in layout for v in row])  # reading order -> view order
     return tiles[order]
 
 
@@ -63,6 +65,7 @@ def read_mp4(path, views: int) -> np.ndarray:
     """The frames of an mp4 as uint8 ``[V, F, H, W, 3]`` (a mosaic of ``views`` views, as
     :class:`Mp4Writer` writes them; ``views=1``: the whole frame)."""
     import av
+
     try:
         with av.open(str(path)) as container:
             frames = [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
@@ -71,6 +74,7 @@ def read_mp4(path, views: int) -> np.ndarray:
     if not frames:
         raise ValueError(f"videos: expected an mp4 with frames, got {str(path)!r} (none decoded)")
     return split_mosaic(np.stack(frames), views)
+
 
 class Mp4Writer:
     """An H.264 mp4 written part by part (views tiled by :func:`view_mosaic`; sizes padded to
@@ -101,8 +105,10 @@ class Mp4Writer:
             self._stream.width, self._stream.height, self._stream.pix_fmt = frames.shape[2], frames.shape[1], "yuv420p"
             self._stream.options = {"crf": "18"}
         elif (frames.shape[1], frames.shape[2]) != (self._stream.height, self._stream.width):
-            raise ValueError(f"video: expected frames of {self._stream.height} x {self._stream.width} (the first "
-                             f"part's mosaic), got {frames.shape[1]} x {frames.shape[2]}")
+            raise ValueError(
+                f"video: expected frames of {self._stream.height} x {self._stream.width} (the first "
+                f"part's mosaic), got {frames.shape[1]} x {frames.shape[2]}"
+            )
         for frame in frames:
             self._container.mux(self._stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")))
         self.frames += len(frames)
@@ -129,9 +135,17 @@ def write_mp4(path, video, fps: float = 12.0) -> Path:
 
 
 # BEV panel colours (jaxdrive.classes.BEV_CLASSES order)
-BEV_COLOURS = ((70, 70, 78), (150, 150, 160), (110, 100, 90), (230, 230, 230), (60, 90, 60), (240, 200, 40),
-               (220, 220, 220), (80, 80, 90))
-PAINT_ORDER = (0, 4, 2, 7, 1, 3, 5, 6)       # areas first, then crossings, stop lines and dividers on top
+BEV_COLOURS = (
+    (70, 70, 78),
+    (150, 150, 160),
+    (110, 100, 90),
+    (230, 230, 230),
+    (60, 90, 60),
+    (240, 200, 40),
+    (220, 220, 220),
+    (80, 80, 90),
+)
+PAINT_ORDER = (0, 4, 2, 7, 1, 3, 5, 6)  # areas first, then crossings, stop lines and dividers on top
 PATH_COLOUR, FUTURE_COLOUR, AGENT_COLOUR = (40, 140, 255), (255, 60, 60), (255, 150, 40)
 
 
@@ -154,21 +168,23 @@ def bev_image(bev_map, *, cell, path=None, split: int | None = None, boxes=None,
             for dc in range(-radius, radius + 1):
                 ok = (r + dr >= 0) & (r + dr < hm) & (c + dc >= 0) & (c + dc < wm)
                 img[r[ok] + dr, c[ok] + dc] = colour
+
     if boxes is not None:
         plot(np.asarray(boxes)[np.asarray(valid, bool)][:, :2], AGENT_COLOUR, radius=1)
     if path is not None and len(path) > 1:
         path = np.asarray(path, np.float64)
-        dense = np.concatenate([p + np.linspace(0, 1, 8, endpoint=False)[:, None] * (q - p)
-                                for p, q in zip(path[:-1], path[1:])] + [path[-1:]])
+        dense = np.concatenate(
+            [p + np.linspace(0, 1, 8, endpoint=False)[:, None] * (q - p) for p, q in zip(path[:-1], path[1:])]
+            + [path[-1:]]
+        )
         cut = len(dense) if split is None else 8 * max(split - 1, 0)
         plot(dense[:cut], PATH_COLOUR)
         plot(dense[cut:], FUTURE_COLOUR)
-    plot(np.zeros((1, 2)), (255, 255, 255), radius=1)                # the ego
+    plot(np.zeros((1, 2)), (255, 255, 255), radius=1)  # the ego
     return img
 
 
-def write_frame_grid(path, video, num_frames: int = 4, *, reference=None, min_width: int = 480,
-                     side=None) -> Path:
+def write_frame_grid(path, video, num_frames: int = 4, *, reference=None, min_width: int = 480, side=None) -> Path:
     """A PNG with ``num_frames`` evenly spaced frames of ``video``, one mosaic per row. With
     ``reference`` (a video of the same shape, e.g. the recorded clip) each row shows the
     reference's mosaic on the left and ``video``'s on the right. Small frames are enlarged by an
@@ -180,13 +196,14 @@ def write_frame_grid(path, video, num_frames: int = 4, *, reference=None, min_wi
     frames = view_mosaic(video)
     if reference is not None:
         if np.shape(reference) != np.shape(video):
-            raise ValueError(f"reference: expected the shape of video {list(np.shape(video))}, "
-                             f"got {list(np.shape(reference))}")
+            raise ValueError(
+                f"reference: expected the shape of video {list(np.shape(video))}, got {list(np.shape(reference))}"
+            )
         sep = np.full(frames.shape[:2] + (4, 3), 255, np.uint8)
         frames = np.concatenate([view_mosaic(reference), sep, frames], axis=2)
     picks = np.unique(np.linspace(0, frames.shape[0] - 1, min(num_frames, frames.shape[0])).round().astype(int))
     up = max(1, -(-min_width // frames.shape[2]))
-    frames = einops.repeat(frames[picks], "n h w c -> n (h sy) (w sx) c", sy=up, sx=up)   # nearest neighbour
+    frames = einops.repeat(frames[picks], "n h w c -> n (h sy) (w sx) c", sy=up, sx=up)  # nearest neighbour
     if side is not None:
         side = np.asarray(side, np.uint8)[picks]
         h = frames.shape[1]
@@ -195,7 +212,7 @@ def write_frame_grid(path, video, num_frames: int = 4, *, reference=None, min_wi
         cols = np.minimum((np.arange(width) * side.shape[2]) // width, side.shape[2] - 1)
         sep = np.full(frames.shape[:2] + (4, 3), 255, np.uint8)
         frames = np.concatenate([side[:, rows][:, :, cols], sep, frames], axis=2)
-    frames = np.pad(frames, ((0, 0), (0, 2), (0, 0), (0, 0)), constant_values=255)   # a white gap below each
+    frames = np.pad(frames, ((0, 0), (0, 2), (0, 0), (0, 0)), constant_values=255)  # a white gap below each
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(einops.rearrange(frames, "n h w c -> (n h) w c")[:-2]).save(path)
@@ -216,18 +233,22 @@ def write_route_grid(path, rows, num_frames: int = 5, *, view: int = 0, min_widt
     for label, render, generated in rows:
         render, generated = _with_views(render), _with_views(generated)
         if render.shape != generated.shape:
-            raise ValueError(f"rows[{label!r}]: expected render and generated of one shape, got "
-                             f"{list(render.shape)} and {list(generated.shape)}")
+            raise ValueError(
+                f"rows[{label!r}]: expected render and generated of one shape, got "
+                f"{list(render.shape)} and {list(generated.shape)}"
+            )
         picks = np.unique(np.linspace(0, render.shape[1] - 1, min(num_frames, render.shape[1])).round().astype(int))
-        side = lambda v: np.concatenate([np.pad(f, ((0, 0), (0, 2), (0, 0)), constant_values=255)
-                                         for f in v[view, picks]], axis=1)
+        side = lambda v: np.concatenate(
+            [np.pad(f, ((0, 0), (0, 2), (0, 0)), constant_values=255) for f in v[view, picks]], axis=1
+        )
         a, b = side(render), side(generated)
         strip = np.concatenate([a, np.full((a.shape[0], 6, 3), 255, np.uint8), b], axis=1)
         up = max(1, -(-min_width // strip.shape[1]))
         strip = einops.repeat(strip, "h w c -> (h sy) (w sx) c", sy=up, sx=up)
         head = Image.new("RGB", (strip.shape[1], 14), "white")
-        ImageDraw.Draw(head).text((2, 1), f"{label}: render | generated (frames {', '.join(map(str, picks))})",
-                                  fill=(0, 0, 0))
+        ImageDraw.Draw(head).text(
+            (2, 1), f"{label}: render | generated (frames {', '.join(map(str, picks))})", fill=(0, 0, 0)
+        )
         strips += [np.asarray(head), strip]
     width = max(x.shape[1] for x in strips)
     strips = [np.pad(x, ((0, 0), (0, width - x.shape[1]), (0, 0)), constant_values=255) for x in strips]
@@ -240,6 +261,7 @@ def write_route_grid(path, rows, num_frames: int = 5, *, view: int = 0, min_widt
 def plot_losses(path, steps, losses, *, title: str = "training loss") -> Path:
     """A PNG of ``losses`` against ``steps`` (log scale when they span a decade)."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

@@ -12,10 +12,10 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True)
 class Paper:
-    name: str          # how the code and docs call it
+    name: str  # how the code and docs call it
     title: str
     authors: str
-    arxiv: str         # identifier with its version, e.g. "2503.15875v1"
+    arxiv: str  # identifier with its version, e.g. "2503.15875v1"
 
     @property
     def url(self) -> str:
@@ -26,18 +26,35 @@ class Paper:
         return f"{self.name} [{self.arxiv}]" + (f" {where}" if where else "")
 
 
-PAPERS: dict[str, Paper] = {p.name: p for p in (
-    Paper("MiLA", "MiLA: Multi-view Intensive-fidelity Long-term Video Generation World Model for Autonomous "
-          "Driving", "Haiguang Wang, Daqi Liu, Hongwei Xie, Haisong Liu, Enhui Ma, Kaicheng Yu, Limin Wang, "
-          "Bing Wang", "2503.15875v1"),
-    Paper("LongDWM", "LongDWM: Cross-Granularity Distillation for Building a Long-Term Driving World Model",
-          "Xiaodong Wang, Zhirong Wu, Peixi Peng", "2506.01546v1"),
-    Paper("STAGE", "STAGE: A Stream-Centric Generative World Model for Long-Horizon Driving-Scene Simulation",
-          "Jiamin Wang, Yichen Yao, Xiang Feng, Hang Wu, Yaming Wang, Qingqiu Huang, Yuexin Ma, Xinge Zhu",
-          "2506.13138v1"),
-    Paper("MagicDrive-V2", "MagicDrive-V2: High-Resolution Long Video Generation for Autonomous Driving with "
-          "Adaptive Control", "Ruiyuan Gao, Kai Chen, Bo Xiao, Lanqing Hong, Zhenguo Li, Qiang Xu", "2411.13807v3"),
-)}
+PAPERS: dict[str, Paper] = {
+    p.name: p
+    for p in (
+        Paper(
+            "MiLA",
+            "MiLA: Multi-view Intensive-fidelity Long-term Video Generation World Model for Autonomous Driving",
+            "Haiguang Wang, Daqi Liu, Hongwei Xie, Haisong Liu, Enhui Ma, Kaicheng Yu, Limin Wang, Bing Wang",
+            "2503.15875v1",
+        ),
+        Paper(
+            "LongDWM",
+            "LongDWM: Cross-Granularity Distillation for Building a Long-Term Driving World Model",
+            "Xiaodong Wang, Zhirong Wu, Peixi Peng",
+            "2506.01546v1",
+        ),
+        Paper(
+            "STAGE",
+            "STAGE: A Stream-Centric Generative World Model for Long-Horizon Driving-Scene Simulation",
+            "Jiamin Wang, Yichen Yao, Xiang Feng, Hang Wu, Yaming Wang, Qingqiu Huang, Yuexin Ma, Xinge Zhu",
+            "2506.13138v1",
+        ),
+        Paper(
+            "MagicDrive-V2",
+            "MagicDrive-V2: High-Resolution Long Video Generation for Autonomous Driving with Adaptive Control",
+            "Ruiyuan Gao, Kai Chen, Bo Xiao, Lanqing Hong, Zhenguo Li, Qiang Xu",
+            "2411.13807v3",
+        ),
+    )
+}
 
 
 def paper(name: str) -> Paper:

@@ -24,8 +24,7 @@ def _interval(lo, hi, lo_open, hi_open) -> str:
     return f"{'(' if lo_open else '['}{lo}, {hi}{')' if hi_open else ']'}"
 
 
-def check_range(name: str, x, lo: float, hi: float, *, lo_open: bool = False,
-                hi_open: bool = False) -> None:
+def check_range(name: str, x, lo: float, hi: float, *, lo_open: bool = False, hi_open: bool = False) -> None:
     """Raise if a concrete ``x`` has a value outside the interval; traced values pass."""
     if x is None or not is_concrete(x):
         return
@@ -63,7 +62,7 @@ def check_trailing_shape(name: str, x, trailing: Sequence[int | None], label: st
     """Raise unless ``x`` has shape ``[..., *trailing]`` (``None`` = any size); ``label`` is the
     expected shape as the docstring writes it, e.g. ``"[..., P, 3]"``."""
     shape = tuple(np.shape(x))
-    tail = shape[len(shape) - len(trailing):]
+    tail = shape[len(shape) - len(trailing) :]
     if len(shape) < len(trailing) or any(t is not None and t != s for t, s in zip(trailing, tail)):
         raise ValueError(f"{name}: expected shape {label}, got {list(shape)}")
 
@@ -81,5 +80,4 @@ def check_choice(name: str, value, choices: Sequence) -> None:
 
 def check_same_shape(name: str, x, ref_name: str, ref) -> None:
     if tuple(np.shape(x)) != tuple(np.shape(ref)):
-        raise ValueError(
-            f"{name}: expected the shape of {ref_name} {list(np.shape(ref))}, got {list(np.shape(x))}")
+        raise ValueError(f"{name}: expected the shape of {ref_name} {list(np.shape(ref))}, got {list(np.shape(x))}")

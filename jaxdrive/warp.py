@@ -37,6 +37,7 @@ def trajectory_poses(points, frames: int, *, times=None, degree: int = 3) -> np.
     the first along the ego's x axis (frame 0's pose is the identity); the heading is the
     tangent's direction, held where the ego stands still (under 1 cm a frame: a stop)."""
     from scipy.interpolate import make_interp_spline
+
     pts = np.asarray(points, np.float64)
     if pts.ndim != 2 or pts.shape[1] != 2 or pts.shape[0] < 2:
         raise ValueError(f"points: expected [K, 2] trajectory points with K >= 2, got shape {list(pts.shape)}")
@@ -46,8 +47,9 @@ def trajectory_poses(points, frames: int, *, times=None, degree: int = 3) -> np.
         raise ValueError(f"frames: expected at least 1, got {frames}")
     t = np.linspace(0.0, frames - 1, len(pts)) if times is None else np.asarray(times, np.float64)
     if t.shape != (len(pts),) or not np.all(np.diff(t) > 0):
-        raise ValueError(f"times: expected {len(pts)} strictly increasing frame times, "
-                         f"got {np.asarray(times).tolist()}")
+        raise ValueError(
+            f"times: expected {len(pts)} strictly increasing frame times, got {np.asarray(times).tolist()}"
+        )
     if degree not in (1, 2, 3):
         raise ValueError(f"degree: expected 1, 2 or 3, got {degree}")
     k = min(degree, len(pts) - 1)
@@ -64,7 +66,7 @@ def trajectory_poses(points, frames: int, *, times=None, degree: int = 3) -> np.
     moving = speed > 1e-2
     if not moving.any():
         yaw[:] = 0.0
-    else:   # standing still: keep the last heading (the first one before the ego moves)
+    else:  # standing still: keep the last heading (the first one before the ego moves)
         idx = np.where(moving, np.arange(frames), -1)
         idx = np.maximum.accumulate(idx)
         idx = np.where(idx < 0, np.argmax(moving), idx)
@@ -82,8 +84,8 @@ def camera_motion(ego_poses, cam_to_ego):
     ``ego_poses [..., F, 4, 4]`` (``M_t``: ego at t -> ego at frame 0)."""
     check_trailing_shape("ego_poses", ego_poses, (None, 4, 4), "[..., F, 4, 4]")
     check_trailing_shape("cam_to_ego", cam_to_ego, (None, 4, 4), "[..., V, 4, 4]")
-    e = jnp.asarray(cam_to_ego, jnp.float32)[..., :, None, :, :]          # [..., V, 1, 4, 4]
-    m = jnp.asarray(ego_poses, jnp.float32)[..., None, :, :, :]           # [..., 1, F, 4, 4]
+    e = jnp.asarray(cam_to_ego, jnp.float32)[..., :, None, :, :]  # [..., V, 1, 4, 4]
+    m = jnp.asarray(ego_poses, jnp.float32)[..., None, :, :, :]  # [..., 1, F, 4, 4]
     return jnp.linalg.inv(e) @ jnp.linalg.inv(m) @ e
 
 
@@ -107,23 +109,31 @@ def depth_free_warp(image, intrinsics, motion, depth):
     image = jnp.asarray(image, jnp.float32)
     h, w = image.shape[:2]
     v, u = jnp.meshgrid(jnp.arange(h, dtype=jnp.float32), jnp.arange(w, dtype=jnp.float32), indexing="ij")
-    target = jnp.stack([u, v, jnp.ones_like(u)], axis=-1)                          # [H, W, 3]
+    target = jnp.stack([u, v, jnp.ones_like(u)], axis=-1)  # [H, W, 3]
     k = jnp.asarray(intrinsics, jnp.float32)
     motion = jnp.asarray(motion, jnp.float32)
-    hom = plane_homography(k, motion, depth)                                       # [..., 3, 3]
+    hom = plane_homography(k, motion, depth)  # [..., 3, 3]
     src = jnp.einsum("...ij,hwj->...hwi", jnp.linalg.inv(hom), target)
     src = src[..., :2] / jnp.where(jnp.abs(src[..., 2:]) > 1e-9, src[..., 2:], 1e-9)
     # the source point's 3D position after the motion must lie in front of camera t
-    ray = jnp.einsum("ij,...hwj->...hwi", jnp.linalg.inv(k),
-                     jnp.concatenate([src, jnp.ones_like(src[..., :1])], axis=-1)) * depth
+    ray = (
+        jnp.einsum("ij,...hwj->...hwi", jnp.linalg.inv(k), jnp.concatenate([src, jnp.ones_like(src[..., :1])], axis=-1))
+        * depth
+    )
     z_t = jnp.einsum("...j,...hwj->...hw", motion[..., 2, :3], ray) + motion[..., None, None, 2, 3]
     su, sv = src[..., 0], src[..., 1]
-    eps = 1e-3                         # round-off at the border is not a hole
+    eps = 1e-3  # round-off at the border is not a hole
     hole = (su < -eps) | (su > w - 1 + eps) | (sv < -eps) | (sv > h - 1 + eps) | (z_t <= 0)
 
     def sample(su, sv):
-        return jnp.stack([jax.scipy.ndimage.map_coordinates(image[..., c], [sv, su], order=1, mode="nearest")
-                          for c in range(image.shape[-1])], axis=-1)
+        return jnp.stack(
+            [
+                jax.scipy.ndimage.map_coordinates(image[..., c], [sv, su], order=1, mode="nearest")
+                for c in range(image.shape[-1])
+            ],
+            axis=-1,
+        )
+
     flat_u, flat_v = su.reshape((-1, h, w)), sv.reshape((-1, h, w))
     warped = jax.vmap(sample)(flat_u, flat_v).reshape(su.shape + (image.shape[-1],))
     return jnp.where(hole[..., None], 0.0, warped), hole
@@ -135,11 +145,14 @@ def inpaint_holes(frames, holes, *, radius: float = 3.0) -> np.ndarray:
     the host; pixels outside the holes are returned unchanged. A frame that is all hole stays 0
     (nothing to fill from)."""
     import cv2
+
     frames = np.asarray(frames, np.float32)
     holes = np.asarray(holes, bool)
     if frames.shape[:-1] != holes.shape or frames.shape[-1] != 3:
-        raise ValueError(f"holes: expected the shape of frames without channels {list(frames.shape[:-1])} "
-                         f"(frames [..., H, W, 3]), got {list(holes.shape)}")
+        raise ValueError(
+            f"holes: expected the shape of frames without channels {list(frames.shape[:-1])} "
+            f"(frames [..., H, W, 3]), got {list(holes.shape)}"
+        )
     out = frames.copy()
     flat, mask = out.reshape((-1,) + frames.shape[-3:]), holes.reshape((-1,) + holes.shape[-2:])
     for i in range(flat.shape[0]):
@@ -159,9 +172,10 @@ def warp_views(first, intrinsics, cam_to_ego, ego_poses, depth: float, *, inpain
     check_trailing_shape("first", first, (None, None, 3), "[V, H, W, 3]")
     if not float(depth) > 0:
         raise ValueError(f"depth: expected a positive plane depth in metres, got {depth}")
-    motion = camera_motion(ego_poses, cam_to_ego)                                  # [V, F, 4, 4]
+    motion = camera_motion(ego_poses, cam_to_ego)  # [V, F, 4, 4]
     # every view in one program: the views are a batch axis of the gather
-    out, holes = jax.vmap(depth_free_warp, in_axes=(0, 0, 0, None))(first, jnp.asarray(intrinsics, jnp.float32),
-                                                                     motion, float(depth))
+    out, holes = jax.vmap(depth_free_warp, in_axes=(0, 0, 0, None))(
+        first, jnp.asarray(intrinsics, jnp.float32), motion, float(depth)
+    )
     out, holes = np.asarray(out), np.asarray(holes)
     return inpaint_holes(out, holes) if inpaint else out

@@ -47,7 +47,7 @@ def _exit_code(rc: int) -> int:
 def _wait(procs, grace: float) -> int:
     """Wait for all processes; after the first failure stop the rest. Returns the first failure's code."""
     code = 0
-    while [p.poll() for p in procs].count(None):      # poll every one: any() would stop at the first alive
+    while [p.poll() for p in procs].count(None):  # poll every one: any() would stop at the first alive
         failed = [(i, p.returncode) for i, p in enumerate(procs) if p.returncode]
         if failed and not code:
             i, rc = failed[0]
@@ -78,8 +78,12 @@ def main(argv=None) -> int:
     parser.add_argument("--processes", type=int, default=2)
     parser.add_argument("--cpu-devices", type=int, default=0, help="fake CPU devices per process (0: real devices)")
     parser.add_argument("--port", type=int, default=0, help="coordinator port (0: a free one)")
-    parser.add_argument("--grace", type=float, default=30.0,
-                        help="seconds the other processes get after SIGTERM, once one has failed, before SIGKILL")
+    parser.add_argument(
+        "--grace",
+        type=float,
+        default=30.0,
+        help="seconds the other processes get after SIGTERM, once one has failed, before SIGKILL",
+    )
     parser.add_argument("command", nargs=argparse.REMAINDER, help="-- then the command every process runs")
     args = parser.parse_args(argv)
     command = args.command[1:] if args.command[:1] == ["--"] else args.command
@@ -92,12 +96,15 @@ def main(argv=None) -> int:
     port = args.port or _free_port()
     procs = []
     for pid in range(args.processes):
-        env = dict(os.environ, JAXDRIVE_COORDINATOR=f"localhost:{port}",
-                   JAXDRIVE_NUM_PROCESSES=str(args.processes), JAXDRIVE_PROCESS_ID=str(pid))
+        env = dict(
+            os.environ,
+            JAXDRIVE_COORDINATOR=f"localhost:{port}",
+            JAXDRIVE_NUM_PROCESSES=str(args.processes),
+            JAXDRIVE_PROCESS_ID=str(pid),
+        )
         if args.cpu_devices:
             env.update(JAXDRIVE_CPU_DEVICES=str(args.cpu_devices), JAX_PLATFORMS="cpu")
-        procs.append(subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                      text=True))
+        procs.append(subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True))
     pumps = [threading.Thread(target=_pump, args=(p, i), daemon=True) for i, p in enumerate(procs)]
     for t in pumps:
         t.start()

@@ -10,8 +10,11 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # call with the same inputs (jaxdrive.xla_flags), which made exact-equality tests flaky.
 from jaxdrive.xla_flags import add_xla_flags, deterministic_cpu  # noqa: E402  (imports jax; no backend yet)
 
-add_xla_flags("--xla_force_host_platform_device_count=8", "--xla_cpu_collective_timeout_seconds=900",
-              "--xla_cpu_collective_call_terminate_timeout_seconds=900")
+add_xla_flags(
+    "--xla_force_host_platform_device_count=8",
+    "--xla_cpu_collective_timeout_seconds=900",
+    "--xla_cpu_collective_call_terminate_timeout_seconds=900",
+)
 deterministic_cpu()
 
 import jax  # noqa: E402  (its backend starts after the flags above)
@@ -32,11 +35,11 @@ settings.load_profile("jaxdrive")
 # file lock around each entry, so a worker never reads an entry another is still writing.
 import tempfile  # noqa: E402
 
-_owns_cache = not os.environ.get("JAXDRIVE_TEST_XLA_CACHE")       # the controller (or a run without xdist)
+_owns_cache = not os.environ.get("JAXDRIVE_TEST_XLA_CACHE")  # the controller (or a run without xdist)
 _cache = os.environ.get("JAXDRIVE_TEST_XLA_CACHE") or tempfile.mkdtemp(prefix="jaxdrive-xla-cache-")
 os.environ["JAXDRIVE_TEST_XLA_CACHE"] = _cache
 jax.config.update("jax_compilation_cache_dir", _cache)
-os.environ.setdefault("JAXDRIVE_CACHE_DIR", _cache)    # subprocesses (jaxdrive CLI, launch/local.py) too, not ~/.cache
+os.environ.setdefault("JAXDRIVE_CACHE_DIR", _cache)  # subprocesses (jaxdrive CLI, launch/local.py) too, not ~/.cache
 jax.config.update("jax_compilation_cache_max_size", 64 << 30)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
@@ -49,6 +52,7 @@ def pytest_unconfigure(config):
     """The process that made the run's cache folder removes it at the end (it holds gigabytes)."""
     if _owns_cache:
         import shutil
+
         shutil.rmtree(_cache, ignore_errors=True)
 
 
@@ -57,15 +61,17 @@ def shared(tmp_path_factory, name: str, build):
     to ask builds it in the run's shared temporary folder under a file lock, the others wait and
     reuse it (a session fixture alone is built once per worker). Returns the folder."""
     from filelock import FileLock
+
     if os.environ.get("PYTEST_XDIST_WORKER") is None:
         folder = tmp_path_factory.mktemp(name)
         build(folder)
         return folder
-    root = tmp_path_factory.getbasetemp().parent          # one per run, shared by its workers
+    root = tmp_path_factory.getbasetemp().parent  # one per run, shared by its workers
     folder = root / name
     with FileLock(str(root / f"{name}.lock")):
         if not (folder / ".built").exists():
             import shutil
+
             shutil.rmtree(folder, ignore_errors=True)
             folder.mkdir()
             build(folder)
@@ -77,14 +83,20 @@ def shared(tmp_path_factory, name: str, build):
 def clips21(tmp_path_factory):
     """2 training scenes and 1 validation scene of 21 frames, 6 views (a session's shared data)."""
     from train_fixtures import write_synthetic
-    return shared(tmp_path_factory, "clips21",
-                  lambda folder: write_synthetic(folder / "data", train=2, frames=21, views=6)) / "data"
+
+    return (
+        shared(
+            tmp_path_factory, "clips21", lambda folder: write_synthetic(folder / "data", train=2, frames=21, views=6)
+        )
+        / "data"
+    )
 
 
 @pytest.fixture(scope="session")
 def tiny_dit(clips21, tmp_path_factory):
     """A tiny 6-view DiT trained 1 step on ``clips21`` (``train_fixtures.tiny_run``)."""
     from train_fixtures import tiny_run
+
     return shared(tmp_path_factory, "tiny_dit", lambda folder: tiny_run(folder / "run", clips21)) / "run"
 
 
@@ -94,9 +106,24 @@ def segmenter_run(clips21, tmp_path_factory):
     from pathlib import Path
 
     from jaxdrive.cli import main as cli
+
     config = Path(__file__).resolve().parents[1] / "configs" / "segmenter.py"
 
     def build(folder):
-        assert cli(["train", "--config", f"{config}:size=test", "--workdir", str(folder / "run"), "--set",
-                    f"data.path={clips21}", "--no-progress"]) == 0
+        assert (
+            cli(
+                [
+                    "train",
+                    "--config",
+                    f"{config}:size=test",
+                    "--workdir",
+                    str(folder / "run"),
+                    "--set",
+                    f"data.path={clips21}",
+                    "--no-progress",
+                ]
+            )
+            == 0
+        )
+
     return shared(tmp_path_factory, "segmenter", build) / "run"

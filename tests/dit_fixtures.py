@@ -19,8 +19,7 @@ from jaxdrive.models.dit.conditions import Conditions
 
 # Zero-initialised projections of the control branches (they must leave the output unchanged).
 # "out" is a ControlNet branch layer's output projection (distinct from attention's "to_out").
-BRANCH_ZERO = ("warp_proj", "map_in", "cond_embed", "reference_embed", "linear_out", "cross_view", "out",
-               "layout_gate")
+BRANCH_ZERO = ("warp_proj", "map_in", "cond_embed", "reference_embed", "linear_out", "cross_view", "out", "layout_gate")
 
 
 def split_inputs(ex: dict):
@@ -56,8 +55,7 @@ def perturb(params, scale=0.05, seed=1, skip=()):
 def params_for(cfg, shapes: tuple, *, skip=BRANCH_ZERO, scale=0.05):
     """Unboxed params with every non-branch parameter perturbed (the final projection and the
     cross-attention outputs start at zero, which would make outputs trivially equal)."""
-    return perturb(jax.tree_util.tree_map(jnp.asarray, nn.unbox(boxed_params(cfg, shapes))), scale=scale,
-                   skip=skip)
+    return perturb(jax.tree_util.tree_map(jnp.asarray, nn.unbox(boxed_params(cfg, shapes))), scale=scale, skip=skip)
 
 
 @functools.cache

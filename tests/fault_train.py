@@ -12,6 +12,7 @@ import sys
 
 def _kill_here(process: int) -> None:
     import jax
+
     if jax.process_index() == process:
         print(f"fault: process {process} kills itself", flush=True)
         os.kill(os.getpid(), signal.SIGKILL)
@@ -19,6 +20,7 @@ def _kill_here(process: int) -> None:
 
 def _terminate_here(process: int) -> None:
     import jax
+
     if jax.process_index() == process:
         print(f"fault: process {process} gets SIGTERM", flush=True)
         os.kill(os.getpid(), signal.SIGTERM)
@@ -28,11 +30,13 @@ def main() -> int:
     process, when, n = os.environ["JAXDRIVE_TEST_KILL"].split(":")
     process, n = int(process), int(n)
     from jaxdrive.train import run
+
     if when in ("step", "term"):
         train, fault = run.train, _kill_here if when == "step" else _terminate_here
 
         def killing_train(*args, **kwargs):
             return train(*args, **kwargs, on_step=lambda step, _: step == n and fault(process))
+
         run.train = killing_train
     elif when == "save":
         save = run.Checkpoints.save
@@ -41,10 +45,12 @@ def main() -> int:
             save(self, step, *args, **kwargs)
             if step == n:
                 _kill_here(process)
+
         run.Checkpoints.save = killing_save
     else:
         raise ValueError(f"JAXDRIVE_TEST_KILL: expected PROCESS:step:N, PROCESS:save:N or PROCESS:term:N, got {when!r}")
     from jaxdrive.cli import main as cli
+
     return cli(sys.argv[1:])
 
 

@@ -48,10 +48,12 @@ INSTALL = "pip install --no-deps --target .reference torchvision==0.28.0 pytorch
 
 def _require(relative: str) -> Path:
     import pytest
+
     path = REFERENCE / relative
     if not path.is_file():
-        pytest.skip(f"the reference code is not installed ({path} missing): run '{INSTALL}' (the README's test "
-                    f"command does)")
+        pytest.skip(
+            f"the reference code is not installed ({path} missing): run '{INSTALL}' (the README's test command does)"
+        )
     return path
 
 
@@ -70,11 +72,13 @@ def load_pytorch_fid():
         tv.transforms = _stub("torchvision.transforms", __path__=[])
         _stub("torchvision.transforms._presets", ImageClassification=object)
         _stub("torchvision.utils", _log_api_usage_once=lambda *a, **k: None)
-        _stub("torchvision.models._api", register_model=_decorator_factory, Weights=_Weights,
-              WeightsEnum=_WeightsEnum)
+        _stub("torchvision.models._api", register_model=_decorator_factory, Weights=_Weights, WeightsEnum=_WeightsEnum)
         _stub("torchvision.models._meta", _IMAGENET_CATEGORIES=[])
-        _stub("torchvision.models._utils", _ovewrite_named_param=lambda kw, k, v: kw.setdefault(k, v),
-              handle_legacy_interface=_decorator_factory)
+        _stub(
+            "torchvision.models._utils",
+            _ovewrite_named_param=lambda kw, k, v: kw.setdefault(k, v),
+            handle_legacy_interface=_decorator_factory,
+        )
         spec = importlib.util.spec_from_file_location("torchvision.models.inception", root / "models" / "inception.py")
         inception = importlib.util.module_from_spec(spec)
         sys.modules["torchvision.models.inception"] = inception
@@ -85,7 +89,7 @@ def load_pytorch_fid():
         import pytorch_fid.inception as fid_inception
     finally:
         sys.path.remove(str(REFERENCE))
-        for name in set(sys.modules) - before:       # the stand-in goes; pytorch-fid keeps its references
+        for name in set(sys.modules) - before:  # the stand-in goes; pytorch-fid keeps its references
             if name == "torchvision" or name.startswith("torchvision."):
                 del sys.modules[name]
     return fid_inception
@@ -101,11 +105,20 @@ def load_cd_fvd_i3d():
 
 
 # pytorch-fid's InceptionV3 wrapper ("blocks.i.j") -> the weights file's names (torchvision's)
-WRAPPER_NAMES = {"blocks.0.0": "Conv2d_1a_3x3", "blocks.0.1": "Conv2d_2a_3x3", "blocks.0.2": "Conv2d_2b_3x3",
-                 "blocks.1.0": "Conv2d_3b_1x1", "blocks.1.1": "Conv2d_4a_3x3",
-                 **{f"blocks.2.{i}": n for i, n in enumerate(["Mixed_5b", "Mixed_5c", "Mixed_5d", "Mixed_6a",
-                                                               "Mixed_6b", "Mixed_6c", "Mixed_6d", "Mixed_6e"])},
-                 **{f"blocks.3.{i}": n for i, n in enumerate(["Mixed_7a", "Mixed_7b", "Mixed_7c"])}}
+WRAPPER_NAMES = {
+    "blocks.0.0": "Conv2d_1a_3x3",
+    "blocks.0.1": "Conv2d_2a_3x3",
+    "blocks.0.2": "Conv2d_2b_3x3",
+    "blocks.1.0": "Conv2d_3b_1x1",
+    "blocks.1.1": "Conv2d_4a_3x3",
+    **{
+        f"blocks.2.{i}": n
+        for i, n in enumerate(
+            ["Mixed_5b", "Mixed_5c", "Mixed_5d", "Mixed_6a", "Mixed_6b", "Mixed_6c", "Mixed_6d", "Mixed_6e"]
+        )
+    },
+    **{f"blocks.3.{i}": n for i, n in enumerate(["Mixed_7a", "Mixed_7b", "Mixed_7c"])},
+}
 
 
 def random_fid_inception(seed: int = 0):
@@ -113,10 +126,11 @@ def random_fid_inception(seed: int = 0):
     statistics instead of the downloaded ones, in eval mode; returns ``(model, state_dict)`` with
     the weights file's tensor names (plus its 1008-class ``fc``)."""
     import torch
+
     fid = load_pytorch_fid()
     real_load = torch.nn.Module.load_state_dict
     real_url = fid.load_state_dict_from_url
-    fid.load_state_dict_from_url = lambda *a, **k: None           # nothing is downloaded
+    fid.load_state_dict_from_url = lambda *a, **k: None  # nothing is downloaded
     torch.nn.Module.load_state_dict = lambda self, *a, **k: None
     try:
         model = fid.InceptionV3()
@@ -135,13 +149,13 @@ def random_fid_inception(seed: int = 0):
                 t.copy_(torch.rand(t.shape, generator=gen) + 0.5)
             elif name.endswith("bn.weight"):
                 t.copy_(torch.rand(t.shape, generator=gen) * 0.5 + 0.75)
-            else:                                                  # bn.bias, running_mean
+            else:  # bn.bias, running_mean
                 t.copy_(torch.randn(t.shape, generator=gen) * 0.1)
     model.eval()
     state = {}
     for name, t in model.state_dict().items():
         prefix = ".".join(name.split(".")[:3])
-        state[WRAPPER_NAMES[prefix] + name[len(prefix):]] = t.clone()
+        state[WRAPPER_NAMES[prefix] + name[len(prefix) :]] = t.clone()
     state["fc.weight"] = torch.randn(1008, 2048, generator=gen) * 0.01
     state["fc.bias"] = torch.zeros(1008)
     return model, state

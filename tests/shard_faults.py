@@ -6,7 +6,7 @@ from __future__ import annotations
 import struct
 from pathlib import Path
 
-_BLOCK = 1 << 16        # Riegeli's block size
+_BLOCK = 1 << 16  # Riegeli's block size
 
 
 def shard_files(dataset, split: str = "train") -> list[Path]:
@@ -23,21 +23,21 @@ def overwrite_records(shard: Path, records) -> None:
     data = bytearray(shard.read_bytes())
     start, chunks = 64, []
     for _ in range(max(records) + 1):
-        size = struct.unpack("<Q", data[start + 8:start + 16])[0]
+        size = struct.unpack("<Q", data[start + 8 : start + 16])[0]
         chunks.append((start, size))
         start += 40 + size
     assert start < _BLOCK, f"{shard}: records beyond the first block"
     for r in records:
         at, size = chunks[r]
         mid = at + 40 + size // 2
-        data[mid - 32:mid + 32] = bytes(range(64))
+        data[mid - 32 : mid + 32] = bytes(range(64))
     shard.write_bytes(bytes(data))
 
 
 def truncate(shard: Path) -> None:
     """Cut the shard file to half its length (its index, at the end, is lost)."""
     data = shard.read_bytes()
-    shard.write_bytes(data[:len(data) // 2])
+    shard.write_bytes(data[: len(data) // 2])
 
 
 def damaged_dataset(out, how: str):
@@ -47,8 +47,9 @@ def damaged_dataset(out, how: str):
     from test_tfds_io import random_clip
 
     from jaxdrive.data import tfds_io
+
     clips = [random_clip(i, V=2, F=5, H=6, W=10) for i in range(12)]
-    path = tfds_io.write_dataset(out, {"train": clips}, shard_bytes=16_000)   # 3 records of ~6.8 kB each
+    path = tfds_io.write_dataset(out, {"train": clips}, shard_bytes=16_000)  # 3 records of ~6.8 kB each
     shards = shard_files(path)
     src = tfds_io.open_source(path, "train")
     assert len(shards) == 4 and [src.shard_of(i) for i in (3, 5)] == [(str(shards[1]), 0), (str(shards[1]), 2)]

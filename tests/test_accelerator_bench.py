@@ -14,11 +14,22 @@ def test_tiny_run_writes_every_figure(tmp_path):
     out = tmp_path / "out"
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_PLATFORMS")}
     env.update(PYTHON=sys.executable, TMPDIR=str(tmp_path))
-    done = subprocess.run(["bash", str(ROOT / "launch" / "accelerator_bench.sh"), "--tiny", "--out", str(out)],
-                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=1800)
+    done = subprocess.run(
+        ["bash", str(ROOT / "launch" / "accelerator_bench.sh"), "--tiny", "--out", str(out)],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=1800,
+    )
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
-    assert sorted(p.name for p in out.iterdir()) == ["figures.jsonl", "figures.md", "log.txt", "profile_top.json",
-                                                      "profile_trace.json.gz"]
+    assert sorted(p.name for p in out.iterdir()) == [
+        "figures.jsonl",
+        "figures.md",
+        "log.txt",
+        "profile_top.json",
+        "profile_trace.json.gz",
+    ]
     rows = [json.loads(line) for line in (out / "figures.jsonl").read_text().splitlines()]
     by = lambda step, figure: [r for r in rows if r["step"] == step and r["figure"] == figure]
     for remat in ("dots", "full"):

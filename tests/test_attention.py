@@ -10,8 +10,12 @@ from jaxdrive.attention import attention
 
 def _qkvd(b=2, lq=40, lk=40, h=3, d=8, seed=0):
     ks = jax.random.split(jax.random.PRNGKey(seed), 4)
-    return (jax.random.normal(ks[0], (b, lq, h, d)), jax.random.normal(ks[1], (b, lk, h, d)),
-            jax.random.normal(ks[2], (b, lk, h, d)), jax.random.normal(ks[3], (b, lq, h, d)))
+    return (
+        jax.random.normal(ks[0], (b, lq, h, d)),
+        jax.random.normal(ks[1], (b, lk, h, d)),
+        jax.random.normal(ks[2], (b, lk, h, d)),
+        jax.random.normal(ks[3], (b, lq, h, d)),
+    )
 
 
 def _rel(a, b):
@@ -20,13 +24,19 @@ def _rel(a, b):
 
 def test_reference_matches_jax_dot_product_attention():
     q, k, v, _ = _qkvd()
-    np.testing.assert_allclose(attention(q, k, v, impl="xla"), jax.nn.dot_product_attention(q, k, v),
-                               rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(
+        attention(q, k, v, impl="xla"), jax.nn.dot_product_attention(q, k, v), rtol=1e-5, atol=1e-5
+    )
     # causal_block = 1 is token-causal attention; one block spanning everything is no mask at all
-    np.testing.assert_allclose(attention(q, k, v, impl="xla", causal_block=1),
-                               jax.nn.dot_product_attention(q, k, v, is_causal=True), rtol=1e-5, atol=1e-5)
-    np.testing.assert_allclose(attention(q, k, v, impl="xla", causal_block=40),
-                               attention(q, k, v, impl="xla"), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(
+        attention(q, k, v, impl="xla", causal_block=1),
+        jax.nn.dot_product_attention(q, k, v, is_causal=True),
+        rtol=1e-5,
+        atol=1e-5,
+    )
+    np.testing.assert_allclose(
+        attention(q, k, v, impl="xla", causal_block=40), attention(q, k, v, impl="xla"), rtol=1e-6, atol=1e-6
+    )
 
 
 def test_causal_block_worked_example():
@@ -42,8 +52,8 @@ LAYOUTS = [
     dict(lq=40, lk=40),
     dict(lq=40, lk=40, mask=True),
     dict(lq=40, lk=40, causal_block=5),
-    dict(lq=37, lk=37, mask=True, causal_block=4),   # lengths that do not divide the blocks
-    dict(lq=12, lk=50, mask=True),                   # cross-attention (e.g. to text tokens)
+    dict(lq=37, lk=37, mask=True, causal_block=4),  # lengths that do not divide the blocks
+    dict(lq=12, lk=50, mask=True),  # cross-attention (e.g. to text tokens)
 ]
 
 
@@ -52,7 +62,7 @@ def test_blockwise_matches_dense_forward_and_gradients(layout):
     q, k, v, do = _qkvd(lq=layout["lq"], lk=layout["lk"])
     mask = None
     if layout.get("mask"):
-        mask = jnp.ones((2, layout["lk"]), bool).at[1, layout["lk"] - 9:].set(False)
+        mask = jnp.ones((2, layout["lk"]), bool).at[1, layout["lk"] - 9 :].set(False)
     kw = dict(kv_mask=mask, causal_block=layout.get("causal_block"))
     ref_out, ref_vjp = jax.vjp(lambda *a: attention(*a, impl="xla", **kw), q, k, v)
     run = jax.jit(lambda *a: attention(*a, impl="blockwise", block_q=16, block_k=8, **kw))
@@ -64,7 +74,7 @@ def test_blockwise_matches_dense_forward_and_gradients(layout):
 
 def test_fully_masked_rows_are_zero_not_nan():
     q, k, v, do = _qkvd(lq=8, lk=8)
-    mask = jnp.zeros((2, 8), bool).at[0].set(True)   # sample 1 has no key at all
+    mask = jnp.zeros((2, 8), bool).at[0].set(True)  # sample 1 has no key at all
     for impl in ("xla", "blockwise"):
         out, vjp = jax.vjp(lambda *a: attention(*a, impl=impl, kv_mask=mask, block_q=4, block_k=4), q, k, v)
         np.testing.assert_array_equal(out[1], 0.0)
@@ -75,9 +85,11 @@ def test_blockwise_memory_is_linear_in_length():
     # compiled temporary memory of forward + backward (deterministic, read from the program)
     def temp(impl, length):
         q = jax.ShapeDtypeStruct((1, length, 1, 16), jnp.float32)
-        f = jax.jit(jax.grad(lambda q, k, v: attention(q, k, v, impl=impl, block_q=256, block_k=256).sum(),
-                             argnums=(0, 1, 2)))
+        f = jax.jit(
+            jax.grad(lambda q, k, v: attention(q, k, v, impl=impl, block_q=256, block_k=256).sum(), argnums=(0, 1, 2))
+        )
         return f.lower(q, q, q).compile().memory_analysis().temp_size_in_bytes
+
     dense, blockwise = temp("xla", 4096), temp("blockwise", 4096)
     assert blockwise < 0.1 * dense, (blockwise, dense)
 
@@ -87,16 +99,21 @@ def test_auto_on_one_device_equals_xla_for_short_sequences():
     np.testing.assert_array_equal(attention(q, k, v), attention(q, k, v, impl="xla"))
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    (dict(impl="flash"), "impl: expected one of"),
-    (dict(kv_mask=jnp.ones((2, 39), bool)), r"kv_mask: expected shape \[2, 40\] \(\[B, Lk\]\), got \[2, 39\]"),
-    (dict(kv_mask=jnp.ones((2, 40))), "kv_mask: expected dtype bool, got float32"),
-    (dict(causal_block=0), "causal_block: expected an integer >= 1, got 0"),
-    (dict(impl="ring"), r"mesh: impl 'ring' needs a mesh with a 'seq' axis, got None"),
-    (dict(impl="ulysses", mesh=jax.make_mesh((8,), ("data",))),
-     r"mesh: impl 'ulysses' needs a mesh with a 'seq' axis, got \('data',\)"),
-    (dict(impl="cudnn"), "impl: 'cudnn' needs a GPU backend"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(impl="flash"), "impl: expected one of"),
+        (dict(kv_mask=jnp.ones((2, 39), bool)), r"kv_mask: expected shape \[2, 40\] \(\[B, Lk\]\), got \[2, 39\]"),
+        (dict(kv_mask=jnp.ones((2, 40))), "kv_mask: expected dtype bool, got float32"),
+        (dict(causal_block=0), "causal_block: expected an integer >= 1, got 0"),
+        (dict(impl="ring"), r"mesh: impl 'ring' needs a mesh with a 'seq' axis, got None"),
+        (
+            dict(impl="ulysses", mesh=jax.make_mesh((8,), ("data",))),
+            r"mesh: impl 'ulysses' needs a mesh with a 'seq' axis, got \('data',\)",
+        ),
+        (dict(impl="cudnn"), "impl: 'cudnn' needs a GPU backend"),
+    ],
+)
 def test_bad_arguments(kwargs, match):
     q, k, v, _ = _qkvd()
     with pytest.raises(ValueError, match=match):
@@ -119,6 +136,7 @@ def test_bad_shapes_and_dtypes():
 
 def test_auto_shards_over_seq_and_never_fails_where_xla_works():
     from jax.sharding import AxisType
+
     q, k, v, _ = _qkvd(b=2, lq=32, lk=32, h=4)
     mesh = jax.make_mesh((1, 1, 8, 1), ("data", "fsdp", "seq", "tensor"), axis_types=(AxisType.Explicit,) * 4)
     ref = attention(q, k, v, impl="xla", causal_block=4)
@@ -136,12 +154,14 @@ def test_sharded_output_takes_the_input_sharding_so_any_use_differentiates():
     # without the 'tensor' axis); the output now carries q's own sharding
     from jax.sharding import AxisType, NamedSharding
     from jax.sharding import PartitionSpec as P
+
     mesh = jax.make_mesh((1, 1, 8, 1), ("data", "fsdp", "seq", "tensor"), axis_types=(AxisType.Explicit,) * 4)
     x = jax.random.normal(jax.random.PRNGKey(0), (2, 16, 8))
 
     def loss(x, impl, mesh=None):
         h = x[:, :, None, :]
         return jnp.sum(attention(h, h, h, impl=impl, mesh=mesh, causal_block=4)[:, :, 0] * jnp.cos(x))
+
     ref = jax.grad(loss)(x, "xla")
     with jax.set_mesh(mesh):
         xs = jax.device_put(x, NamedSharding(mesh, P(None, "seq", None)))
@@ -155,13 +175,16 @@ def test_ring_tiles_chunks_longer_than_its_block(causal_block):
     from jax.sharding import AxisType
 
     from jaxdrive.attention.ring import ring_attention
-    mesh = jax.make_mesh((1, 1, 4, 1), ("data", "fsdp", "seq", "tensor"),
-                         axis_types=(AxisType.Explicit,) * 4, devices=jax.devices()[:4])
+
+    mesh = jax.make_mesh(
+        (1, 1, 4, 1), ("data", "fsdp", "seq", "tensor"), axis_types=(AxisType.Explicit,) * 4, devices=jax.devices()[:4]
+    )
     q, k, v, do = _qkvd(b=2, lq=150, lk=150, h=2)
     mask = jnp.ones((2, 150), bool).at[1, 120:].set(False)
     ref, ref_vjp = jax.vjp(lambda *a: attention(*a, impl="xla", kv_mask=mask, causal_block=causal_block), q, k, v)
-    run = jax.jit(lambda *a: ring_attention(*a, mesh=mesh, scale=8 ** -0.5, kv_mask=mask,
-                                            causal_block=causal_block, block=16))
+    run = jax.jit(
+        lambda *a: ring_attention(*a, mesh=mesh, scale=8**-0.5, kv_mask=mask, causal_block=causal_block, block=16)
+    )
     out, vjp = jax.vjp(run, q, k, v)
     assert _rel(out, ref) <= 1e-5
     for got, want in zip(vjp(do), ref_vjp(do)):
@@ -173,12 +196,19 @@ def test_splash_kernel_matches_dense_in_the_pallas_interpreter(kw):
     # the TPU kernel itself, run by the Pallas interpreter on CPU: padded lengths, segment-id
     # masking, the block-causal mask computed in the kernel, its own backward kernels
     from jaxdrive.attention.splash import splash_attention
+
     q, k, v, do = _qkvd(b=2, lq=200, lk=200, h=2, d=64)
     mask = jnp.ones((2, 200), bool).at[1].set(False) if kw.get("mask") else None  # sample 1: no key
     causal_block = kw.get("causal_block")
     ref, ref_vjp = jax.vjp(lambda *a: attention(*a, impl="xla", kv_mask=mask, causal_block=causal_block), q, k, v)
-    out, vjp = jax.vjp(lambda *a: splash_attention(*a, scale=64 ** -0.5, kv_mask=mask, causal_block=causal_block,
-                                                   tile=128, interpret=True), q, k, v)
+    out, vjp = jax.vjp(
+        lambda *a: splash_attention(
+            *a, scale=64**-0.5, kv_mask=mask, causal_block=causal_block, tile=128, interpret=True
+        ),
+        q,
+        k,
+        v,
+    )
     assert _rel(out, ref) <= 1e-5
     for got, want in zip(vjp(do), ref_vjp(do)):
         assert bool(jnp.all(jnp.isfinite(got))) and _rel(got, want) <= 1e-5
@@ -196,6 +226,7 @@ def test_auto_picks_ring_under_the_context_mesh():
     # under jax.set_mesh the mesh is an AbstractMesh (no devices): ring's layout check must read
     # its axis sizes from it, else "auto" silently fell back to one-device attention
     from jax.sharding import AxisType
+
     q, k, v, _ = _qkvd(b=2, lq=32, lk=32, h=4)
     mesh = jax.make_mesh((1, 1, 8, 1), ("data", "fsdp", "seq", "tensor"), axis_types=(AxisType.Explicit,) * 4)
     with jax.set_mesh(mesh):
@@ -208,6 +239,7 @@ def test_one_device_kernels_take_sequence_sharded_inputs():
     # blockwise gathers all three, and the output keeps q's sharding instead of an illegal sharding
     from jax.sharding import AxisType, NamedSharding
     from jax.sharding import PartitionSpec as P
+
     q, k, v, _ = _qkvd(b=2, lq=32, lk=32, h=4)
     ref = attention(q, k, v, impl="xla", causal_block=8)
     for shape in ((1, 1, 8, 1), (8, 1, 1, 1)):
@@ -226,18 +258,21 @@ def test_a_mesh_given_outside_its_context_asks_to_enter_it(impl):
     # outside jax.set_mesh the sharded output's type names a mesh that later ops cannot place:
     # the forward ran, and jax.grad failed in JAX with a bare error about device assignment
     from jax.sharding import AxisType
+
     q, k, v, _ = _qkvd(b=2, lq=32, lk=32, h=4)
     names = ("data", "fsdp", "seq", "tensor")
     mesh = jax.make_mesh((1, 1, 4, 1), names, axis_types=(AxisType.Explicit,) * 4, devices=jax.devices()[:4])
     other = jax.make_mesh((2, 1, 2, 1), names, axis_types=(AxisType.Explicit,) * 4, devices=jax.devices()[:4])
     loss = lambda q: jnp.sum(jnp.sin(attention(q, k, v, impl=impl, mesh=mesh, causal_block=8)))
-    enter = (r"^mesh: impl '(ring|ulysses)' runs on the mesh it is given only inside it: call attention within "
-             r"`with jax.set_mesh\(mesh\):`")
+    enter = (
+        r"^mesh: impl '(ring|ulysses)' runs on the mesh it is given only inside it: call attention within "
+        r"`with jax.set_mesh\(mesh\):`"
+    )
     with pytest.raises(ValueError, match=enter):
         attention(q, k, v, impl=impl, mesh=mesh, causal_block=8)
     with pytest.raises(ValueError, match=enter):
         jax.grad(loss)(q)
-    with jax.set_mesh(other), pytest.raises(ValueError, match=enter):   # another mesh's context
+    with jax.set_mesh(other), pytest.raises(ValueError, match=enter):  # another mesh's context
         jax.grad(loss)(q)
     ref = jax.grad(lambda q: jnp.sum(jnp.sin(attention(q, k, v, impl="xla", causal_block=8))))(q)
     with jax.set_mesh(mesh):
@@ -250,10 +285,10 @@ def test_blockwise_takes_operands_of_other_shardings_forward_and_backward():
     # fori_loop refused the step), and the result equals the dense reference, gradients included.
     from jax.sharding import AxisType, NamedSharding
     from jax.sharding import PartitionSpec as P
+
     q, k, v, do = _qkvd(b=2, lq=24, lk=24, h=4)
     mask = jnp.arange(24)[None, :] < jnp.array([[20], [24]])
-    loss = lambda impl: (lambda q, k, v, m: jnp.sum(attention(q, k, v, impl=impl, kv_mask=m, block_q=8,
-                                                              block_k=8) * do))
+    loss = lambda impl: lambda q, k, v, m: jnp.sum(attention(q, k, v, impl=impl, kv_mask=m, block_q=8, block_k=8) * do)
     ref, ref_grads = jax.value_and_grad(loss("xla"), argnums=(0, 1, 2))(q, k, v, mask)
     mesh = jax.make_mesh((2, 1, 1, 4), ("data", "fsdp", "seq", "tensor"), axis_types=(AxisType.Explicit,) * 4)
     with jax.set_mesh(mesh):

@@ -20,8 +20,7 @@ from control_fixtures import STEPS, measured
 # has to find its box through one attention token: the case for the layout), and the
 # trajectory encoder's learning of the lateral sign depends on the draw (30 steps, seeds 1 / 2:
 # 0.927 / 1.001), so theirs are the loosest bounds that a cut still fails.
-BOUNDS = {"boxes": 0.99, "layout": 0.4, "map": 0.2, "waypoints": 0.9, "trajectory": 0.97, "warp": 0.5,
-          "camera": 0.5}
+BOUNDS = {"boxes": 0.99, "layout": 0.4, "map": 0.2, "waypoints": 0.9, "trajectory": 0.97, "warp": 0.5, "camera": 0.5}
 
 
 @pytest.mark.parametrize("pathway", controls.PATHWAYS)
@@ -30,7 +29,7 @@ def test_the_true_control_beats_a_shuffled_one(pathway):
     assert row["steps"] == STEPS and row["pathway"] == pathway
     assert row["loss_true"] < BOUNDS[pathway] * row["loss_shuffled"], row
     assert row["moved"] > 0 and row["follow"] > 0, row
-    assert row["loss_true"] < row["loss_repeat"], row       # training helped: the untrained model repeats
+    assert row["loss_true"] < row["loss_repeat"], row  # training helped: the untrained model repeats
 
 
 def test_toys_change_only_what_the_control_decides():
@@ -52,21 +51,23 @@ def test_toys_change_only_what_the_control_decides():
     x, cond = controls.toy_clips("warp", np.random.default_rng(1), 3)
     np.testing.assert_array_equal(cond.warp, x)
     np.testing.assert_array_equal(controls.shuffled_target("warp", x), np.roll(x[:, :, 1], 1, 0))
-    x, cond = controls.toy_clips("map", np.random.default_rng(1), 3)          # road blocks on the token grid
+    x, cond = controls.toy_clips("map", np.random.default_rng(1), 3)  # road blocks on the token grid
     change = x[:, 0, 1] - x[:, 0, 0]
-    road = cond.bev_map[:, 1, ::8, ::8, 0]                                    # one BEV cell per block
-    np.testing.assert_allclose(change, np.broadcast_to(2 * np.repeat(np.repeat(road, 2, 1), 2, 2)[..., None],
-                                                       change.shape), atol=1e-5)
+    road = cond.bev_map[:, 1, ::8, ::8, 0]  # one BEV cell per block
+    np.testing.assert_allclose(
+        change, np.broadcast_to(2 * np.repeat(np.repeat(road, 2, 1), 2, 2)[..., None], change.shape), atol=1e-5
+    )
     x, cond = controls.toy_clips("camera", np.random.default_rng(1), 64)
     change = x[:, 0, 1] - x[:, 0, 0]
     assert set(np.unique(np.round(change, 5))) == {0.0, 2.0}
-    yaw = np.degrees(np.arctan2(cond.cam_to_ego[:, 0, 1, 2], cond.cam_to_ego[:, 0, 0, 2]))   # optical axis
+    yaw = np.degrees(np.arctan2(cond.cam_to_ego[:, 0, 1, 2], cond.cam_to_ego[:, 0, 0, 2]))  # optical axis
     half_fov = np.degrees(np.arctan(controls.W * 4 / cond.intrinsics[:, 0, 0, 0]))
     np.testing.assert_array_equal(change[:, 0, 0, 0] > 1, np.abs(yaw) <= half_fov)
 
 
 def test_cli_prints_the_table_and_json_lines_and_refuses_bad_options(capsys):
     from jaxdrive.cli import main
+
     assert main(["bench", "controls", "--steps", "2", "--pathways", "warp"]) == 0
     out = capsys.readouterr().out
     rows = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
@@ -74,13 +75,23 @@ def test_cli_prints_the_table_and_json_lines_and_refuses_bad_options(capsys):
     assert rows[0]["figure"] == "control_ratio" and rows[0]["steps"] == 2
     assert rows[0]["value"] == pytest.approx(rows[0]["loss_true"] / rows[0]["loss_shuffled"], rel=1e-2)
     header = next(line for line in out.splitlines() if line.startswith("pathway"))
-    assert header.split() == ["pathway", "steps", "loss_repeat", "loss_true", "loss_shuffled", "ratio", "moved",
-                              "follow"]
-    for argv, message in ((["--pathways", "lidar"], r"--pathways: expected names from .*, got \['lidar'\]"),
-                          (["--steps", "0"], r"--steps: expected an integer >= 1, got 0"),
-                          (["--batch", "-1"], r"--batch: expected an integer >= 1, got -1"),
-                          (["--clips", "1"], r"--clips: expected at least 2 clips"),
-                          (["--lr", "0"], r"--lr: expected a positive learning rate, got 0.0")):
+    assert header.split() == [
+        "pathway",
+        "steps",
+        "loss_repeat",
+        "loss_true",
+        "loss_shuffled",
+        "ratio",
+        "moved",
+        "follow",
+    ]
+    for argv, message in (
+        (["--pathways", "lidar"], r"--pathways: expected names from .*, got \['lidar'\]"),
+        (["--steps", "0"], r"--steps: expected an integer >= 1, got 0"),
+        (["--batch", "-1"], r"--batch: expected an integer >= 1, got -1"),
+        (["--clips", "1"], r"--clips: expected at least 2 clips"),
+        (["--lr", "0"], r"--lr: expected a positive learning rate, got 0.0"),
+    ):
         with pytest.raises(ValueError, match=message):
             controls.main(argv)
         assert main(["bench", "controls", *argv]) == 2

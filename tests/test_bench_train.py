@@ -23,8 +23,25 @@ def test_train_benchmark_prints_tokens_per_s_and_the_torch_ratio(capsys):
     pytest.importorskip("torch")
     pytest.importorskip("diffusers")
     from jaxdrive.cli import main
-    main(["bench", "train", "--presets", "tiny", "--compare-only", "--repeats", "1", "--frames", "2",
-          "--height", "4", "--width", "4", "--no-ops"])
+
+    main(
+        [
+            "bench",
+            "train",
+            "--presets",
+            "tiny",
+            "--compare-only",
+            "--repeats",
+            "1",
+            "--frames",
+            "2",
+            "--height",
+            "4",
+            "--width",
+            "4",
+            "--no-ops",
+        ]
+    )
     rows = _rows(capsys.readouterr().out)
     assert all(r["bench"] == "train" for r in rows)
     tps = {r["impl"]: r["value"] for r in rows if r["figure"] == "tokens_per_s"}
@@ -34,7 +51,7 @@ def test_train_benchmark_prints_tokens_per_s_and_the_torch_ratio(capsys):
     ratio = next(r for r in rows if r["figure"] == "torch_ratio")
     assert ratio["value"] == pytest.approx(tps["jaxdrive"] / tps["torch"], rel=1e-2)
     mfu = next(r for r in rows if r["figure"] == "mfu")
-    assert mfu["value"] is None and "--peak-tflops" in mfu["reason"]         # a CPU has no known peak
+    assert mfu["value"] is None and "--peak-tflops" in mfu["reason"]  # a CPU has no known peak
     flops = next(r for r in rows if r["figure"] == "model_flops_per_step")
     assert flops["value"] > 0 and next(r for r in rows if r["figure"] == "compile_time")["value"] > 0
 
@@ -43,24 +60,43 @@ def test_json_rows_hold_the_step_and_single_op_comparisons(capsys):
     pytest.importorskip("torch")
     pytest.importorskip("diffusers")
     from jaxdrive.cli import main
-    main(["bench", "train", "--presets", "tiny", "--compare-only", "--repeats", "1", "--frames", "2",
-          "--height", "4", "--width", "4", "--json"])
+
+    main(
+        [
+            "bench",
+            "train",
+            "--presets",
+            "tiny",
+            "--compare-only",
+            "--repeats",
+            "1",
+            "--frames",
+            "2",
+            "--height",
+            "4",
+            "--width",
+            "4",
+            "--json",
+        ]
+    )
     lines = [line for line in capsys.readouterr().out.splitlines() if line.strip()]
-    rows = [json.loads(line) for line in lines]                   # every line is one JSON object
+    rows = [json.loads(line) for line in lines]  # every line is one JSON object
     steps = {r["impl"]: r for r in rows if r["model"] == "tiny-full/diffusers"}
     assert set(steps) == {"jaxdrive", "torch"}
     for r in steps.values():
         assert {"model", "impl", "step_ms", "tokens_per_s", "ratio_to_torch"} <= set(r) and r["step_ms"] > 0
     assert steps["jaxdrive"]["ratio_to_torch"] == pytest.approx(
-        steps["jaxdrive"]["tokens_per_s"] / steps["torch"]["tokens_per_s"], rel=2e-2)
+        steps["jaxdrive"]["tokens_per_s"] / steps["torch"]["tokens_per_s"], rel=2e-2
+    )
     ops = [r for r in rows if r["model"].startswith("op: ")]
     names = {r["model"] for r in ops}
     assert any(n.startswith("op: matmul ") for n in names) and any("softmax" in n for n in names)
-    assert len(ops) == 2 * len(names)                            # each op in both implementations
+    assert len(ops) == 2 * len(names)  # each op in both implementations
     for name in names:
         pair = {r["impl"]: r for r in ops if r["model"] == name}
         assert pair["jaxdrive"]["ratio_to_torch"] == pytest.approx(
-            pair["torch"]["step_ms"] / pair["jaxdrive"]["step_ms"], rel=2e-2)
+            pair["torch"]["step_ms"] / pair["jaxdrive"]["step_ms"], rel=2e-2
+        )
     matmul = next(r for r in ops if r["model"].startswith("op: matmul ") and r["impl"] == "jaxdrive")
     assert matmul["gflops"] > 0
 
@@ -74,10 +110,10 @@ def test_full_layout_flops_are_6_params_tokens_plus_attention():
     dcfg = bench.diffusers_config(preset("tiny-full"), frames=3, height=4, width=6)
     cfg = config_from_diffusers(dcfg)
     f = _flops(cfg, batch=2, frames=3, height=4, width=6)
-    d, depth, seq = cfg.width, cfg.depth, 3 * 2 * 3 + cfg.text_len            # [text; video] per clip
+    d, depth, seq = cfg.width, cfg.depth, 3 * 2 * 3 + cfg.text_len  # [text; video] per clip
     assert f["video_tokens"] == 2 * 18 and f["text_tokens"] == 2 * cfg.text_len
-    assert f["matmul_flops"] == 6 * depth * 12 * d * d * 2 * seq               # qkv + out 4 D^2, MLP 8 D^2
-    assert f["attention_flops"] == 3 * depth * 4 * seq ** 2 * d * 2
+    assert f["matmul_flops"] == 6 * depth * 12 * d * d * 2 * seq  # qkv + out 4 D^2, MLP 8 D^2
+    assert f["attention_flops"] == 3 * depth * 4 * seq**2 * d * 2
     assert f["flops"] == f["matmul_flops"] + f["attention_flops"]
 
 
@@ -100,12 +136,13 @@ def test_factorized_flops_count_spatial_temporal_and_text_attention():
     # two blocks a layer (spatial, temporal), each: self-attention 4 D^2, text cross-attention q / out
     # 2 D^2 on video tokens and k / v 2 D^2 on text tokens, MLP 8 D^2
     assert f["matmul_flops"] == 6 * depth * 2 * (14 * d * d * n + 2 * d * d * txt)
-    assert f["attention_flops"] == 3 * depth * 4 * d * (nf * s ** 2 + s * nf ** 2 + 2 * n * txt)
+    assert f["attention_flops"] == 3 * depth * 4 * d * (nf * s**2 + s * nf**2 + 2 * n * txt)
 
 
 def test_peak_is_known_for_accelerators_and_given_on_cpu():
     class Dev:
         platform, device_kind = "tpu", "TPU v5 lite"
+
     assert model_flops.peak_tflops(Dev(), None) == (197.0, "dense bf16 peak of 'TPU v5 lite'")
     Dev.platform, Dev.device_kind = "cpu", "cpu"
     assert model_flops.peak_tflops(Dev(), None)[0] is None
@@ -115,9 +152,31 @@ def test_peak_is_known_for_accelerators_and_given_on_cpu():
 def test_accelerator_settings_reach_the_model_and_the_measured_peak_gives_an_mfu(capsys, monkeypatch):
     seen, step = [], bench.jax_step
     monkeypatch.setattr(bench, "jax_step", lambda cfg, *a, **k: seen.append(cfg) or step(cfg, *a, **k))
-    rows = bench.main(["--presets", "tiny", "--no-torch", "--dtype", "bfloat16", "--remat", "full",
-                       "--scan-layers", "--attn-impl", "blockwise", "--measure-peak", "64", "--json",
-                       "--repeats", "1", "--frames", "2", "--height", "4", "--width", "4"])
+    rows = bench.main(
+        [
+            "--presets",
+            "tiny",
+            "--no-torch",
+            "--dtype",
+            "bfloat16",
+            "--remat",
+            "full",
+            "--scan-layers",
+            "--attn-impl",
+            "blockwise",
+            "--measure-peak",
+            "64",
+            "--json",
+            "--repeats",
+            "1",
+            "--frames",
+            "2",
+            "--height",
+            "4",
+            "--width",
+            "4",
+        ]
+    )
     assert [(c.dtype, c.remat, c.scan_layers, c.attn_impl) for c in seen] == [("bfloat16", "full", True, "blockwise")]
     (row,) = rows
     assert row["model"] == "tiny" and row["measured_peak_tflops"] > 0
@@ -128,17 +187,17 @@ def test_accelerator_settings_reach_the_model_and_the_measured_peak_gives_an_mfu
 
 def test_arguments_are_checked():
     with pytest.raises(SystemExit):
-        bench.main(["--presets", "tiny", "--dtype", "bfloat16"])               # torch compares float32
+        bench.main(["--presets", "tiny", "--dtype", "bfloat16"])  # torch compares float32
     with pytest.raises(SystemExit):
         bench.main(["--no-torch", "--compare-only"])
     with pytest.raises(SystemExit):
         bench.main(["--repeats", "0"])
     with pytest.raises(SystemExit):
-        bench.main(["--batch", "auto"])                                          # the search is jaxdrive's alone
+        bench.main(["--batch", "auto"])  # the search is jaxdrive's alone
     with pytest.raises(SystemExit):
         bench.main(["--batch", "many", "--no-torch"])
     with pytest.raises(SystemExit):
-        bench.main(["--batch", "auto", "--no-torch"])                            # a CPU has no memory limit
+        bench.main(["--batch", "auto", "--no-torch"])  # a CPU has no memory limit
     with pytest.raises(SystemExit):
         bench.main(["--batch", "auto", "--no-torch", "--device-memory", "1GiB", "--memory-fraction", "1.5"])
 
@@ -146,7 +205,7 @@ def test_arguments_are_checked():
 def test_batch_search_predicts_from_two_probes_and_backs_off():
     calls = []
 
-    def footprint(b):                 # 10 GB of state, 3 GB a clip, and 1 GB more above 8 clips
+    def footprint(b):  # 10 GB of state, 3 GB a clip, and 1 GB more above 8 clips
         return 10 + 3 * b + (b > 8)
 
     def probes(bs):
@@ -154,11 +213,11 @@ def test_batch_search_predicts_from_two_probes_and_backs_off():
         return [footprint(b) for b in bs]
 
     batch, seen = bench.largest_batch(probes, 36, 64)
-    assert batch == 8 and calls[0] == [1, 2]          # line: 10 + 3b <= 36 -> 8; 8 needs 34
+    assert batch == 8 and calls[0] == [1, 2]  # line: 10 + 3b <= 36 -> 8; 8 needs 34
     assert seen[:2] == [(1, 13), (2, 16)] and seen[2] == (8, 34)
-    batch, seen = bench.largest_batch(probes, 37, 64)        # 9 needs 38 > 37: back to 8
+    batch, seen = bench.largest_batch(probes, 37, 64)  # 9 needs 38 > 37: back to 8
     assert batch == 8 and [b for b, _ in seen] == [1, 2, 9, 8]
-    assert bench.largest_batch(probes, 100, 5)[0] == 5       # capped
+    assert bench.largest_batch(probes, 100, 5)[0] == 5  # capped
     assert bench.largest_batch(probes, 13, 1) == (1, [(1, 13)])
     with pytest.raises(ValueError, match="batch of 1"):
         bench.largest_batch(probes, 12, 64)
@@ -167,26 +226,34 @@ def test_batch_search_predicts_from_two_probes_and_backs_off():
 def test_trace_costs_sum_device_events_by_op(tmp_path):
     run = tmp_path / "plugins" / "profile" / "2026_01_01"
     run.mkdir(parents=True)
-    events = [{"ph": "M", "pid": 1, "name": "process_name", "args": {"name": "/device:GPU:0"}},
-              {"ph": "M", "pid": 2, "name": "process_name", "args": {"name": "/host:CPU"}},
-              {"ph": "M", "pid": 1, "tid": 7, "name": "thread_name", "args": {"name": "XLA Ops"}},
-              {"ph": "X", "pid": 1, "tid": 5, "dur": 300.0, "name": "sm90_xmma_gemm_bf16", "args": {"hlo_op": "dot.1"}},
-              {"ph": "X", "pid": 1, "tid": 5, "dur": 300.0, "name": "sm90_xmma_gemm_bf16", "args": {"hlo_op": "dot.1"}},
-              {"ph": "X", "pid": 1, "tid": 5, "dur": 200.0,
-               "name": "cudnn_generated_fort_native_sdpa_sm90_flash_fprop_wgmma_f16",
-               "args": {"hlo_op": "custom-call.3"}},
-              {"ph": "X", "pid": 1, "tid": 5, "dur": 100.0, "name": "loop_fusion", "args": {"hlo_op": "fusion.9"}},
-              {"ph": "X", "pid": 1, "tid": 5, "dur": 50.0, "name": "input_reduce_fusion",
-               "args": {"hlo_op": "fusion.2"}},
-              {"ph": "X", "pid": 1, "tid": 7, "dur": 5000.0, "name": "dot.1"},       # a derived line: not counted
-              {"ph": "X", "pid": 2, "tid": 1, "dur": 9000.0, "name": "PjitFunction(step)"}]
+    events = [
+        {"ph": "M", "pid": 1, "name": "process_name", "args": {"name": "/device:GPU:0"}},
+        {"ph": "M", "pid": 2, "name": "process_name", "args": {"name": "/host:CPU"}},
+        {"ph": "M", "pid": 1, "tid": 7, "name": "thread_name", "args": {"name": "XLA Ops"}},
+        {"ph": "X", "pid": 1, "tid": 5, "dur": 300.0, "name": "sm90_xmma_gemm_bf16", "args": {"hlo_op": "dot.1"}},
+        {"ph": "X", "pid": 1, "tid": 5, "dur": 300.0, "name": "sm90_xmma_gemm_bf16", "args": {"hlo_op": "dot.1"}},
+        {
+            "ph": "X",
+            "pid": 1,
+            "tid": 5,
+            "dur": 200.0,
+            "name": "cudnn_generated_fort_native_sdpa_sm90_flash_fprop_wgmma_f16",
+            "args": {"hlo_op": "custom-call.3"},
+        },
+        {"ph": "X", "pid": 1, "tid": 5, "dur": 100.0, "name": "loop_fusion", "args": {"hlo_op": "fusion.9"}},
+        {"ph": "X", "pid": 1, "tid": 5, "dur": 50.0, "name": "input_reduce_fusion", "args": {"hlo_op": "fusion.2"}},
+        {"ph": "X", "pid": 1, "tid": 7, "dur": 5000.0, "name": "dot.1"},  # a derived line: not counted
+        {"ph": "X", "pid": 2, "tid": 1, "dur": 9000.0, "name": "PjitFunction(step)"},
+    ]
     with gzip.open(run / "perfetto_trace.json.gz", "wt") as f:
         json.dump({"traceEvents": events}, f)
     got = trace_costs(tmp_path, steps=2)
     assert got["device_ms_per_step"] == pytest.approx(0.475)
     assert [(t["op"], t["ms_per_step"], t["events"], t["category"]) for t in got["top"]] == [
-        ("dot.1", 0.3, 2, "matmul"), ("custom-call.3", 0.1, 1, "attention"),
-        ("fusion.9", 0.05, 1, "other (fusions, elementwise)")]
+        ("dot.1", 0.3, 2, "matmul"),
+        ("custom-call.3", 0.1, 1, "attention"),
+        ("fusion.9", 0.05, 1, "other (fusions, elementwise)"),
+    ]
     assert got["top"][0]["share"] == pytest.approx(600 / 950, abs=1e-4)
     assert json.loads((tmp_path / "top_costs.json").read_text())["top"] == got["top"]
     with pytest.raises(ValueError, match="log_dir"):

@@ -23,22 +23,34 @@ def restore_cache():
 
 def test_a_second_run_reads_its_compiled_step_from_the_cache(clips21, tmp_path, restore_cache):
     from jaxdrive.train.run import train
+
     folder = tmp_path / "xla"
-    config = load_config(ROOT / "configs" / "tiny.py", [
-        f"data.path={clips21}", "data.views=2", "data.frames=5", "model.depth=1", "train.steps=1",
-        "train.checkpoint_every=0", "mesh.data=2", "mesh.seq=4", f"train.compile_cache={folder}"])
+    config = load_config(
+        ROOT / "configs" / "tiny.py",
+        [
+            f"data.path={clips21}",
+            "data.views=2",
+            "data.frames=5",
+            "model.depth=1",
+            "train.steps=1",
+            "train.checkpoint_every=0",
+            "mesh.data=2",
+            "mesh.seq=4",
+            f"train.compile_cache={folder}",
+        ],
+    )
     first = train(config, tmp_path / "a", progress=False)
     second = train(config, tmp_path / "b", progress=False)
     assert first["compile_cache"]["folder"] == str(folder) and first["compile_cache"]["hits"] == 0
-    assert first["compile_cache"]["requests"] >= 1 and any(folder.iterdir())        # the step was written
-    assert second["compile_cache"]["hits"] >= 1, second["compile_cache"]             # ... and read back
+    assert first["compile_cache"]["requests"] >= 1 and any(folder.iterdir())  # the step was written
+    assert second["compile_cache"]["hits"] >= 1, second["compile_cache"]  # ... and read back
     assert second["compile_cache"]["saved_seconds"] > 0 and second["first_step_seconds"] > 0
-    assert second["loss"] == first["loss"]                                          # the same program
+    assert second["loss"] == first["loss"]  # the same program
 
 
 def test_the_cache_setting_moves_keeps_or_disables_it(tmp_path, restore_cache, monkeypatch):
     jax.config.update("jax_compilation_cache_dir", str(tmp_path / "users"))
-    assert compile_cache.enable("default") == tmp_path / "users"          # a folder the user gave JAX wins
+    assert compile_cache.enable("default") == tmp_path / "users"  # a folder the user gave JAX wins
     assert compile_cache.enable(str(tmp_path / "mine")) == tmp_path / "mine"
     assert jax.config.jax_compilation_cache_dir == str(tmp_path / "mine") and jax.config.jax_enable_compilation_cache
     assert compile_cache.enable("off") is None and not jax.config.jax_enable_compilation_cache

@@ -36,8 +36,11 @@ def test_the_text_after_the_colon_reaches_get_config(config_file):
 
 
 def test_a_wrong_key_names_the_key_and_the_allowed_ones(config_file):
-    with pytest.raises(ValueError, match=r"config argument: unknown key 'sise'; "
-                                         r"expected one of \['flip', 'lr', 'size', 'stage'\]"):
+    with pytest.raises(
+        ValueError,
+        match=r"config argument: unknown key 'sise'; "
+        r"expected one of \['flip', 'lr', 'size', 'stage'\]",
+    ):
         load_config(f"{config_file}:sise=tiny,stage=2")
 
 
@@ -49,8 +52,9 @@ def test_a_wrong_type_names_the_key_the_type_and_the_value(config_file):
 
 
 def test_parse_arg_converts_to_the_defaults_types():
-    a = parse_arg("stage=2,lr=1,name=x,flag,off=false,opt=gs://b/c", stage=1, lr=0.5, name="", flag=False,
-                  off=True, opt=None)
+    a = parse_arg(
+        "stage=2,lr=1,name=x,flag,off=false,opt=gs://b/c", stage=1, lr=0.5, name="", flag=False, off=True, opt=None
+    )
     assert vars(a) == {"stage": 2, "lr": 1.0, "name": "x", "flag": True, "off": False, "opt": "gs://b/c"}
     assert type(a.lr) is float
     assert vars(parse_arg(None, stage=1)) == vars(parse_arg("", stage=1)) == {"stage": 1}
@@ -82,12 +86,14 @@ def test_an_argument_to_a_config_without_one_is_refused(tmp_path):
 
 def test_the_cli_reports_a_bad_config_argument(config_file, tmp_path, capsys):
     from jaxdrive.cli import main
+
     assert main(["train", "--config", f"{config_file}:size=tiny,sise=2", "--workdir", str(tmp_path)]) == 2
     assert "jaxdrive train: error: config argument: unknown key 'sise'" in capsys.readouterr().err
 
 
 def test_mixed_frame_rate_keys_parse_and_are_checked():
     from jaxdrive.config import check_sections
+
     c = load_config(TINY, ["data.rate_head=4", "data.rate_strides=1,6,12", "model.controls.frame_time=true"])
     assert (c.data.rate_head, c.data.rate_strides, c.model.controls.frame_time) == (4, (1, 6, 12), True)
     check_sections(c)
@@ -95,10 +101,14 @@ def test_mixed_frame_rate_keys_parse_and_are_checked():
         (["data.rate_head=-1"], r"data.rate_head: expected an integer >= 0, got -1"),
         ([f"data.rate_head={c.data.frames + 1}"], rf"data.rate_head: expected at most data.frames = {c.data.frames}"),
         (["data.rate_strides=2,0"], r"data.rate_strides: expected positive integers, got \(2, 0\)"),
-        (["data.rate_strides=2,4", "latents.precomputed=true"],
-         r"data.rate_strides: expected \(\) with latents.precomputed"),
-        (["data.rate_strides=2", "flow.distill_teacher=runs/fine", "flow.distill_segment_len=3"],
-         r"data.rate_strides: expected \(\) with flow.distill_teacher"),
+        (
+            ["data.rate_strides=2,4", "latents.precomputed=true"],
+            r"data.rate_strides: expected \(\) with latents.precomputed",
+        ),
+        (
+            ["data.rate_strides=2", "flow.distill_teacher=runs/fine", "flow.distill_segment_len=3"],
+            r"data.rate_strides: expected \(\) with flow.distill_teacher",
+        ),
     ]:
         with pytest.raises(ValueError, match=match):
             check_sections(load_config(TINY, sets))

@@ -17,7 +17,7 @@ from jaxdrive.data.tfds_io import open_source
 
 KW = dict(views=6, frames=25, height=32, width=56)
 START = 8
-SEED = 5            # inner lane, straight on: stop, slower, faster and both lane changes are drivable
+SEED = 5  # inner lane, straight on: stop, slower, faster and both lane changes are drivable
 
 
 @pytest.fixture(scope="module")
@@ -48,11 +48,11 @@ def test_routes_share_the_given_frames_and_then_drive_their_way(recorded, route)
     assert not np.array_equal(clip["video"], recorded["video"])
     if route == "stop":
         assert ego[-1, 0] < rec[-1, 0] - 0.5
-        steps = np.linalg.norm(np.diff(ego[START - 1:], axis=0), axis=-1)
-        assert np.all(np.diff(steps) <= 1e-6) and steps[-1] < 0.5 * steps[0]    # braking all the way
+        steps = np.linalg.norm(np.diff(ego[START - 1 :], axis=0), axis=-1)
+        assert np.all(np.diff(steps) <= 1e-6) and steps[-1] < 0.5 * steps[0]  # braking all the way
     elif route == "faster":
         assert ego[-1, 0] > rec[-1, 0] + 0.5
-    else:                                                        # one lane (3.5 m) to the left, x forward y left
+    else:  # one lane (3.5 m) to the left, x forward y left
         assert 1.0 < ego[-1, 1] - rec[-1, 1] <= 3.5 + 1e-6
 
 
@@ -70,14 +70,15 @@ def test_counterfactual_boxes_project_onto_their_own_instance_ids():
 def test_agents_the_ego_never_meets_keep_their_recorded_paths(recorded):
     clip = counterfactual_clip(SEED, "stop", start=START, **KW)
 
-    def world(c):      # agent centres in the world frame [F, N, 2]
+    def world(c):  # agent centres in the world frame [F, N, 2]
         b = np.asarray(c["boxes"], np.float64)[..., :3]
         pts = np.concatenate([b, np.ones(b.shape[:-1] + (1,))], -1)
         return np.einsum("fij,fnj->fni", np.asarray(c["ego_to_world"]), pts)[..., :2]
+
     valid = recorded["box_valid"][0]
     a, r = world(clip)[:, valid], world(recorded)[:, valid]
     ego = np.asarray(clip["ego_to_world"])[:, None, :2, 3]
-    far = (np.linalg.norm(r - ego, axis=-1).min(0) > 15.0)
+    far = np.linalg.norm(r - ego, axis=-1).min(0) > 15.0
     assert far.any()
     np.testing.assert_allclose(a[:, far], r[:, far], atol=1e-4)
 
@@ -95,18 +96,43 @@ def test_a_route_the_scene_cannot_drive_names_the_route_and_the_clip():
 
 
 def test_branch_takes_the_other_way_at_the_intersection():
-    rec = generate_clip(10, **KW)                                # turns right at the first cross street
+    rec = generate_clip(10, **KW)  # turns right at the first cross street
     clip = counterfactual_clip(10, "branch", start=START, **KW)
     yaw_rec = np.arctan2(rec["ego_to_world"][-1, 1, 0], rec["ego_to_world"][-1, 0, 0])
     yaw = np.arctan2(clip["ego_to_world"][-1, 1, 0], clip["ego_to_world"][-1, 0, 0])
-    assert yaw_rec < -0.3 and abs(yaw) < 1e-6                    # straight on instead
+    assert yaw_rec < -0.3 and abs(yaw) < 1e-6  # straight on instead
 
 
 def test_dataset_stores_counterfactual_splits(tmp_path, capsys):
     out = tmp_path / "cf"
-    assert main(["data", "synth", "--out", str(out), "--scenes", "4", "--val-fraction", "0.5", "--views", "1",
-                 "--frames", "13", "--height", "16", "--width", "28", "--seed", "3",
-                 "--counterfactuals", "stop,lane-left", "--skip-undrivable"]) == 0
+    assert (
+        main(
+            [
+                "data",
+                "synth",
+                "--out",
+                str(out),
+                "--scenes",
+                "4",
+                "--val-fraction",
+                "0.5",
+                "--views",
+                "1",
+                "--frames",
+                "13",
+                "--height",
+                "16",
+                "--width",
+                "28",
+                "--seed",
+                "3",
+                "--counterfactuals",
+                "stop,lane-left",
+                "--skip-undrivable",
+            ]
+        )
+        == 0
+    )
     assert "stop: 2 of 2 validation clips" in capsys.readouterr().out
     meta = read_counterfactuals(out)
     assert meta["start"] == START and set(meta["routes"]) == {"stop", "lane-left"}
@@ -123,8 +149,17 @@ def test_dataset_stores_counterfactual_splits(tmp_path, capsys):
 
 def test_undrivable_routes_write_nothing(tmp_path, capsys):
     with pytest.raises(ValueError, match=r"route 'lane-right'.*validation clip"):
-        write_synthetic_dataset(tmp_path / "x", train=1, validation=2, seed=0, counterfactuals="lane-right",
-                                views=1, frames=13, height=16, width=28)
+        write_synthetic_dataset(
+            tmp_path / "x",
+            train=1,
+            validation=2,
+            seed=0,
+            counterfactuals="lane-right",
+            views=1,
+            frames=13,
+            height=16,
+            width=28,
+        )
     assert not any(tmp_path.iterdir())
     with pytest.raises(ValueError, match="counterfactuals: expected distinct comma-separated routes from stop"):
         write_synthetic_dataset(tmp_path / "y", train=1, validation=1, counterfactuals="recorded", views=1, frames=13)
@@ -138,24 +173,55 @@ def test_undrivable_routes_write_nothing(tmp_path, capsys):
 def routes21(tmp_path_factory):
     """One training and two validation scenes of 21 frames (6 views, 32 x 56, as ``clips21``) with
     their ``stop`` and ``lane-left`` renders."""
-    return write_synthetic_dataset(tmp_path_factory.mktemp("routes21") / "data", train=1, validation=2, seed=7,
-                                   counterfactuals="stop,lane-left", views=6, frames=21, height=32, width=56)
+    return write_synthetic_dataset(
+        tmp_path_factory.mktemp("routes21") / "data",
+        train=1,
+        validation=2,
+        seed=7,
+        counterfactuals="stop,lane-left",
+        views=6,
+        frames=21,
+        height=32,
+        width=56,
+    )
 
 
 def test_eval_scores_every_route_against_its_render(tiny_dit, routes21, tmp_path, capsys):
     import json
+
     out = tmp_path / "eval"
-    argv = ["eval", "--workdir", str(tiny_dit), "--strategies", "rollout", "--clips", "2", "--frames", "13",
-            "--steps", "1", "--set", f"data.path={routes21}"]
+    argv = [
+        "eval",
+        "--workdir",
+        str(tiny_dit),
+        "--strategies",
+        "rollout",
+        "--clips",
+        "2",
+        "--frames",
+        "13",
+        "--steps",
+        "1",
+        "--set",
+        f"data.path={routes21}",
+    ]
     assert main([*argv, "--routes", "recorded,stop,lane-left", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "| rollout @ stop | 2-5 |" in printed and "| warp @ lane-left | 2-5 |" in printed
-    assert "| stop | rollout | 2-5 |" in printed                    # the route-effect table
+    assert "| stop | rollout | 2-5 |" in printed  # the route-effect table
     report = json.loads((out / "eval.json").read_text())
     rows = report["strategies"]
     assert report["routes"] == ["recorded", "stop", "lane-left"] and report["route_clips"] == [0, 1]
-    for name in ("rollout", "repeat frame 1", "warp @ recorded", "rollout @ stop", "repeat frame 1 @ stop",
-                 "warp @ stop", "rollout @ lane-left", "warp @ lane-left"):
+    for name in (
+        "rollout",
+        "repeat frame 1",
+        "warp @ recorded",
+        "rollout @ stop",
+        "repeat frame 1 @ stop",
+        "warp @ stop",
+        "rollout @ lane-left",
+        "warp @ lane-left",
+    ):
         assert list(rows[name]["buckets"]) == ["2-5", "6-8", "9-12", "2-12"], name
     # the baselines are scored against each route's own render: holding frame 1 against the stopping
     # ego's frames differs from holding it against the recorded ones
@@ -176,17 +242,37 @@ def test_eval_scores_every_route_against_its_render(tiny_dit, routes21, tmp_path
     capsys.readouterr()
     assert set(json.loads((merged / "eval.json").read_text())["route_effect"]["stop"]) == {"rollout (run)"}
     # bad input, before anything compiles
-    for extra, message in ((["--routes", "recorded,reverse"], "--routes: expected distinct comma-separated routes"),
-                           (["--routes", "stop,branch"], "--routes: expected routes stored in"),
-                           (["--routes", "stop", "--clips", "4"], "--clips: expected at most 2"),
-                           (["--routes", "stop", "--split", "train"], "--split: expected none with --routes")):
+    for extra, message in (
+        (["--routes", "recorded,reverse"], "--routes: expected distinct comma-separated routes"),
+        (["--routes", "stop,branch"], "--routes: expected routes stored in"),
+        (["--routes", "stop", "--clips", "4"], "--clips: expected at most 2"),
+        (["--routes", "stop", "--split", "train"], "--split: expected none with --routes"),
+    ):
         assert main([*argv, *extra, "--out", str(tmp_path / "no")]) == 2, extra
         assert message in capsys.readouterr().err, message
 
 
 def test_eval_routes_on_a_dataset_without_counterfactuals(tiny_dit, tmp_path, capsys):
-    assert main(["eval", "--workdir", str(tiny_dit), "--clips", "2", "--frames", "13", "--steps", "1",
-                 "--routes", "recorded,stop", "--out", str(tmp_path / "no")]) == 2
+    assert (
+        main(
+            [
+                "eval",
+                "--workdir",
+                str(tiny_dit),
+                "--clips",
+                "2",
+                "--frames",
+                "13",
+                "--steps",
+                "1",
+                "--routes",
+                "recorded,stop",
+                "--out",
+                str(tmp_path / "no"),
+            ]
+        )
+        == 2
+    )
     assert "--routes: expected a dataset with counterfactual routes" in capsys.readouterr().err
 
 
@@ -196,9 +282,10 @@ def test_drivable_clips_says_which_clips_drive_each_route():
     ValueError naming it."""
     from jaxdrive.data.synth_routes import UndrivableRoute
     from jaxdrive.data.synthetic import counterfactual_clip, drivable_clips
+
     rows = drivable_clips(["lane-right", "stop"], 0, 6, views=1, frames=17, height=32, width=56)
     assert set(rows) == {"lane-right", "stop"}
-    assert 0 < len(rows["lane-right"]) < 6, rows       # the outer lane has no lane to its right
+    assert 0 < len(rows["lane-right"]) < 6, rows  # the outer lane has no lane to its right
     for i in range(6):
         if i in rows["lane-right"]:
             counterfactual_clip(i, "lane-right", views=1, frames=17, height=32, width=56)

@@ -12,8 +12,27 @@ from jaxdrive.data.tfds_io import open_source
 
 def test_synth_info_and_pipeline(tmp_path, capsys):
     out = tmp_path / "synth"
-    assert main(["data", "synth", "--out", str(out), "--scenes", "3", "--frames", "9",
-                 "--views", "6", "--height", "32", "--width", "56"]) == 0
+    assert (
+        main(
+            [
+                "data",
+                "synth",
+                "--out",
+                str(out),
+                "--scenes",
+                "3",
+                "--frames",
+                "9",
+                "--views",
+                "6",
+                "--height",
+                "32",
+                "--width",
+                "56",
+            ]
+        )
+        == 0
+    )
     assert "wrote 2 train and 1 validation clips" in capsys.readouterr().out
     assert main(["data", "info", str(out)]) == 0
     info = json.loads(capsys.readouterr().out)
@@ -37,6 +56,7 @@ def test_synth_info_and_pipeline(tmp_path, capsys):
 
 def test_nuscenes_conversion(tmp_path, capsys):
     from nuscenes_fixture import write_fixture
+
     root = write_fixture(str(tmp_path / "nus"))
     out = tmp_path / "nus_tfds"
     assert main(["data", "nuscenes", "--dataroot", str(root), "--out", str(out), "--frames", "5"]) == 0
@@ -46,10 +66,13 @@ def test_nuscenes_conversion(tmp_path, capsys):
     assert isinstance(clip["scene"], str) and clip["timestamps"].shape == (5,)
 
 
-@pytest.mark.parametrize("argv, match", [
-    (["data", "info", "/nonexistent/dataset"], "path: expected a TFDS dataset directory"),
-    (["data", "nuscenes", "--dataroot", "/nonexistent", "--out", "/tmp/x"], "/nonexistent"),
-])
+@pytest.mark.parametrize(
+    "argv, match",
+    [
+        (["data", "info", "/nonexistent/dataset"], "path: expected a TFDS dataset directory"),
+        (["data", "nuscenes", "--dataroot", "/nonexistent", "--out", "/tmp/x"], "/nonexistent"),
+    ],
+)
 def test_bad_input_is_one_line_naming_the_argument(argv, match, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err
@@ -70,6 +93,7 @@ def test_info_messages_reach_stderr_unless_quiet(tmp_path, capsys):
     assert "wrote 1 train and 1 validation clips" in out.out and "wrote dataset" not in out.err
     # the level and handler are the CLI's only while it runs
     import logging
+
     assert logging.getLogger("jaxdrive").level == logging.NOTSET and not logging.getLogger("jaxdrive").handlers
 
 
@@ -79,8 +103,9 @@ def test_nuscenes_faults_are_named_or_skipped(tmp_path, capsys):
     from jaxdrive.data import nuscenes
 
     from nuscenes_fixture import write_fixture
+
     root = write_fixture(str(tmp_path / "nus"))
-    first = next(nuscenes.read_clips(root, frames=4))["meta"]["sample_data_tokens"][3][0]   # CAM_BACK
+    first = next(nuscenes.read_clips(root, frames=4))["meta"]["sample_data_tokens"][3][0]  # CAM_BACK
     image = tmp_path / "nus" / nuscenes.load_tables(root)["sample_data"][first]["filename"]
     image.write_bytes(b"not a jpeg")
     argv = ["data", "nuscenes", "--dataroot", root, "--frames", "4"]
@@ -90,7 +115,7 @@ def test_nuscenes_faults_are_named_or_skipped(tmp_path, capsys):
     assert main([*argv, "--out", str(tmp_path / "b"), "--skip-bad-records"]) == 0
     out = capsys.readouterr()
     assert "1 clips left out for unreadable images (1 files, named in the log)" in out.out
-    assert [str(image) in line for line in out.err.splitlines()].count(True) == 1     # one line names it
+    assert [str(image) in line for line in out.err.splitlines()].count(True) == 1  # one line names it
     assert len(open_source(tmp_path / "b", "train")) + len(open_source(tmp_path / "b", "validation")) == 5
     # a missing table: no dataset without it, so nothing to skip
     table = os.path.join(root, "v1.0-mini", "sample_annotation.json")

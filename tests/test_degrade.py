@@ -30,7 +30,7 @@ def test_smooth_content_survives_and_fine_detail_goes():
 
 def test_energy_never_grows_and_per_sample_ratio():
     x = _x()
-    full = float(jnp.sum(x ** 2))
+    full = float(jnp.sum(x**2))
     e = [float(jnp.sum(flow.dct_lowpass(x, r) ** 2)) for r in (0.1, 0.3, 0.6, 1.0)]
     assert all(a <= b + 1e-3 for a, b in zip(e, e[1:])) and e[-1] == pytest.approx(full, rel=1e-5)
     per = flow.dct_lowpass(x, jnp.array([0.25, 1.0]))
@@ -62,10 +62,10 @@ def test_dct_matrix_is_the_orthonormal_dct_ii():
     from jax.scipy.fft import dct
 
     from jaxdrive.flow.degrade import dct_matrix
+
     v = jax.random.normal(jax.random.PRNGKey(3), (11,))
     np.testing.assert_allclose(dct_matrix(11) @ v, dct(v, type=2, norm="ortho"), atol=1e-5)
     np.testing.assert_allclose(dct_matrix(11) @ dct_matrix(11).T, np.eye(11), atol=1e-6)
-
 
 
 @given(st.floats(0.01, 1.0), st.integers(0, 1000))

@@ -24,8 +24,9 @@ def test_segments_share_their_end_frames():
     x = _clip()
     seg = flow.split_segments(x, 4)
     assert seg.shape == (4, 4, 2, 3, 1)
-    np.testing.assert_array_equal(seg[:, :, 0, 0, 0], [[0, 1, 2, 3], [3, 4, 5, 6], [100, 101, 102, 103],
-                                                        [103, 104, 105, 106]])
+    np.testing.assert_array_equal(
+        seg[:, :, 0, 0, 0], [[0, 1, 2, 3], [3, 4, 5, 6], [100, 101, 102, 103], [103, 104, 105, 106]]
+    )
     sig = jnp.arange(14.0).reshape(2, 7)
     np.testing.assert_array_equal(flow.split_segments(sig, 4)[1], [3, 4, 5, 6])
 
@@ -34,8 +35,7 @@ def test_coarse_from_segments_round_trip_and_boundaries():
     x = _clip()
     seg = flow.split_segments(x, 4)
     for boundary in ("mean", "start", "end"):
-        np.testing.assert_array_equal(flow.coarse_from_segments(seg, 2, boundary=boundary),
-                                      flow.dense_to_coarse(x, 4))
+        np.testing.assert_array_equal(flow.coarse_from_segments(seg, 2, boundary=boundary), flow.dense_to_coarse(x, 4))
     # make the two copies of coarse frame 3 disagree: segment 0 ends with 10, segment 1 starts with 20
     seg = seg.at[0, 3].set(10.0).at[1, 0].set(20.0)
     pick = lambda b: float(flow.coarse_from_segments(seg, 2, boundary=b)[0, 1, 0, 0, 0])
@@ -43,8 +43,9 @@ def test_coarse_from_segments_round_trip_and_boundaries():
     # the same from each segment's first and last frame ([B, n, ...]), as the train step gets them
     first, last = seg[:, 0].reshape(2, 2, 2, 3, 1), seg[:, -1].reshape(2, 2, 2, 3, 1)
     for b in ("mean", "start", "end"):
-        np.testing.assert_array_equal(flow.coarse_from_ends(first, last, boundary=b),
-                                      flow.coarse_from_segments(seg, 2, boundary=b))
+        np.testing.assert_array_equal(
+            flow.coarse_from_ends(first, last, boundary=b), flow.coarse_from_segments(seg, 2, boundary=b)
+        )
 
 
 def test_multiview_layout():
@@ -76,16 +77,17 @@ def test_bad_inputs():
         flow.distill_loss(jnp.ones((1, 2, 1, 1, 1)), jnp.ones((1, 3, 1, 1, 1)))
 
 
-
-@settings(max_examples=20)       # every geometry is a new shape, i.e. new compilations
+@settings(max_examples=20)  # every geometry is a new shape, i.e. new compilations
 @given(st.integers(2, 6), st.integers(1, 5), st.sampled_from(["mean", "start", "end"]))
 def test_segments_round_trip_for_any_geometry(segment_len, num_segments, boundary):
     frames = num_segments * (segment_len - 1) + 1
     x = jax.random.normal(jax.random.PRNGKey(frames), (2, frames, 1, 2, 1))
     seg = flow.split_segments(x, segment_len)
     assert seg.shape == (2 * num_segments, segment_len, 1, 2, 1)
-    np.testing.assert_array_equal(flow.coarse_from_segments(seg, 2, boundary=boundary),
-                                  flow.dense_to_coarse(x, segment_len))
+    np.testing.assert_array_equal(
+        flow.coarse_from_segments(seg, 2, boundary=boundary), flow.dense_to_coarse(x, segment_len)
+    )
     # every dense frame appears in a segment at its own place
-    np.testing.assert_array_equal(seg[1, :], x[0, segment_len - 1: 2 * segment_len - 1] if num_segments > 1
-                                  else x[1, :segment_len])
+    np.testing.assert_array_equal(
+        seg[1, :], x[0, segment_len - 1 : 2 * segment_len - 1] if num_segments > 1 else x[1, :segment_len]
+    )

@@ -22,17 +22,28 @@ CASES = {
     "factorized-joint": (preset("tiny", depth=1), dict(data=2, seq=4), 2),
     # MVDiT with the controls whose tensors meet the sharded patches: cross-view attention, the map
     # ControlNet, box tokens (per-frame-and-view cross-attention), condition frames and HTFT
-    "mvdit-controls": (preset("tiny-mv", depth=1, controls=dict(trajectory=False, warp=False, waypoints=False,
-                                                                camera=False)), dict(fsdp=2, seq=2, tensor=2), 3),
+    "mvdit-controls": (
+        preset("tiny-mv", depth=1, controls=dict(trajectory=False, warp=False, waypoints=False, camera=False)),
+        dict(fsdp=2, seq=2, tensor=2),
+        3,
+    ),
     # the projected layout: ray casting, the BEV map's gather and the canvas's convolutions per
     # (frame, view) with the batch over data and the tokens over seq
     "layout": (preset("tiny", depth=1, controls=dict(layout=True)), dict(data=2, seq=2, tensor=2), 2),
     "full-scan-remat": (preset("tiny-full", scan_layers=True, remat="full"), dict(seq=8), 2),
     # the per-frame output head (U-ViT's final convolutions over output, input and given frame)
     # with its frames over seq
-    "final-conv-frames-over-seq": (preset("tiny", depth=1, prediction="data", final_conv=8,
-                                          controls=dict(cond_frames="replace", reference_frame="residual")),
-                                   dict(data=2, seq=2, tensor=2), 2),
+    "final-conv-frames-over-seq": (
+        preset(
+            "tiny",
+            depth=1,
+            prediction="data",
+            final_conv=8,
+            controls=dict(cond_frames="replace", reference_frame="residual"),
+        ),
+        dict(data=2, seq=2, tensor=2),
+        2,
+    ),
 }
 
 
@@ -42,8 +53,9 @@ def batch_sharded(tree, mesh):
     Explicit sharding on a sharded batch axis)."""
     n = mesh.shape["data"] * mesh.shape["fsdp"]
     spec = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(("data", "fsdp")))
-    return jax.tree_util.tree_map(lambda a: jax.device_put(a, spec) if np.ndim(a) and np.shape(a)[0] % n == 0 else a,
-                                  tree)
+    return jax.tree_util.tree_map(
+        lambda a: jax.device_put(a, spec) if np.ndim(a) and np.shape(a)[0] % n == 0 else a, tree
+    )
 
 
 def _loss_fn(cfg):
@@ -52,6 +64,7 @@ def _loss_fn(cfg):
     def loss(params, lat, sig, text, kw):
         out = dit.forward(params, lat, sig, conditions(text, kw))
         return jnp.sum(out * jnp.cos(lat)), out
+
     return jax.jit(jax.value_and_grad(loss, argnums=(0, 1), has_aux=True))
 
 
@@ -59,13 +72,17 @@ def _loss_fn(cfg):
 def test_sharded_matches_single_device(case):
     cfg, mesh_shape, views = CASES[case]
     shapes = (("batch", 2), ("views", views), ("frames", 2), ("height", 8), ("width", 8))
-    params = params_for(cfg, shapes, skip=())            # every branch live, zero inits perturbed
+    params = params_for(cfg, shapes, skip=())  # every branch live, zero inits perturbed
     lat, sig, text, kw = split_inputs(example_inputs(cfg, **dict(shapes)))
     fn = _loss_fn(cfg)
     (_, want), (gp_want, gx_want) = fn(params, lat, sig, text, kw)
     mesh = make_mesh(**mesh_shape)
-    boxed = jax.tree_util.tree_map(lambda b, v: b.replace_boxed(v), boxed_params(cfg, shapes), params,
-                                   is_leaf=lambda x: hasattr(x, "replace_boxed"))
+    boxed = jax.tree_util.tree_map(
+        lambda b, v: b.replace_boxed(v),
+        boxed_params(cfg, shapes),
+        params,
+        is_leaf=lambda x: hasattr(x, "replace_boxed"),
+    )
     with jax.set_mesh(mesh):
         sharded = shard_params(boxed, mesh)
         (_, got), (gp, gx) = fn(sharded, *batch_sharded((lat, sig, text, kw), mesh))

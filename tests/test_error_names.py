@@ -13,21 +13,24 @@ from jaxdrive.cli.options import as_flags
 PACKAGE = Path(__file__).resolve().parents[1] / "jaxdrive"
 
 
-@pytest.mark.parametrize("command, message, expected", [
-    ("sample", "segment_batch: expected 'auto'", "--segment-batch: expected 'auto'"),
-    ("sample", "device_memory: expected a positive size", "--device-memory: expected a positive size"),
-    ("sample", "models.fine: strategy 'coarse-fine' needs", "--fine-workdir: strategy 'coarse-fine' needs"),
-    ("sample", "models.main: 'streaming' needs", "--workdir: 'streaming' needs"),
-    ("sample", "override model.depht: unknown key", "--set model.depht: unknown key"),
-    ("sample", "taps: expected offsets", "--taps: expected offsets"),
-    ("eval", "buckets: expected ranges like 2-12", "--buckets: expected ranges like 2-12"),
-    ("eval", "inception /w/x.pth: expected the FID tensor", "--inception /w/x.pth: expected the FID tensor"),
-    ("data", "counterfactuals: expected a dataset", "--counterfactuals: expected a dataset"),   # a sub-command's
-    ("sample", "flow.jdc_slope: expected >= 0.5", "flow.jdc_slope: expected >= 0.5"),       # a config key stays
-    ("sample", "buckets: not an option here", "buckets: not an option here"),               # eval's, not sample's
-    ("sample", "expected one of them, got none", "expected one of them, got none"),
-    ("sample", "frames must be: odd", "frames must be: odd"),                               # not a leading name
-])
+@pytest.mark.parametrize(
+    "command, message, expected",
+    [
+        ("sample", "segment_batch: expected 'auto'", "--segment-batch: expected 'auto'"),
+        ("sample", "device_memory: expected a positive size", "--device-memory: expected a positive size"),
+        ("sample", "models.fine: strategy 'coarse-fine' needs", "--fine-workdir: strategy 'coarse-fine' needs"),
+        ("sample", "models.main: 'streaming' needs", "--workdir: 'streaming' needs"),
+        ("sample", "override model.depht: unknown key", "--set model.depht: unknown key"),
+        ("sample", "taps: expected offsets", "--taps: expected offsets"),
+        ("eval", "buckets: expected ranges like 2-12", "--buckets: expected ranges like 2-12"),
+        ("eval", "inception /w/x.pth: expected the FID tensor", "--inception /w/x.pth: expected the FID tensor"),
+        ("data", "counterfactuals: expected a dataset", "--counterfactuals: expected a dataset"),  # a sub-command's
+        ("sample", "flow.jdc_slope: expected >= 0.5", "flow.jdc_slope: expected >= 0.5"),  # a config key stays
+        ("sample", "buckets: not an option here", "buckets: not an option here"),  # eval's, not sample's
+        ("sample", "expected one of them, got none", "expected one of them, got none"),
+        ("sample", "frames must be: odd", "frames must be: odd"),  # not a leading name
+    ],
+)
 def test_a_library_argument_becomes_the_commands_option(command, message, expected):
     assert as_flags(message, command_parser(build_parser(), command)) == expected
 

@@ -10,12 +10,12 @@ def _clip(seed=0, views=2, frames=5, hw=(24, 32)):
     """A smooth video in [-1, 1] whose content moves one pixel a frame."""
     rng = np.random.default_rng(seed)
     base = rng.uniform(-0.8, 0.8, (views, 1, hw[0] // 4, hw[1] // 4 + frames, 3)).repeat(4, 2).repeat(4, 3)
-    return np.concatenate([base[:, :, :, f: f + hw[1]] for f in range(frames)], axis=1).astype(np.float32)
+    return np.concatenate([base[:, :, :, f : f + hw[1]] for f in range(frames)], axis=1).astype(np.float32)
 
 
 def test_psnr_worked_number_and_ssim_of_identical_images():
     a = np.zeros((1, 8, 8, 3), np.float32)
-    b = a + 0.2            # in [0, 1] the error is 0.1: MSE 0.01 -> PSNR = -10 log10(0.01) = 20 dB
+    b = a + 0.2  # in [0, 1] the error is 0.1: MSE 0.01 -> PSNR = -10 log10(0.01) = 20 dB
     assert float(psnr(a, b)[0]) == pytest.approx(20.0, abs=1e-4)
     x = _clip()[0]
     np.testing.assert_allclose(np.asarray(ssim(x, x)), 1.0, atol=1e-5)
@@ -59,7 +59,7 @@ def test_clip_quality_rejects_bad_input():
 
 def test_frame_scores_part_by_part_equal_the_whole_clip_and_give_a_horizon_curve():
     rec = _clip(frames=9)
-    gen = rec + np.linspace(0.0, 0.4, 9, dtype=np.float32)[None, :, None, None, None]   # drifts more each frame
+    gen = rec + np.linspace(0.0, 0.4, 9, dtype=np.float32)[None, :, None, None, None]  # drifts more each frame
     whole = clip_quality(gen, rec, cond_frames=2, window=5)
     parts = FrameScores(rec, cond_frames=2)
     for lo, hi in ((0, 2), (2, 5), (5, 6), (6, 9)):
@@ -67,7 +67,8 @@ def test_frame_scores_part_by_part_equal_the_whole_clip_and_give_a_horizon_curve
     q = parts.result(window=5, every=3)
     for a, b in zip(q["per_frame"], whole["per_frame"], strict=True):
         assert a["kind"] == b["kind"] and {k: a[k] for k in a if k != "kind"} == pytest.approx(
-            {k: b[k] for k in b if k != "kind"}, rel=1e-5)
+            {k: b[k] for k in b if k != "kind"}, rel=1e-5
+        )
     assert q["first_window"]["frames"] == whole["first_window"]["frames"] == [2, 3, 4]
     assert q["first_window"]["psnr"] == pytest.approx(whole["first_window"]["psnr"], rel=1e-5)
     assert [h["frames"] for h in q["horizon"]] == [[2, 3, 4], [5, 6, 7], [8]]
@@ -79,8 +80,11 @@ def test_frame_scores_part_by_part_equal_the_whole_clip_and_give_a_horizon_curve
 def test_frame_scores_reject_bad_parts():
     rec = _clip(frames=4)
     scores = FrameScores(rec, cond_frames=1)
-    with pytest.raises(ValueError, match=r"generated: expected the next frames \[V, n, H, W, 3\] of a clip shaped "
-                                         r"\[2, 4, 24, 32, 3\] \(frames 0..3 left\), got shape \[2, 5, 24, 32, 3\]"):
+    with pytest.raises(
+        ValueError,
+        match=r"generated: expected the next frames \[V, n, H, W, 3\] of a clip shaped "
+        r"\[2, 4, 24, 32, 3\] \(frames 0..3 left\), got shape \[2, 5, 24, 32, 3\]",
+    ):
         scores.add(np.concatenate([rec, rec[:, :1]], 1))
     with pytest.raises(ValueError, match=r"generated: expected frames beyond the 1 given ones, got 1 frames"):
         scores.add(rec[:, :1]).result()

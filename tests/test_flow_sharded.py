@@ -35,8 +35,9 @@ def _loss(x, noise, sigma, cond, anchor):
     x_t = flow.add_noise(x, noise, s)
     v = 0.5 * x_t  # a stand-in network
     x_cond = flow.degrade_frames(x, cond, 0.5)
-    return (flow.flow_loss(v + x_cond, x, noise, cond_mask=cond)
-            + flow.structure_loss(flow.data_from_velocity(x_t, v, s), x, cond_mask=cond))
+    return flow.flow_loss(v + x_cond, x, noise, cond_mask=cond) + flow.structure_loss(
+        flow.data_from_velocity(x_t, v, s), x, cond_mask=cond
+    )
 
 
 def _put(mesh, tree):

@@ -22,10 +22,19 @@ angle = st.floats(-6.25, 6.25, allow_nan=False, width=32)
 
 def test_corners_of_a_known_box():
     box = np.array([1.0, 2.0, 3.0, 4.0, 2.0, 1.0, 0.0], np.float32)  # l=4 along x, w=2, h=1
-    want = np.array([
-        [3, 3, 2.5], [-1, 3, 2.5], [-1, 1, 2.5], [3, 1, 2.5],  # bottom: FL, RL, RR, FR
-        [3, 3, 3.5], [-1, 3, 3.5], [-1, 1, 3.5], [3, 1, 3.5],  # top
-    ], np.float32)
+    want = np.array(
+        [
+            [3, 3, 2.5],
+            [-1, 3, 2.5],
+            [-1, 1, 2.5],
+            [3, 1, 2.5],  # bottom: FL, RL, RR, FR
+            [3, 3, 3.5],
+            [-1, 3, 3.5],
+            [-1, 1, 3.5],
+            [3, 1, 3.5],  # top
+        ],
+        np.float32,
+    )
     np.testing.assert_allclose(box_corners(box), want, atol=1e-6)
     # yaw = 90 deg: the heading is +y, so "front-left" (+l/2 ahead, +w/2 left) is (-1, +2).
     box[6] = np.pi / 2
@@ -136,17 +145,20 @@ def test_projection_finite_values_and_grads_at_zero_depth():
     np.testing.assert_allclose(grad[1, 0], 100.0 / 5.0, rtol=1e-5)
 
 
-@pytest.mark.parametrize("call, name", [
-    (lambda: box_corners(np.zeros((3, 6))), "boxes"),
-    (lambda: box_corners(np.float32(1.0)), "boxes"),
-    (lambda: ego_to_camera(np.zeros((4, 2)), np.eye(4)), "points"),
-    (lambda: ego_to_camera(np.zeros(3), np.eye(4)), "points"),
-    (lambda: ego_to_camera(np.zeros((4, 3)), np.eye(3)), "cam_to_ego"),
-    (lambda: ego_to_camera(np.zeros((2, 4, 3)), np.zeros((3, 4, 4))), "cam_to_ego"),
-    (lambda: project_to_image(np.zeros((4, 4)), K), "points_cam"),
-    (lambda: project_to_image(np.zeros((4, 3)), np.eye(4)), "intrinsics"),
-    (lambda: project_to_image(np.zeros((2, 4, 3)), np.zeros((5, 3, 3))), "intrinsics"),
-])
+@pytest.mark.parametrize(
+    "call, name",
+    [
+        (lambda: box_corners(np.zeros((3, 6))), "boxes"),
+        (lambda: box_corners(np.float32(1.0)), "boxes"),
+        (lambda: ego_to_camera(np.zeros((4, 2)), np.eye(4)), "points"),
+        (lambda: ego_to_camera(np.zeros(3), np.eye(4)), "points"),
+        (lambda: ego_to_camera(np.zeros((4, 3)), np.eye(3)), "cam_to_ego"),
+        (lambda: ego_to_camera(np.zeros((2, 4, 3)), np.zeros((3, 4, 4))), "cam_to_ego"),
+        (lambda: project_to_image(np.zeros((4, 4)), K), "points_cam"),
+        (lambda: project_to_image(np.zeros((4, 3)), np.eye(4)), "intrinsics"),
+        (lambda: project_to_image(np.zeros((2, 4, 3)), np.zeros((5, 3, 3))), "intrinsics"),
+    ],
+)
 def test_bad_inputs_name_the_argument(call, name):
     with pytest.raises(ValueError, match=rf"^{name}: expected"):
         call()

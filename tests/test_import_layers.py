@@ -21,12 +21,16 @@ PACKAGE = ROOT / "jaxdrive"
 def lint(root: Path):
     """``lint-imports`` (no cache) with ``root``'s pyproject.toml, on the ``jaxdrive`` under ``root``:
     its exit status and output. A fresh process, so that ``root``'s copy is the one imported."""
-    code = ("import sys\nfrom importlinter.cli import lint_imports\n"
-            "sys.exit(lint_imports(config_filename='pyproject.toml', no_cache=True, no_logo=True))\n")
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")]),
-           "COLUMNS": "200"}                            # one line per contract and per import
-    out = subprocess.run([sys.executable, "-c", code], cwd=root, env=env, capture_output=True, text=True,
-                         timeout=120)
+    code = (
+        "import sys\nfrom importlinter.cli import lint_imports\n"
+        "sys.exit(lint_imports(config_filename='pyproject.toml', no_cache=True, no_logo=True))\n"
+    )
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")]),
+        "COLUMNS": "200",
+    }  # one line per contract and per import
+    out = subprocess.run([sys.executable, "-c", code], cwd=root, env=env, capture_output=True, text=True, timeout=120)
     return out.returncode, out.stdout + out.stderr
 
 
@@ -41,7 +45,7 @@ def test_an_import_pointing_up_breaks_them(tmp_path):
     line: the layers contract must name it."""
     shutil.copytree(PACKAGE, tmp_path / "jaxdrive", ignore=shutil.ignore_patterns("__pycache__"))
     shutil.copy(ROOT / "pyproject.toml", tmp_path / "pyproject.toml")
-    assert lint(tmp_path)[0] == 0                       # the copy itself is as clean as the package
+    assert lint(tmp_path)[0] == 0  # the copy itself is as clean as the package
     with open(tmp_path / "jaxdrive" / "geometry.py", "a") as f:
         f.write("\n\ndef _planted():\n    import jaxdrive.cli  # noqa: F401\n")
     status, out = lint(tmp_path)
@@ -57,7 +61,7 @@ def test_no_module_imports_itself_back():
     edges = {m: graph.find_modules_directly_imported_by(m) for m in graph.modules}
     index, low, stack, on_stack, cycles = {}, {}, [], set(), []
 
-    def visit(v):                        # Tarjan's strongly connected components
+    def visit(v):  # Tarjan's strongly connected components
         index[v] = low[v] = len(index)
         stack.append(v)
         on_stack.add(v)
@@ -74,6 +78,7 @@ def test_no_module_imports_itself_back():
                 on_stack.discard(part[-1])
             if len(part) > 1:
                 cycles.append(sorted(part))
+
     sys.setrecursionlimit(max(sys.getrecursionlimit(), 10 * len(edges)))
     for m in sorted(edges):
         if m not in index:
@@ -97,7 +102,12 @@ def test_private_names_stay_in_their_modules():
             elif isinstance(node, ast.Import):
                 modules.update({a.asname: a.name for a in node.names if a.asname and a.name.startswith("jaxdrive")})
         for node in ast.walk(tree):
-            if (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in modules
-                    and node.attr.startswith("_") and not node.attr.startswith("__")):
+            if (
+                isinstance(node, ast.Attribute)
+                and isinstance(node.value, ast.Name)
+                and node.value.id in modules
+                and node.attr.startswith("_")
+                and not node.attr.startswith("__")
+            ):
                 crossings.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.value.id}.{node.attr}")
     assert crossings == []

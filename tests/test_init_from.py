@@ -62,10 +62,10 @@ def test_a_later_stage_loads_what_the_source_has_and_keeps_its_own_init_for_the_
     added = sorted(set(got) - set(ema))
     assert added and any("boxes" in k for k in added)
     for k in ema:
-        np.testing.assert_array_equal(got[k], ema[k])                  # loaded: the source's EMA
+        np.testing.assert_array_equal(got[k], ema[k])  # loaded: the source's EMA
     for k in added:
-        np.testing.assert_array_equal(got[k], fresh[k])                # kept: the new run's own init
-    np.testing.assert_array_equal(flat(state.ema)[sorted(ema)[0]], ema[sorted(ema)[0]])   # EMA starts there too
+        np.testing.assert_array_equal(got[k], fresh[k])  # kept: the new run's own init
+    np.testing.assert_array_equal(flat(state.ema)[sorted(ema)[0]], ema[sorted(ema)[0]])  # EMA starts there too
     assert any(f"loaded {len(ema)} parameters" in line for line in logs)
     # the raw parameters by choice
     raw_run = Run(config(dataset, f"train.init_from={workdir}", "train.init_from_ema=false"))
@@ -78,8 +78,11 @@ def test_a_later_stage_loads_what_the_source_has_and_keeps_its_own_init_for_the_
 def test_a_shape_mismatch_names_the_parameter(dataset, source_run):
     workdir, _ = source_run
     run = Run(config(dataset, f"train.init_from={workdir}", "model.head_dim=32"))
-    with pytest.raises(ValueError, match=r"train.init_from: parameter '.*': expected shape \[.*\] \(the new model\), "
-                                         r"got \[.*\] in "):
+    with pytest.raises(
+        ValueError,
+        match=r"train.init_from: parameter '.*': expected shape \[.*\] \(the new model\), "
+        r"got \[.*\] in ",
+    ):
         run.init_state()
 
 
@@ -99,11 +102,16 @@ def test_the_name_map_renames_source_paths():
 def test_layers_move_between_scanned_runs_of_other_bounds_and_unrolled_layers():
     # STAGE stage 2 adds an HTFT layer after layer 1, which splits the scanned run 0..3 in two
     layer = lambda i: np.full((2, 3), i, np.float32)
-    source = {"layers_0_4": {"kernel": np.stack([layer(i) for i in range(4)])},
-              "head": {"bias": np.ones(3, np.float32)}}
-    new = {"layers_0_2": {"kernel": np.zeros((2, 2, 3), np.float32)},
-           "layers_2": {"kernel": np.zeros((2, 3), np.float32)},
-           "layers_3_5": {"kernel": np.zeros((2, 2, 3), np.float32)}, "head": {"bias": np.zeros(3, np.float32)}}
+    source = {
+        "layers_0_4": {"kernel": np.stack([layer(i) for i in range(4)])},
+        "head": {"bias": np.ones(3, np.float32)},
+    }
+    new = {
+        "layers_0_2": {"kernel": np.zeros((2, 2, 3), np.float32)},
+        "layers_2": {"kernel": np.zeros((2, 3), np.float32)},
+        "layers_3_5": {"kernel": np.zeros((2, 2, 3), np.float32)},
+        "head": {"bias": np.zeros(3, np.float32)},
+    }
     merged, report = merge_params(new, source)
     np.testing.assert_array_equal(merged["layers_0_2"]["kernel"], np.stack([layer(0), layer(1)]))
     np.testing.assert_array_equal(merged["layers_2"]["kernel"], layer(2))
@@ -124,6 +132,7 @@ def test_bad_sources_fail_before_compiling(dataset, tmp_path):
     with pytest.raises(ValueError, match=r"train.init_map: expected a regular expression"):
         Run(config(dataset, "train.init_map=a(=x"))
     from jaxdrive.parallel import make_mesh
+
     with pytest.raises(ValueError, match=r"expected a jaxdrive run directory .* or a diffusers transformer folder"):
         source_params(tmp_path, mesh=make_mesh(data=8))
 
@@ -133,12 +142,23 @@ def test_a_diffusers_folder_is_a_source(tmp_path):
     diffusers = pytest.importorskip("diffusers")
     torch.manual_seed(0)
     model = diffusers.CogVideoXTransformer3DModel(
-        num_attention_heads=2, attention_head_dim=16, in_channels=4, out_channels=4, time_embed_dim=24,
-        text_embed_dim=12, num_layers=1, sample_width=8, sample_height=6, sample_frames=9, patch_size=2,
-        max_text_seq_length=5)
+        num_attention_heads=2,
+        attention_head_dim=16,
+        in_channels=4,
+        out_channels=4,
+        time_embed_dim=24,
+        text_embed_dim=12,
+        num_layers=1,
+        sample_width=8,
+        sample_height=6,
+        sample_frames=9,
+        patch_size=2,
+        max_text_seq_length=5,
+    )
     model.save_pretrained(tmp_path, safe_serialization=True)
     from jaxdrive.convert import load_diffusers_transformer
     from jaxdrive.parallel import make_mesh
+
     dit, want = load_diffusers_transformer(tmp_path)
     got = source_params(tmp_path, mesh=make_mesh(data=8))
     for k, v in flat(want).items():
@@ -146,6 +166,7 @@ def test_a_diffusers_folder_is_a_source(tmp_path):
     # a LongDWM-style fine model: the imported layers plus a warp input the folder has not
     fine = dit.config.replace(controls=dict(warp=True))
     from jaxdrive.models.dit import DiT
+
     new = nn.unbox(DiT(fine).init_params(0))
     merged, report = merge_params(new, got, source_name=str(tmp_path))
     assert report.kept and all("warp" in k for k in report.kept) and not report.unused

@@ -26,7 +26,7 @@ def test_eq12_and_eq20_hold(a1, u):
     if a2 > 1e-3:
         var = float(flow.jdc_noise_var(a1, a2))
         # eq. 20: a2^2 s^2 + a1^2 (1 - a2)^2 = g^2
-        assert a2 ** 2 * var + a1 ** 2 * (1 - a2) ** 2 == pytest.approx(g ** 2, rel=1e-4, abs=1e-6)
+        assert a2**2 * var + a1**2 * (1 - a2) ** 2 == pytest.approx(g**2, rel=1e-4, abs=1e-6)
 
 
 @pytest.mark.parametrize("g, a1", [(0.6, 0.2), (0.3, 0.3), (0.9, 0.0), (1.0, 0.5)])
@@ -35,9 +35,9 @@ def test_monte_carlo_total_noise_is_g_around_the_clean_signal(g, a1):
     k_x, k_n1, k_r = jax.random.split(jax.random.PRNGKey(7), 3)
     shape = (4, 2, 64, 64, 4)
     x = jax.random.normal(k_x, shape)
-    z = (1 - a1) * x + a1 * jax.random.normal(k_n1, shape)          # eq. 8
-    xn = flow.jdc_renoise(k_r, z, g, a1)                             # eq. 9
-    residual = xn - (1 - g) * x                                      # total noise (eq. 10)
+    z = (1 - a1) * x + a1 * jax.random.normal(k_n1, shape)  # eq. 8
+    xn = flow.jdc_renoise(k_r, z, g, a1)  # eq. 9
+    residual = xn - (1 - g) * x  # total noise (eq. 10)
     assert float(jnp.std(residual)) == pytest.approx(g, rel=0.01, abs=1e-3)
     assert abs(float(jnp.mean(residual))) < 0.01
     # the noise is independent of the signal: the regression of xn on x has slope 1 - g
@@ -56,7 +56,7 @@ def test_per_frame_g():
     out = flow.jdc_renoise(jax.random.PRNGKey(0), z, g, 0.1)
     # zero signal: what remains is the n2 part, std a2 * s = sqrt(g^2 - a1^2 (1 - a2)^2)
     a2 = (g - 0.1) / 0.9
-    want = jnp.sqrt(g ** 2 - 0.01 * (1 - a2) ** 2)
+    want = jnp.sqrt(g**2 - 0.01 * (1 - a2) ** 2)
     np.testing.assert_allclose(out[0, 0], 0.0, atol=1e-7)
     assert float(jnp.std(out[0, 2])) == pytest.approx(float(want[0, 2]), rel=0.15)
 
@@ -73,19 +73,29 @@ def test_jit():
     assert out.shape == z.shape and bool(jnp.all(jnp.isfinite(out)))
 
 
-@pytest.mark.parametrize("call, match", [
-    (lambda: flow.jdc_alpha2(0.5, 1.0), r"alpha1: expected values in \[0.0, 1.0\), got 1"),
-    (lambda: flow.jdc_alpha2(0.5, -0.1), "alpha1: expected values in"),
-    (lambda: flow.jdc_alpha2(0.1, 0.3), r"g: expected g >= alpha1 = 0.3 .*got min g = 0.1"),
-    (lambda: flow.jdc_alpha2(1.2, 0.3), r"g: expected values in \[0.0, 1.0\]"),
-    (lambda: flow.jdc_noise_var(0.1, 0.0), r"alpha2: expected values in \(0.0, 1.0\]"),
-    (lambda: flow.jdc_renoise(jax.random.PRNGKey(0), jnp.ones((2, 1, 1, 1, 1)), 0.1, 0.2), "g: expected g >= alpha1"),
-    (lambda: flow.jdc_renoise(jax.random.PRNGKey(0), jnp.ones((2, 1, 1, 1, 1)), jnp.ones(3) * 0.5, 0.2),
-     r"g: expected shape \[B\] or \[B, F\]"),
-    (lambda: flow.jdc_renoise(jax.random.PRNGKey(0), jnp.ones((2, 1, 1, 1, 1)), 0.5, jnp.array([0.1, 0.2])),
-     "alpha1: expected a scalar"),
-    (lambda: flow.jdc_anchor_sigma(0.5, 0.0), r"slope: expected values in \(0.0, 1.0\]"),
-])
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda: flow.jdc_alpha2(0.5, 1.0), r"alpha1: expected values in \[0.0, 1.0\), got 1"),
+        (lambda: flow.jdc_alpha2(0.5, -0.1), "alpha1: expected values in"),
+        (lambda: flow.jdc_alpha2(0.1, 0.3), r"g: expected g >= alpha1 = 0.3 .*got min g = 0.1"),
+        (lambda: flow.jdc_alpha2(1.2, 0.3), r"g: expected values in \[0.0, 1.0\]"),
+        (lambda: flow.jdc_noise_var(0.1, 0.0), r"alpha2: expected values in \(0.0, 1.0\]"),
+        (
+            lambda: flow.jdc_renoise(jax.random.PRNGKey(0), jnp.ones((2, 1, 1, 1, 1)), 0.1, 0.2),
+            "g: expected g >= alpha1",
+        ),
+        (
+            lambda: flow.jdc_renoise(jax.random.PRNGKey(0), jnp.ones((2, 1, 1, 1, 1)), jnp.ones(3) * 0.5, 0.2),
+            r"g: expected shape \[B\] or \[B, F\]",
+        ),
+        (
+            lambda: flow.jdc_renoise(jax.random.PRNGKey(0), jnp.ones((2, 1, 1, 1, 1)), 0.5, jnp.array([0.1, 0.2])),
+            "alpha1: expected a scalar",
+        ),
+        (lambda: flow.jdc_anchor_sigma(0.5, 0.0), r"slope: expected values in \(0.0, 1.0\]"),
+    ],
+)
 def test_bad_inputs(call, match):
     with pytest.raises(ValueError, match=match):
         call()
@@ -109,10 +119,10 @@ def test_training_anchors_follow_the_samplers_law():
     x, noise, levels, anchor = _anchor_case(gs)
     x_t, eps = flow.jdc_training_anchors(jax.random.PRNGKey(5), x, noise, levels, anchor, a1)
     k_n1, k_r = jax.random.split(jax.random.PRNGKey(6))
-    z = (1 - a1) * x + a1 * jax.random.normal(k_n1, x.shape)                     # eq. 8
-    sampled = flow.jdc_renoise(k_r, z[:, 1], jnp.asarray(gs), a1)                 # what the sampler does
+    z = (1 - a1) * x + a1 * jax.random.normal(k_n1, x.shape)  # eq. 8
+    sampled = flow.jdc_renoise(k_r, z[:, 1], jnp.asarray(gs), a1)  # what the sampler does
     n = x[0, 1].size
-    se_mean, se_std = 4 / np.sqrt(n), 4 / np.sqrt(2 * n)           # 4 Monte-Carlo standard errors
+    se_mean, se_std = 4 / np.sqrt(n), 4 / np.sqrt(2 * n)  # 4 Monte-Carlo standard errors
     for b, g in enumerate(gs):
         xa = x[b, 1]
         for got in (x_t[b, 1], sampled[b]):
@@ -145,8 +155,12 @@ def test_training_anchors_worked_cases():
     np.testing.assert_array_equal(x_t[0], plain[0])
     np.testing.assert_array_equal(eps[0], noise[0])
     assert not np.allclose(x_t[1, :, 1], plain[1, :, 1])
-    np.testing.assert_allclose(x_t[1:, :, 1], (1 - levels[1:, 1, None, None, None, None]) * x[1:, :, 1]
-                               + levels[1:, 1, None, None, None, None] * eps[1:, :, 1], atol=1e-5)
+    np.testing.assert_allclose(
+        x_t[1:, :, 1],
+        (1 - levels[1:, 1, None, None, None, None]) * x[1:, :, 1]
+        + levels[1:, 1, None, None, None, None] * eps[1:, :, 1],
+        atol=1e-5,
+    )
 
 
 def test_training_anchor_targets_for_velocity_and_data_prediction():

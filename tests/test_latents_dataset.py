@@ -25,9 +25,17 @@ from jaxdrive.train.run import Run, train
 from train_fixtures import save_run, write_same_clips, write_synthetic
 
 TINY = Path(__file__).resolve().parents[1] / "configs" / "tiny.py"
-SMALLER = ["data.views=2", "data.frames=5", "data.batch_size=2", "model.depth=1", "optim.warmup_steps=2",
-           "train.log_every=1", "mesh.data=2", "mesh.seq=4"]
-EVERY = 4                       # 9-frame clips, 5-frame windows: starts 0 and 4, two windows a clip
+SMALLER = [
+    "data.views=2",
+    "data.frames=5",
+    "data.batch_size=2",
+    "model.depth=1",
+    "optim.warmup_steps=2",
+    "train.log_every=1",
+    "mesh.data=2",
+    "mesh.seq=4",
+]
+EVERY = 4  # 9-frame clips, 5-frame windows: starts 0 and 4, two windows a clip
 
 
 @pytest.fixture(scope="module")
@@ -35,8 +43,18 @@ def datasets(tmp_path_factory):
     """(clip dataset, its latent windows written by the CLI)."""
     root = tmp_path_factory.mktemp("latents")
     write_synthetic(root / "clips")
-    args = ["data", "encode", "--config", str(TINY), "--out", str(root / "latents"), "--every", str(EVERY),
-            "--batch", "4"]
+    args = [
+        "data",
+        "encode",
+        "--config",
+        str(TINY),
+        "--out",
+        str(root / "latents"),
+        "--every",
+        str(EVERY),
+        "--batch",
+        "4",
+    ]
     for s in [f"data.path={root / 'clips'}", *SMALLER]:
         args += ["--set", s]
     assert cli(args) == 0
@@ -51,8 +69,14 @@ def window(clips, latents_index, cfg):
     """sample_clip of the clip window stored at ``latents_index`` of the train split."""
     d = cfg.data
     clip = clips[latents_index // 2]
-    return sample_clip(clip, size=(d.height, d.width), frames=d.frames, stride=d.stride,
-                       start=EVERY * (latents_index % 2), views=list(range(d.views)))
+    return sample_clip(
+        clip,
+        size=(d.height, d.width),
+        frames=d.frames,
+        stride=d.stride,
+        start=EVERY * (latents_index % 2),
+        views=list(range(d.views)),
+    )
 
 
 def test_encoded_windows_are_the_codec_of_sample_clip(datasets):
@@ -61,7 +85,7 @@ def test_encoded_windows_are_the_codec_of_sample_clip(datasets):
     clips, windows = open_source(clips_path, "train"), open_source(latents_path, "train")
     assert windows.kind == "windows" and len(windows) == 6 and len(open_source(latents_path, "validation")) == 2
     codec = LatentCodec.from_config(cfg.latents)
-    for j in range(len(windows)):                             # 6 windows in batches of 4: one padded batch
+    for j in range(len(windows)):  # 6 windows in batches of 4: one padded batch
         want, got = window(clips, j, cfg), windows[j]
         ref = np.asarray(codec.encode(None, want.pop("video")[None]))[0]
         # not stored (uniform frames): take_window gives sample_clip's times back from the fps
@@ -75,8 +99,13 @@ def test_encoded_windows_are_the_codec_of_sample_clip(datasets):
             else:
                 np.testing.assert_array_equal(got[k], v, err_msg=k)
     meta = dataset_info(latents_path)["metadata"]["encoded"]
-    assert meta["latents"] == {"source": "space_to_depth", "factor": 4, "scale": 1.0, "vae_path": "",
-                               "vae_mode": "chunked"}
+    assert meta["latents"] == {
+        "source": "space_to_depth",
+        "factor": 4,
+        "scale": 1.0,
+        "vae_path": "",
+        "vae_mode": "chunked",
+    }
     assert meta["data"] == {"height": 32, "width": 56, "frames": 5, "stride": 1, "views": 2}
     assert meta["latent_channels"] == 48 and meta["every"] == EVERY
     assert meta["source_path"] == str(clips_path.resolve())
@@ -110,17 +139,23 @@ def test_latent_batch_gives_the_video_batch_loss(datasets):
     np.testing.assert_allclose(float(from_latents), float(from_video), rtol=1e-6)
 
 
-@pytest.mark.parametrize("which, sets, match", [
-    ("clips", [], r"data.path: expected latent windows written by 'jaxdrive data encode'"),
-    ("latents", ["latents.precomputed=false"], r"latents.precomputed: expected true"),
-    ("latents", ["latents.scale=0.5"], r"latents.scale: expected 1.0 .* got 0.5"),
-    ("latents", ["latents.factor=8", "model.in_channels=192", "data.height=64", "data.width=64"],
-     r"latents.factor: expected 4 .* got 8"),
-    ("latents", ["data.height=64"], r"data.height: expected 32 .* got 64"),
-    ("latents", ["data.frames=9"], r"data.frames: expected 5 .* got 9"),
-    ("latents", ["data.views=1"], r"data.views: expected 2 .* got 1"),
-    ("latents", ["data.stride=2"], r"data.stride: expected 1 .* got 2"),
-])
+@pytest.mark.parametrize(
+    "which, sets, match",
+    [
+        ("clips", [], r"data.path: expected latent windows written by 'jaxdrive data encode'"),
+        ("latents", ["latents.precomputed=false"], r"latents.precomputed: expected true"),
+        ("latents", ["latents.scale=0.5"], r"latents.scale: expected 1.0 .* got 0.5"),
+        (
+            "latents",
+            ["latents.factor=8", "model.in_channels=192", "data.height=64", "data.width=64"],
+            r"latents.factor: expected 4 .* got 8",
+        ),
+        ("latents", ["data.height=64"], r"data.height: expected 32 .* got 64"),
+        ("latents", ["data.frames=9"], r"data.frames: expected 5 .* got 9"),
+        ("latents", ["data.views=1"], r"data.views: expected 2 .* got 1"),
+        ("latents", ["data.stride=2"], r"data.stride: expected 1 .* got 2"),
+    ],
+)
 def test_run_rejects_a_dataset_that_does_not_match(datasets, which, sets, match):
     path = dict(zip(("clips", "latents"), datasets))[which]
     with pytest.raises(ValueError, match=match):
@@ -144,24 +179,41 @@ def test_latent_iterator_resumes_exactly(datasets):
 def test_sampling_conditions_on_the_stored_windows(datasets):
     clips_path, latents_path = datasets
     run = Run(config(latents_path))
-    inputs = dataset_inputs(run.sampling(), frames=3)                     # a prefix of the 5-frame windows
+    inputs = dataset_inputs(run.sampling(), frames=3)  # a prefix of the 5-frame windows
     assert inputs["latents"].shape == (1, 2, 3, 8, 14, 48) and inputs["cond"].waypoints.shape == (1, 3, 2)
     np.testing.assert_array_equal(inputs["latents"][0], open_source(latents_path, "validation")[0]["latents"][:, :3])
     with pytest.raises(ValueError, match=r"frames: expected at most the 5 frames of the dataset's latent windows"):
         dataset_inputs(run.sampling(), frames=9)
     missing = dataclasses.replace(run.sampling(), data=dataclasses.replace(run.sampling().data, path="no/such/dir"))
-    with pytest.raises(ValueError, match=r"path: expected a TFDS dataset directory, got no/such/dir "
-                                         r"\(it does not exist\)"):
-        dataset_inputs(missing, frames=3)           # named, where it once failed on len(None)
+    with pytest.raises(
+        ValueError,
+        match=r"path: expected a TFDS dataset directory, got no/such/dir "
+        r"\(it does not exist\)",
+    ):
+        dataset_inputs(missing, frames=3)  # named, where it once failed on len(None)
 
     # the rollout pins the stored condition latents (a stand-in velocity keeps the compile cheap)
     stand_in = StandIn()
     full = dataset_inputs(run.sampling(), frames=5)
-    out = np.asarray(rollout(stand_in, run.codec, None, None, full, total_frames=5, window=5, overlap=1, cond_frames=2,
-                             steps=2, guidance=1.0, key=jax.random.key(0)))
+    out = np.asarray(
+        rollout(
+            stand_in,
+            run.codec,
+            None,
+            None,
+            full,
+            total_frames=5,
+            window=5,
+            overlap=1,
+            cond_frames=2,
+            steps=2,
+            guidance=1.0,
+            key=jax.random.key(0),
+        )
+    )
     assert out.shape == full["latents"].shape
     np.testing.assert_array_equal(out[:, :, :2], full["latents"][:, :, :2])
-    assert not np.allclose(out[:, :, 2:], full["latents"][:, :, 2:])     # the rest was generated
+    assert not np.allclose(out[:, :, 2:], full["latents"][:, :, 2:])  # the rest was generated
 
 
 def test_encode_shows_progress_unless_turned_off(datasets, tmp_path, capsys):
@@ -170,7 +222,7 @@ def test_encode_shows_progress_unless_turned_off(datasets, tmp_path, capsys):
         args += ["--set", s]
     assert cli([*args, "--out", str(tmp_path / "a")]) == 0
     err = capsys.readouterr().err
-    assert "encode: 100%" in err and "8/8" in err                 # 6 train + 2 validation windows, counted ahead
+    assert "encode: 100%" in err and "8/8" in err  # 6 train + 2 validation windows, counted ahead
     assert "INFO jaxdrive.train.encode: encoded" in err
     assert cli([*args, "--out", str(tmp_path / "b"), "--no-progress"]) == 0
     err = capsys.readouterr().err
@@ -180,8 +232,9 @@ def test_encode_shows_progress_unless_turned_off(datasets, tmp_path, capsys):
 class StandIn:
     """A stand-in DiT whose velocity is ``-x/2`` (a model is a static jit argument: hashable)."""
 
-    config = SimpleNamespace(controls=SimpleNamespace(cond_frames=None, warp=False), prediction="velocity",
-                             prediction_min_sigma=0.05)
+    config = SimpleNamespace(
+        controls=SimpleNamespace(cond_frames=None, warp=False), prediction="velocity", prediction_min_sigma=0.05
+    )
 
     @staticmethod
     def forward(params, x, sigma, cond):
@@ -191,9 +244,9 @@ class StandIn:
 def test_window_starts_overlap_and_end_at_the_last_frame():
     assert window_starts(5, 5, 1) == [0]
     assert window_starts(9, 5, 1) == [0, 4]
-    assert window_starts(10, 5, 1) == [0, 4, 5]              # the last window starts earlier, not past the end
+    assert window_starts(10, 5, 1) == [0, 4, 5]  # the last window starts earlier, not past the end
     assert window_starts(11, 5, 2) == [0, 3, 6]
-    assert window_starts(3, 3, 4) == [0]                      # one window: the overlap is never used
+    assert window_starts(3, 3, 4) == [0]  # one window: the overlap is never used
     with pytest.raises(ValueError, match=r"overlap: expected fewer than window = 5 frames, got 5"):
         window_starts(9, 5, 5)
     with pytest.raises(ValueError, match=r"window: expected"):
@@ -209,7 +262,7 @@ def test_rollout_progress_counts_windows(datasets, capsys):
     assert "window/s" not in capsys.readouterr().err
     shown = rollout(stand_in, run.codec, None, None, inputs, progress=True, **kw)
     assert "2/2" in capsys.readouterr().err
-    np.testing.assert_array_equal(quiet, shown)                 # the bar changes nothing else
+    np.testing.assert_array_equal(quiet, shown)  # the bar changes nothing else
 
 
 def test_train_on_precomputed_latents(datasets, tmp_path):
@@ -225,8 +278,9 @@ def test_train_on_precomputed_latents(datasets, tmp_path):
 def records(path):
     """Every split's records of a dataset, in order, and its metadata."""
     info = dataset_info(path)
-    return {s: [open_source(path, s)[i] for i in range(n["num_examples"])] for s, n in info["splits"].items()}, \
-        info["metadata"]
+    return {s: [open_source(path, s)[i] for i in range(n["num_examples"])] for s, n in info["splits"].items()}, info[
+        "metadata"
+    ]
 
 
 def assert_same_datasets(got_path, want_path):
@@ -239,36 +293,58 @@ def assert_same_datasets(got_path, want_path):
             for k in b:
                 np.testing.assert_array_equal(a[k], b[k], err_msg=f"{split} {k}")
     for split in want:
-        np.testing.assert_array_equal(open_source(got_path, split).frame_counts,
-                                      open_source(want_path, split).frame_counts)
+        np.testing.assert_array_equal(
+            open_source(got_path, split).frame_counts, open_source(want_path, split).frame_counts
+        )
 
 
 def test_encode_shards_the_batch_over_the_mesh(datasets, tmp_path, monkeypatch):
     from jaxdrive.train import encode
+
     clips_path, latents_path = datasets
-    one = encode.encode_dataset(config(clips_path, "mesh.data=-1", "mesh.seq=1", precomputed=False),
-                                tmp_path / "one", every=EVERY, batch=1, devices=jax.devices()[:1])
+    one = encode.encode_dataset(
+        config(clips_path, "mesh.data=-1", "mesh.seq=1", precomputed=False),
+        tmp_path / "one",
+        every=EVERY,
+        batch=1,
+        devices=jax.devices()[:1],
+    )
     seen = []
     gather = encode.global_to_host_local
-    monkeypatch.setattr(encode, "global_to_host_local",
-                        lambda x: seen.append((len(x.sharding.device_set), x.sharding.spec[0])) or gather(x))
-    eight = encode.encode_dataset(config(clips_path, "mesh.data=2", "mesh.fsdp=4", "mesh.seq=1", precomputed=False),
-                                  tmp_path / "eight", every=EVERY, batch=8)
-    assert seen == [(8, ("data", "fsdp"))] * 2                # one padded call per split, all 8 devices
+    monkeypatch.setattr(
+        encode,
+        "global_to_host_local",
+        lambda x: seen.append((len(x.sharding.device_set), x.sharding.spec[0])) or gather(x),
+    )
+    eight = encode.encode_dataset(
+        config(clips_path, "mesh.data=2", "mesh.fsdp=4", "mesh.seq=1", precomputed=False),
+        tmp_path / "eight",
+        every=EVERY,
+        batch=8,
+    )
+    assert seen == [(8, ("data", "fsdp"))] * 2  # one padded call per split, all 8 devices
     assert_same_datasets(eight, one)
-    assert_same_datasets(latents_path, one)                    # the CLI's data 2 x seq 4 in batches of 4
+    assert_same_datasets(latents_path, one)  # the CLI's data 2 x seq 4 in batches of 4
 
 
-@pytest.mark.parametrize("sets, kwargs, match", [
-    (["mesh.data=8", "mesh.seq=1"], dict(batch=4), r"batch: expected a multiple of the mesh's batch axes data x "
-                                                   r"fsdp \(8\), got 4"),
-    ([], dict(batch=0), r"batch: expected"),
-    ([], dict(every=0), r"every: expected"),
-    ([], dict(splits=["test"]), r"splits: expected splits of .* got 'test'"),
-    (["data.frames=12"], {}, r"data.frames: 12 frames at stride 1 need 12 source frames, but the longest clip"),
-])
+@pytest.mark.parametrize(
+    "sets, kwargs, match",
+    [
+        (
+            ["mesh.data=8", "mesh.seq=1"],
+            dict(batch=4),
+            r"batch: expected a multiple of the mesh's batch axes data x "
+            r"fsdp \(8\), got 4",
+        ),
+        ([], dict(batch=0), r"batch: expected"),
+        ([], dict(every=0), r"every: expected"),
+        ([], dict(splits=["test"]), r"splits: expected splits of .* got 'test'"),
+        (["data.frames=12"], {}, r"data.frames: 12 frames at stride 1 need 12 source frames, but the longest clip"),
+    ],
+)
 def test_encode_rejects_bad_arguments(datasets, tmp_path, sets, kwargs, match):
     from jaxdrive.train.encode import encode_dataset
+
     with pytest.raises(ValueError, match=match):
         encode_dataset(config(datasets[0], *sets, precomputed=False), tmp_path / "out", **kwargs)
     assert not (tmp_path / "out").exists() and not list(tmp_path.iterdir())
@@ -279,10 +355,33 @@ def test_two_processes_write_the_one_process_dataset(datasets, tmp_path):
     encodes its clips and writes its shards; together they are the one-process dataset."""
     import subprocess
     import sys
+
     root = Path(__file__).resolve().parents[1]
-    cmd = [sys.executable, str(root / "launch" / "local.py"), "--processes", "2", "--cpu-devices", "4", "--",
-           sys.executable, "-m", "jaxdrive.cli", "data", "encode", "--config", str(TINY), "--out",
-           str(tmp_path / "two"), "--every", str(EVERY), "--batch", "8", "--mesh", "data=8", "--no-progress"]
+    cmd = [
+        sys.executable,
+        str(root / "launch" / "local.py"),
+        "--processes",
+        "2",
+        "--cpu-devices",
+        "4",
+        "--",
+        sys.executable,
+        "-m",
+        "jaxdrive.cli",
+        "data",
+        "encode",
+        "--config",
+        str(TINY),
+        "--out",
+        str(tmp_path / "two"),
+        "--every",
+        str(EVERY),
+        "--batch",
+        "8",
+        "--mesh",
+        "data=8",
+        "--no-progress",
+    ]
     for s in [f"data.path={datasets[0]}", *SMALLER]:
         cmd += ["--set", s]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=root)
@@ -291,7 +390,7 @@ def test_two_processes_write_the_one_process_dataset(datasets, tmp_path):
     # process 0 encoded clips 0-1 (4 windows) and the validation clip, process 1 clip 2: a shard each
     assert len(list((tmp_path / "two").glob("*-train.array_record-*"))) == 2
     assert len(list((tmp_path / "two").glob("*-validation.array_record-*"))) == 1
-    assert [p.name for p in tmp_path.iterdir()] == ["two"]      # no temporary directory left
+    assert [p.name for p in tmp_path.iterdir()] == ["two"]  # no temporary directory left
 
 
 # ------------------------------------------------------------------------- distillation
@@ -311,23 +410,27 @@ def test_distillation_on_precomputed_latents_matches_encoding_in_the_step(same_d
     the coarse student (every 4th frame) and the fine teacher (each segment) read. A run on them
     gives the losses of the same run encoding the clips in the step (same batch, parameters, key)."""
     from jaxdrive.train.encode import encode_dataset
+
     one = jax.devices()[:1]
-    fine = load_config(f"{LONGDWM}:size=tiny,role=fine", [f"data.path={same_dense_clips}", *DISTILL,
-                                                          "data.frames=5", "train.seed=7"])
+    fine = load_config(
+        f"{LONGDWM}:size=tiny,role=fine", [f"data.path={same_dense_clips}", *DISTILL, "data.frames=5", "train.seed=7"]
+    )
     save_run(fine, tmp_path / "fine", devices=one)
     sets = [*DISTILL, "data.frames=9", "flow.distill_segment_len=5", f"flow.distill_teacher={tmp_path / 'fine'}"]
     on_the_fly = load_config(f"{LONGDWM}:size=tiny,role=distill", [f"data.path={same_dense_clips}", *sets])
     encode_dataset(on_the_fly, tmp_path / "latents", devices=one)
-    stored = load_config(f"{LONGDWM}:size=tiny,role=distill", [f"data.path={tmp_path / 'latents'}", *sets,
-                                                               "latents.precomputed=true"])
+    stored = load_config(
+        f"{LONGDWM}:size=tiny,role=distill", [f"data.path={tmp_path / 'latents'}", *sets, "latents.precomputed=true"]
+    )
     clip_run, window_run = Run(on_the_fly, devices=one), Run(stored, devices=one)
     params = clip_run.init_state()[0].params
     metrics = []
     for run in (clip_run, window_run):
         batch = jax.tree_util.tree_map(lambda x: x[0], run.global_batch([next(iter(run.dataset()))]))
-        frozen = run.frozen_params()                   # the fine model restored from its run directory
-        loss = jax.jit(lambda p, f, inp, k, r=run: flow_step.flow_loss_fn(r.training, p, f["codec"], inp, k,
-                                                                         f["teacher"])[1])
+        frozen = run.frozen_params()  # the fine model restored from its run directory
+        loss = jax.jit(
+            lambda p, f, inp, k, r=run: flow_step.flow_loss_fn(r.training, p, f["codec"], inp, k, f["teacher"])[1]
+        )
         with jax.set_mesh(run.mesh):
             metrics.append(jax.device_get(loss(params, frozen, batch, jax.random.key(5))))
     a, b = metrics

@@ -32,7 +32,7 @@ def _front_camera(size=90, focal=90.0):
     """One camera at (1, 0, 1.5) m in the ego frame looking along +x; ``size`` square pixels."""
     k = np.array([[focal, 0, size / 2], [0, focal, size / 2], [0, 0, 1]], np.float32)
     pose = np.eye(4, dtype=np.float32)
-    pose[:3, :3] = np.stack([[0, -1, 0], [0, 0, -1], [1, 0, 0]], axis=1)    # columns: right, down, forward
+    pose[:3, :3] = np.stack([[0, -1, 0], [0, 0, -1], [1, 0, 0]], axis=1)  # columns: right, down, forward
     pose[:3, 3] = (1.0, 0.0, 1.5)
     return k[None, None], pose[None, None]
 
@@ -48,10 +48,13 @@ def test_layout_matches_the_synthetic_worlds_instance_ids():
         clip = generate_clip(seed, views=6, frames=2, height=64, width=112, scenery=False)
         origin, dirs = camera_rays(clip["intrinsics"][None], clip["cam_to_ego"][None], (64, 112), (64, 112))
         _, owner = box_hits(clip["boxes"][None], clip["box_valid"][None], origin, dirs)
-        owner = np.asarray(owner[0])                                          # [F, V, H, W]
-        ids = np.where(owner >= 0, np.take_along_axis(
-            clip["box_ids"][:, None, None, None, :], np.maximum(owner, 0)[..., None], -1)[..., 0], -1)
-        inst = np.moveaxis(clip["instance_ids"], 0, 1)                       # [F, V, H, W]
+        owner = np.asarray(owner[0])  # [F, V, H, W]
+        ids = np.where(
+            owner >= 0,
+            np.take_along_axis(clip["box_ids"][:, None, None, None, :], np.maximum(owner, 0)[..., None], -1)[..., 0],
+            -1,
+        )
+        inst = np.moveaxis(clip["instance_ids"], 0, 1)  # [F, V, H, W]
         agree.append(np.mean(ids == inst))
         for i in np.unique(inst[inst >= 0]):
             for f, v in zip(*np.nonzero((inst == i).sum((2, 3)) >= 10)):
@@ -88,18 +91,37 @@ def test_one_box_and_one_road_cell_worked_numbers():
     # (x = 11.8) and 58 (x = 11.0), columns 45..57 and 45..58: 27 pixels.
     bev = np.zeros((1, 1, 64, 64, 8), np.float32)
     bev[0, 0, 24, 32, 1] = 1.0
-    canvas = layout_canvas(box, np.full((1, 1, 1), 3, np.int32), np.zeros((1, 1, 1), bool), k, pose, (90, 90),
-                           (90, 90), num_classes=10, bev_map=bev)
+    canvas = layout_canvas(
+        box,
+        np.full((1, 1, 1), 3, np.int32),
+        np.zeros((1, 1, 1), bool),
+        k,
+        pose,
+        (90, 90),
+        (90, 90),
+        num_classes=10,
+        bev_map=bev,
+    )
     road = np.asarray(canvas[0, 0, 0, ..., 11 + 1])
     assert road.sum() == 27 and road[58, 45] == 1 and road[57, 57] == 1 and road[57, 58] == 0
     assert set(np.nonzero(road)[0]) == {57, 58}
     # with the box there (class 3): one-hot class, near channel 1 / 9, and the box hides the road
-    canvas = layout_canvas(box, np.full((1, 1, 1), 3, np.int32), np.ones((1, 1, 1), bool), k, pose, (90, 90),
-                           (45, 45), num_classes=10, bev_map=bev, samples=2)
-    c = np.asarray(canvas[0, 0, 0])                                          # [45, 45, 19]; 2 x 2 rays a cell
+    canvas = layout_canvas(
+        box,
+        np.full((1, 1, 1), 3, np.int32),
+        np.ones((1, 1, 1), bool),
+        k,
+        pose,
+        (90, 90),
+        (45, 45),
+        num_classes=10,
+        bev_map=bev,
+        samples=2,
+    )
+    c = np.asarray(canvas[0, 0, 0])  # [45, 45, 19]; 2 x 2 rays a cell
     assert c.shape == (45, 45, 19) and c[..., 3].sum() == 100 and c[20, 20, 3] == 1 and c[..., :3].sum() == 0
     np.testing.assert_allclose(c[20, 20, 10], 1 / 9, rtol=1e-5)
-    assert c[17, 20, 3] == 0.5                                                # half a cell: rows 34 (out), 35 (in)
+    assert c[17, 20, 3] == 0.5  # half a cell: rows 34 (out), 35 (in)
 
 
 def test_box_range_worked_numbers_and_bad_input():
@@ -153,9 +175,9 @@ def test_layout_gate_starts_closed_gradients_reach_the_encoder_and_guidance_drop
     convolution and the temporal downsampling, other boxes move the output, and the boxes' drop
     (classifier-free guidance) gives the model without the layout."""
     lat, sig, text, kw = split_inputs(example_inputs(LAYOUT, **dict(SHAPES)))
-    kw["drop"] = {"boxes": np.zeros(2, bool)}            # one input structure with and without drops
+    kw["drop"] = {"boxes": np.zeros(2, bool)}  # one input structure with and without drops
     fwd = forward_fn(LAYOUT)
-    params = params_for(LAYOUT, SHAPES)                  # everything perturbed but the zero gate
+    params = params_for(LAYOUT, SHAPES)  # everything perturbed but the zero gate
     assert float(jnp.abs(params["layout_gate"]["kernel"]).max()) == 0.0
     without = {k: v for k, v in kw.items() if k not in ("boxes", "box_classes", "box_valid")}
     base = fwd(params, lat, sig, text, kw)
@@ -190,6 +212,7 @@ def test_a_window_sampled_without_its_box_inputs_is_the_model_without_the_layout
     controls does not: the samplers read ``controls.drop`` as the names that guidance may drop
     (the bug that made the row equal the recorded-route row)."""
     from jaxdrive.generate.windows import WindowModel, sample_window
+
     lat, sig, text, kw = split_inputs(example_inputs(LAYOUT, **dict(SHAPES)))
     params = params_for(LAYOUT, SHAPES)
     params = perturb(params, scale=0.05, skip=tuple(k for k in params if k != "layout_gate"))

@@ -124,6 +124,7 @@ def test_high_pass_is_the_fft_high_pass_and_runs_sharded():
     from jax.sharding import PartitionSpec as P
 
     from jaxdrive.flow.losses import high_pass, high_pass_mask, structure_loss
+
     rng = np.random.default_rng(0)
     x = rng.normal(size=(2, 2, 3, 8, 14, 4)).astype(np.float32)
     y = rng.normal(size=x.shape).astype(np.float32)

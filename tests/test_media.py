@@ -30,7 +30,7 @@ def test_six_views_are_laid_out_as_a_driver_sees_them():
 
 def test_mp4_decodes_back_to_the_frames(tmp_path):
     video = np.zeros((1, 6, 16, 24, 3), np.float32)
-    video[0, :, :, :, 0] = np.linspace(-1, 1, 6)[:, None, None]          # red ramps over time
+    video[0, :, :, :, 0] = np.linspace(-1, 1, 6)[:, None, None]  # red ramps over time
     path = write_mp4(tmp_path / "v.mp4", video, fps=6)
     with av.open(str(path)) as c:
         frames = [f.to_ndarray(format="rgb24") for f in c.decode(video=0)]
@@ -44,11 +44,12 @@ def test_grid_and_plot_are_pngs(tmp_path):
     assert grid.size == (30, 3 * 16 + 2 * 2)
     # beside a reference: [reference | 4 white columns | video], enlarged 8x to reach 480 pixels
     ref = _views() // 2
-    grid = np.asarray(Image.open(write_frame_grid(tmp_path / "r.png", _views(), num_frames=3, reference=ref,
-                                                  min_width=480)))
+    grid = np.asarray(
+        Image.open(write_frame_grid(tmp_path / "r.png", _views(), num_frames=3, reference=ref, min_width=480))
+    )
     assert grid.shape == (3 * 16 * 8 + 2 * 2, (30 + 4 + 30) * 8, 3)
-    np.testing.assert_array_equal(grid[:16 * 8, :30 * 8], view_mosaic(ref)[0].repeat(8, 0).repeat(8, 1))
-    np.testing.assert_array_equal(grid[:16 * 8, 34 * 8:], view_mosaic(_views())[0].repeat(8, 0).repeat(8, 1))
+    np.testing.assert_array_equal(grid[: 16 * 8, : 30 * 8], view_mosaic(ref)[0].repeat(8, 0).repeat(8, 1))
+    np.testing.assert_array_equal(grid[: 16 * 8, 34 * 8 :], view_mosaic(_views())[0].repeat(8, 0).repeat(8, 1))
     with pytest.raises(ValueError, match=r"reference: expected the shape of video \[6, 5, 8, 10, 3\], got"):
         write_frame_grid(tmp_path / "x.png", _views(), reference=ref[:, :2])
     plot = Image.open(plot_losses(tmp_path / "l.png", [1, 2, 3], [1.0, 0.5, 0.01]))

@@ -32,12 +32,15 @@ AXES = ("data", "fsdp", "seq", "tensor")
 
 
 # ---------------------------------------------------------------- mesh
-@pytest.mark.parametrize("kw, shape", [
-    ({"data": 8}, (8, 1, 1, 1)),
-    ({"data": 2, "seq": 4}, (2, 1, 4, 1)),
-    ({"data": 2, "fsdp": 2, "tensor": 2}, (2, 2, 1, 2)),
-    ({"seq": -1, "tensor": 2}, (1, 1, 4, 2)),
-])
+@pytest.mark.parametrize(
+    "kw, shape",
+    [
+        ({"data": 8}, (8, 1, 1, 1)),
+        ({"data": 2, "seq": 4}, (2, 1, 4, 1)),
+        ({"data": 2, "fsdp": 2, "tensor": 2}, (2, 2, 1, 2)),
+        ({"seq": -1, "tensor": 2}, (1, 1, 4, 2)),
+    ],
+)
 def test_make_mesh_shape_names_types(kw, shape):
     mesh = make_mesh(**kw)
     assert mesh.axis_names == AXES
@@ -52,14 +55,17 @@ def test_make_mesh_auto_types_and_device_subset():
     assert tuple(mesh.axis_sizes) == (2, 1, 1, 1)
 
 
-@pytest.mark.parametrize("kw, match", [
-    ({"data": 3}, "make_mesh: expected axis sizes whose product is 8"),
-    ({"data": 0}, "data: expected a positive integer or -1, got 0"),
-    ({"data": -1, "seq": -1}, "at most one axis of size -1"),
-    ({"data": 3, "seq": -1}, "seq: expected the other axes' product 3 to divide 8"),
-    ({"tensor": 2.0}, "tensor: expected a positive integer"),
-    ({"axis_types": (AxisType.Explicit,)}, "axis_types: expected one AxisType or 4"),
-])
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        ({"data": 3}, "make_mesh: expected axis sizes whose product is 8"),
+        ({"data": 0}, "data: expected a positive integer or -1, got 0"),
+        ({"data": -1, "seq": -1}, "at most one axis of size -1"),
+        ({"data": 3, "seq": -1}, "seq: expected the other axes' product 3 to divide 8"),
+        ({"tensor": 2.0}, "tensor: expected a positive integer"),
+        ({"axis_types": (AxisType.Explicit,)}, "axis_types: expected one AxisType or 4"),
+    ],
+)
 def test_make_mesh_errors(kw, match):
     with pytest.raises(ValueError, match=match):
         make_mesh(**kw)
@@ -86,9 +92,14 @@ def test_parse_mesh_spec():
 
 
 # ---------------------------------------------------------------- rules
-@pytest.mark.parametrize("kw, axes, shards", [
-    (dict(data=2, fsdp=2, seq=2), ("data", "fsdp"), 4), (dict(data=1, fsdp=1, seq=8), ("data", "fsdp"), 1),
-    (dict(fsdp=4, tensor=2), ("data", "fsdp"), 4)])
+@pytest.mark.parametrize(
+    "kw, axes, shards",
+    [
+        (dict(data=2, fsdp=2, seq=2), ("data", "fsdp"), 4),
+        (dict(data=1, fsdp=1, seq=8), ("data", "fsdp"), 1),
+        (dict(fsdp=4, tensor=2), ("data", "fsdp"), 4),
+    ],
+)
 def test_a_batch_splits_over_the_data_and_fsdp_axes(kw, axes, shards):
     """The one definition of a batch's mesh axes, which the "batch" rule, the samplers, the
     trainers and the planner share."""
@@ -126,8 +137,7 @@ def test_logical_to_spec_mesh_fallback(caplog):
         assert spec == P("data", None)
         logical_to_spec(("batch", "tokens"), shape=(2, 3), mesh=mesh)
     assert sum("sharding fallback" in r.message for r in caplog.records) == 1
-    assert logical_to_spec(("batch", "tokens"), shape=(8, 6), mesh=mesh) == P(("data", "fsdp"),
-                                                                              "seq")
+    assert logical_to_spec(("batch", "tokens"), shape=(8, 6), mesh=mesh) == P(("data", "fsdp"), "seq")
     # Mesh axes absent from a mesh are dropped.
     small = jax.make_mesh((8,), ("data",), axis_types=(AxisType.Explicit,))
     assert logical_to_spec(("batch", "tokens"), mesh=small) == P("data", None)
@@ -167,6 +177,7 @@ class _Block(nn.Module):
     """Attention-like projection + MLP with logically named parameters, written for Explicit
     meshes: each weight is gathered over fsdp at use (``constrain`` with the activation rules)
     and contractions over a tensor-sharded dimension name their output sharding."""
+
     heads: int = 2
     head_dim: int = 4
     hidden: int = 16
@@ -190,11 +201,9 @@ class _Block(nn.Module):
         w1 = self._w("w1", (d, self.hidden), ("embed", "mlp"))
         w2 = self._w("w2", (self.hidden, d), ("mlp", "embed"))
         h = jnp.einsum("bld,dhk->blhk", x * scale, wq)
-        x = x + jnp.einsum("blhk,hkd->bld", jnp.tanh(h), wo,
-                           out_sharding=self._out(("batch", "tokens", "embed")))
+        x = x + jnp.einsum("blhk,hkd->bld", jnp.tanh(h), wo, out_sharding=self._out(("batch", "tokens", "embed")))
         y = nn.gelu(jnp.einsum("bld,dm->blm", x, w1))
-        x = x + jnp.einsum("blm,md->bld", y, w2,
-                           out_sharding=self._out(("batch", "tokens", "embed")))
+        x = x + jnp.einsum("blm,md->bld", y, w2, out_sharding=self._out(("batch", "tokens", "embed")))
         return constrain(x, ("batch", "tokens", "embed"))
 
 
@@ -228,6 +237,7 @@ def test_params_sharded_by_rules_and_forward_matches():
 
     def loss(p, x):
         return jnp.mean(model.apply(p, x) ** 2)
+
     g_ref = jax.grad(loss)(params, x)
     with jax.set_mesh(mesh):
         g = jax.jit(jax.grad(loss))(sharded, xs)
@@ -238,9 +248,11 @@ def test_params_sharded_by_rules_and_forward_matches():
 
 def test_param_shardings_fallback_and_plain_leaves():
     mesh = make_mesh(fsdp=8)
-    tree = {"w": nn.LogicallyPartitioned(jnp.ones((6, 4)), ("embed", "mlp")),
-            "m": nn.Partitioned(jnp.ones((8,)), ("fsdp",)),
-            "step": jnp.zeros(())}
+    tree = {
+        "w": nn.LogicallyPartitioned(jnp.ones((6, 4)), ("embed", "mlp")),
+        "m": nn.Partitioned(jnp.ones((8,)), ("fsdp",)),
+        "step": jnp.zeros(()),
+    }
     s = param_shardings(tree, mesh)
     assert s["w"].spec == P(None, "tensor")  # 6 rows do not split over fsdp=8: replicated
     assert s["m"].spec == P("fsdp")
@@ -252,8 +264,7 @@ def test_param_shardings_fallback_and_plain_leaves():
 # ---------------------------------------------------------------- host
 def test_host_local_to_global_single_process():
     mesh = make_mesh(data=2, seq=4)
-    batch = {"x": np.arange(8 * 4 * 2, dtype=np.float32).reshape(8, 4, 2),
-             "ids": np.arange(8, dtype=np.int32)}
+    batch = {"x": np.arange(8 * 4 * 2, dtype=np.float32).reshape(8, 4, 2), "ids": np.arange(8, dtype=np.int32)}
     g = host_local_to_global(batch, mesh)
     assert g["x"].shape == (8, 4, 2)
     assert g["x"].sharding.is_equivalent_to(NamedSharding(mesh, P("data")), 3)
@@ -269,16 +280,22 @@ def test_host_local_to_global_single_process():
 
 def test_initialize_distributed_resolution():
     assert _resolve(None, None, None, {}) == ("single", None)
-    assert _resolve("h:1", 2, 1, {})[1] == dict(coordinator_address="h:1", num_processes=2,
-                                                process_id=1)
-    env = {"JAXDRIVE_COORDINATOR": "c:9", "JAXDRIVE_NUM_PROCESSES": "4",
-           "JAXDRIVE_PROCESS_ID": "3", "SLURM_NTASKS": "8"}
-    assert _resolve(None, None, None, env) == ("env", dict(coordinator_address="c:9",
-                                                           num_processes=4, process_id=3))
+    assert _resolve("h:1", 2, 1, {})[1] == dict(coordinator_address="h:1", num_processes=2, process_id=1)
+    env = {
+        "JAXDRIVE_COORDINATOR": "c:9",
+        "JAXDRIVE_NUM_PROCESSES": "4",
+        "JAXDRIVE_PROCESS_ID": "3",
+        "SLURM_NTASKS": "8",
+    }
+    assert _resolve(None, None, None, env) == ("env", dict(coordinator_address="c:9", num_processes=4, process_id=3))
     with pytest.raises(ValueError, match="JAXDRIVE_PROCESS_ID: expected"):
         _resolve(None, None, None, {"JAXDRIVE_COORDINATOR": "c:9", "JAXDRIVE_NUM_PROCESSES": "2"})
-    slurm = {"SLURM_NTASKS": "4", "SLURM_PROCID": "2", "SLURM_JOB_ID": "100",
-             "SLURM_STEP_NODELIST": "gpu[007-010],cpu1"}
+    slurm = {
+        "SLURM_NTASKS": "4",
+        "SLURM_PROCID": "2",
+        "SLURM_JOB_ID": "100",
+        "SLURM_STEP_NODELIST": "gpu[007-010],cpu1",
+    }
     src, kw = _resolve(None, None, None, slurm)
     assert src == "slurm" and kw["coordinator_address"] == f"gpu007:{100 + 61440}"
     assert kw["num_processes"] == 4 and kw["process_id"] == 2

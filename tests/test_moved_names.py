@@ -12,39 +12,59 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-MOVED = {"jaxdrive.models.dit_blocks": "jaxdrive.models.dit.blocks",
-         "jaxdrive.models.dit_config": "jaxdrive.models.dit.config",
-         "jaxdrive.models.dit_controls": "jaxdrive.models.dit.controls",
-         "jaxdrive.models.dit_inputs": "jaxdrive.models.dit.inputs",
-         "jaxdrive.models.dit_presets": "jaxdrive.models.dit.presets",
-         "jaxdrive.models.conditions": "jaxdrive.models.dit.conditions",
-         "jaxdrive.models.layout": "jaxdrive.models.dit.layout",
-         "jaxdrive.models.vae_layers": "jaxdrive.models.vae.layers",
-         "jaxdrive.models.vae_stream": "jaxdrive.models.vae.stream"}
+MOVED = {
+    "jaxdrive.models.dit_blocks": "jaxdrive.models.dit.blocks",
+    "jaxdrive.models.dit_config": "jaxdrive.models.dit.config",
+    "jaxdrive.models.dit_controls": "jaxdrive.models.dit.controls",
+    "jaxdrive.models.dit_inputs": "jaxdrive.models.dit.inputs",
+    "jaxdrive.models.dit_presets": "jaxdrive.models.dit.presets",
+    "jaxdrive.models.conditions": "jaxdrive.models.dit.conditions",
+    "jaxdrive.models.layout": "jaxdrive.models.dit.layout",
+    "jaxdrive.models.vae_layers": "jaxdrive.models.vae.layers",
+    "jaxdrive.models.vae_stream": "jaxdrive.models.vae.stream",
+}
 
 
 @pytest.mark.parametrize("old, new", sorted(MOVED.items()))
 def test_an_old_path_warns_and_gives_the_new_homes_objects(old, new, monkeypatch):
     home = importlib.import_module(new)
-    monkeypatch.delitem(sys.modules, old, raising=False)      # imported afresh: it warns at import
+    monkeypatch.delitem(sys.modules, old, raising=False)  # imported afresh: it warns at import
     with pytest.warns(DeprecationWarning, match=re.escape(f"{old} moved to {new}")) as caught:
         __import__(old)
     assert [w.filename for w in caught if w.category is DeprecationWarning] == [__file__]  # the importer's line
     shim = sys.modules[old]
     names = [n for n in vars(home) if not n.startswith("__")]
-    assert all(getattr(shim, n) is getattr(home, n) for n in names)          # private names too
+    assert all(getattr(shim, n) is getattr(home, n) for n in names)  # private names too
     public = {n for n in names if not n.startswith("_")}
     namespace = {}
     exec(f"from {old} import *", namespace)
     assert public <= namespace.keys()
 
 
-@pytest.mark.parametrize("package, home, names", [
-    ("jaxdrive.models.dit", "jaxdrive.models.dit.model",
-     ["DiT", "DiTConfig", "POLICIES", "example_inputs", "param_count", "patchify", "reference_input", "unpatchify"]),
-    ("jaxdrive.models.vae", "jaxdrive.models.vae.model",
-     ["MODES", "CausalVAE", "Decoder3D", "Encoder3D", "VAEConfig", "chunk_plan", "fold_views", "tiled_apply"]),
-])
+@pytest.mark.parametrize(
+    "package, home, names",
+    [
+        (
+            "jaxdrive.models.dit",
+            "jaxdrive.models.dit.model",
+            [
+                "DiT",
+                "DiTConfig",
+                "POLICIES",
+                "example_inputs",
+                "param_count",
+                "patchify",
+                "reference_input",
+                "unpatchify",
+            ],
+        ),
+        (
+            "jaxdrive.models.vae",
+            "jaxdrive.models.vae.model",
+            ["MODES", "CausalVAE", "Decoder3D", "Encoder3D", "VAEConfig", "chunk_plan", "fold_views", "tiled_apply"],
+        ),
+    ],
+)
 def test_the_packages_give_what_the_modules_gave(package, home, names):
     package, home = importlib.import_module(package), importlib.import_module(home)
     assert all(getattr(package, n) is getattr(home, n) for n in names)
@@ -55,12 +75,19 @@ def test_nothing_in_the_project_imports_an_old_path():
     Python examples of the docs."""
     shims = {ROOT / (old.replace(".", "/") + ".py") for old in MOVED}
     found = []
-    for path in sorted({*ROOT.glob("jaxdrive/**/*.py"), *ROOT.glob("configs/*.py"), *ROOT.glob("tests/*.py")}
-                       - shims - {Path(__file__)}):
+    for path in sorted(
+        {*ROOT.glob("jaxdrive/**/*.py"), *ROOT.glob("configs/*.py"), *ROOT.glob("tests/*.py")}
+        - shims
+        - {Path(__file__)}
+    ):
         for node in ast.walk(ast.parse(path.read_text())):
-            modules = ([a.name for a in node.names] if isinstance(node, ast.Import) else
-                       [node.module or ""] + [f"{node.module}.{a.name}" for a in node.names]
-                       if isinstance(node, ast.ImportFrom) else [])
+            modules = (
+                [a.name for a in node.names]
+                if isinstance(node, ast.Import)
+                else [node.module or ""] + [f"{node.module}.{a.name}" for a in node.names]
+                if isinstance(node, ast.ImportFrom)
+                else []
+            )
             found += [f"{path.relative_to(ROOT)}:{node.lineno} {m}" for m in modules if m in MOVED]
     for page in [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]:
         for block in re.findall(r"```python\n(.*?)```", page.read_text(), flags=re.S):

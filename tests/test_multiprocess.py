@@ -26,7 +26,7 @@ from jaxdrive.parallel import logical_to_spec, make_mesh
 ROOT = Path(__file__).resolve().parents[1]
 TIMEOUT_S = 120
 
-WORKER = textwrap.dedent('''
+WORKER = textwrap.dedent("""
     import sys
     import jax
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
@@ -61,7 +61,7 @@ WORKER = textwrap.dedent('''
              total=np.asarray(total.addressable_data(0)), gram=np.asarray(gram.addressable_data(0)),
              hybrid_ok=hybrid_ok)
     jax.distributed.shutdown()
-''')
+""")
 
 
 def global_inputs():
@@ -96,6 +96,7 @@ def _free_port() -> int:
 
 def _gloo_available() -> bool:
     from jax._src.lib import _jax
+
     return hasattr(_jax, "make_gloo_tcp_collectives")
 
 
@@ -106,10 +107,17 @@ def test_two_processes_match_one(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     env.update(JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT))
     port = _free_port()
-    procs = [subprocess.Popen(
-        [sys.executable, str(script), str(port), str(i), str(tmp_path / f"out{i}.npz"),
-         str(Path(__file__).parent)], env=env, cwd=tmp_path,
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for i in range(2)]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, str(script), str(port), str(i), str(tmp_path / f"out{i}.npz"), str(Path(__file__).parent)],
+            env=env,
+            cwd=tmp_path,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        for i in range(2)
+    ]
     logs = []
     try:
         for p in procs:

@@ -74,8 +74,11 @@ def test_time_alignment_picks_the_nearest_sweep(clips):
 
 
 def test_stride_views_resize_and_intrinsics(root):
-    (clip, *rest) = list(ns.read_clips(root, frames=7, stride=2, views=("CAM_BACK", "CAM_FRONT"),
-                                       image_hw=(8, 16), scenes=["scene-0002"]))
+    (clip, *rest) = list(
+        ns.read_clips(
+            root, frames=7, stride=2, views=("CAM_BACK", "CAM_FRONT"), image_hw=(8, 16), scenes=["scene-0002"]
+        )
+    )
     assert rest == [] and clip["video"].shape == (2, 7, 8, 16, 3)
     assert clip["caption"].startswith("This is a driving scene video captured by camera in CAM_BACK, CAM_FRONT ")
     assert clip["meta"]["sample_data_tokens"][1] == [f"sd1_CAM_FRONT_{j}" for j in range(0, 13, 2)]
@@ -88,8 +91,12 @@ def test_stride_views_resize_and_intrinsics(root):
 
 def test_box_interpolation_worked_example():
     def ann(x, yaw_deg, w):
-        return {"translation": [x, 2.0 * x, 1.0], "size": [w, 4.0, 1.5],
-                "rotation": fx.quat_from_matrix(fx.rot(np.deg2rad(yaw_deg)))}
+        return {
+            "translation": [x, 2.0 * x, 1.0],
+            "size": [w, 4.0, 1.5],
+            "rotation": fx.quat_from_matrix(fx.rot(np.deg2rad(yaw_deg))),
+        }
+
     track = [(1_000_000, ann(10.0, 170.0, 2.0)), (1_500_000, ann(20.0, -170.0, 3.0))]
     centre, wlh, yaw = ns._box_at(track, 1_250_000)  # midway: the linear midpoint
     np.testing.assert_allclose(centre, [15.0, 30.0, 1.0])
@@ -131,8 +138,10 @@ def test_classes_ids_and_an_instance_appearing_mid_scene(clips, root, caplog):
             assert OBJECT_CLASSES[clip["box_classes"][f, n]] == {"inst_car": "car", "inst_ped": "pedestrian"}[name]
     assert np.all(clip["box_ids"][~valid] == -1) and np.all(clip["boxes"][~valid] == 0)
     other = clips["scene-0002"]
-    got = {other["meta"]["instance_tokens"][i]: OBJECT_CLASSES[c]
-           for i, c in zip(other["box_ids"][0], other["box_classes"][0])}
+    got = {
+        other["meta"]["instance_tokens"][i]: OBJECT_CLASSES[c]
+        for i, c in zip(other["box_ids"][0], other["box_classes"][0])
+    }
     assert got == {"inst_truck": "truck", "inst_cone": "traffic_cone"}
     with caplog.at_level(logging.INFO, logger="jaxdrive.data.nuscenes"):
         list(ns.read_clips(root, frames=FRAMES, scenes=["scene-0001"]))
@@ -153,6 +162,7 @@ def test_bev_map_against_the_map_geometry(clips, root, caplog):
 
         def rect(x0, x1, y0, y1):
             return (gx > x0) & (gx < x1) & (gy > y0) & (gy < y1)
+
         drivable = rect(500, 700, 1500, 1700) & ~rect(590, 596, 1610, 1616)
         bev = clip["bev_map"][f]
         np.testing.assert_array_equal(bev[..., BEV_CLASSES.index("drivable_area")], drivable)
@@ -209,17 +219,20 @@ def test_missing_table_field_and_image_name_the_file(root, tmp_path):
 
 # ------------------------------------------------------------------ against the official devkit
 
+
 def test_against_the_devkit(root, clips):
     nuscenes = pytest.importorskip("nuscenes.nuscenes")
     from pyquaternion import Quaternion
+
     nusc = nuscenes.NuScenes(version="v1.0-mini", dataroot=root, verbose=False)
     checked = 0
     for clip in clips.values():
         toks = clip["meta"]["sample_data_tokens"]
         for v in range(len(CAMERAS)):
             cs = nusc.get("calibrated_sensor", nusc.get("sample_data", toks[v][0])["calibrated_sensor_token"])
-            np.testing.assert_allclose(clip["cam_to_ego"][v, :3, :3], Quaternion(cs["rotation"]).rotation_matrix,
-                                       atol=1e-6)
+            np.testing.assert_allclose(
+                clip["cam_to_ego"][v, :3, :3], Quaternion(cs["rotation"]).rotation_matrix, atol=1e-6
+            )
             np.testing.assert_allclose(clip["cam_to_ego"][v, :3, 3], cs["translation"], atol=1e-6)
             k = np.array(cs["camera_intrinsic"])
             k[:2, 2] += 0.5
@@ -227,8 +240,9 @@ def test_against_the_devkit(root, clips):
         for f, tok in enumerate(toks[0]):
             sd = nusc.get("sample_data", tok)
             pose = nusc.get("ego_pose", sd["ego_pose_token"])
-            np.testing.assert_allclose(clip["ego_to_world"][f, :3, :3], Quaternion(pose["rotation"]).rotation_matrix,
-                                       atol=1e-12)
+            np.testing.assert_allclose(
+                clip["ego_to_world"][f, :3, :3], Quaternion(pose["rotation"]).rotation_matrix, atol=1e-12
+            )
             np.testing.assert_allclose(clip["ego_to_world"][f, :3, 3], pose["translation"], atol=1e-9)
             if sd["is_key_frame"]:
                 boxes = [nusc.get_box(a) for a in nusc.get("sample", sd["sample_token"])["anns"]]
@@ -240,14 +254,20 @@ def test_against_the_devkit(root, clips):
                 box.rotate(Quaternion(pose["rotation"]).inverse)
                 inst = nusc.get("sample_annotation", box.token)["instance_token"]
                 theirs[inst] = box
-            ours = {clip["meta"]["instance_tokens"][i]: b
-                    for i, b, ok in zip(clip["box_ids"][f], clip["boxes"][f], clip["box_valid"][f]) if ok}
+            ours = {
+                clip["meta"]["instance_tokens"][i]: b
+                for i, b, ok in zip(clip["box_ids"][f], clip["boxes"][f], clip["box_valid"][f])
+                if ok
+            }
             # ours: the devkit's boxes of mapped classes, less (in sweeps) the ones it could not interpolate
             sample = nusc.get("sample", sd["sample_token"])
-            prev = {nusc.get("sample_annotation", a)["instance_token"]
-                    for a in (nusc.get("sample", sample["prev"])["anns"] if sample["prev"] else [])}
-            want = {i for i, b in theirs.items() if b.name in ns.CATEGORY_TO_CLASS
-                    and (sd["is_key_frame"] or i in prev)}
+            prev = {
+                nusc.get("sample_annotation", a)["instance_token"]
+                for a in (nusc.get("sample", sample["prev"])["anns"] if sample["prev"] else [])
+            }
+            want = {
+                i for i, b in theirs.items() if b.name in ns.CATEGORY_TO_CLASS and (sd["is_key_frame"] or i in prev)
+            }
             assert set(ours) == want, (clip["meta"]["scene"], f)
             for inst, b in ours.items():
                 ref = theirs[inst]
@@ -264,14 +284,14 @@ def test_against_the_devkit(root, clips):
 
 def test_an_unreadable_image_is_named_or_its_clip_skipped_and_counted(root, tmp_path, caplog):
     bad = _copy(root, tmp_path)
-    clean = list(ns.read_clips(root, frames=4))             # 3 clips per scene
+    clean = list(ns.read_clips(root, frames=4))  # 3 clips per scene
     tables = ns.load_tables(root)
-    token = clean[1]["meta"]["sample_data_tokens"][2][0]     # scene 1, clip 2, third view, first frame
+    token = clean[1]["meta"]["sample_data_tokens"][2][0]  # scene 1, clip 2, third view, first frame
     path = os.path.join(bad, tables["sample_data"][token]["filename"])
     with open(path, "rb") as f:
         jpeg = f.read()
     with open(path, "wb") as f:
-        f.write(jpeg[:len(jpeg) // 2])                       # a truncated JPEG
+        f.write(jpeg[: len(jpeg) // 2])  # a truncated JPEG
     with pytest.raises(ValueError, match=rf"^{path}: expected a readable image"):
         list(ns.read_clips(bad, frames=4))
     uses = [any(token in row for row in c["meta"]["sample_data_tokens"]) for c in clean]
@@ -279,7 +299,7 @@ def test_an_unreadable_image_is_named_or_its_clip_skipped_and_counted(root, tmp_
     with caplog.at_level(logging.WARNING, logger="jaxdrive.data.nuscenes"):
         got = list(ns.read_clips(bad, frames=4, skip_bad_records=True, skipped=skipped))
     assert skipped == [("scene-0001", 4 * i, path) for i, u in enumerate(uses[:3]) if u] and len(skipped) >= 1
-    kept = [c for c, u in zip(clean, uses) if not u]         # every other clip, unchanged
+    kept = [c for c, u in zip(clean, uses) if not u]  # every other clip, unchanged
     assert [c["meta"]["scene"] for c in got] == [c["meta"]["scene"] for c in kept]
     for a, b in zip(got, kept):
         np.testing.assert_array_equal(a["video"], b["video"])

@@ -48,8 +48,9 @@ def assert_batches_equal(a, b):
 def test_shapes_dtypes_ranges_from_tfds(tmp_path):
     path = tfds_io.write_dataset(tmp_path / "ds", {"train": CLIPS[:12]})
     src = tfds_io.open_source(path, "train")
-    ds = pipeline.make_pipeline(src, {(8, 8, 5): 2}, stride=1, views=("CAM_FRONT", 2), seed=0,
-                                shard_index=0, shard_count=1, max_boxes=6)
+    ds = pipeline.make_pipeline(
+        src, {(8, 8, 5): 2}, stride=1, views=("CAM_FRONT", 2), seed=0, shard_index=0, shard_count=1, max_boxes=6
+    )
     b = next(iter(ds))
     assert b["video"].shape == (2, 2, 5, 8, 8, 3) and b["video"].dtype == np.float32
     assert -1 <= b["video"].min() and b["video"].max() <= 1 and b["video"].std() > 0.1
@@ -93,7 +94,7 @@ def test_intrinsics_follow_resize_and_crop():
     P = np.array([0.3, -0.1, 2.0])  # camera frame
     u, v = (K @ P)[:2] / P[2]  # (31, 13): pixel centres at c + 0.5
     video = np.zeros((1, 1, h, w, 3), np.uint8)
-    video[..., int(v) - 1:int(v) + 1, int(u) - 1:int(u) + 1, :] = 255  # 2x2 block centred on (u, v)
+    video[..., int(v) - 1 : int(v) + 1, int(u) - 1 : int(u) + 1, :] = 255  # 2x2 block centred on (u, v)
     for crop, seed in (("center", 0), ("random", 1), ("random", 2)):
         plan = resize.resize_plan((h, w), (16, 20), crop=crop, rng=np.random.default_rng(seed))
         img = (resize.resize_crop_video(video, plan)[0, 0, ..., 0] + 1) / 2
@@ -104,8 +105,11 @@ def test_intrinsics_follow_resize_and_crop():
         assert abs(cu - u2) < 0.05 and abs(cv - v2) < 0.05, (crop, cu, u2, cv, v2)
     # worked example: cover scale 0.54 along x (50 -> 27), 16/30 along y, centre crop 3 px in x
     plan = resize.resize_plan((h, w), (16, 20))
-    np.testing.assert_allclose(resize.adjust_intrinsics(K, plan),
-                               [[40 * 0.54, 0, 25 * 0.54 - 3], [0, 40 * 16 / 30, 15 * 16 / 30], [0, 0, 1]], rtol=1e-6)
+    np.testing.assert_allclose(
+        resize.adjust_intrinsics(K, plan),
+        [[40 * 0.54, 0, 25 * 0.54 - 3], [0, 40 * 16 / 30, 15 * 16 / 30], [0, 0, 1]],
+        rtol=1e-6,
+    )
 
 
 def test_deterministic_for_a_seed():
@@ -132,10 +136,11 @@ def test_repeating_buckets_resume_exactly_across_an_epoch_boundary(caplog):
     hold a clip more than once, and a state saved in epoch 1 resumes it exactly."""
     clips, buckets = CLIPS[:4], {(8, 8, 5): (2, 1.0, 2), (4, 6, 9): 3}
     kw = dict(seed=3, shard_index=0, shard_count=1, num_threads=2)
-    plan = pipeline._BatchPlan([9, 10, 11, 12], parse_buckets(buckets), stride=1, seed=3, shard_index=0,
-                               shard_count=1, num_epochs=None)
+    plan = pipeline._BatchPlan(
+        [9, 10, 11, 12], parse_buckets(buckets), stride=1, seed=3, shard_index=0, shard_count=1, num_epochs=None
+    )
     first = len(plan._epoch(0))
-    assert {b for b, *_ in plan._epoch(0)} == {0, 1} and first < 5          # both buckets; epoch 1 from batch 5 on
+    assert {b for b, *_ in plan._epoch(0)} == {0, 1} and first < 5  # both buckets; epoch 1 from batch 5 on
     with caplog.at_level("INFO", logger="jaxdrive.data.pipeline"):
         it = iter(pipeline.make_pipeline(clips, buckets, **kw))
         seen = [next(it) for _ in range(first + 1)]
@@ -143,7 +148,7 @@ def test_repeating_buckets_resume_exactly_across_an_epoch_boundary(caplog):
         cont = [next(it) for _ in range(4)]
     assert re.search(r"epoch 0: bucket repeats \(rounds of clips\): 8x8x5 2, 4x6x9 \d+ \(auto\)", caplog.text)
     assert caplog.text.count("epoch 1: bucket repeats") == 1
-    assert any(len(set(b["index"].tolist())) < len(b["index"]) for b in seen + cont)   # a clip twice in a batch
+    assert any(len(set(b["index"].tolist())) < len(b["index"]) for b in seen + cont)  # a clip twice in a batch
     fresh = iter(pipeline.make_pipeline(clips, buckets, **kw))
     fresh.set_state(state)
     assert_batches_equal([next(fresh) for _ in range(4)], cont)
@@ -151,8 +156,9 @@ def test_repeating_buckets_resume_exactly_across_an_epoch_boundary(caplog):
 
 def test_shards_are_disjoint_and_in_step():
     kw = dict(num_epochs=1, drop_probs={}, shard_count=3)
-    runs = [list(pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1, (4, 6, 9): 1}, seed=0, shard_index=s, **kw))
-            for s in range(3)]
+    runs = [
+        list(pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1, (4, 6, 9): 1}, seed=0, shard_index=s, **kw)) for s in range(3)
+    ]
     seen = [np.concatenate([b["index"] for b in r]) for r in runs]
     for s, idx in enumerate(seen):
         assert len(idx) > 0 and np.all(idx % 3 == s) and len(set(idx)) == len(idx)
@@ -174,22 +180,36 @@ def test_buckets_have_their_batch_sizes():
 
 def test_empty_bucket_names_bucket_and_reason():
     # 9 frames at stride 3 need 25 source frames; the clips have 9..16
-    with pytest.raises(ValueError, match=r"bucket \(H, W, F\) = \(4, 6, 9\): zero samples after bucketing: "
-                                         r"each clip needs .* = 25 source frames at stride 3, but the longest "
-                                         r"of the 24 clips has 16"):
+    with pytest.raises(
+        ValueError,
+        match=r"bucket \(H, W, F\) = \(4, 6, 9\): zero samples after bucketing: "
+        r"each clip needs .* = 25 source frames at stride 3, but the longest "
+        r"of the 24 clips has 16",
+    ):
         pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1, (4, 6, 9): 1}, stride=3, shard_index=0, shard_count=1)
     # a fixed repeat that leaves a bucket short of one batch; the automatic one repeats the clips
-    with pytest.raises(ValueError, match=r"bucket \(H, W, F\) = \(4, 6, 9\).*fewer clips .* over its 2 round\(s\)\) "
-                                         r"than its batch size 50"):
+    with pytest.raises(
+        ValueError,
+        match=r"bucket \(H, W, F\) = \(4, 6, 9\).*fewer clips .* over its 2 round\(s\)\) "
+        r"than its batch size 50",
+    ):
         pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1, (4, 6, 9): (50, 1.0, 2)}, shard_index=0, shard_count=1)
     it = iter(pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1, (4, 6, 9): 50}, shard_index=0, shard_count=1))
     assert any(next(it)["video"].shape[0] == 50 for _ in range(60))
     # automatic repetition needs a long enough clip on every shard: here only the odd clips are
-    with pytest.raises(ValueError, match=r"bucket \(H, W, F\) = \(4, 6, 13\): zero samples after bucketing: "
-                                         r"expected a clip of at least 13 source frames on every shard, got none on "
-                                         r"shard 0 of 2"):
-        pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1, (4, 6, 13): 1}, shard_index=1, shard_count=2,
-                               frame_counts=[9 + 7 * (i % 2) for i in range(24)])
+    with pytest.raises(
+        ValueError,
+        match=r"bucket \(H, W, F\) = \(4, 6, 13\): zero samples after bucketing: "
+        r"expected a clip of at least 13 source frames on every shard, got none on "
+        r"shard 0 of 2",
+    ):
+        pipeline.make_pipeline(
+            CLIPS,
+            {(8, 8, 5): 1, (4, 6, 13): 1},
+            shard_index=1,
+            shard_count=2,
+            frame_counts=[9 + 7 * (i % 2) for i in range(24)],
+        )
 
 
 def test_stride_longer_than_every_scene():
@@ -207,8 +227,9 @@ def test_short_clips_are_counted_in_the_log(caplog):
 def test_drop_mask_frequencies():
     clips = make_clips(n=8, V=1, H=4, W=4, base_frames=5)
     probs = {"text": 0.5, "boxes": 0.1, "map": 0.0, "trajectory": 1.0}
-    ds = pipeline.make_pipeline(clips, {(4, 4, 5): 8}, drop_probs=probs, seed=0, shard_index=0,
-                                shard_count=1, num_threads=0)
+    ds = pipeline.make_pipeline(
+        clips, {(4, 4, 5): 8}, drop_probs=probs, seed=0, shard_index=0, shard_count=1, num_threads=0
+    )
     it = iter(ds)
     drops = [next(it)["drop"] for _ in range(60)]  # 480 samples
     for name, p in probs.items():
@@ -229,14 +250,14 @@ def test_argument_errors():
 def test_mixed_rate_clip_frames_times_and_fps():
     """MiLA stage 2: condition frames at one stride, the generated frames at another."""
     np.testing.assert_array_equal(frame_offsets(7, 1, 4, 12), [0, 1, 2, 3, 15, 27, 39])
-    assert Bucket(8, 8, 7, 1, 1.0).needed(1, 4, 12) == 1 + 3 * 1 + 3 * 12      # 40
-    clip = CLIPS[7]                                                # 16 frames
+    assert Bucket(8, 8, 7, 1, 1.0).needed(1, 4, 12) == 1 + 3 * 1 + 3 * 12  # 40
+    clip = CLIPS[7]  # 16 frames
     fps = clip["fps"]
     cases = [  # (head, stride, tail_stride) -> source offsets from the start; the generated part's stride
         ((3, 1, 4), [0, 1, 2, 6, 10], 4),
-        ((0, 1, 3), [0, 3, 6, 9, 12], 3),                          # no head: tail_stride throughout
-        ((2, 2, None), [0, 2, 4, 6, 8], 2),                        # no tail_stride: stride throughout
-        ((5, 2, 4), [0, 2, 4, 6, 8], 2),                           # all head
+        ((0, 1, 3), [0, 3, 6, 9, 12], 3),  # no head: tail_stride throughout
+        ((2, 2, None), [0, 2, 4, 6, 8], 2),  # no tail_stride: stride throughout
+        ((5, 2, 4), [0, 2, 4, 6, 8], 2),  # all head
         ((1, 3, 2), [0, 2, 4, 6, 8], 2),
     ]
     for (head, stride, tail), offsets, gen in cases:
@@ -247,8 +268,11 @@ def test_mixed_rate_clip_frames_times_and_fps():
         np.testing.assert_allclose(s["frame_times"], np.asarray(offsets) / fps, rtol=1e-6)
         assert s["frame_times"].dtype == np.float32 and s["frame_times"][0] == 0
         np.testing.assert_allclose(s["fps"], fps / gen, rtol=1e-6)
-    with pytest.raises(ValueError, match=r"5 frames at stride 2 \(2 frames\) then 6 from frame 0 need 21 source "
-                                         r"frames, but the clip has 16"):
+    with pytest.raises(
+        ValueError,
+        match=r"5 frames at stride 2 \(2 frames\) then 6 from frame 0 need 21 source "
+        r"frames, but the clip has 16",
+    ):
         pipeline.sample_clip(clip, size=(12, 20), frames=5, stride=2, head=2, tail_stride=6)
     with pytest.raises(ValueError, match=r"head: expected an integer >= 0, got -1"):
         pipeline.sample_clip(clip, size=(12, 20), frames=5, head=-1)
@@ -257,15 +281,25 @@ def test_mixed_rate_clip_frames_times_and_fps():
 
 
 def _rate_batches(n, seed=0, **kw):
-    clips = make_clips(n=8, V=1, H=4, W=4, base_frames=14)        # 14..21 frames: every stride fits
-    ds = pipeline.make_pipeline(clips, {(4, 4, 5): 8}, rate_head=2, rate_strides=(1, 2, 4), seed=seed,
-                                drop_probs={}, shard_index=0, shard_count=1, num_threads=0, **kw)
+    clips = make_clips(n=8, V=1, H=4, W=4, base_frames=14)  # 14..21 frames: every stride fits
+    ds = pipeline.make_pipeline(
+        clips,
+        {(4, 4, 5): 8},
+        rate_head=2,
+        rate_strides=(1, 2, 4),
+        seed=seed,
+        drop_probs={},
+        shard_index=0,
+        shard_count=1,
+        num_threads=0,
+        **kw,
+    )
     it = iter(ds)
     return clips, it, [next(it) for _ in range(n)]
 
 
 def test_pipeline_draws_the_tail_stride_per_clip_from_the_set():
-    clips, _, got = _rate_batches(60)                              # 480 samples
+    clips, _, got = _rate_batches(60)  # 480 samples
     tails = []
     for b in got:
         assert b["frame_times"].shape == (8, 5) and b["frame_times"].dtype == np.float32
@@ -294,10 +328,13 @@ def test_pipeline_draws_the_tail_stride_per_clip_from_the_set():
 def test_clip_lengths_count_the_mixed_rate_span(caplog):
     kw = dict(shard_index=0, shard_count=1)
     # 1 head frame, then 4 frames up to 4 apart: 17 source frames; the clips have 9..16
-    with pytest.raises(ValueError, match=r"the mixed-rate span = 17 source frames at stride 1 for 1 frames then up "
-                                         r"to 4, but the longest of the 24 clips has 16"):
+    with pytest.raises(
+        ValueError,
+        match=r"the mixed-rate span = 17 source frames at stride 1 for 1 frames then up "
+        r"to 4, but the longest of the 24 clips has 16",
+    ):
         pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1}, rate_head=1, rate_strides=(1, 4), **kw)
-    with caplog.at_level("WARNING"):                               # 13 source frames: 12 of 24 clips are short
+    with caplog.at_level("WARNING"):  # 13 source frames: 12 of 24 clips are short
         pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1}, rate_head=1, rate_strides=(3, 1), **kw)
     assert "skipping 12 of 24 clips" in caplog.text
     with pytest.raises(ValueError, match=r"rate_strides: expected an integer >= 1, got 0"):
@@ -311,6 +348,7 @@ def test_unreadable_clips_are_named_or_replaced_and_counted(tmp_path, how, caplo
     import logging
 
     from shard_faults import damaged_dataset
+
     path, clips, bad, shard = damaged_dataset(tmp_path / "clips", how)
     src = tfds_io.open_source(path, "train")
     kw = dict(seed=1, shard_index=0, shard_count=1, num_threads=2, stride=1)
@@ -319,12 +357,12 @@ def test_unreadable_clips_are_named_or_replaced_and_counted(tmp_path, how, caplo
 
     with caplog.at_level(logging.WARNING, logger="jaxdrive.data.pipeline"):
         got = list(pipeline.make_pipeline(src, {(8, 16, 5): 2}, num_epochs=2, skip_bad_records=True, **kw))
-    assert len(got) == 12 and all(b["video"].shape == (2, 2, 5, 8, 16, 3) for b in got)   # 6 full batches an epoch
+    assert len(got) == 12 and all(b["video"].shape == (2, 2, 5, 8, 16, 3) for b in got)  # 6 full batches an epoch
     for epoch in (got[:6], got[6:]):
         seen = np.concatenate([b["index"] for b in epoch])
-        assert set(seen) == set(range(12)) - bad           # every readable clip, none of the others
+        assert set(seen) == set(range(12)) - bad  # every readable clip, none of the others
         assert sum(int(b["bad_records"]) for b in epoch) == len(bad)
-    assert caplog.text.count(str(shard)) == 1               # one line for the file, not one per record
+    assert caplog.text.count(str(shard)) == 1  # one line for the file, not one per record
     # resumed mid-epoch: the same stand-ins and counts
     ds = pipeline.make_pipeline(src, {(8, 16, 5): 2}, num_epochs=2, skip_bad_records=True, **kw)
     it = iter(ds)

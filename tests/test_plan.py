@@ -17,9 +17,20 @@ TINY = str(Path(__file__).resolve().parents[1] / "configs" / "tiny.py")
 # the tiny config made smaller still for fast compiles (one layer, no final convolutions, two views,
 # conditions off but the condition frames), with a batch of 8 (fsdp up to 8) and 8 frames of 8 x 8
 # tokens (seq up to 8 divides both)
-SMALLER = ["model.depth=1", "model.final_conv=0", "data.views=2", "data.batch_size=8", "data.frames=8",
-           "data.height=32", "data.width=64", "model.controls.text=none", "model.controls.fps=false",
-           "model.controls.camera=false", "model.controls.waypoints=false", "model.controls.reference_frame=none"]
+SMALLER = [
+    "model.depth=1",
+    "model.final_conv=0",
+    "data.views=2",
+    "data.batch_size=8",
+    "data.frames=8",
+    "data.height=32",
+    "data.width=64",
+    "model.controls.text=none",
+    "model.controls.fps=false",
+    "model.controls.camera=false",
+    "model.controls.waypoints=false",
+    "model.controls.reference_frame=none",
+]
 
 
 @pytest.fixture(scope="module")
@@ -35,6 +46,7 @@ def test_state_bytes_equal_a_real_runs_arrays(config):
     """On one device the planned parameters, optimizer state and EMA are the bytes of the arrays
     a run initialises (AdamW: two moments per parameter plus scalar counters; EMA = parameters)."""
     from jaxdrive.train.run import Run
+
     plan = plan_memory(config, {"data": 1}, compile_step=False)
     pd = plan["per_device"]
     one = dataclasses.replace(config, mesh=MeshConfig(data=1))
@@ -44,8 +56,8 @@ def test_state_bytes_equal_a_real_runs_arrays(config):
     assert pd["ema"] == params
     assert pd["opt_state"] == nbytes(state.opt_state)
     assert 2 * params <= pd["opt_state"] <= 2 * params + 64
-    assert pd["replicated"] == pd["params"] + pd["opt_state"] + pd["ema"]    # one device: nothing split
-    video = 8 * 2 * 8 * 32 * 64 * 3 * 4                  # float32 clips [A=1, b=8, V, F, H, W, 3]
+    assert pd["replicated"] == pd["params"] + pd["opt_state"] + pd["ema"]  # one device: nothing split
+    video = 8 * 2 * 8 * 32 * 64 * 3 * 4  # float32 clips [A=1, b=8, V, F, H, W, 3]
     assert video <= pd["batch"] < 1.1 * video
     assert pd["temp"] is None and plan["fits"] is None
 
@@ -83,30 +95,51 @@ def test_seq_divides_the_activations(config):
     assert all(plans[n]["params"] == plans[1]["params"] for n in plans)
 
 
-@pytest.mark.parametrize("text,match", [
-    ("80GiB", None), ("16GB", None), ("512MiB", None), ("1.5gib", None), ("1024", None),
-    ("80GiX", "device_memory: expected a positive size"), ("-1GB", "device_memory"), ("0", "device_memory"),
-    ("GB", "device_memory"), ("", "device_memory"),
-])
+@pytest.mark.parametrize(
+    "text,match",
+    [
+        ("80GiB", None),
+        ("16GB", None),
+        ("512MiB", None),
+        ("1.5gib", None),
+        ("1024", None),
+        ("80GiX", "device_memory: expected a positive size"),
+        ("-1GB", "device_memory"),
+        ("0", "device_memory"),
+        ("GB", "device_memory"),
+        ("", "device_memory"),
+    ],
+)
 def test_parse_bytes(text, match):
     if match is None:
-        assert parse_bytes(text) == {"80GiB": 80 * 2 ** 30, "16GB": 16 * 10 ** 9, "512MiB": 512 * 2 ** 20,
-                                     "1.5gib": int(1.5 * 2 ** 30), "1024": 1024}[text]
+        assert (
+            parse_bytes(text)
+            == {
+                "80GiB": 80 * 2**30,
+                "16GB": 16 * 10**9,
+                "512MiB": 512 * 2**20,
+                "1.5gib": int(1.5 * 2**30),
+                "1024": 1024,
+            }[text]
+        )
     else:
         with pytest.raises(ValueError, match=match):
             parse_bytes(text)
 
 
-@pytest.mark.parametrize("spec,devices,match", [
-    ("data=2,fsdp=2,seq=2,tensor=1", None, None),
-    ("fsdp=-1,seq=2", 8, None),
-    ("pipe=2", None, "mesh: .*'pipe"),
-    ("fsdp=0", None, "mesh: .*fsdp"),
-    ("fsdp=-1", None, "mesh"),
-    ("fsdp=two", None, "mesh"),
-    ("fsdp=2,seq=2", 8, r"^mesh: expected axis sizes whose product is the device count 8.*product 4"),
-    ("fsdp=3,seq=-1", 8, "^mesh"),
-])
+@pytest.mark.parametrize(
+    "spec,devices,match",
+    [
+        ("data=2,fsdp=2,seq=2,tensor=1", None, None),
+        ("fsdp=-1,seq=2", 8, None),
+        ("pipe=2", None, "mesh: .*'pipe"),
+        ("fsdp=0", None, "mesh: .*fsdp"),
+        ("fsdp=-1", None, "mesh"),
+        ("fsdp=two", None, "mesh"),
+        ("fsdp=2,seq=2", 8, r"^mesh: expected axis sizes whose product is the device count 8.*product 4"),
+        ("fsdp=3,seq=-1", 8, "^mesh"),
+    ],
+)
 def test_parse_mesh(spec, devices, match):
     if match is None:
         sizes = parse_mesh(spec, devices)
@@ -126,24 +159,28 @@ def test_plan_refuses_more_devices_than_there_are(config):
 def test_cli_prints_the_plan_as_json(capsys):
     sets = [a for s in SMALLER for a in ("--set", s)]
     # the program of the seq = 2 plan above: XLA's cache has it
-    assert cli(["plan", "--config", TINY, "--mesh", "seq=2", "--device-memory", "1GiB", "--no-fit", "--json",
-                *sets]) == 0
+    assert (
+        cli(["plan", "--config", TINY, "--mesh", "seq=2", "--device-memory", "1GiB", "--no-fit", "--json", *sets]) == 0
+    )
     out = json.loads(capsys.readouterr().out)
     assert out["mesh"] == {"data": 1, "fsdp": 1, "seq": 2, "tensor": 1} and out["devices"] == 2
     pd = out["per_device"]
     for k in ("params", "opt_state", "ema", "frozen", "batch", "temp", "total"):
         assert isinstance(pd[k], int), k
-    assert pd["total"] >= pd["temp"] > 0 and out["fits"] == (pd["total"] <= 2 ** 30)
+    assert pd["total"] >= pd["temp"] > 0 and out["fits"] == (pd["total"] <= 2**30)
     assert out["bucket"] == "32x64x8" and out["batch"] == 8
 
 
-@pytest.mark.parametrize("args,match", [
-    (["--mesh", "fsdp=2,pipe=2"], "--mesh"),
-    (["--mesh", "fsdp=2", "--device-memory", "lots"], "--device-memory"),
-    (["--mesh", "fsdp=2", "--devices", "8"], "--mesh: expected axis sizes whose product is the device count 8"),
-    (["--mesh", "fsdp=2", "--scales", "0,1"], "--scales"),
-    (["--mesh", "fsdp=2", "--scales", "nan"], "--scales"),
-])
+@pytest.mark.parametrize(
+    "args,match",
+    [
+        (["--mesh", "fsdp=2,pipe=2"], "--mesh"),
+        (["--mesh", "fsdp=2", "--device-memory", "lots"], "--device-memory"),
+        (["--mesh", "fsdp=2", "--devices", "8"], "--mesh: expected axis sizes whose product is the device count 8"),
+        (["--mesh", "fsdp=2", "--scales", "0,1"], "--scales"),
+        (["--mesh", "fsdp=2", "--scales", "nan"], "--scales"),
+    ],
+)
 def test_cli_bad_input_is_exit_code_2(args, match, capsys):
     assert cli(["plan", "--config", TINY, *args]) == 2
     assert match in capsys.readouterr().err
@@ -158,12 +195,13 @@ def test_largest_fit_searches_frames_at_each_resolution(config, monkeypatch):
     def total(probe, sizes, devices=None, codec=None):
         d = probe.data
         return {"per_device": {"total": d.frames * d.height * d.width}}
+
     monkeypatch.setattr(plan, "plan_memory", total)
     fit = plan.largest_fit(config, {"fsdp": 2}, 20 * 32 * 64, scales=(1.0, 0.5))
     rows = {(r["height"], r["width"]): r for r in fit["resolutions"]}
     assert rows[32, 64]["frames"] == 20 and rows[16, 32]["frames"] == 80
     assert rows[32, 64]["total"] == 20 * 32 * 64 and not rows[32, 64]["capped"]
-    big = fit["largest"]                   # the most pixels x frames (here both: the budget is their product)
+    big = fit["largest"]  # the most pixels x frames (here both: the budget is their product)
     assert big in fit["resolutions"] and big["frames"] * big["height"] * big["width"] == 20 * 32 * 64
     assert fit["bucket_batch"] == 8
     assert plan.largest_fit(config, {"fsdp": 2}, 100, scales=(1.0,))["resolutions"][0]["frames"] is None

@@ -14,29 +14,33 @@ README = (ROOT / "README.md").read_text()
 
 
 def test_cli_help_lists_the_commands_that_exist():
-    out = subprocess.run([sys.executable, "-m", "jaxdrive.cli", "--help"], capture_output=True,
-                         text=True, check=True).stdout
+    out = subprocess.run(
+        [sys.executable, "-m", "jaxdrive.cli", "--help"], capture_output=True, text=True, check=True
+    ).stdout
     assert "usage: jaxdrive" in out and "bench" in out
 
 
 def test_importing_the_library_loads_neither_matplotlib_nor_transformers():
     """matplotlib draws only the demo's loss plot and transformers serves only the T5 text path:
     both are imported inside the functions that use them."""
-    code = ("import importlib, pkgutil, sys\n"
-            "import jaxdrive, jaxdrive.train, jaxdrive.generate, jaxdrive.cli, jaxdrive.media\n"
-            "for pkg in (jaxdrive.train, jaxdrive.generate, jaxdrive.cli):\n"
-            "    for m in pkgutil.walk_packages(pkg.__path__, pkg.__name__ + '.'):\n"
-            "        if not m.name.endswith('__main__'):\n"
-            "            importlib.import_module(m.name)\n"
-            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('matplotlib', 'transformers')))\n")
+    code = (
+        "import importlib, pkgutil, sys\n"
+        "import jaxdrive, jaxdrive.train, jaxdrive.generate, jaxdrive.cli, jaxdrive.media\n"
+        "for pkg in (jaxdrive.train, jaxdrive.generate, jaxdrive.cli):\n"
+        "    for m in pkgutil.walk_packages(pkg.__path__, pkg.__name__ + '.'):\n"
+        "        if not m.name.endswith('__main__'):\n"
+        "            importlib.import_module(m.name)\n"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('matplotlib', 'transformers')))\n"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
 
 
 def test_the_t5_path_names_its_extra(monkeypatch, tmp_path):
     from jaxdrive.data.text import precompute_t5
+
     assert re.search(r'^t5 = \[.*"transformers>=', (ROOT / "pyproject.toml").read_text(), flags=re.M)
-    monkeypatch.setitem(sys.modules, "transformers", None)           # as if it were not installed
+    monkeypatch.setitem(sys.modules, "transformers", None)  # as if it were not installed
     with pytest.raises(ImportError, match=re.escape('pip install "jaxdrive[t5]"')):
         precompute_t5(["a caption"], tmp_path)
 
@@ -55,6 +59,7 @@ def test_readme_starts_with_the_demo_then_the_tests():
 
 def test_sampler_benchmark_prints_json_figures(capsys):
     from jaxdrive.cli import main
+
     main(["bench", "sampler", "--steps", "2", "--shape", "1", "2", "1", "2", "2", "2", "--hidden", "4"])
     rows = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
     figures = {r["figure"] for r in rows}
@@ -65,8 +70,25 @@ def test_sampler_benchmark_prints_json_figures(capsys):
 def test_sampler_benchmark_compares_the_full_model_with_diffusers(capsys):
     pytest.importorskip("diffusers")
     from jaxdrive.cli import main
-    main(["bench", "sampler", "--model", "tiny-full", "--steps", "2", "--frames", "2", "--height", "4",
-          "--width", "4", "--repeats", "1"])
+
+    main(
+        [
+            "bench",
+            "sampler",
+            "--model",
+            "tiny-full",
+            "--steps",
+            "2",
+            "--frames",
+            "2",
+            "--height",
+            "4",
+            "--width",
+            "4",
+            "--repeats",
+            "1",
+        ]
+    )
     rows = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
     row = next(r for r in rows if r["figure"] == "ratio_to_torch")
     assert row["model"] == "tiny-full/diffusers" and row["steps"] == 2 and row["params"] > 0
@@ -81,5 +103,6 @@ def test_sampler_benchmark_compares_the_full_model_with_diffusers(capsys):
 
 def test_unknown_benchmark_is_named():
     from jaxdrive.cli import main
+
     with pytest.raises(SystemExit, match=r"name: expected one of \[.*'sampler'.*\], got 'nope'"):
         main(["bench", "nope"])

@@ -42,8 +42,7 @@ def test_per_frame_sigma_hits_the_frame_axis_of_multiview_latents():
 def test_per_sample_equals_constant_per_frame():
     x, n = _data()
     s = jnp.array([0.3, 0.7])
-    np.testing.assert_array_equal(flow.add_noise(x, n, s),
-                                  flow.add_noise(x, n, jnp.broadcast_to(s[:, None], (2, 3))))
+    np.testing.assert_array_equal(flow.add_noise(x, n, s), flow.add_noise(x, n, jnp.broadcast_to(s[:, None], (2, 3))))
 
 
 @given(st.floats(0.01, 0.99), st.integers(0, 2**16))
@@ -62,8 +61,7 @@ def test_euler_step_along_exact_velocity_stays_on_the_path():
     x, n = _data()
     v = flow.velocity_target(x, n)
     s, s2 = jnp.array([0.9, 0.6]), jnp.array([0.4, 0.1])
-    np.testing.assert_allclose(flow.euler_step(flow.add_noise(x, n, s), v, s, s2),
-                               flow.add_noise(x, n, s2), atol=1e-6)
+    np.testing.assert_allclose(flow.euler_step(flow.add_noise(x, n, s), v, s, s2), flow.add_noise(x, n, s2), atol=1e-6)
 
 
 def test_jit_vmap_grad():
@@ -76,13 +74,16 @@ def test_jit_vmap_grad():
     np.testing.assert_allclose(g, (n - x).sum(axis=(2, 3, 4)), rtol=1e-5, atol=1e-4)
 
 
-@pytest.mark.parametrize("sigma, match", [
-    (jnp.array([0.5, 1.5]), r"sigma: expected values in \[0.0, 1.0\], got values in \[0.5, 1.5\]"),
-    (jnp.array([-0.1, 0.5]), "sigma: expected values in"),
-    (jnp.array([0.5, 0.5, 0.5]), r"sigma: expected shape \[B\] or \[B, F\]"),
-    (jnp.zeros((2, 4)), r"sigma: expected shape \[B\] or \[B, F\] = \[2, 3\]"),
-    (jnp.zeros((2, 3, 1)), "sigma: expected shape"),
-])
+@pytest.mark.parametrize(
+    "sigma, match",
+    [
+        (jnp.array([0.5, 1.5]), r"sigma: expected values in \[0.0, 1.0\], got values in \[0.5, 1.5\]"),
+        (jnp.array([-0.1, 0.5]), "sigma: expected values in"),
+        (jnp.array([0.5, 0.5, 0.5]), r"sigma: expected shape \[B\] or \[B, F\]"),
+        (jnp.zeros((2, 4)), r"sigma: expected shape \[B\] or \[B, F\] = \[2, 3\]"),
+        (jnp.zeros((2, 3, 1)), "sigma: expected shape"),
+    ],
+)
 def test_add_noise_rejects_bad_sigma(sigma, match):
     x, n = _data()
     with pytest.raises(ValueError, match=match):
@@ -109,8 +110,9 @@ def test_data_prediction_gives_the_velocity_of_its_data_estimate(s, seed):
     sigma = jnp.array([s, 1 - s if 1 - s > 0.05 else 0.5])
     xt = flow.add_noise(x, n, sigma)
     # a perfect data prediction is the true velocity; a velocity output passes through untouched
-    np.testing.assert_allclose(flow.velocity_from_output(x, xt, sigma, "data"), flow.velocity_target(x, n),
-                               rtol=1e-3, atol=2e-3)
+    np.testing.assert_allclose(
+        flow.velocity_from_output(x, xt, sigma, "data"), flow.velocity_target(x, n), rtol=1e-3, atol=2e-3
+    )
     np.testing.assert_array_equal(flow.velocity_from_output(n, xt, sigma, "velocity"), n)
 
 
@@ -126,8 +128,10 @@ def test_data_prediction_worked_number_and_clamp():
     np.testing.assert_allclose(flow.euler_step(xt, v, s, jnp.zeros(2)), out, atol=1e-6)
 
 
-@pytest.mark.parametrize("kw, match", [(dict(prediction="noise"), "prediction: expected one of"),
-                                       (dict(prediction="data", min_sigma=0.0), "min_sigma")])
+@pytest.mark.parametrize(
+    "kw, match",
+    [(dict(prediction="noise"), "prediction: expected one of"), (dict(prediction="data", min_sigma=0.0), "min_sigma")],
+)
 def test_velocity_from_output_rejects_bad_arguments(kw, match):
     x = jnp.ones((1, 1, 1, 1, 1))
     with pytest.raises(ValueError, match=match):

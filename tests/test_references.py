@@ -24,7 +24,11 @@ def citations(text: str):
 def test_the_pattern_finds_bare_and_versioned_citations():
     found = citations("MiLA eq. 13; LongDWM [2506.01546v1] eq. 4, MagicDrive-V2 appendix B and STAGE's table 2")
     assert [(name, bool(tag)) for name, tag, _ in found] == [
-        ("MiLA", False), ("LongDWM", True), ("MagicDrive-V2", False), ("STAGE", False)]
+        ("MiLA", False),
+        ("LongDWM", True),
+        ("MagicDrive-V2", False),
+        ("STAGE", False),
+    ]
     assert citations("MiLA drops text (not a numbered place)") == []
 
 

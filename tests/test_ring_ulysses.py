@@ -37,7 +37,7 @@ def _inputs(seed, b, lq, lk, h, d, with_mask):
     mask = None
     if with_mask:
         mask = jax.random.bernoulli(ks[4], 0.6, (b, lk))
-        mask = mask.at[0].set(False)              # one batch row sees no key at all -> output 0
+        mask = mask.at[0].set(False)  # one batch row sees no key at all -> output 0
     return q, k, v, ct, mask
 
 
@@ -46,17 +46,17 @@ def _rel(a, b):
 
 
 def _check(impl, mesh, q, k, v, ct, mask, causal_block, **kw):
-    fn = jax.jit(lambda q, k, v: IMPLS[impl](q, k, v, mesh=mesh, scale=SCALE, kv_mask=mask,
-                                             causal_block=causal_block, **kw))
-    ref = lambda q, k, v: sb.attend_block(q, k, v, scale=SCALE, kv_mask=mask,
-                                          causal_block=causal_block)[0]
+    fn = jax.jit(
+        lambda q, k, v: IMPLS[impl](q, k, v, mesh=mesh, scale=SCALE, kv_mask=mask, causal_block=causal_block, **kw)
+    )
+    ref = lambda q, k, v: sb.attend_block(q, k, v, scale=SCALE, kv_mask=mask, causal_block=causal_block)[0]
     out, vjp = jax.vjp(fn, q, k, v)
     want, vjp_ref = jax.vjp(ref, *(jnp.asarray(np.asarray(x)) for x in (q, k, v)))  # unsharded
     assert out.shape == q.shape and out.dtype == q.dtype
     errs = [_rel(out, want)] + [_rel(g, r) for g, r in zip(vjp(ct), vjp_ref(ct))]
     assert all(np.isfinite(e) for e in errs), errs
     assert max(errs) <= TOL, dict(zip(["o", "dq", "dk", "dv"], errs))
-    if mask is not None:                          # the fully masked batch row is exactly 0
+    if mask is not None:  # the fully masked batch row is exactly 0
         assert np.abs(np.asarray(out)[0]).max() == 0.0
     return errs
 
@@ -129,8 +129,7 @@ def test_ulysses_heads_not_divisible_by_seq():
     with pytest.raises(ValueError, match=r"q: .*size 8 of mesh axis 'seq'.*4 heads"):
         ulysses_attention(q, k, v, mesh=_mesh(MESHES["seq8"]), scale=SCALE)
     # the ring has no such constraint
-    out = jax.eval_shape(lambda q, k, v: ring_attention(q, k, v, mesh=_mesh(MESHES["seq8"]),
-                                                        scale=SCALE), q, k, v)
+    out = jax.eval_shape(lambda q, k, v: ring_attention(q, k, v, mesh=_mesh(MESHES["seq8"]), scale=SCALE), q, k, v)
     assert out.shape == q.shape
 
 
@@ -157,8 +156,7 @@ def test_ulysses_with_small_local_blocks():
     mesh = _mesh(MESHES["data2_seq4"])
     q, k, v, ct, mask = _inputs(10, 2, 60, 60, 8, 8, True)
     local = partial(blockwise_attention, block_q=16, block_k=8)
-    fn = lambda q, k, v: ulysses_attention(q, k, v, mesh=mesh, scale=SCALE, kv_mask=mask,
-                                           causal_block=5, local=local)
+    fn = lambda q, k, v: ulysses_attention(q, k, v, mesh=mesh, scale=SCALE, kv_mask=mask, causal_block=5, local=local)
     ref = lambda q, k, v: sb.attend_block(q, k, v, scale=SCALE, kv_mask=mask, causal_block=5)[0]
     out, vjp = jax.vjp(jax.jit(fn), q, k, v)
     want, vjp_ref = jax.vjp(ref, q, k, v)
@@ -182,12 +180,12 @@ def test_several_pieces_per_chunk(impl, lq, lk, causal_block):
 def test_tile_size_shrinks_with_the_chunk():
     from jaxdrive.attention.seq_shard import MIN_TILE, TILE_FRACTION, tile_size
 
-    assert tile_size(65536, 64, 512) == 512      # long chunks: the block
-    assert tile_size(8192, 64, 512) == 128       # 128^2 * 16 <= 8192 * 64 < 256^2 * 16
+    assert tile_size(65536, 64, 512) == 512  # long chunks: the block
+    assert tile_size(8192, 64, 512) == 128  # 128^2 * 16 <= 8192 * 64 < 256^2 * 16
     assert tile_size(512, 64, 512) == 32
-    assert tile_size(8, 8, 512) == MIN_TILE      # never below the floor
-    assert tile_size(10**5, 8, 24) == 24         # a block that is no power of two, kept whole
-    assert tile_size(100, 8, 24) == MIN_TILE     # or halved, but not below the floor
+    assert tile_size(8, 8, 512) == MIN_TILE  # never below the floor
+    assert tile_size(10**5, 8, 24) == 24  # a block that is no power of two, kept whole
+    assert tile_size(100, 8, 24) == MIN_TILE  # or halved, but not below the floor
     for rows in (1, 7, 100, 1000, 4096, 10**5):
         for dim in (8, 64, 128):
             t = tile_size(rows, dim, 512)
@@ -200,8 +198,7 @@ def test_bfloat16_inputs(impl):
     """Residuals and dK/dV are kept in the input dtype: bf16 in, bf16 out, close to fp32 dense."""
     mesh = _mesh(MESHES["fsdp2_seq2_tensor2"])
     q, k, v, ct, mask = _inputs(12, 2, 64, 64, 8, 8, True)
-    fn = jax.jit(lambda q, k, v: IMPLS[impl](q, k, v, mesh=mesh, scale=SCALE, kv_mask=mask,
-                                             causal_block=4))
+    fn = jax.jit(lambda q, k, v: IMPLS[impl](q, k, v, mesh=mesh, scale=SCALE, kv_mask=mask, causal_block=4))
     ref = lambda q, k, v: sb.attend_block(q, k, v, scale=SCALE, kv_mask=mask, causal_block=4)[0]
     low = [x.astype(jnp.bfloat16) for x in (q, k, v)]
     out, vjp = jax.vjp(fn, *low)
@@ -210,4 +207,4 @@ def test_bfloat16_inputs(impl):
     assert out.dtype == jnp.bfloat16 and all(g.dtype == jnp.bfloat16 for g in grads)
     errs = [_rel(out.astype(jnp.float32), want)]
     errs += [_rel(g.astype(jnp.float32), r) for g, r in zip(grads, vjp_ref(ct))]
-    assert max(errs) <= 1e-2, errs             # bf16 rounds at 2^-8 ~ 4e-3
+    assert max(errs) <= 1e-2, errs  # bf16 rounds at 2^-8 ~ 4e-3

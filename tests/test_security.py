@@ -29,11 +29,11 @@ def _bomb(path: Path, marker: Path) -> Path:
 def test_a_pickle_bomb_state_dict_is_refused_and_never_runs(tmp_path):
     torch = pytest.importorskip("torch")
     marker, path = tmp_path / "ran", tmp_path / "evil.pth"
-    torch.save({"weight": _Bomb(marker)}, path)                 # a real torch checkpoint file
+    torch.save({"weight": _Bomb(marker)}, path)  # a real torch checkpoint file
     with pytest.raises(ValueError, match=r"^path: could not read .*evil.pth as a state dict"):
         read_state_dict(path)
     assert not marker.exists()
-    torch.load(path, weights_only=False)                        # the control: unpickling runs it
+    torch.load(path, weights_only=False)  # the control: unpickling runs it
     assert marker.exists()
 
 

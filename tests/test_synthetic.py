@@ -15,11 +15,15 @@ def _hull(points):
     def half(seq):
         out = []
         for p in seq:
-            while len(out) >= 2 and ((out[-1][0] - out[-2][0]) * (p[1] - out[-2][1])
-                                     - (out[-1][1] - out[-2][1]) * (p[0] - out[-2][0])) <= 0:
+            while (
+                len(out) >= 2
+                and ((out[-1][0] - out[-2][0]) * (p[1] - out[-2][1]) - (out[-1][1] - out[-2][1]) * (p[0] - out[-2][0]))
+                <= 0
+            ):
                 out.pop()
             out.append(p)
         return out
+
     lower, upper = half(pts), half(pts[::-1])
     return np.array(lower[:-1] + upper[:-1])
 
@@ -88,7 +92,7 @@ def test_cameras_follow_nuscenes_rig(clip6):
     k = clip6["intrinsics"]
     np.testing.assert_allclose(k[:, 0, 2], 28.0)
     np.testing.assert_allclose(k[:, 1, 2], 16.0)
-    forward = clip6["cam_to_ego"][:, :3, 2]   # camera z axis in the ego frame
+    forward = clip6["cam_to_ego"][:, :3, 2]  # camera z axis in the ego frame
     yaw = np.degrees(np.arctan2(forward[:, 1], forward[:, 0]))
     np.testing.assert_allclose(yaw, [0, -55, -110, 180, 110, 55], atol=1e-4)
     np.testing.assert_allclose(clip6["cam_to_ego"][:, :3, 1], np.tile([0, 0, -1], (6, 1)), atol=1e-6)
@@ -173,9 +177,12 @@ def test_clearly_visible_agent_has_pixels():
         pix, depth = _project(clip, boxes, 0)
         for b in range(len(boxes)):
             centre = pix[b].mean(0)
-            others = [j for j in range(len(boxes)) if j != b and depth[j].min() < depth[b].max()
-                      and (_outside_distance(_hull(pix[j]), pix[b]) < 2.0).any()]
-            if (depth[b].min() > 2.0 and 10 < centre[0] < 74 and 8 < centre[1] < 40 and not others):
+            others = [
+                j
+                for j in range(len(boxes))
+                if j != b and depth[j].min() < depth[b].max() and (_outside_distance(_hull(pix[j]), pix[b]) < 2.0).any()
+            ]
+            if depth[b].min() > 2.0 and 10 < centre[0] < 74 and 8 < centre[1] < 40 and not others:
                 assert (clip["instance_ids"][0, 0] == tids[b]).sum() > 0, (seed, tids[b])
                 found += 1
     assert found > 0
@@ -187,8 +194,9 @@ def test_waypoints_and_poses(clip6):
     rel = first @ clip6["ego_to_world"][:, :, 3].T
     np.testing.assert_allclose(clip6["waypoints"], rel[:2].T, atol=1e-4)
     pose = clip6["ego_to_world"]
-    np.testing.assert_allclose(pose[:, :3, :3] @ np.swapaxes(pose[:, :3, :3], 1, 2),
-                               np.tile(np.eye(3), (5, 1, 1)), atol=1e-9)
+    np.testing.assert_allclose(
+        pose[:, :3, :3] @ np.swapaxes(pose[:, :3, :3], 1, 2), np.tile(np.eye(3), (5, 1, 1)), atol=1e-9
+    )
     np.testing.assert_allclose(pose[:, 2, 3], 0.0)
 
 
@@ -238,12 +246,22 @@ def test_single_front_view():
     assert "CAM_FRONT" in one["caption"]
 
 
-@pytest.mark.parametrize("kwargs, name", [
-    (dict(views=3), "views"), (dict(frames=0), "frames"), (dict(height=4), "height"),
-    (dict(width=7), "width"), (dict(fps=0.0), "fps"), (dict(look="dusk"), "look"),
-    (dict(num_agents=21), "num_agents"), (dict(num_agents=-1), "num_agents"),
-    (dict(bev_size=(0, 8)), "bev_size"), (dict(seed=-1), "seed"), (dict(seed=1.5), "seed"),
-])
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        (dict(views=3), "views"),
+        (dict(frames=0), "frames"),
+        (dict(height=4), "height"),
+        (dict(width=7), "width"),
+        (dict(fps=0.0), "fps"),
+        (dict(look="dusk"), "look"),
+        (dict(num_agents=21), "num_agents"),
+        (dict(num_agents=-1), "num_agents"),
+        (dict(bev_size=(0, 8)), "bev_size"),
+        (dict(seed=-1), "seed"),
+        (dict(seed=1.5), "seed"),
+    ],
+)
 def test_bad_arguments_name_the_argument(kwargs, name):
     kwargs = {"seed": 0, **kwargs}
     with pytest.raises(ValueError, match=name):

@@ -46,8 +46,9 @@ def written(tmp_path_factory):
     out = tmp_path_factory.mktemp("ds") / "clips"
     train = [random_clip(i, F=3 + i, V=1 + i % 3) for i in range(5)]
     val = [random_clip(100 + i, H=8) for i in range(2)]
-    path = tfds_io.write_dataset(out, {"train": iter(train), "validation": val},
-                                 metadata={"source": "synthetic", "seed": 0})
+    path = tfds_io.write_dataset(
+        out, {"train": iter(train), "validation": val}, metadata={"source": "synthetic", "seed": 0}
+    )
     return path, train, val
 
 
@@ -68,6 +69,7 @@ def test_round_trip_both_splits(written):
 
 def test_source_pickles(written):
     import pickle
+
     path, train, _ = written
     src = pickle.loads(pickle.dumps(tfds_io.open_source(path, "train")))
     assert_clip_equal(src[3], train[3])
@@ -117,6 +119,7 @@ def test_failure_leaves_nothing(tmp_path):
 class _SecondOfTwo:
     """Process 1 of a two-process write, as :class:`jaxdrive.parallel.Processes` looks to it
     (the gathers answer for both)."""
+
     index, count = 1, 2
 
     def gather(self, value: int) -> list[int]:
@@ -128,6 +131,7 @@ def test_a_failed_process_of_several_names_the_temporary_dataset_and_its_removal
     """Process 1 of 2 fails while writing its shards: it stops at once (the others may still write
     into the shared temporary directory, so it cannot remove it) and its error names that
     directory and the command that removes it."""
+
     def clips():
         yield random_clip(0)
         if isinstance(failure, Exception):
@@ -171,6 +175,7 @@ def test_a_damaged_shard_names_its_file_and_keeps_the_other_records(tmp_path, ho
     from jaxdrive.data.faults import BadRecordError
 
     from shard_faults import damaged_dataset
+
     path, clips, bad, shard = damaged_dataset(tmp_path / "clips", how)
     src = tfds_io.open_source(path, "train")
     for i, clip in enumerate(clips):
@@ -180,5 +185,5 @@ def test_a_damaged_shard_names_its_file_and_keeps_the_other_records(tmp_path, ho
             with pytest.raises(BadRecordError, match=where) as e:
                 src[i]
             assert isinstance(e.value, ValueError) and e.value.path == str(shard)
-        else:   # nothing else lost: the other shards and, when only overwritten, the shard's intact record
+        else:  # nothing else lost: the other shards and, when only overwritten, the shard's intact record
             assert_clip_equal(src[i], clip)

@@ -37,7 +37,7 @@ def test_resolution_shift_matches_open_sora_rule():
     # sqrt(4 * 512^2 / 512^2) * sqrt(4 / 1) = 4
     assert flow.resolution_shift(1024, 1024, 4) == pytest.approx(4.0)
     # MagicDrive-V2-like clip: 424x800 pixels, 9 latent frames, base 512^2
-    assert flow.resolution_shift(424, 800, 9) == pytest.approx(math.sqrt(424 * 800 / 512 ** 2) * 3.0)
+    assert flow.resolution_shift(424, 800, 9) == pytest.approx(math.sqrt(424 * 800 / 512**2) * 3.0)
     assert flow.resolution_shift(256, 256, 2, base_pixels=256 * 256, base_latent_frames=2, scale=2.0) == 2.0
 
 
@@ -65,15 +65,18 @@ def test_sampling_schedule():
     assert bool(jnp.all(jnp.diff(s) < 0))
 
 
-@pytest.mark.parametrize("call, match", [
-    (lambda: flow.sample_sigmas(jax.random.PRNGKey(0), (2,), distribution="beta"), "distribution: expected one of"),
-    (lambda: flow.sample_sigmas(jax.random.PRNGKey(0), 2), "shape: expected a tuple"),
-    (lambda: flow.sample_sigmas(jax.random.PRNGKey(0), (2,), scale=0.0), r"scale: expected values in \(0.0, inf\]"),
-    (lambda: flow.shift_sigmas(0.5, -1.0), "ratio: expected values in"),
-    (lambda: flow.shift_sigmas(1.5, 2.0), "sigma: expected values in"),
-    (lambda: flow.resolution_shift(0, 10, 1), "height: expected an integer >= 1, got 0"),
-    (lambda: flow.sampling_sigmas(0), "num_steps: expected an integer >= 1, got 0"),
-])
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda: flow.sample_sigmas(jax.random.PRNGKey(0), (2,), distribution="beta"), "distribution: expected one of"),
+        (lambda: flow.sample_sigmas(jax.random.PRNGKey(0), 2), "shape: expected a tuple"),
+        (lambda: flow.sample_sigmas(jax.random.PRNGKey(0), (2,), scale=0.0), r"scale: expected values in \(0.0, inf\]"),
+        (lambda: flow.shift_sigmas(0.5, -1.0), "ratio: expected values in"),
+        (lambda: flow.shift_sigmas(1.5, 2.0), "sigma: expected values in"),
+        (lambda: flow.resolution_shift(0, 10, 1), "height: expected an integer >= 1, got 0"),
+        (lambda: flow.sampling_sigmas(0), "num_steps: expected an integer >= 1, got 0"),
+    ],
+)
 def test_bad_inputs(call, match):
     with pytest.raises(ValueError, match=match):
         call()

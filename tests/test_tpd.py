@@ -80,12 +80,15 @@ def test_jit_and_grad():
     assert float(g) > 0
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    (dict(sigma=1.2, num_frames=4), "sigma: expected values in"),
-    (dict(sigma=0.5, num_frames=0), "num_frames: expected an integer >= 1, got 0"),
-    (dict(sigma=0.5, num_frames=4, omega=0.0), r"omega: expected values in \(0.0, 1.5707"),
-    (dict(sigma=0.5, num_frames=4, omega=2.0), "omega: expected values in"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(sigma=1.2, num_frames=4), "sigma: expected values in"),
+        (dict(sigma=0.5, num_frames=0), "num_frames: expected an integer >= 1, got 0"),
+        (dict(sigma=0.5, num_frames=4, omega=0.0), r"omega: expected values in \(0.0, 1.5707"),
+        (dict(sigma=0.5, num_frames=4, omega=2.0), "omega: expected values in"),
+    ],
+)
 def test_bad_inputs(kwargs, match):
     with pytest.raises(ValueError, match=match):
         flow.tpd_sigmas(**kwargs)

@@ -33,7 +33,7 @@ def test_override_parses_by_type_and_names_bad_keys():
     c = override(c, "optim.trainable=blocks_27/.*,final.*")
     c = override(c, "name=none")
     assert (c.data.frames, c.optim.lr, c.optim.trainable, c.name) == (17, 3e-4, ("blocks_27/.*", "final.*"), None)
-    assert _Cfg().data.frames == 9                       # frozen: the original is untouched
+    assert _Cfg().data.frames == 9  # frozen: the original is untouched
     with pytest.raises(ValueError, match=r"unknown key 'frame' in data; expected one of \[.*'frames'"):
         override(c, "data.frame=3")
     with pytest.raises(ValueError, match=r"data.frames: expected int, got '2.5'"):
@@ -46,8 +46,7 @@ def test_override_parses_by_type_and_names_bad_keys():
 
 def test_load_config_runs_the_file(tmp_path):
     path = tmp_path / "c.py"
-    path.write_text("from jaxdrive.config import DataConfig\n"
-                    "def get_config():\n    return DataConfig(frames=5)\n")
+    path.write_text("from jaxdrive.config import DataConfig\ndef get_config():\n    return DataConfig(frames=5)\n")
     assert load_config(path, ["height=64"]) == DataConfig(frames=5, height=64)
     with pytest.raises(ValueError, match="config: expected a python config file"):
         load_config(tmp_path / "missing.py")
@@ -57,15 +56,18 @@ def test_learning_rate_schedule_worked_numbers():
     sched = learning_rate(OptimConfig(lr=1.0, warmup_steps=10, schedule="cosine", min_lr_ratio=0.1), 110)
     assert float(sched(0)) == 0.0 and float(sched(5)) == pytest.approx(0.5)
     assert float(sched(10)) == pytest.approx(1.0)
-    assert float(sched(60)) == pytest.approx(0.1 + 0.9 * 0.5, rel=1e-5)       # half way down the cosine
+    assert float(sched(60)) == pytest.approx(0.1 + 0.9 * 0.5, rel=1e-5)  # half way down the cosine
     assert float(sched(110)) == pytest.approx(0.1, rel=1e-5)
     lin = learning_rate(OptimConfig(lr=2.0, warmup_steps=0, schedule="linear", min_lr_ratio=0.0), 4)
     assert [float(lin(i)) for i in range(5)] == pytest.approx([2.0, 1.5, 1.0, 0.5, 0.0])
 
 
 def test_partial_training_updates_only_the_matched_parameters():
-    params = {"blocks_0": {"kernel": jnp.ones((2, 2))}, "blocks_1": {"kernel": jnp.ones((2, 2))},
-              "final": {"bias": jnp.ones(2)}}
+    params = {
+        "blocks_0": {"kernel": jnp.ones((2, 2))},
+        "blocks_1": {"kernel": jnp.ones((2, 2))},
+        "final": {"bias": jnp.ones(2)},
+    }
     labels = trainable_labels(params, ("blocks_1/.*", "^final"))
     assert labels == {"blocks_0": {"kernel": "freeze"}, "blocks_1": {"kernel": "train"}, "final": {"bias": "train"}}
     cfg = OptimConfig(lr=0.1, warmup_steps=0, schedule="constant", trainable=("blocks_1/.*", "^final"))
@@ -88,8 +90,10 @@ def test_non_finite_steps_are_skipped_and_counted():
     s1 = apply_gradients(state, bad, jnp.float32(1.0), opt, 0.9, state.rng)
     s2 = apply_gradients(s1, good, jnp.float32(jnp.inf), opt, 0.9, state.rng)
     assert (int(s2.step), int(s2.bad_steps), int(s2.skipped)) == (2, 2, 2)
-    for a, b in zip(jax.tree_util.tree_leaves((s2.params, s2.opt_state, s2.ema)),
-                    jax.tree_util.tree_leaves((state.params, state.opt_state, state.ema))):
+    for a, b in zip(
+        jax.tree_util.tree_leaves((s2.params, s2.opt_state, s2.ema)),
+        jax.tree_util.tree_leaves((state.params, state.opt_state, state.ema)),
+    ):
         np.testing.assert_array_equal(a, b)
     s3 = apply_gradients(s2, good, jnp.float32(1.0), opt, 0.9, state.rng)
     assert (int(s3.bad_steps), int(s3.skipped)) == (0, 2)
@@ -103,8 +107,9 @@ def _state_after(steps):
     opt = optax.adamw(1e-2)
     state = create_state(params, opt, 0)
     for _ in range(steps):
-        state = apply_gradients(state, jax.tree_util.tree_map(jnp.ones_like, state.params), jnp.float32(1.0),
-                                opt, 0.9, state.rng)
+        state = apply_gradients(
+            state, jax.tree_util.tree_map(jnp.ones_like, state.params), jnp.float32(1.0), opt, 0.9, state.rng
+        )
     return state
 
 
@@ -117,12 +122,12 @@ def test_checkpoints_fall_back_past_a_damaged_one_and_reshard(tmp_path, caplog):
     for step in (1, 2, 3):
         ck.save(step, _state_after(step), {"next_index": step}, {"step": step})
     ck.wait()
-    assert ck.steps() == [2, 3]                                   # keep-N
+    assert ck.steps() == [2, 3]  # keep-N
     abstract = jax.eval_shape(lambda: _state_after(0))
     step, state, data, meta = ck.restore_latest(abstract)
     assert (step, data, meta["step"], int(state.step)) == (3, {"next_index": 3}, 3, 3)
     np.testing.assert_array_equal(state.params["w"], _state_after(3).params["w"])
-    for f in (tmp_path / "checkpoints" / "3" / "state").rglob("*"):      # damage the newest
+    for f in (tmp_path / "checkpoints" / "3" / "state").rglob("*"):  # damage the newest
         if f.is_file() and f.name != "commit_success.txt":
             f.write_bytes(b"garbage")
     with caplog.at_level(logging.WARNING, logger="jaxdrive.train.checkpoint"):
@@ -133,9 +138,11 @@ def test_checkpoints_fall_back_past_a_damaged_one_and_reshard(tmp_path, caplog):
     assert ck.skipped == messages
     mesh = make_mesh(data=2, fsdp=4)
     sharded = jax.tree_util.tree_map(
-        lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype,
-                                       sharding=NamedSharding(mesh, P("fsdp") if a.ndim == 2 else P())),
-        abstract)
+        lambda a: jax.ShapeDtypeStruct(
+            a.shape, a.dtype, sharding=NamedSharding(mesh, P("fsdp") if a.ndim == 2 else P())
+        ),
+        abstract,
+    )
     state, _, _ = ck.restore(2, sharded)
     assert state.params["w"].sharding.spec == P("fsdp")
     np.testing.assert_array_equal(state.params["w"], _state_after(2).params["w"])
@@ -145,12 +152,13 @@ def test_checkpoints_fall_back_past_a_damaged_one_and_reshard(tmp_path, caplog):
 def _damage(step_dir, how):
     state = step_dir / "state"
     if how == "truncated array file":
-        for data in (f for f in state.rglob("*") if f.is_file() and f.parent.name == "d"):   # OCDBT data files
+        for data in (f for f in state.rglob("*") if f.is_file() and f.parent.name == "d"):  # OCDBT data files
             data.write_bytes(data.read_bytes()[: data.stat().st_size // 2])
     elif how == "missing metadata file":
         (state / "_METADATA").unlink()
     elif how == "empty step folder":
         import shutil
+
         shutil.rmtree(step_dir)
         step_dir.mkdir()
 
@@ -178,15 +186,21 @@ def test_a_checkpoint_of_another_model_is_a_value_error_saying_what_differs(tmp_
     ck.save(1, _state_after(1), {}, {"step": 1})
     ck.wait()
     other = jax.eval_shape(lambda: _state_after(0).replace(params={"w": jnp.zeros((8, 4)), "c": jnp.zeros(2)}))
-    with pytest.raises(ValueError, match=r"^workdir: expected checkpoints of this config's model .* got step 1 with "
-                                         r"other parameters \(3 differ: w: expected shape \[8, 4\], got \[4, 4\]; "
-                                         r"c: expected in the checkpoint, missing; b: in the checkpoint, "
-                                         r"not in this model\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"^workdir: expected checkpoints of this config's model .* got step 1 with "
+        r"other parameters \(3 differ: w: expected shape \[8, 4\], got \[4, 4\]; "
+        r"c: expected in the checkpoint, missing; b: in the checkpoint, "
+        r"not in this model\)",
+    ):
         ck.restore_latest(other)
     ck.close()
     # reached through another option (train.init_from, --segmenter, --fine-workdir): that option is named
     ck = Checkpoints(tmp_path, keep=3, option="train.init_from")
-    with pytest.raises(ValueError, match=r"^train.init_from: expected checkpoints of this config's model .*; use a "
-                                         r"new train.init_from or the config it was trained with"):
+    with pytest.raises(
+        ValueError,
+        match=r"^train.init_from: expected checkpoints of this config's model .*; use a "
+        r"new train.init_from or the config it was trained with",
+    ):
         ck.restore_latest(other)
     ck.close()

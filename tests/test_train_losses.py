@@ -66,8 +66,16 @@ def test_foreground_weighting_is_eq15_times_w_aux(dataset):
         out = t.dit.forward(params, x_t, levels, without["cond"].replace(cond_latents=x, cond_mask=cond))
         v = flow.velocity_from_output(out, x_t, levels, t.model.prediction, t.model.prediction_min_sigma)
         f = inputs["loss"]
-        w = flow.foreground_weight_map(f["boxes"], f["box_valid"], f["intrinsics"], f["cam_to_ego"],
-                                       map_hw=(8, 14), image_hw=(32, 56), k=4.0, c=0.5)
+        w = flow.foreground_weight_map(
+            f["boxes"],
+            f["box_valid"],
+            f["intrinsics"],
+            f["cam_to_ego"],
+            map_hw=(8, 14),
+            image_hw=(32, 56),
+            k=4.0,
+            c=0.5,
+        )
         by_hand = flow.flow_loss(v, x, noise, cond_mask=cond, weight_map=w)
         no_boxes = dict(inputs, loss=dict(f, box_valid=jnp.zeros_like(f["box_valid"])))
         loss_empty = flow_step.flow_loss_fn(weighted.training, params, None, no_boxes, key)[0]
@@ -75,15 +83,22 @@ def test_foreground_weighting_is_eq15_times_w_aux(dataset):
 
     with jax.set_mesh(weighted.mesh):
         loss_w, loss_plain, by_hand, loss_empty, w_max = map(float, losses(micro(batch)))
-    assert w_max > 1.5                                              # the clips have boxes in view
+    assert w_max > 1.5  # the clips have boxes in view
     assert loss_w == pytest.approx(by_hand, rel=1e-5)
     assert loss_w != pytest.approx(loss_plain, rel=1e-3)
-    assert loss_empty == pytest.approx(loss_plain, rel=1e-6)        # no object: W_aux is all ones
+    assert loss_empty == pytest.approx(loss_plain, rel=1e-6)  # no object: W_aux is all ones
 
 
 # ------------------------------------------------------------------------- condition patterns, JDC anchors
-PATTERNS = ["data.frames=5", "flow.patterns=prefix,ends,anchors", "flow.pattern_rates=0.25,0.25,0.5",
-            "flow.anchor_every=2", "flow.cond_frames=2", "flow.jdc_anchor_rate=1.0", "flow.jdc_alpha1=0.1"]
+PATTERNS = [
+    "data.frames=5",
+    "flow.patterns=prefix,ends,anchors",
+    "flow.pattern_rates=0.25,0.25,0.5",
+    "flow.anchor_every=2",
+    "flow.cond_frames=2",
+    "flow.jdc_anchor_rate=1.0",
+    "flow.jdc_alpha1=0.1",
+]
 
 
 def test_jdc_anchors_enter_eq15_with_their_own_noise(dataset):
@@ -111,7 +126,7 @@ def test_jdc_anchors_enter_eq15_with_their_own_noise(dataset):
 
     with jax.set_mesh(run.mesh):
         found = False
-        for seed in range(8):                       # a key whose clips hold anchors
+        for seed in range(8):  # a key whose clips hold anchors
             loss, by_hand, plain_noise, n_anchors = map(float, both(inputs, jax.random.key(seed)))
             assert loss == pytest.approx(by_hand, rel=1e-5)
             if n_anchors > 0:
@@ -134,11 +149,13 @@ def test_a_step_with_every_pattern_and_jdc_anchors_is_finite(dataset):
 def test_segment_waypoints_match_the_pipeline_from_that_frame(dataset):
     from jaxdrive.data.pipeline import sample_clip
     from jaxdrive.data.tfds_io import open_source
+
     clip = open_source(dataset, "train")[0]
     whole = sample_clip(clip, size=(32, 56), frames=9, stride=1)
     poses = jnp.asarray(whole["ego_to_world"])[None]
-    controls = Conditions(waypoints=jnp.asarray(whole["waypoints"])[None], fps=jnp.ones((1,)),
-                          boxes=jnp.asarray(whole["boxes"])[None])
+    controls = Conditions(
+        waypoints=jnp.asarray(whole["waypoints"])[None], fps=jnp.ones((1,)), boxes=jnp.asarray(whole["boxes"])[None]
+    )
     seg = distill_step.segment_conditions(controls, poses, 4, 5)
     want = sample_clip(clip, size=(32, 56), frames=5, stride=1, start=4)
     np.testing.assert_allclose(seg.waypoints[0], want["waypoints"], atol=1e-4)
@@ -160,25 +177,41 @@ def test_teacher_segments_one_at_a_time_match_the_folded_batch():
     sigma = jnp.array([0.3, 0.8])
     cond = jnp.zeros((b, 3), bool).at[:, 0].set(True)
     levels, cond_dense = distill_step.dense_levels(sigma, cond, f, k)
-    assert (levels.shape == (b, f) and bool(jnp.all(levels[:, 0] == 0))
-            and bool(jnp.all(levels[:, 1:] == sigma[:, None])))
+    assert (
+        levels.shape == (b, f) and bool(jnp.all(levels[:, 0] == 0)) and bool(jnp.all(levels[:, 1:] == sigma[:, None]))
+    )
     x_t = flow.add_noise(x, jax.random.normal(keys[1], x.shape), levels)
-    controls = Conditions(text=jax.random.randint(keys[2], (b, cfg.text_len), 0, 512),
-                          text_mask=jnp.ones((b, cfg.text_len), bool), fps=jnp.array([12.0, 6.0]),
-                          intrinsics=jnp.tile(jnp.array([[40.0, 0, 28], [0, 40, 16], [0, 0, 1]]), (b, v, 1, 1)),
-                          cam_to_ego=jnp.tile(jnp.eye(4), (b, v, 1, 1)))
+    controls = Conditions(
+        text=jax.random.randint(keys[2], (b, cfg.text_len), 0, 512),
+        text_mask=jnp.ones((b, cfg.text_len), bool),
+        fps=jnp.array([12.0, 6.0]),
+        intrinsics=jnp.tile(jnp.array([[40.0, 0, 28], [0, 40, 16], [0, 0, 1]]), (b, v, 1, 1)),
+        cam_to_ego=jnp.tile(jnp.eye(4), (b, v, 1, 1)),
+    )
     poses = jnp.tile(jnp.eye(4), (b, f, 1, 1))
 
     @jax.jit
-    def both(x, x_t):                 # the boundary rules themselves: tests/test_distill.py
-        got = distill_step.teacher_coarse_estimate(teacher, params, x, x_t, levels, cond_dense,
-                                                   {"cond": controls, distill_step.POSES: poses},
-                                                   segment_len=k, boundary="mean")
+    def both(x, x_t):  # the boundary rules themselves: tests/test_distill.py
+        got = distill_step.teacher_coarse_estimate(
+            teacher,
+            params,
+            x,
+            x_t,
+            levels,
+            cond_dense,
+            {"cond": controls, distill_step.POSES: poses},
+            segment_len=k,
+            boundary="mean",
+        )
         n = 2
         rep = jax.tree_util.tree_map(lambda a: jnp.repeat(a, n, axis=0), controls)
         xs, ls = flow.split_segments(x_t, k), flow.split_segments(levels, k)
-        out = teacher.forward(params, xs, ls, rep.replace(cond_latents=flow.split_segments(x, k),
-                                                          cond_mask=flow.split_segments(cond_dense, k)))
+        out = teacher.forward(
+            params,
+            xs,
+            ls,
+            rep.replace(cond_latents=flow.split_segments(x, k), cond_mask=flow.split_segments(cond_dense, k)),
+        )
         vs = flow.velocity_from_output(out, xs, ls, cfg.prediction, cfg.prediction_min_sigma)
         return got, flow.coarse_from_segments(flow.data_from_velocity(xs, vs, ls), b)
 
@@ -194,10 +227,15 @@ def write_teacher(dataset, workdir):
 
 def test_distillation_trains_the_coarse_model_against_the_fine_one(dataset, tmp_path):
     saved = write_teacher(dataset, tmp_path / "fine")
-    cfg = config(dataset, "data.frames=9", f"flow.distill_teacher={tmp_path / 'fine'}", "flow.distill_segment_len=5",
-                 "flow.distill_weight=0.5")
+    cfg = config(
+        dataset,
+        "data.frames=9",
+        f"flow.distill_teacher={tmp_path / 'fine'}",
+        "flow.distill_segment_len=5",
+        "flow.distill_weight=0.5",
+    )
     run = Run(cfg)
-    assert run.latent_frames == 3 and run.frame_stride == 4              # coarse frames 0, 4, 8
+    assert run.latent_frames == 3 and run.frame_stride == 4  # coarse frames 0, 4, 8
     assert run.tokens_per_step == 2 * 2 * 3 * 4 * 7
     restored = run.frozen_params()["teacher"]
     for a, b in zip(jax.tree_util.tree_leaves(restored), jax.tree_util.tree_leaves(saved.ema)):
@@ -206,6 +244,7 @@ def test_distillation_trains_the_coarse_model_against_the_fine_one(dataset, tmp_
     assert batch["video"].shape[3] == 9 and batch["teacher"][distill_step.POSES].shape[2:] == (9, 4, 4)
     # sampling reads coarse frames: every 4th source frame, at a quarter of the frame rate
     from jaxdrive.generate.samples import dataset_inputs
+
     inputs = dataset_inputs(run.sampling(), frames=run.latent_frames)
     fine_fps = float(np.asarray(jax.device_get(batch["teacher"]["cond"].fps))[0, 0])
     assert inputs["video"].shape[2] == 3 and float(inputs["cond"].fps[0]) == pytest.approx(fine_fps / 4)
@@ -218,13 +257,16 @@ def test_distillation_trains_the_coarse_model_against_the_fine_one(dataset, tmp_
     assert m["skipped"] == 0
 
 
-@pytest.mark.parametrize("sets, match", [
-    (["flow.tpd=true"], "flow.tpd"),
-    (["flow.jdc_anchor_rate=0.5"], "flow.jdc_anchor_rate"),
-    (["data.frames=8"], "data.frames"),
-    (["flow.distill_teacher=/nonexistent/run"], "flow.distill_teacher"),
-    (["flow.distill_segment_len=1"], "flow.distill_segment_len"),
-])
+@pytest.mark.parametrize(
+    "sets, match",
+    [
+        (["flow.tpd=true"], "flow.tpd"),
+        (["flow.jdc_anchor_rate=0.5"], "flow.jdc_anchor_rate"),
+        (["data.frames=8"], "data.frames"),
+        (["flow.distill_teacher=/nonexistent/run"], "flow.distill_teacher"),
+        (["flow.distill_segment_len=1"], "flow.distill_segment_len"),
+    ],
+)
 def test_bad_distillation_configs_fail_before_compiling(dataset, sets, match):
     base = ["data.frames=9", "flow.distill_teacher=/nonexistent/run", "flow.distill_segment_len=5"]
     with pytest.raises(ValueError, match=match):

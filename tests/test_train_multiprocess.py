@@ -29,9 +29,20 @@ from train_fixtures import write_same_clips
 
 ROOT = Path(__file__).resolve().parents[1]
 STEPS = 6
-SETS = ["data.views=2", "data.frames=5", "data.batch_size=2", "data.drop_prob=0.0", "model.depth=1",
-        f"train.steps={STEPS}", "train.log_every=1", "train.checkpoint_every=2", "train.keep_checkpoints=10",
-        "optim.warmup_steps=1", "mesh.data=2", "mesh.seq=4"]
+SETS = [
+    "data.views=2",
+    "data.frames=5",
+    "data.batch_size=2",
+    "data.drop_prob=0.0",
+    "model.depth=1",
+    f"train.steps={STEPS}",
+    "train.log_every=1",
+    "train.checkpoint_every=2",
+    "train.keep_checkpoints=10",
+    "optim.warmup_steps=1",
+    "mesh.data=2",
+    "mesh.seq=4",
+]
 
 
 @pytest.fixture(scope="module")
@@ -41,11 +52,27 @@ def same_clips(tmp_path_factory):
 
 def launch(data, workdir, *, kill: str | None = None, processes: int = 2, devices: int = 4, sets=()):
     """``jaxdrive train`` under ``launch/local.py`` (``kill``: ``tests/fault_train.py``'s fault)."""
-    train_cmd = [sys.executable, str(ROOT / "tests" / "fault_train.py")] if kill else \
-        [sys.executable, "-m", "jaxdrive.cli"]
-    cmd = [sys.executable, str(ROOT / "launch" / "local.py"), "--processes", str(processes), "--cpu-devices",
-           str(devices), "--grace", "5", "--", *train_cmd, "train", "--config", str(ROOT / "configs" / "tiny.py"),
-           "--workdir", str(workdir), "--no-progress"]
+    train_cmd = (
+        [sys.executable, str(ROOT / "tests" / "fault_train.py")] if kill else [sys.executable, "-m", "jaxdrive.cli"]
+    )
+    cmd = [
+        sys.executable,
+        str(ROOT / "launch" / "local.py"),
+        "--processes",
+        str(processes),
+        "--cpu-devices",
+        str(devices),
+        "--grace",
+        "5",
+        "--",
+        *train_cmd,
+        "train",
+        "--config",
+        str(ROOT / "configs" / "tiny.py"),
+        "--workdir",
+        str(workdir),
+        "--no-progress",
+    ]
     for s in [f"data.path={data}", *SETS, *sets]:
         cmd += ["--set", s]
     env = dict(os.environ, JAXDRIVE_TEST_KILL=kill or "")
@@ -62,8 +89,11 @@ def committed(workdir) -> list[int]:
 
 def resumed_from(proc) -> set[int]:
     """The steps the processes said they resumed from."""
-    return {int(line.rsplit("(step ", 1)[1].rstrip(")")) for line in proc.stdout.splitlines()
-            if "resuming from checkpoint" in line}
+    return {
+        int(line.rsplit("(step ", 1)[1].rstrip(")"))
+        for line in proc.stdout.splitlines()
+        if "resuming from checkpoint" in line
+    }
 
 
 def losses(workdir, key="loss"):
@@ -84,7 +114,7 @@ def test_sigkill_of_one_process_then_relaunch_is_bit_exact(same_clips, never_kil
     workdir = tmp_path / "run"
     # 1. process 1 dies after step 3 (checkpoint 2 was started after step 2)
     first = launch(same_clips, workdir, kill="1:step:3")
-    assert first.returncode == 137, output(first)                  # 128 + SIGKILL, from the launcher
+    assert first.returncode == 137, output(first)  # 128 + SIGKILL, from the launcher
     assert "[launcher] process 1 was killed by SIGKILL; stopping the others" in first.stdout
     kept = committed(workdir)
     assert set(kept) <= {2}, kept
@@ -94,8 +124,9 @@ def test_sigkill_of_one_process_then_relaunch_is_bit_exact(same_clips, never_kil
     assert second.returncode == 137, output(second)
     assert resumed_from(second) == set(kept[-1:]), output(second)
     assert committed(workdir) == [2], "checkpoint 4 must not be committed: one process never finished it"
-    assert any(p.name.startswith("4.") for p in (workdir / "checkpoints").iterdir()), \
+    assert any(p.name.startswith("4.") for p in (workdir / "checkpoints").iterdir()), (
         "expected the killed write of checkpoint 4 to have left its temporary folder"
+    )
 
     # 3. relaunched once more: resumes from 2 and finishes; every logged loss equals the unkilled run's
     third = launch(same_clips, workdir)
@@ -104,14 +135,14 @@ def test_sigkill_of_one_process_then_relaunch_is_bit_exact(same_clips, never_kil
     assert committed(workdir) == [2, 4, 6]
     assert [r["step"] for r in read_metrics(workdir)] == list(range(1, STEPS + 1))
     for key in ("loss", "grad_norm"):
-        assert losses(workdir, key) == losses(never_killed, key), key     # bit for bit
+        assert losses(workdir, key) == losses(never_killed, key), key  # bit for bit
 
 
 @pytest.mark.parametrize("devices, mesh", [(8, ["mesh.data=2", "mesh.seq=4"]), (2, ["mesh.data=2", "mesh.seq=1"])])
 def test_a_two_process_checkpoint_resumes_on_one_process(same_clips, never_killed, tmp_path, devices, mesh):
     workdir = tmp_path / "run"
     shutil.copytree(never_killed, workdir, ignore=shutil.ignore_patterns("tensorboard"))
-    for step in (4, 6):                                            # as if the 2 x 4 job stopped after step 2
+    for step in (4, 6):  # as if the 2 x 4 job stopped after step 2
         shutil.rmtree(workdir / "checkpoints" / str(step))
     rows = [r for r in read_metrics(workdir) if r["step"] <= 2]
     (workdir / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
@@ -130,6 +161,7 @@ def _bad_records_per_process(data, steps: int, processes: int, monkeypatch) -> l
 
     from jaxdrive.config import load_config
     from jaxdrive.train.run import Run
+
     cfg = load_config(ROOT / "configs" / "tiny.py", [f"data.path={data}", *SETS, "data.skip_bad_records=true"])
     out = []
     for p in range(processes):
@@ -147,16 +179,16 @@ def test_sigterm_to_one_process_stops_both_at_one_step_and_bad_records_are_summe
     there. Two of the four clips sit in truncated shards (data.skip_bad_records): each process
     counts the ones it replaced, and metrics.jsonl holds the sum over both, step by step, across
     the resume."""
-    data = write_same_clips(tmp_path / "data", seed=7, frames=5, copies=4, shard_bytes=1)   # a clip a shard
+    data = write_same_clips(tmp_path / "data", seed=7, frames=5, copies=4, shard_bytes=1)  # a clip a shard
     for shard in shard_files(data)[1:3]:
         truncate(shard)
     per_process = _bad_records_per_process(data, STEPS, 2, monkeypatch)
-    assert all(sum(c) > 0 for c in per_process), per_process           # both processes meet bad clips
+    assert all(sum(c) > 0 for c in per_process), per_process  # both processes meet bad clips
     workdir = tmp_path / "run"
     first = launch(data, workdir, kill="1:term:3", sets=["data.skip_bad_records=true"])
-    assert first.returncode == 143, output(first)                     # "interrupted", not a hang or a kill
+    assert first.returncode == 143, output(first)  # "interrupted", not a hang or a kill
     saved = [line for line in first.stdout.splitlines() if "signal SIGTERM: saved checkpoint" in line]
-    assert sorted(line[:3] for line in saved) == ["[0]", "[1]"], output(first)   # both processes, at step 3
+    assert sorted(line[:3] for line in saved) == ["[0]", "[1]"], output(first)  # both processes, at step 3
     assert all(line.split("saved checkpoint ")[1].startswith(str(workdir / "checkpoints" / "3")) for line in saved)
     assert committed(workdir) == [2, 3]
 

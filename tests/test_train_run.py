@@ -30,14 +30,30 @@ def dataset(tmp_path_factory):
     return write_synthetic(tmp_path_factory.mktemp("synth") / "data")
 
 
-SMALLER = ["data.views=2", "data.frames=5", "data.batch_size=2", "model.depth=1", "optim.warmup_steps=2",
-           "train.log_every=1"]
+SMALLER = [
+    "data.views=2",
+    "data.frames=5",
+    "data.batch_size=2",
+    "model.depth=1",
+    "optim.warmup_steps=2",
+    "train.log_every=1",
+]
 
 
 def tiny(dataset, *sets):
     """configs/tiny.py shrunk for tests: 2 views, 5 frames, one layer, on a data=2 x seq=4 mesh."""
-    return load_config(TINY, [f"data.path={dataset}", *SMALLER, "train.steps=4", "train.checkpoint_every=2",
-                              "mesh.data=2", "mesh.seq=4", *sets])
+    return load_config(
+        TINY,
+        [
+            f"data.path={dataset}",
+            *SMALLER,
+            "train.steps=4",
+            "train.checkpoint_every=2",
+            "mesh.data=2",
+            "mesh.seq=4",
+            *sets,
+        ],
+    )
 
 
 def test_space_to_depth_round_trip_and_layout():
@@ -54,15 +70,15 @@ def test_draw_levels_condition_anchor_and_generated_frames():
     cfg = FlowConfig(cond_frames=2, cond_frames_random=False, jdc_anchor_rate=0.5, jdc_slope=0.5)
     sigma, cond, levels, anchor = flow_step.draw_levels(jax.random.key(1), x, cfg, height=16, width=16)
     assert cond.shape == (512, 6) and bool(jnp.all(cond[:, :2])) and not bool(jnp.any(cond[:, 2:]))
-    np.testing.assert_array_equal(levels[:, :2], 0.0)                       # clean condition frames
+    np.testing.assert_array_equal(levels[:, :2], 0.0)  # clean condition frames
     np.testing.assert_allclose(levels[:, 2:5], jnp.broadcast_to(sigma[:, None], (512, 3)))
-    anchored = np.isclose(levels[:, 5], 0.5 * sigma)                          # g = slope * sigma
+    anchored = np.isclose(levels[:, 5], 0.5 * sigma)  # g = slope * sigma
     assert np.all(anchored | np.isclose(levels[:, 5], sigma))
-    assert 0.35 < anchored.mean() < 0.65                                      # about the anchor rate
-    np.testing.assert_array_equal(anchor[:, 5], anchored)                     # the mask says which
+    assert 0.35 < anchored.mean() < 0.65  # about the anchor rate
+    np.testing.assert_array_equal(anchor[:, 5], anchored)  # the mask says which
     assert not bool(jnp.any(anchor[:, :5]))
     rand = flow_step.draw_levels(jax.random.key(2), x, FlowConfig(cond_frames=3), height=16, width=16)[1]
-    assert set(np.asarray(rand.sum(1)).tolist()) == {0, 1, 2, 3}              # 0..cond_frames per clip
+    assert set(np.asarray(rand.sum(1)).tolist()) == {0, 1, 2, 3}  # 0..cond_frames per clip
 
 
 def test_model_inputs_map_the_pipeline_drops(dataset):
@@ -71,7 +87,7 @@ def test_model_inputs_map_the_pipeline_drops(dataset):
     batch = next(iter(run.dataset()))
     batch["drop"] = {n: np.array([True, False]) for n in ("text", "camera", "trajectory", "boxes", "map")}
     inputs = model_inputs(batch, run.training.model)
-    assert sorted(inputs["cond"].drop) == ["camera", "text", "waypoints"]     # the tiny model's conditions
+    assert sorted(inputs["cond"].drop) == ["camera", "text", "waypoints"]  # the tiny model's conditions
     assert inputs["cond"].text.dtype == np.int32 and inputs["cond"].text.shape == (2, cfg.model.text_len)
     assert inputs["video"].shape == (2, 2, 5, 32, 56, 3)
 
@@ -111,19 +127,25 @@ def test_non_finite_losses_skip_and_stop_with_the_last_good_state(dataset, tmp_p
 
     def poisoned(self, micro_batches):
         calls.append(1)
-        if len(calls) >= 2:                                   # every batch from step 2 on holds a NaN
+        if len(calls) >= 2:  # every batch from step 2 on holds a NaN
             for b in micro_batches:
                 b["video"] = np.array(b["video"], copy=True)
                 b["video"][0, 0, 0, 0, 0, 0] = np.nan
         return original(self, micro_batches)
+
     monkeypatch.setattr(Run, "global_batch", poisoned)
-    messages = []           # the deprecated log= callable still gets the messages, for one release
-    with caplog.at_level(logging.WARNING, logger="jaxdrive.train.run"), \
-            pytest.warns(DeprecationWarning, match=r"jaxdrive\.train\.run\.train\(log=\.\.\.\) is deprecated"):
+    messages = []  # the deprecated log= callable still gets the messages, for one release
+    with (
+        caplog.at_level(logging.WARNING, logger="jaxdrive.train.run"),
+        pytest.warns(DeprecationWarning, match=r"jaxdrive\.train\.run\.train\(log=\.\.\.\) is deprecated"),
+    ):
         out = train(cfg, tmp_path / "nan", progress=False, log=messages.append)
     assert out["status"] == "diverged" and out["step"] == 3
-    assert any("2 non-finite losses in a row at step 3" in r.getMessage() for r in caplog.records
-               if r.levelno == logging.WARNING)
+    assert any(
+        "2 non-finite losses in a row at step 3" in r.getMessage()
+        for r in caplog.records
+        if r.levelno == logging.WARNING
+    )
     assert any("2 non-finite losses in a row at step 3" in m for m in messages)
     state = out["state"]
     assert int(state.skipped) == 2 and int(state.step) == 3
@@ -131,20 +153,25 @@ def test_non_finite_losses_skip_and_stop_with_the_last_good_state(dataset, tmp_p
         assert np.all(np.isfinite(np.asarray(leaf)))
     assert (tmp_path / "nan" / "checkpoints" / "3").is_dir()
     rows = {r["step"]: r for r in read_metrics(tmp_path / "nan")}
-    assert [(rows[s]["skipped"], rows[s]["bad_steps"], rows[s]["last_good_step"]) for s in (2, 3)] == \
-        [(1, 1, 1), (2, 2, 1)]
+    assert [(rows[s]["skipped"], rows[s]["bad_steps"], rows[s]["last_good_step"]) for s in (2, 3)] == [
+        (1, 1, 1),
+        (2, 2, 1),
+    ]
     events = b"".join(p.read_bytes() for p in (tmp_path / "nan" / "tensorboard").rglob("*tfevents*"))
     assert b"skipped" in events and b"last_good_step" in events
 
 
-@pytest.mark.parametrize("sets, match", [
-    (["mesh.data=3"], r"mesh: expected sizes whose product is the device count 8"),
-    (["train.on_save_error=retry"], r"train.on_save_error: expected one of \['continue', 'stop'\], got 'retry'"),
-    (["data.batch_size=3", "mesh.data=2"], r"data.batch_size: expected a multiple of"),
-    (["model.heads=3", "mesh.tensor=2", "mesh.seq=2"], r"model.heads: expected a multiple of the mesh axis tensor"),
-    (["model.in_channels=16"], r"model.in_channels: expected 48 to match the latents"),
-    (["data.height=30"], r"data.height, data.width: expected multiples"),
-])
+@pytest.mark.parametrize(
+    "sets, match",
+    [
+        (["mesh.data=3"], r"mesh: expected sizes whose product is the device count 8"),
+        (["train.on_save_error=retry"], r"train.on_save_error: expected one of \['continue', 'stop'\], got 'retry'"),
+        (["data.batch_size=3", "mesh.data=2"], r"data.batch_size: expected a multiple of"),
+        (["model.heads=3", "mesh.tensor=2", "mesh.seq=2"], r"model.heads: expected a multiple of the mesh axis tensor"),
+        (["model.in_channels=16"], r"model.in_channels: expected 48 to match the latents"),
+        (["data.height=30"], r"data.height, data.width: expected multiples"),
+    ],
+)
 def test_bad_configs_fail_before_compiling(dataset, sets, match):
     with pytest.raises(ValueError, match=match):
         Run(tiny(dataset, *sets))
@@ -155,15 +182,41 @@ def test_cli_rejects_unknown_keys_and_bad_meshes(dataset, tmp_path, capsys):
     assert "unknown key 'lrate' in optim" in capsys.readouterr().err
     assert cli(["train", "--config", str(TINY), "--workdir", str(tmp_path), "--set", "train.steps=x"]) == 2
     assert "train.steps: expected int, got 'x'" in capsys.readouterr().err
-    assert cli(["train", "--config", str(TINY), "--workdir", str(tmp_path), "--mesh", "data=3",
-                "--set", f"data.path={dataset}"]) == 2
+    assert (
+        cli(
+            [
+                "train",
+                "--config",
+                str(TINY),
+                "--workdir",
+                str(tmp_path),
+                "--mesh",
+                "data=3",
+                "--set",
+                f"data.path={dataset}",
+            ]
+        )
+        == 2
+    )
     assert "product is the device count 8" in capsys.readouterr().err
 
 
 def test_cli_train_then_sample_writes_video_and_grid(dataset, tmp_path):
     work = tmp_path / "run"
-    args = ["train", "--config", str(TINY), "--workdir", str(work), "--steps", "2", "--checkpoint-every", "1",
-            "--mesh", "data=2,seq=4", "--no-progress"]
+    args = [
+        "train",
+        "--config",
+        str(TINY),
+        "--workdir",
+        str(work),
+        "--steps",
+        "2",
+        "--checkpoint-every",
+        "1",
+        "--mesh",
+        "data=2,seq=4",
+        "--no-progress",
+    ]
     for s in [f"data.path={dataset}", *SMALLER]:
         args += ["--set", s]
     assert cli(args) == 0
@@ -171,8 +224,26 @@ def test_cli_train_then_sample_writes_video_and_grid(dataset, tmp_path):
     assert rows[-1]["step"] == 2 and "loss" in rows[-1] and "tokens_per_s" in rows[-1]
     assert any(p.name.startswith("events") for p in (work / "tensorboard").iterdir())
     out = tmp_path / "sample"
-    assert cli(["sample", "--workdir", str(work), "--frames", "9", "--steps", "2", "--cfg", "2.0",
-                "--out", str(out), "--mesh", "data=1,seq=8"]) == 0
+    assert (
+        cli(
+            [
+                "sample",
+                "--workdir",
+                str(work),
+                "--frames",
+                "9",
+                "--steps",
+                "2",
+                "--cfg",
+                "2.0",
+                "--out",
+                str(out),
+                "--mesh",
+                "data=1,seq=8",
+            ]
+        )
+        == 0
+    )
     assert (out / "sample.mp4").stat().st_size > 0 and (out / "frames.png").stat().st_size > 0
     latents = np.load(out / "latents.npy")
     assert latents.shape == (1, 2, 9, 8, 14, 48) and np.all(np.isfinite(latents))
@@ -181,10 +252,11 @@ def test_cli_train_then_sample_writes_video_and_grid(dataset, tmp_path):
 @pytest.mark.parametrize("name", ["tiny", "world", "small", "mila", "magicdrive_v2", "longdwm", "stdit3_xl"])
 def test_every_config_loads_and_checks(name):
     from jaxdrive.config import check_sections
+
     config = load_config(ROOT / "configs" / f"{name}.py")
     check_sections(config)
     assert config.model.in_channels == (48 if config.latents.source == "space_to_depth" else 16)
-    if name == "world":     # the controls the bench found learnable, and not the others
+    if name == "world":  # the controls the bench found learnable, and not the others
         on = config.model.controls.enabled()
         assert {"waypoints", "boxes", "camera"} <= set(on) and config.model.controls.layout, on
         assert not {"trajectory", "map"} & set(on) and not config.model.controls.boxes, on
@@ -196,14 +268,32 @@ def test_every_config_loads_and_checks(name):
 def test_demo_runs_end_to_end(tmp_path, capsys):
     # no mesh given: the demo fits its batch of 2 to the 8 test devices (data 2 x seq 4)
     sets = [*SMALLER, "train.sample_steps=2", "train.checkpoint_every=100"]
-    args = ["demo", "--workdir", str(tmp_path / "demo"), "--steps", "2", "--scenes", "4", "--frames", "9",
-            "--routes", "stop", "--no-progress"]
+    args = [
+        "demo",
+        "--workdir",
+        str(tmp_path / "demo"),
+        "--steps",
+        "2",
+        "--scenes",
+        "4",
+        "--frames",
+        "9",
+        "--routes",
+        "stop",
+        "--no-progress",
+    ]
     for s in sets:
         args += ["--set", s]
     assert cli(args) == 0
     out = capsys.readouterr().out
-    for name in ("sample.mp4", "frames.png", "loss.png", "quality.json", "repeat last given",
-                 "mesh: data=2 x seq=4 over the 8 cpu devices"):
+    for name in (
+        "sample.mp4",
+        "frames.png",
+        "loss.png",
+        "quality.json",
+        "repeat last given",
+        "mesh: data=2 x seq=4 over the 8 cpu devices",
+    ):
         assert name in out
     assert (tmp_path / "demo" / "samples" / "demo" / "sample.mp4").stat().st_size > 0
     q = json.loads((tmp_path / "demo" / "samples" / "demo" / "quality.json").read_text())
@@ -225,17 +315,29 @@ def test_demo_recipe_learns_a_continuation_not_noise(dataset, tmp_path):
     data's standard deviation, saturated colour noise) and beat noise on PSNR by a margin."""
     from jaxdrive.eval.frames import clip_quality
     from jaxdrive.generate.samples import generate
-    config = load_config(TINY, [f"data.path={dataset}", "data.views=2", "data.frames=5", "train.steps=150",
-                                "train.checkpoint_every=0", "train.log_every=50", "optim.warmup_steps=10",
-                                "mesh.data=2", "mesh.seq=4"])
+
+    config = load_config(
+        TINY,
+        [
+            f"data.path={dataset}",
+            "data.views=2",
+            "data.frames=5",
+            "train.steps=150",
+            "train.checkpoint_every=0",
+            "train.log_every=50",
+            "optim.warmup_steps=10",
+            "mesh.data=2",
+            "mesh.seq=4",
+        ],
+    )
     out = train(config, tmp_path / "run", progress=False)
     g = generate(out["run"].sampling(), out["state"].ema, frames=5, guidance=1.0, steps=10)
     data = out["run"].codec.encode(None, g.recorded)
-    ratio = float(np.std(g.latents[:, :, g.cond_frames:]) / np.std(np.asarray(data)[:, :, g.cond_frames:]))
+    ratio = float(np.std(g.latents[:, :, g.cond_frames :]) / np.std(np.asarray(data)[:, :, g.cond_frames :]))
     assert 0.75 < ratio < 1.25, ratio
     q = clip_quality(g.video[0], g.recorded[0], cond_frames=g.cond_frames, window=g.window)["first_window"]
     assert q["psnr"] > q["noise_psnr"] + 3.0, q
-    assert q["psnr"] > q["repeat_psnr"] - 3.0, q          # the issue's goal for the demo's first window
+    assert q["psnr"] > q["repeat_psnr"] - 3.0, q  # the issue's goal for the demo's first window
 
 
 @pytest.mark.parametrize("choice", ["continue", "stop"])
@@ -243,6 +345,7 @@ def test_a_checkpoint_that_cannot_be_written_keeps_the_earlier_ones(dataset, tmp
     """Disk full at step 4's save (simulated): the message names it, checkpoint 2 stays readable, and
     the run goes on to step 6 or stops at 4, as train.on_save_error says."""
     from jaxdrive.train.checkpoint import Checkpoints
+
     cfg = tiny(dataset, "train.steps=6", "train.checkpoint_every=2", f"train.on_save_error={choice}")
     save = Checkpoints.save
 
@@ -250,12 +353,15 @@ def test_a_checkpoint_that_cannot_be_written_keeps_the_earlier_ones(dataset, tmp
         if step == 4:
             raise OSError(28, "No space left on device")
         return save(self, step, *args, **kwargs)
+
     monkeypatch.setattr(Checkpoints, "save", full_disk)
     with caplog.at_level(logging.WARNING, logger="jaxdrive.train.run"):
         out = train(cfg, tmp_path / choice, progress=False)
     messages = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
-    assert any("checkpoints/4 could not be written (OSError: [Errno 28] No space left on device); "
-               "checkpoints kept: [2]" in m for m in messages)
+    assert any(
+        "checkpoints/4 could not be written (OSError: [Errno 28] No space left on device); checkpoints kept: [2]" in m
+        for m in messages
+    )
     steps = sorted(int(p.name) for p in (tmp_path / choice / "checkpoints").iterdir() if p.name.isdigit())
     if choice == "continue":
         assert (out["status"], out["step"], steps) == ("done", 6, [2, 6])
@@ -277,9 +383,11 @@ def test_a_corrupt_shard_stops_the_run_or_is_skipped_and_counted(dataset, tmp_pa
     from jaxdrive.data.tfds_io import open_source, write_dataset
 
     from shard_faults import shard_files, truncate
-    splits = {s: [open_source(dataset, s)[i] for i in range(len(open_source(dataset, s)))]
-              for s in ("train", "validation")}
-    data = write_dataset(tmp_path / "data", splits, shard_bytes=1)           # one clip per shard
+
+    splits = {
+        s: [open_source(dataset, s)[i] for i in range(len(open_source(dataset, s)))] for s in ("train", "validation")
+    }
+    data = write_dataset(tmp_path / "data", splits, shard_bytes=1)  # one clip per shard
     shards = shard_files(data)
     for shard in shards[1:]:
         truncate(shard)
@@ -287,13 +395,13 @@ def test_a_corrupt_shard_stops_the_run_or_is_skipped_and_counted(dataset, tmp_pa
     with pytest.raises(ValueError, match="|".join(re.escape(f"{s}: record 0 (clip") for s in shards[1:])):
         train(cfg, tmp_path / "strict", progress=False)
 
-    cfg = tiny(data, "data.skip_bad_records=true")     # the step of the other tests: compiled once per module
+    cfg = tiny(data, "data.skip_bad_records=true")  # the step of the other tests: compiled once per module
     it = iter(Run(cfg).dataset())
     expected = np.cumsum([int(next(it)["bad_records"]) for _ in range(4)])
-    assert expected[-1] >= 4                                  # >= 1 unreadable clip in every batch of 2
+    assert expected[-1] >= 4  # >= 1 unreadable clip in every batch of 2
     out = train(cfg, tmp_path / "run", progress=False)
     assert out["status"] == "done" and out["step"] == 4
     assert [r["bad_records"] for r in read_metrics(tmp_path / "run")] == list(expected)
     assert out["bad_records"] == expected[-1]
-    again = train(cfg, tmp_path / "run", progress=False)       # resumed at its end: the count comes back
+    again = train(cfg, tmp_path / "run", progress=False)  # resumed at its end: the count comes back
     assert again["step"] == 4 and again["bad_records"] == expected[-1]

@@ -29,6 +29,7 @@ def random_params(vae, seed=0):
         if name == "kernel":
             return jnp.asarray(rng.normal(size=leaf.shape) / np.sqrt(np.prod(leaf.shape[:-1])), jnp.float32)
         return jnp.asarray((name == "scale") + 0.1 * rng.normal(size=leaf.shape), jnp.float32)
+
     return jax.tree_util.tree_map_with_path(draw, jax.eval_shape(vae.init, jax.random.PRNGKey(0)))
 
 
@@ -42,12 +43,14 @@ def test_init(tiny):
     vae, params = tiny
     fresh = vae.init(jax.random.PRNGKey(0))
     assert jax.tree_util.tree_structure(fresh) == jax.tree_util.tree_structure(params)
-    assert all(a.shape == b.shape and a.dtype == jnp.float32
-               for a, b in zip(jax.tree_util.tree_leaves(fresh), jax.tree_util.tree_leaves(params)))
+    assert all(
+        a.shape == b.shape and a.dtype == jnp.float32
+        for a, b in zip(jax.tree_util.tree_leaves(fresh), jax.tree_util.tree_leaves(params))
+    )
     conv = fresh["encoder"]["conv_in"]
     assert conv["kernel"].shape == (3, 3, 3, 3, 8) and float(jnp.std(conv["kernel"])) > 0
     assert float(jnp.abs(conv["bias"]).max()) == 0.0
-    boxed = vae.init(jax.random.PRNGKey(0), boxed=True)       # logical axis names for sharding
+    boxed = vae.init(jax.random.PRNGKey(0), boxed=True)  # logical axis names for sharding
     assert boxed["encoder"]["conv_in"]["kernel"].names == ("kernel", "kernel", "kernel", "channels", "channels")
 
 
@@ -55,11 +58,12 @@ def test_init_is_seeded_by_the_key_and_the_same_under_jit(tiny):
     vae, _ = tiny
     fresh = vae.init(jax.random.PRNGKey(0))
     for other in (jax.jit(vae.init)(jax.random.PRNGKey(0)), vae.init(jax.random.key(0))):
-        assert all(np.array_equal(a, b) for a, b in zip(jax.tree_util.tree_leaves(fresh),
-                                                         jax.tree_util.tree_leaves(other)))
+        assert all(
+            np.array_equal(a, b) for a, b in zip(jax.tree_util.tree_leaves(fresh), jax.tree_util.tree_leaves(other))
+        )
     again = vae.init(jax.random.PRNGKey(1))
     assert not np.array_equal(fresh["encoder"]["conv_in"]["kernel"], again["encoder"]["conv_in"]["kernel"])
-    kernel = np.asarray(fresh["encoder"]["conv_in"]["kernel"])          # flax's lecun_normal: fan in 3^3 x 3
+    kernel = np.asarray(fresh["encoder"]["conv_in"]["kernel"])  # flax's lecun_normal: fan in 3^3 x 3
     assert np.abs(kernel).max() <= 2 / np.sqrt(81) / 0.87962566103423978
 
 
@@ -127,7 +131,7 @@ def test_frame_wise_mode_encodes_each_frame_alone(tiny):
     x = _video((1, 17, 8, 12, 3))
     z = vae.encode(params, x, mode="frame_wise")
     for f in (0, 9):
-        np.testing.assert_allclose(z[:, f:f + 1], vae.encode(params, x[:, f:f + 1]), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(z[:, f : f + 1], vae.encode(params, x[:, f : f + 1]), rtol=1e-5, atol=1e-6)
 
 
 @pytest.mark.parametrize("k", [1, 3])
@@ -150,7 +154,6 @@ def test_frame_wise_mode_in_groups_of_frames_equals_all_at_once_and_holds_less(t
     assert temp(grouped) < 0.6 * temp(whole)
 
 
-
 @pytest.mark.parametrize("mode, k", [("chunked", 2), ("frame_wise", 1)])
 def test_clips_in_groups_equal_all_at_once_sharded_and_hold_less(tiny, mode, k):
     """``clip_batch`` k: k clips (views) of every device per ``lax.map`` step (the on-the-fly
@@ -159,7 +162,7 @@ def test_clips_in_groups_equal_all_at_once_sharded_and_hold_less(tiny, mode, k):
     vae, params = tiny
     grouped = CausalVAE(VAEConfig(**{**TINY.__dict__, "mode": mode, "clip_batch": k}))
     whole = CausalVAE(VAEConfig(**{**TINY.__dict__, "mode": mode}))
-    x = _video((4, 3, 5, 16, 16, 3), seed=4)                    # 12 folded clips
+    x = _video((4, 3, 5, 16, 16, 3), seed=4)  # 12 folded clips
     z = whole.encode(params, x)
     np.testing.assert_allclose(grouped.encode(params, x), z, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(grouped.decode(params, z), whole.decode(params, z), rtol=1e-5, atol=1e-5)
@@ -176,6 +179,7 @@ def test_clips_in_groups_equal_all_at_once_sharded_and_hold_less(tiny, mode, k):
     with pytest.raises(ValueError, match=r"clip_batch: expected clips per device and step >= 0 .* got -1"):
         VAEConfig(clip_batch=-1)
 
+
 def test_views_fold_into_the_batch_and_shard(tiny):
     """[B, V, F, H, W, 3] equals encoding each view alone; on a data=2 x fsdp=4 mesh, encode and
     decode give the single-device numbers with the folded batch sharded over both axes."""
@@ -186,12 +190,12 @@ def test_views_fold_into_the_batch_and_shard(tiny):
     np.testing.assert_allclose(z[:, 2], vae.encode(params, x[:, 2]), rtol=1e-5, atol=1e-6)
     mesh = make_mesh(data=2, fsdp=4)
     with jax.set_mesh(mesh):
-        xs = jax.device_put(x, NamedSharding(mesh, P("data")))   # folded, B x V = 8 rows split 8 ways
+        xs = jax.device_put(x, NamedSharding(mesh, P("data")))  # folded, B x V = 8 rows split 8 ways
         zs = vae.encode(params, xs)
         vs = vae.decode(params, zs)
     np.testing.assert_allclose(zs, z, rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(vs, vae.decode(params, z), rtol=1e-5, atol=1e-5)
-    assert tuple(zs.sharding.spec)[:2] == ("data", "fsdp")   # [B, V] = the folded 8-way split
+    assert tuple(zs.sharding.spec)[:2] == ("data", "fsdp")  # [B, V] = the folded 8-way split
 
 
 def test_frame_wise_mode_on_a_sharded_batch(tiny):
@@ -207,12 +211,15 @@ def test_frame_wise_mode_on_a_sharded_batch(tiny):
     assert tuple(zs.sharding.spec)[0] == ("data", "fsdp")
 
 
-@pytest.mark.parametrize("shape,match", [
-    ((1, 8, 8, 8, 3), r"video: expected 1 \+ 4k frames, got 8"),
-    ((1, 5, 8, 8, 4), "video: expected 3 channels"),
-    ((1, 5, 10, 8, 3), "video: expected height and width divisible by the spatial compression 4"),
-    ((5, 8, 8, 3), "video: expected 5 or 6 dimensions"),
-])
+@pytest.mark.parametrize(
+    "shape,match",
+    [
+        ((1, 8, 8, 8, 3), r"video: expected 1 \+ 4k frames, got 8"),
+        ((1, 5, 8, 8, 4), "video: expected 3 channels"),
+        ((1, 5, 10, 8, 3), "video: expected height and width divisible by the spatial compression 4"),
+        ((5, 8, 8, 3), "video: expected 5 or 6 dimensions"),
+    ],
+)
 def test_bad_video(tiny, shape, match):
     vae, params = tiny
     with pytest.raises(ValueError, match=match):
@@ -233,15 +240,18 @@ def test_bad_values_and_arguments(tiny):
     assert vae.encode(params, jnp.zeros((1, 8, 8, 8, 3)), mode="frame_wise").shape[1] == 8
 
 
-@pytest.mark.parametrize("changes,match", [
-    (dict(temporal_compression=3), "temporal_compression: expected a power of 2"),
-    (dict(temporal_compression=8), "temporal_compression: expected a power of 2 up to 4"),
-    (dict(block_out_channels=(8, 10, 16)), "block_out_channels: expected multiples of norm_num_groups 4"),
-    (dict(encode_chunk_frames=6), "encode_chunk_frames: expected a multiple of temporal_compression 4"),
-    (dict(mode="stream"), "mode: expected one of"),
-    (dict(frame_wise_batch=-1), r"frame_wise_batch: expected frames per step >= 0 \(0: all at once\), got -1"),
-    (dict(layers_per_block=0), "layers_per_block: expected an integer >= 1"),
-])
+@pytest.mark.parametrize(
+    "changes,match",
+    [
+        (dict(temporal_compression=3), "temporal_compression: expected a power of 2"),
+        (dict(temporal_compression=8), "temporal_compression: expected a power of 2 up to 4"),
+        (dict(block_out_channels=(8, 10, 16)), "block_out_channels: expected multiples of norm_num_groups 4"),
+        (dict(encode_chunk_frames=6), "encode_chunk_frames: expected a multiple of temporal_compression 4"),
+        (dict(mode="stream"), "mode: expected one of"),
+        (dict(frame_wise_batch=-1), r"frame_wise_batch: expected frames per step >= 0 \(0: all at once\), got -1"),
+        (dict(layers_per_block=0), "layers_per_block: expected an integer >= 1"),
+    ],
+)
 def test_bad_config(changes, match):
     with pytest.raises(ValueError, match=match):
         VAEConfig(**{**TINY.__dict__, **changes})
@@ -249,8 +259,9 @@ def test_bad_config(changes, match):
 
 def test_bad_tile_geometry_is_named_when_tiling(tiny):
     _, params = tiny
-    vae = CausalVAE(VAEConfig(**{**TINY.__dict__, "tiling": True, "tile_sample_height": 16,
-                                 "tile_sample_width": 16}))      # default overlaps leave gaps at 4x
+    vae = CausalVAE(
+        VAEConfig(**{**TINY.__dict__, "tiling": True, "tile_sample_height": 16, "tile_sample_width": 16})
+    )  # default overlaps leave gaps at 4x
     with pytest.raises(ValueError, match="tile_overlap_height: expected a tile size and overlap"):
         vae.encode(params, jnp.zeros((1, 1, 32, 32, 3)))
     assert vae.encode(params, jnp.zeros((1, 1, 32, 32, 3)), tiled=False).shape == (1, 1, 8, 8, 4)
@@ -259,7 +270,7 @@ def test_bad_tile_geometry_is_named_when_tiling(tiny):
 def test_saved_model_round_trip_is_atomic(tiny, tmp_path):
     vae, params = tiny
     path = save_pretrained(tmp_path / "vae", vae, params)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["vae"]        # no staging left behind
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["vae"]  # no staging left behind
     assert json.loads((path / "model.json").read_text())["kind"] == "vae"
     loaded, restored = load_pretrained(path, mode="whole")
     assert loaded.config == VAEConfig(**{**TINY.__dict__, "mode": "whole"})
@@ -281,19 +292,20 @@ def test_kl_worked_number():
     assert float(kl_to_standard_normal(jnp.ones((1, 4)), jnp.zeros((1, 4)))[0]) == pytest.approx(2.0)
     assert float(kl_to_standard_normal(jnp.zeros((1, 4)), jnp.zeros((1, 4)))[0]) == 0.0
     # logvar = log 2, mean 0, one element: 1/2 (2 - 1 - log 2)
-    assert float(kl_to_standard_normal(jnp.zeros((1, 1)), jnp.log(2.0) * jnp.ones((1, 1)))[0]) == \
-        pytest.approx(0.5 * (1 - np.log(2)), rel=1e-6)
+    assert float(kl_to_standard_normal(jnp.zeros((1, 1)), jnp.log(2.0) * jnp.ones((1, 1)))[0]) == pytest.approx(
+        0.5 * (1 - np.log(2)), rel=1e-6
+    )
 
 
 def test_loss_terms_and_perceptual_hook(tiny):
     vae, params = tiny
-    x = _video((2, 4, 5, 8, 8, 3), seed=1)     # the shapes of the views test: compiled already
+    x = _video((2, 4, 5, 8, 8, 3), seed=1)  # the shapes of the views test: compiled already
     key = jax.random.PRNGKey(3)
     loss, m = vae_loss(vae, params, x, key, VAELossConfig(kl_weight=0.01))
-    mean, logvar = vae.posterior(params, x)                   # the same terms, written out
+    mean, logvar = vae.posterior(params, x)  # the same terms, written out
     z = mean + jnp.exp(0.5 * logvar) * jax.random.normal(key, mean.shape)
     assert float(m["recon"]) == pytest.approx(float(jnp.mean(jnp.abs(vae.decode(params, z) - x))), rel=1e-5)
-    kl = 0.5 * jnp.sum(mean ** 2 + jnp.exp(logvar) - 1 - logvar) / 8          # 8 clips (2 x 4 views)
+    kl = 0.5 * jnp.sum(mean**2 + jnp.exp(logvar) - 1 - logvar) / 8  # 8 clips (2 x 4 views)
     assert float(m["kl"]) == pytest.approx(float(kl), rel=1e-5)
     assert float(loss) == pytest.approx(float(m["recon"] + 0.01 * m["kl"]), rel=1e-6)
     calls = []
@@ -301,8 +313,9 @@ def test_loss_terms_and_perceptual_hook(tiny):
     def perceptual(pred, target):
         calls.append(pred.shape)
         return jnp.mean(jnp.square(pred - target)) + 1.0
+
     loss_p, mp = vae_loss(vae, params, x, key, VAELossConfig(kl_weight=0.01, perceptual_weight=0.5), perceptual)
-    assert calls == [(40, 8, 8, 3)]                       # frames of every view and clip
+    assert calls == [(40, 8, 8, 3)]  # frames of every view and clip
     assert float(loss_p) == pytest.approx(float(loss + 0.5 * mp["perceptual"]), rel=1e-6)
     with pytest.raises(ValueError, match="perceptual: expected a callable"):
         vae_loss(vae, params, x, key, VAELossConfig(perceptual_weight=1.0))
@@ -312,7 +325,7 @@ def test_loss_terms_and_perceptual_hook(tiny):
 
 def test_train_step_reduces_the_loss(tiny):
     vae, params = tiny
-    params = jax.tree_util.tree_map(jnp.copy, params)    # the step donates its inputs
+    params = jax.tree_util.tree_map(jnp.copy, params)  # the step donates its inputs
     x = _video((2, 5, 8, 8, 3), seed=4)
     opt = optax.adam(3e-3)
     state = opt.init(params)

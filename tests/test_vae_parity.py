@@ -32,8 +32,13 @@ CONFIGS = {
     # 4 blocks, 2 layers, 8 groups, 6 latent channels: 8x space, channel changes in the shortcuts
     "b4": dict(block_out_channels=(8, 16, 16, 24), latent_channels=6, layers_per_block=2, norm_num_groups=8),
     # 2x temporal compression
-    "t2": dict(block_out_channels=(8, 16, 16), latent_channels=4, layers_per_block=1, norm_num_groups=4,
-               temporal_compression_ratio=2),
+    "t2": dict(
+        block_out_channels=(8, 16, 16),
+        latent_channels=4,
+        layers_per_block=1,
+        norm_num_groups=4,
+        temporal_compression_ratio=2,
+    ),
 }
 
 
@@ -48,9 +53,13 @@ def _pair(name, root):
     cfg = CONFIGS[name]
     torch.manual_seed(0)
     n = len(cfg["block_out_channels"])
-    model = diffusers.AutoencoderKLCogVideoX(down_block_types=("CogVideoXDownBlock3D",) * n,
-                                             up_block_types=("CogVideoXUpBlock3D",) * n,
-                                             sample_height=32, sample_width=32, **cfg).eval()
+    model = diffusers.AutoencoderKLCogVideoX(
+        down_block_types=("CogVideoXDownBlock3D",) * n,
+        up_block_types=("CogVideoXUpBlock3D",) * n,
+        sample_height=32,
+        sample_width=32,
+        **cfg,
+    ).eval()
     with torch.no_grad():  # non-trivial norm affine parameters, so their mapping is checked too
         for pname, p in model.named_parameters():
             if "norm" in pname:
@@ -62,11 +71,13 @@ def _pair(name, root):
 
 
 def _video(frames, height, width, seed):
-    return torch.rand(1 if frames > 17 else 2, 3, frames, height, width,
-                      generator=torch.Generator().manual_seed(seed)) * 2 - 1
+    return (
+        torch.rand(1 if frames > 17 else 2, 3, frames, height, width, generator=torch.Generator().manual_seed(seed)) * 2
+        - 1
+    )
 
 
-def _to_jax(t):   # [B, C, T, H, W] -> [B, T, H, W, C]
+def _to_jax(t):  # [B, C, T, H, W] -> [B, T, H, W, C]
     return jnp.asarray(t.numpy().transpose(0, 2, 3, 4, 1))
 
 
@@ -120,8 +131,12 @@ def test_whole_clip_matches_diffusers_encoder_and_decoder(tmp_dir, name):
 def test_tiled_encode_decode_match_diffusers(tmp_dir):
     model, _, _, path = _pair("b3", str(tmp_dir))
     tile = dict(tile_sample_height=16, tile_sample_width=16, tile_overlap_height=0.25, tile_overlap_width=0.25)
-    model.enable_tiling(tile_sample_min_height=16, tile_sample_min_width=16,
-                        tile_overlap_factor_height=0.25, tile_overlap_factor_width=0.25)
+    model.enable_tiling(
+        tile_sample_min_height=16,
+        tile_sample_min_width=16,
+        tile_overlap_factor_height=0.25,
+        tile_overlap_factor_width=0.25,
+    )
     try:
         vae, params = load_diffusers_vae(path, tiling=True, **tile)
         x = torch.rand(1, 3, 9, 40, 28, generator=torch.Generator().manual_seed(2)) * 2 - 1
@@ -133,7 +148,7 @@ def test_tiled_encode_decode_match_diffusers(tmp_dir):
     assert _err(vae.encode(params, _to_jax(x)), _to_np(mean)) <= TOL
     z = jnp.asarray(_to_np(mean))
     assert _err(vae.decode(params, z), _to_np(video)) <= TOL
-    assert _err(vae.decode(params, z, tiled=False), _to_np(video)) > 100 * TOL   # tiling was used
+    assert _err(vae.decode(params, z, tiled=False), _to_np(video)) > 100 * TOL  # tiling was used
 
 
 @pytest.mark.parametrize("frames", [5, 13])
@@ -144,11 +159,11 @@ def test_even_latent_count_keeps_the_frame_correspondence(tmp_dir, frames):
         mean = model.encode(x).latent_dist.mean
         theirs = model.decode(mean).sample
     z = vae.encode(params, _to_jax(x))
-    assert _err(z, _to_np(mean)) <= TOL                       # encoding agrees
+    assert _err(z, _to_np(mean)) <= TOL  # encoding agrees
     latents = z.shape[1]
     assert latents % 2 == 0
-    assert theirs.shape[2] == 4 * latents                     # diffusers: 4 F' frames
-    assert vae.decode(params, z).shape[1] == frames == vae.video_frames(latents)   # jaxdrive: 1 + 4k
+    assert theirs.shape[2] == 4 * latents  # diffusers: 4 F' frames
+    assert vae.decode(params, z).shape[1] == frames == vae.video_frames(latents)  # jaxdrive: 1 + 4k
 
 
 def _copy_with(src, dst, *, drop=(), add=None, config=None):
@@ -173,14 +188,15 @@ def _copy_with(src, dst, *, drop=(), add=None, config=None):
 def test_import_errors_name_the_file_and_the_keys(tmp_dir, tmp_path):
     _, _, _, path = _pair("b3", str(tmp_dir))
     dropped = "decoder.mid_block.resnets.0.norm1.conv_y.conv.weight"
-    bad = _copy_with(path, tmp_path / "keys", drop=[dropped],
-                     add={"encoder.extra.weight": np.zeros((2, 2), np.float32)})
+    bad = _copy_with(
+        path, tmp_path / "keys", drop=[dropped], add={"encoder.extra.weight": np.zeros((2, 2), np.float32)}
+    )
     with pytest.raises(ValueError, match=r"diffusion_pytorch_model.safetensors: weights do not match") as e:
         load_diffusers_vae(bad)
-    assert ("unknown keys (1): ['encoder.extra.weight']" in str(e.value)
-            and "decoder/mid_block_resnets_0/norm1/conv_y/kernel" in str(e.value))
-    wrong = _copy_with(path, tmp_path / "shape",
-                       add={"encoder.conv_in.conv.bias": np.zeros((5,), np.float32)})
+    assert "unknown keys (1): ['encoder.extra.weight']" in str(
+        e.value
+    ) and "decoder/mid_block_resnets_0/norm1/conv_y/kernel" in str(e.value)
+    wrong = _copy_with(path, tmp_path / "shape", add={"encoder.conv_in.conv.bias": np.zeros((5,), np.float32)})
     with pytest.raises(ValueError, match=r"shape mismatches .*encoder/conv_in/bias: expected \[8\], got \[5\]"):
         load_diffusers_vae(wrong)
     # a truncated file

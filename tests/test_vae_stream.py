@@ -29,8 +29,12 @@ def _latents(frames, h=2, w=2, channels=4, seed=0):
 
 def _parts(total, pattern):
     """Split ``total`` frames: "ones", "uneven" (2, 1, 3, 2, 1, 3, ...), "all" or "zero_first"."""
-    sizes = {"ones": itertools.repeat(1), "uneven": itertools.cycle((2, 1, 3)),
-             "all": itertools.repeat(total), "zero_first": itertools.chain((0,), itertools.repeat(2))}[pattern]
+    sizes = {
+        "ones": itertools.repeat(1),
+        "uneven": itertools.cycle((2, 1, 3)),
+        "all": itertools.repeat(total),
+        "zero_first": itertools.chain((0,), itertools.repeat(2)),
+    }[pattern]
     out, done = [], 0
     for n in sizes:
         if done == total and out:
@@ -65,7 +69,7 @@ def test_chunked_stream_returns_each_chunk_when_it_is_complete(params):
     nothing at frame 4, then the last 8; flush returns nothing more."""
     dec = _codec(params).stream_decoder(5)
     z = _latents(5)
-    assert [dec.push(z[:, :, i:i + 1]).shape[2] for i in range(5)] == [0, 0, 9, 0, 8]
+    assert [dec.push(z[:, :, i : i + 1]).shape[2] for i in range(5)] == [0, 0, 9, 0, 8]
     assert dec.flush().shape == (1, 2, 0, 8, 8, 3)
 
 
@@ -76,7 +80,7 @@ def test_the_steady_chunk_sees_the_earlier_latents_through_the_cache(params):
     z = _latents(4, seed=3)
     w = z.copy()
     w[:, :, 0] += 1.0
-    last = [_stream(codec, x, "ones")[-2] for x in (z, w)]       # chunks (2, 2): the frames of the second
+    last = [_stream(codec, x, "ones")[-2] for x in (z, w)]  # chunks (2, 2): the frames of the second
     assert last[0].shape[2] == 8 and np.abs(last[0] - last[1]).max() > 1e-3
 
 
@@ -84,12 +88,18 @@ def test_tiled_chunked_stream_equals_the_whole_tiled_decode(params):
     """With tiling on (16-pixel tiles, a quarter overlap) and 8 x 28 frames (tiles of 4 and 1
     latent columns), every tile keeps its own cache: the stream equals the whole-clip tiled
     decode."""
-    codec = _codec(params, tiling=True, tile_sample_height=16, tile_sample_width=16,
-                   tile_overlap_height=0.25, tile_overlap_width=0.25)
+    codec = _codec(
+        params,
+        tiling=True,
+        tile_sample_height=16,
+        tile_sample_width=16,
+        tile_overlap_height=0.25,
+        tile_overlap_width=0.25,
+    )
     z = _latents(4, h=2, w=7, seed=5)
     whole = np.asarray(codec.decode(params, z))
     assert whole.shape == (1, 2, 13, 8, 28, 3)
-    assert codec.vae._tiles(z[0], "tile_latent", True) is not None          # the tiled path runs
+    assert codec.vae._tiles(z[0], "tile_latent", True) is not None  # the tiled path runs
     dec = codec.stream_decoder(4)
     parts = [dec.push(z[:, :, a:b]) for a, b in _parts(4, "uneven")] + [dec.flush()]
     assert [p.shape[2] for p in parts] == [5, 0, 8, 0]
@@ -104,7 +114,7 @@ def test_frame_wise_stream_equals_the_whole_clip_decode(params):
     for pattern in ("ones", "zero_first"):
         dec = codec.stream_decoder(5)
         sizes = [dec.push(z[:, :, a:b]).shape[2] for a, b in _parts(5, pattern)]
-        assert sizes == [b - a for a, b in _parts(5, pattern)]           # every frame decodes at once
+        assert sizes == [b - a for a, b in _parts(5, pattern)]  # every frame decodes at once
         parts = _stream(codec, z, pattern)
         np.testing.assert_allclose(np.concatenate(parts, axis=2), whole, rtol=0, atol=1e-5)
 
@@ -126,7 +136,7 @@ def test_long_stream_compiles_twice_and_keeps_a_fixed_cache(params):
     z = _latents(21, seed=4)
     shapes, frames = [], 0
     for i in range(21):
-        frames += dec.push(z[:, :, i:i + 1]).shape[2]
+        frames += dec.push(z[:, :, i : i + 1]).shape[2]
         if dec._cache is not None:
             shapes.append(jax.tree_util.tree_map(np.shape, dec._cache))
     dec.flush()
@@ -136,8 +146,7 @@ def test_long_stream_compiles_twice_and_keeps_a_fixed_cache(params):
 
 
 def test_whole_mode_cannot_stream(params):
-    with pytest.raises(ValueError,
-                       match=r"latents.vae_mode: expected one of \['chunked', 'frame_wise'\].*got 'whole'"):
+    with pytest.raises(ValueError, match=r"latents.vae_mode: expected one of \['chunked', 'frame_wise'\].*got 'whole'"):
         _codec(params, mode="whole").stream_decoder(5)
 
 

@@ -40,8 +40,8 @@ def test_a_forward_move_scales_about_the_principal_point_as_eq_9_says():
     np.testing.assert_allclose(p[:2] / p[2], [75.0, 40.0], atol=1e-4)
     image = ramp_image()
     warped, hole = depth_free_warp(image, K, translation(0, 0, -2)[None], 10.0)
-    np.testing.assert_allclose(warped[0, 40, 75, 0], 70.0 / W, atol=1e-5)       # reads the source at u = 70
-    assert not bool(hole.any())                          # moving forward, every target pixel has a source
+    np.testing.assert_allclose(warped[0, 40, 75, 0], 70.0 / W, atol=1e-5)  # reads the source at u = 70
+    assert not bool(hole.any())  # moving forward, every target pixel has a source
     # the same motion from the ego's 2 m forward through the front camera's extrinsics
     motion = camera_motion(translation(2, 0, 0)[None], FRONT[None])[0, 0]
     np.testing.assert_allclose(motion, translation(0, 0, -2), atol=1e-5)
@@ -70,10 +70,10 @@ def test_the_spline_passes_through_the_points_with_the_tangent_heading():
     points = np.asarray([[0, 0], [5, 0.5], [10, 2], [14, 5], [16, 9]], np.float32)
     poses = trajectory_poses(points, 25)
     assert poses.shape == (25, 4, 4)
-    np.testing.assert_allclose(poses[[0, 6, 12, 18, 24], :2, 3], points, atol=1e-4)   # frames 0, 6, ... 24
-    np.testing.assert_allclose(poses[0], np.eye(4), atol=1e-6)                       # starts heading along x
+    np.testing.assert_allclose(poses[[0, 6, 12, 18, 24], :2, 3], points, atol=1e-4)  # frames 0, 6, ... 24
+    np.testing.assert_allclose(poses[0], np.eye(4), atol=1e-6)  # starts heading along x
     yaw = np.arctan2(poses[:, 1, 0], poses[:, 0, 0])
-    assert np.all(np.diff(yaw) > 0) and yaw[-1] > 1.0                              # a left turn
+    assert np.all(np.diff(yaw) > 0) and yaw[-1] > 1.0  # a left turn
     step = np.diff(poses[:, :2, 3], axis=0)
     np.testing.assert_allclose(np.arctan2(step[:, 1], step[:, 0]), (yaw[1:] + yaw[:-1]) / 2, atol=0.05)
     rot = poses[:, :3, :3]
@@ -86,13 +86,16 @@ def test_a_stop_holds_its_heading():
     np.testing.assert_allclose(np.arctan2(poses[-1, 1, 0], poses[-1, 0, 0]), np.pi / 4, atol=1e-6)
 
 
-@pytest.mark.parametrize("points, frames, times, match", [
-    ([[0, 0]], 5, None, "points: expected"),
-    ([[0, 0], [1, np.nan]], 5, None, "points: expected finite"),
-    ([[0, 0, 0], [1, 1, 1]], 5, None, "points: expected"),
-    ([[0, 0], [1, 1]], 0, None, "frames: expected"),
-    ([[0, 0], [1, 1]], 5, [2, 1], "times: expected 2 strictly increasing"),
-])
+@pytest.mark.parametrize(
+    "points, frames, times, match",
+    [
+        ([[0, 0]], 5, None, "points: expected"),
+        ([[0, 0], [1, np.nan]], 5, None, "points: expected finite"),
+        ([[0, 0, 0], [1, 1, 1]], 5, None, "points: expected"),
+        ([[0, 0], [1, 1]], 0, None, "frames: expected"),
+        ([[0, 0], [1, 1]], 5, [2, 1], "times: expected 2 strictly increasing"),
+    ],
+)
 def test_trajectory_rejects_bad_points(points, frames, times, match):
     with pytest.raises(ValueError, match=match):
         trajectory_poses(points, frames, times=times)
@@ -104,12 +107,12 @@ def test_every_view_warps_with_its_own_extrinsics():
     """Two cameras, front and back, the ego 2 m forward: the front view zooms in (no holes), the
     back view zooms out (holes, filled)."""
     back = FRONT.copy()
-    back[:3, :3] = np.asarray([[0, 0, -1], [1, 0, 0], [0, -1, 0]], np.float32)     # z backwards, x = ego +y
+    back[:3, :3] = np.asarray([[0, 0, -1], [1, 0, 0], [0, -1, 0]], np.float32)  # z backwards, x = ego +y
     first = np.stack([ramp_image(), ramp_image()]) * 2 - 1
     poses = np.stack([np.eye(4, dtype=np.float32), translation(2, 0, 0)])
     out = warp_views(first, np.stack([K, K]), np.stack([FRONT, back]), poses, 10.0, inpaint=False)
     assert out.shape == (2, 2, H, W, 3)
-    np.testing.assert_allclose(out[:, 0], first, atol=1e-5)                         # frame 0: the first frame
+    np.testing.assert_allclose(out[:, 0], first, atol=1e-5)  # frame 0: the first frame
     _, front_hole = depth_free_warp(first[0], K, camera_motion(poses, FRONT[None])[0], 10.0)
     _, back_hole = depth_free_warp(first[1], K, camera_motion(poses, back[None])[0], 10.0)
     assert not bool(front_hole[1].any()) and bool(back_hole[1].any())

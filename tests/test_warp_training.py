@@ -15,8 +15,17 @@ from jaxdrive.train.run import Run
 from train_fixtures import write_synthetic
 
 ROOT = Path(__file__).resolve().parents[1]
-WARP = ["model.controls.warp=true", "data.views=2", "data.batch_size=2", "data.frames=5", "mesh.data=2",
-        "mesh.seq=4", "optim.warmup_steps=1", "train.log_every=1", "train.checkpoint_every=2"]
+WARP = [
+    "model.controls.warp=true",
+    "data.views=2",
+    "data.batch_size=2",
+    "data.frames=5",
+    "mesh.data=2",
+    "mesh.seq=4",
+    "optim.warmup_steps=1",
+    "train.log_every=1",
+    "train.checkpoint_every=2",
+]
 
 
 @pytest.fixture(scope="module")
@@ -31,11 +40,12 @@ def config(data, *sets):
 def test_the_pipeline_warps_each_clip_from_its_first_frame_along_its_own_poses(data):
     from jaxdrive.data.pipeline import clip_warp
     from jaxdrive.warp import warp_views
+
     run = Run(config(data, "data.warp_depth=15"))
     batch = next(iter(run.dataset()))
     video, warp = batch["video"], batch["warp_video"]
     assert warp.shape == video.shape and warp.dtype == np.float32
-    np.testing.assert_allclose(warp[:, :, 0], video[:, :, 0], atol=1e-5)      # frame 0: the first frame itself
+    np.testing.assert_allclose(warp[:, :, 0], video[:, :, 0], atol=1e-5)  # frame 0: the first frame itself
     # the clip's own poses relative to its first frame, at data.warp_depth
     i = 1
     e2w = batch["ego_to_world"][i].astype(np.float64)
@@ -44,11 +54,12 @@ def test_the_pipeline_warps_each_clip_from_its_first_frame_along_its_own_poses(d
     np.testing.assert_allclose(warp[i], want, atol=1e-5)
     sample = {k: batch[k][i] for k in ("video", "ego_to_world", "intrinsics", "cam_to_ego")}
     np.testing.assert_allclose(clip_warp(sample, 15.0), want, atol=1e-5)
-    assert np.abs(warp[:, :, -1] - video[:, :, 0]).max() > 0.05       # the ego moved: later frames are warped
+    assert np.abs(warp[:, :, -1] - video[:, :, 0]).max() > 0.05  # the ego moved: later frames are warped
     inputs = run.global_batch([batch])
     assert inputs["warp_video"].shape == (1,) + video.shape
     # classifier-free guidance drops the warp with the trajectory, the control it carries
     from jaxdrive.data.batches import conditions
+
     cond = conditions(dict(batch, drop=dict(batch["drop"], trajectory=np.asarray([True, False]))), run.training.model)
     np.testing.assert_array_equal(cond.drop["warp"], [True, False])
 
@@ -59,6 +70,7 @@ def test_the_step_encodes_the_warped_clip_into_the_dit_and_learns_its_embedding(
     import jax
 
     from jaxdrive.train import flow_step
+
     run = Run(config(data))
     state, _, _ = run.init_state()
     # every layer off its zero init, at random: a constant offset made the zero-initialised warp
@@ -71,15 +83,21 @@ def test_the_step_encodes_the_warped_clip_into_the_dit_and_learns_its_embedding(
         grad = jax.jit(jax.value_and_grad(lambda p, i: flow_step.flow_loss_fn(run.training, p, None, i, key)[0]))
         (same, g), (other, _) = grad(params, inputs), grad(params, dict(inputs, warp_video=-inputs["warp_video"]))
     assert np.isfinite(float(same)) and abs(float(same) - float(other)) > 1e-6
-    warp_grads = {jax.tree_util.keystr(k): float(np.abs(np.asarray(v)).max())
-                  for k, v in jax.tree_util.tree_leaves_with_path(g) if "warp" in jax.tree_util.keystr(k)}
+    warp_grads = {
+        jax.tree_util.keystr(k): float(np.abs(np.asarray(v)).max())
+        for k, v in jax.tree_util.tree_leaves_with_path(g)
+        if "warp" in jax.tree_util.keystr(k)
+    }
     assert warp_grads and max(warp_grads.values()) > 0, warp_grads
 
 
-@pytest.mark.parametrize("sets, match", [
-    (["data.warp_depth=0"], "data.warp_depth: expected a positive depth"),
-    (["stream.enabled=true", "stream.taps=()"], "stream.enabled: expected False with model.controls.warp"),
-])
+@pytest.mark.parametrize(
+    "sets, match",
+    [
+        (["data.warp_depth=0"], "data.warp_depth: expected a positive depth"),
+        (["stream.enabled=true", "stream.taps=()"], "stream.enabled: expected False with model.controls.warp"),
+    ],
+)
 def test_what_rules_the_warp_out_is_refused(data, sets, match):
     with pytest.raises(ValueError, match=match):
         Run(config(data, *sets))
@@ -96,11 +114,20 @@ def _warp_model():
     from jaxdrive.models.dit.presets import preset
 
     from strategy_fixtures import C, H, W
-    cfg = preset("tiny", in_channels=C, vae_spatial=4, vae_temporal=1, patch=(1, 2, 2), prediction="data",
-                 controls=dict(waypoints=True, fps=True, warp=True, cond_frames="replace"))
+
+    cfg = preset(
+        "tiny",
+        in_channels=C,
+        vae_spatial=4,
+        vae_temporal=1,
+        patch=(1, 2, 2),
+        prediction="data",
+        controls=dict(waypoints=True, fps=True, warp=True, cond_frames="replace"),
+    )
     dit = DiT(cfg)
-    params = jax.tree_util.tree_map(jnp.asarray, nn.unbox(dit.init_params(0, batch=1, views=2, frames=4,
-                                                                          height=H, width=W)))
+    params = jax.tree_util.tree_map(
+        jnp.asarray, nn.unbox(dit.init_params(0, batch=1, views=2, frames=4, height=H, width=W))
+    )
     keys = iter(jax.random.split(jax.random.key(1), len(jax.tree_util.tree_leaves(params))))
     # every parameter off its initialisation (the warp embedding and the output layer start at zero)
     params = jax.tree_util.tree_map(lambda p: p + 0.05 * jax.random.normal(next(keys), p.shape), params)
@@ -124,16 +151,20 @@ def test_every_window_warps_its_own_first_frame_and_the_warp_steers_it():
     from jaxdrive.generate import strategies as S
 
     from strategy_fixtures import horizon_inputs
+
     m = _warp_model()
     first, controls = horizon_inputs(10, given=2)
     spy = _Spy()
-    out = np.concatenate(list(S.run_strategy("rollout", S.Models(m), controls, first, 10, key=jax.random.key(0),
-                                             warp=spy)), axis=2)
+    out = np.concatenate(
+        list(S.run_strategy("rollout", S.Models(m), controls, first, 10, key=jax.random.key(0), warp=spy)), axis=2
+    )
     assert [list(f) for _, f in spy.calls] == [list(range(s, s + 4)) for s in (0, 2, 4, 6)]
-    for (got_first, frames) in spy.calls:          # the horizon's frame at the window's start, as it was then
+    for got_first, frames in spy.calls:  # the horizon's frame at the window's start, as it was then
         np.testing.assert_array_equal(got_first, out[:, :, frames[:1]])
-    other = np.concatenate(list(S.run_strategy("rollout", S.Models(m), controls, first, 10, key=jax.random.key(0),
-                                               warp=_Spy(scale=-1.0))), axis=2)
+    other = np.concatenate(
+        list(S.run_strategy("rollout", S.Models(m), controls, first, 10, key=jax.random.key(0), warp=_Spy(scale=-1.0))),
+        axis=2,
+    )
     assert np.abs(other[:, :, 2:] - out[:, :, 2:]).max() > 1e-4
     with pytest.raises(ValueError, match="warp: a model trained with warped frames"):
         list(S.run_strategy("rollout", S.Models(m), controls, first, 10, key=jax.random.key(0)))
@@ -144,19 +175,22 @@ def test_the_guide_warps_the_decoded_first_frame_along_the_window_poses_and_enco
     from jaxdrive.generate.warps import WarpGuide
     from jaxdrive.models.latents import LatentCodec
     from jaxdrive.warp import warp_views
+
     clip = generate_clip(1, views=6, frames=6, height=32, width=48)
-    video = clip["video"][None, :2].astype(np.float32) / 127.5 - 1               # [1, 2, 6, H, W, 3]
+    video = clip["video"][None, :2].astype(np.float32) / 127.5 - 1  # [1, 2, 6, H, W, 3]
     codec = LatentCodec("space_to_depth", 4)
-    guide = WarpGuide(codec, None, clip["ego_to_world"][None], clip["intrinsics"][None, :2],
-                      clip["cam_to_ego"][None, :2], 12.0)
+    guide = WarpGuide(
+        codec, None, clip["ego_to_world"][None], clip["intrinsics"][None, :2], clip["cam_to_ego"][None, :2], 12.0
+    )
     z = np.asarray(codec.encode(None, video))
     got = guide.window(z[:, :, 2:3], [2, 3, 4, 5])
     e2w = clip["ego_to_world"].astype(np.float64)
     rel = (np.linalg.inv(e2w[2]) @ e2w[2:6]).astype(np.float32)
-    want = codec.encode(None, warp_views(video[0, :, 2], clip["intrinsics"][:2], clip["cam_to_ego"][:2], rel,
-                                         12.0)[None])
+    want = codec.encode(
+        None, warp_views(video[0, :, 2], clip["intrinsics"][:2], clip["cam_to_ego"][:2], rel, 12.0)[None]
+    )
     np.testing.assert_allclose(got, want, atol=1e-5)
-    np.testing.assert_allclose(got[:, :, 0], z[:, :, 2], atol=1e-5)              # the first frame unmoved
+    np.testing.assert_allclose(got[:, :, 0], z[:, :, 2], atol=1e-5)  # the first frame unmoved
     with pytest.raises(ValueError, match="poses: expected a pose for pixel frame 6"):
         guide.window(z[:, :, 2:3], [4, 5, 6])
 
@@ -167,14 +201,40 @@ def test_a_warp_run_trains_and_samples_through_the_cli(data, tmp_path, capsys, m
     import json
 
     from jaxdrive.cli import main as cli
-    args = ["train", "--config", str(ROOT / "configs" / "tiny.py"), "--workdir", str(tmp_path / "run"), "--steps",
-            "1", "--no-progress"]
+
+    args = [
+        "train",
+        "--config",
+        str(ROOT / "configs" / "tiny.py"),
+        "--workdir",
+        str(tmp_path / "run"),
+        "--steps",
+        "1",
+        "--no-progress",
+    ]
     for s in [f"data.path={data}", *WARP, "data.warp_depth=18"]:
         args += ["--set", s]
     assert cli(args) == 0
     out = tmp_path / "sample"
-    assert cli(["sample", "--workdir", str(tmp_path / "run"), "--strategy", "rollout", "--frames", "9", "--steps", "2",
-                "--out", str(out), "--no-progress"]) == 0
+    assert (
+        cli(
+            [
+                "sample",
+                "--workdir",
+                str(tmp_path / "run"),
+                "--strategy",
+                "rollout",
+                "--frames",
+                "9",
+                "--steps",
+                "2",
+                "--out",
+                str(out),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     report = json.loads((out / "report.json").read_text())
     assert report["warp"] == {"depth": 18.0} and report["frames"] == 9
     recorded = np.load(out / "latents.npy")
@@ -182,26 +242,68 @@ def test_a_warp_run_trains_and_samples_through_the_cli(data, tmp_path, capsys, m
     # --route: the same clip driven through a left turn; the windows warp along the route's poses
     from jaxdrive.generate.route import load_route
     from jaxdrive.generate.warps import WarpGuide
+
     seen, window = [], WarpGuide.window
-    monkeypatch.setattr(WarpGuide, "window", lambda self, first, frames: seen.append((list(frames), self.poses)) or
-                        window(self, first, frames))
+    monkeypatch.setattr(
+        WarpGuide,
+        "window",
+        lambda self, first, frames: seen.append((list(frames), self.poses)) or window(self, first, frames),
+    )
     turned = tmp_path / "turn"
-    assert cli(["sample", "--workdir", str(tmp_path / "run"), "--strategy", "rollout", "--frames", "9", "--steps", "2",
-                "--route", "left turn", "--out", str(turned), "--no-progress"]) == 0
+    assert (
+        cli(
+            [
+                "sample",
+                "--workdir",
+                str(tmp_path / "run"),
+                "--strategy",
+                "rollout",
+                "--frames",
+                "9",
+                "--steps",
+                "2",
+                "--route",
+                "left turn",
+                "--out",
+                str(turned),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     report = json.loads((turned / "report.json").read_text())
     assert report["route"] == "manoeuvre 'left turn'"
     # no intersection within the 5 m the 9 frames drive: the turn starts where the clip is (the poses below)
     assert report["route_drive"]["start"] == {"frame": 0, "time": 0.0, "x": 0.0, "y": 0.0}
     assert report["route_drive"]["start_at"] == "clip" and report["route_drive"]["map_checked"] is True
     want = load_route("left turn", duration=8 / 12).poses(9, 12.0).astype(np.float64)
-    for frames, poses in seen:          # each window's poses relative to its first: the route's
+    for frames, poses in seen:  # each window's poses relative to its first: the route's
         p = poses[:, frames].astype(np.float64)
-        np.testing.assert_allclose(np.linalg.inv(p[:, :1]) @ p, np.broadcast_to(
-            np.linalg.inv(want[frames[0]]) @ want[frames], p.shape), atol=1e-3)
+        np.testing.assert_allclose(
+            np.linalg.inv(p[:, :1]) @ p,
+            np.broadcast_to(np.linalg.inv(want[frames[0]]) @ want[frames], p.shape),
+            atol=1e-3,
+        )
     assert len(seen) == 3 and np.isfinite(np.load(turned / "latents.npy")).all()
     bad = tmp_path / "bad.csv"
     bad.write_text("x,y\n0,0\n1,nan\n")
     capsys.readouterr()
-    assert cli(["sample", "--workdir", str(tmp_path / "run"), "--strategy", "rollout", "--frames", "9",
-                "--route", str(bad), "--out", str(tmp_path / "no")]) == 2
+    assert (
+        cli(
+            [
+                "sample",
+                "--workdir",
+                str(tmp_path / "run"),
+                "--strategy",
+                "rollout",
+                "--frames",
+                "9",
+                "--route",
+                str(bad),
+                "--out",
+                str(tmp_path / "no"),
+            ]
+        )
+        == 2
+    )
     assert f"route {bad} row 3: expected finite values" in capsys.readouterr().err

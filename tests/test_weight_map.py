@@ -41,6 +41,7 @@ wmap = jax.jit(partial(foreground_weight_map, map_hw=MAP_HW, image_hw=IMAGE_HW))
 # Independent numpy reference: corners from sign combinations, edges = corner pairs that differ
 # in one sign, membership = "inside some triangle of the vertices" (Caratheodory), float64.
 
+
 def ref_object_mask(box, K_, cam_to_ego, near):
     x, y, z, length, w, h, yaw = map(float, box)
     signs = np.array(list(itertools.product([-0.5, 0.5], repeat=3)))
@@ -68,6 +69,7 @@ def ref_object_mask(box, K_, cam_to_ego, near):
 
 def in_some_triangle(pts, q):
     """Closed convex-hull membership of points ``q [..., 2]``: inside some triangle of ``pts``."""
+
     def cross(a, b):  # (a - q) x (b - q)
         return (a[0] - q[..., 0]) * (b[1] - q[..., 1]) - (a[1] - q[..., 1]) * (b[0] - q[..., 0])
 
@@ -88,7 +90,7 @@ def ref_map(boxes, valid, intr, cams, k=1.0, c=0.5, near=0.1):
     out = np.zeros((bsz, views, frames) + MAP_HW)
     hw = MAP_HW[0] * MAP_HW[1]
     for b, v, f in itertools.product(range(bsz), range(views), range(frames)):
-        w = np.full(MAP_HW, 1.0 / hw ** c)
+        w = np.full(MAP_HW, 1.0 / hw**c)
         fg = np.zeros(MAP_HW, bool)
         for n in np.flatnonzero(valid[b, f]):
             mask = ref_object_mask(boxes[b, f, n], intr[b, v], cams[b, v], near)
@@ -101,6 +103,7 @@ def ref_map(boxes, valid, intr, cams, k=1.0, c=0.5, near=0.1):
 
 
 # ----------------------------------------------------------------------------------------------
+
 
 @given(st.floats(0.1, 10.0), st.floats(0.0, 2.0))
 def test_worked_example_one_box_one_camera(k, c):
@@ -119,15 +122,18 @@ def test_worked_example_one_box_one_camera(k, c):
     np.testing.assert_allclose(out.mean(), 1.0, rtol=1e-5)
 
 
-@pytest.mark.parametrize("box, valid", [
-    ([-10, 0, 0, 4, 2, 2, 0], True),          # fully behind the camera
-    ([0.05, 0, 0, 0.02, 1, 1, 0], True),      # in front of the camera but before the near plane
-    ([10, 40, 0, 4, 2, 2, 0], True),          # in front, far outside the field of view
-    ([10, 0, 0, 0, 0, 0, 0], True),           # zero-size box
-    ([10, 0, 0, 4, 2, 0, 0.3], True),         # flat box at camera height: projects to a line
-    ([10, 0, 0, 4, 2, 2, 0], False),          # visible but invalid
-    ([np.nan] * 7, False),                    # invalid padding with garbage
-])
+@pytest.mark.parametrize(
+    "box, valid",
+    [
+        ([-10, 0, 0, 4, 2, 2, 0], True),  # fully behind the camera
+        ([0.05, 0, 0, 0.02, 1, 1, 0], True),  # in front of the camera but before the near plane
+        ([10, 40, 0, 4, 2, 2, 0], True),  # in front, far outside the field of view
+        ([10, 0, 0, 0, 0, 0, 0], True),  # zero-size box
+        ([10, 0, 0, 4, 2, 0, 0.3], True),  # flat box at camera height: projects to a line
+        ([10, 0, 0, 4, 2, 2, 0], False),  # visible but invalid
+        ([np.nan] * 7, False),  # invalid padding with garbage
+    ],
+)
 def test_boxes_that_contribute_nothing_give_ones(box, valid):
     boxes, _, intr, cams = inputs([box, [np.inf] * 7], valid=[valid, False])
     out = np.asarray(wmap(boxes, np.array([[[valid, False]]]), intr, cams))
@@ -154,39 +160,54 @@ def test_box_straddling_the_near_plane():
     np.testing.assert_allclose(out, ref_map(*inputs([box]))[0, 0, 0], rtol=1e-5)
 
 
-@pytest.mark.parametrize("box, t", [
-    ([10, 0, -1, 3, 2, 2, 0.0], (0, 0, 0)),      # top face exactly at camera height: edge-on
-    ([10, 0, 0, 3, 2, 2, 0.0], (0, 0, 1.0)),     # top face edge-on from a raised camera
-    ([0.5, 0, 0, 4, 4, 4, 0.2], (0, 0, 0)),      # camera inside the box: everything is fg
-    ([0.2, 0.5, 0.3, 0.25, 30, 1, 0.0], (0, 0, 0)),  # thin wall near the near plane: huge uv
-    ([6, 2, 0.5, 4, 2, 1.5, 2.0], (1.5, 0, 1.6)),
-])
+@pytest.mark.parametrize(
+    "box, t",
+    [
+        ([10, 0, -1, 3, 2, 2, 0.0], (0, 0, 0)),  # top face exactly at camera height: edge-on
+        ([10, 0, 0, 3, 2, 2, 0.0], (0, 0, 1.0)),  # top face edge-on from a raised camera
+        ([0.5, 0, 0, 4, 4, 4, 0.2], (0, 0, 0)),  # camera inside the box: everything is fg
+        ([0.2, 0.5, 0.3, 0.25, 30, 1, 0.0], (0, 0, 0)),  # thin wall near the near plane: huge uv
+        ([6, 2, 0.5, 4, 2, 1.5, 2.0], (1.5, 0, 1.6)),
+    ],
+)
 def test_special_cases_match_reference(box, t):
     args = inputs([box], cams=[cam(0.0, t)])
     np.testing.assert_allclose(wmap(*args), ref_map(*args), rtol=1e-5)
 
 
 # Two batches, two views (front and a left-looking camera), two frames, three boxes each.
-_box = st.tuples(st.floats(-5, 30), st.floats(-12, 12), st.floats(-1.5, 2.5),
-                 st.floats(0.3, 8), st.floats(0.3, 4), st.floats(0.3, 3), st.floats(-3.2, 3.2))
+_box = st.tuples(
+    st.floats(-5, 30),
+    st.floats(-12, 12),
+    st.floats(-1.5, 2.5),
+    st.floats(0.3, 8),
+    st.floats(0.3, 4),
+    st.floats(0.3, 3),
+    st.floats(-3.2, 3.2),
+)
 
 
 @settings(max_examples=25)
-@given(st.lists(_box, min_size=12, max_size=12), st.lists(st.booleans(), min_size=12, max_size=12),
-       st.floats(0.5, 4.0), st.floats(0.0, 1.5))
+@given(
+    st.lists(_box, min_size=12, max_size=12),
+    st.lists(st.booleans(), min_size=12, max_size=12),
+    st.floats(0.5, 4.0),
+    st.floats(0.0, 1.5),
+)
 def test_matches_reference_on_random_scenes(boxes, valid, k, c):
     boxes = np.array(boxes, np.float32).reshape(2, 2, 3, 7)
     valid = np.array(valid).reshape(2, 2, 3)
-    cams = np.stack([[cam(0.0, (1.5, 0, 1.6)), cam(1.0, (1.0, 0.5, 1.6))],
-                     [cam(-0.5, (0, 0, 1.0)), cam(3.0, (-1.0, 0, 1.8))]])
+    cams = np.stack(
+        [[cam(0.0, (1.5, 0, 1.6)), cam(1.0, (1.0, 0.5, 1.6))], [cam(-0.5, (0, 0, 1.0)), cam(3.0, (-1.0, 0, 1.8))]]
+    )
     intr = np.broadcast_to(K, (2, 2, 3, 3))
     got = np.asarray(wmap(boxes, valid, intr, cams, k=k, c=c))
     np.testing.assert_allclose(got, ref_map(boxes, valid, intr, cams, k=k, c=c), rtol=2e-5)
     np.testing.assert_allclose(got.mean(axis=(-2, -1)), 1.0, rtol=1e-5)
 
 
-NEAR_BIG = [8, 4, 0, 2, 6, 4, 0]        # 7 m to its face: 3 x 2 map pixels, left
-FAR_SMALL = [14, -6, 0, 2, 4, 4, 0]     # 13 m to its face: 1 x 2 map pixels, right
+NEAR_BIG = [8, 4, 0, 2, 6, 4, 0]  # 7 m to its face: 3 x 2 map pixels, left
+FAR_SMALL = [14, -6, 0, 2, 4, 4, 0]  # 13 m to its face: 1 x 2 map pixels, right
 BEHIND_BIG = [25, -6, 0, 4, 20, 10, 0]  # 2 x 2 map pixels, covering FAR_SMALL's
 
 
@@ -222,8 +243,7 @@ def test_invariant_to_box_order(perm):
 
 def test_jit_matches_eager_and_gradient_is_stopped():
     boxes, valid, intr, cams = inputs([NEAR_BIG, FAR_SMALL, BEHIND_BIG], cams=[cam(), cam(0.8)])
-    eager = foreground_weight_map(boxes, valid, intr, cams, map_hw=MAP_HW, image_hw=IMAGE_HW,
-                                  k=2.0, c=0.7)
+    eager = foreground_weight_map(boxes, valid, intr, cams, map_hw=MAP_HW, image_hw=IMAGE_HW, k=2.0, c=0.7)
     jitted = wmap(boxes, valid, intr, cams, k=2.0, c=0.7)
     np.testing.assert_allclose(eager, jitted, rtol=1e-6)
     grad = jax.grad(lambda bx: jnp.sum(wmap(bx, valid, intr, cams) ** 2))(jnp.asarray(boxes))
@@ -231,31 +251,38 @@ def test_jit_matches_eager_and_gradient_is_stopped():
 
 
 def _good():
-    return dict(boxes=np.zeros((2, 3, 4, 7), np.float32), box_valid=np.ones((2, 3, 4), bool),
-                intrinsics=np.broadcast_to(K, (2, 5, 3, 3)),
-                cam_to_ego=np.broadcast_to(cam(), (2, 5, 4, 4)),
-                map_hw=(4, 6), image_hw=(80, 120))
+    return dict(
+        boxes=np.zeros((2, 3, 4, 7), np.float32),
+        box_valid=np.ones((2, 3, 4), bool),
+        intrinsics=np.broadcast_to(K, (2, 5, 3, 3)),
+        cam_to_ego=np.broadcast_to(cam(), (2, 5, 4, 4)),
+        map_hw=(4, 6),
+        image_hw=(80, 120),
+    )
 
 
-@pytest.mark.parametrize("name, value", [
-    ("boxes", np.zeros((2, 3, 4, 6))),
-    ("boxes", np.zeros((3, 4, 7))),
-    ("box_valid", np.ones((2, 3, 5), bool)),
-    ("box_valid", np.ones((2, 3, 4), np.float32)),
-    ("intrinsics", np.zeros((1, 5, 3, 3))),
-    ("intrinsics", np.zeros((2, 5, 4, 4))),
-    ("cam_to_ego", np.zeros((2, 4, 4, 4))),
-    ("cam_to_ego", np.zeros((2, 5, 3, 4))),
-    ("map_hw", (0, 6)),
-    ("map_hw", (4.0, 6)),
-    ("map_hw", 4),
-    ("image_hw", (80, 120, 3)),
-    ("image_hw", (80, -1)),
-    ("k", 0.0),
-    ("k", -1.0),
-    ("c", -0.5),
-    ("near", 0.0),
-])
+@pytest.mark.parametrize(
+    "name, value",
+    [
+        ("boxes", np.zeros((2, 3, 4, 6))),
+        ("boxes", np.zeros((3, 4, 7))),
+        ("box_valid", np.ones((2, 3, 5), bool)),
+        ("box_valid", np.ones((2, 3, 4), np.float32)),
+        ("intrinsics", np.zeros((1, 5, 3, 3))),
+        ("intrinsics", np.zeros((2, 5, 4, 4))),
+        ("cam_to_ego", np.zeros((2, 4, 4, 4))),
+        ("cam_to_ego", np.zeros((2, 5, 3, 4))),
+        ("map_hw", (0, 6)),
+        ("map_hw", (4.0, 6)),
+        ("map_hw", 4),
+        ("image_hw", (80, 120, 3)),
+        ("image_hw", (80, -1)),
+        ("k", 0.0),
+        ("k", -1.0),
+        ("c", -0.5),
+        ("near", 0.0),
+    ],
+)
 def test_bad_inputs_name_the_argument(name, value):
     args = _good()
     args[name] = value
@@ -283,8 +310,7 @@ def ref_hull_mask(pts, valid, qu, qv):
     return in_some_triangle(pts[valid], np.stack(np.meshgrid(qu, qv), -1).astype(np.float64))
 
 
-@given(st.integers(0, 2**31 - 1), st.integers(1, 4),
-       st.sampled_from(["plane", "row", "diagonal"]))
+@given(st.integers(0, 2**31 - 1), st.integers(1, 4), st.sampled_from(["plane", "row", "diagonal"]))
 def test_hull_mask_exact_on_integer_points(seed, spread, layout):
     rng = np.random.default_rng(seed)
     pts = rng.integers(-spread, spread + 1, size=(12, 2)).astype(np.float32)
@@ -313,12 +339,15 @@ def test_hull_mask_with_near_duplicates_and_points_on_edges(seed):
     np.testing.assert_array_equal(got, ref_hull_mask(pts, ones, qu, qv))
 
 
-@pytest.mark.parametrize("pts", [
-    [[0, 0], [1, 0], [3, 0]],      # collinear, grid points on the line
-    [[1, 1], [1, 1], [1, 1]],      # one point repeated
-    [[0, 0], [2, 2]],              # two points
-    [[1, 0]],
-])
+@pytest.mark.parametrize(
+    "pts",
+    [
+        [[0, 0], [1, 0], [3, 0]],  # collinear, grid points on the line
+        [[1, 1], [1, 1], [1, 1]],  # one point repeated
+        [[0, 0], [2, 2]],  # two points
+        [[1, 0]],
+    ],
+)
 def test_hull_mask_degenerate_sets_are_empty(pts):
     pts = np.asarray(pts, np.float32)
     grid = np.arange(-2, 4, dtype=np.float32)

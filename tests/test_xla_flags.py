@@ -29,7 +29,7 @@ def test_flags_are_appended_once_and_the_users_value_kept(monkeypatch):
     with pytest.raises(ValueError, match="flags: expected '--name=value', got 'new'"):
         add_xla_flags("new")
     monkeypatch.delenv("XLA_FLAGS")
-    monkeypatch.setenv("JAXDRIVE_CPU_FLAGS", "0")              # a jaxlib that no longer knows the flag
+    monkeypatch.setenv("JAXDRIVE_CPU_FLAGS", "0")  # a jaxlib that no longer knows the flag
     assert not deterministic_cpu() and "XLA_FLAGS" not in os.environ
 
 
@@ -41,8 +41,20 @@ def test_a_compiled_train_loss_is_the_same_on_every_call(tmp_path):
     """The tiny config's loss, one jitted program called 24 times on the same inputs: with the
     YNNPACK fusions on, about 1 call in 30 came out different (up to 40%) on 2 cores."""
     write_synthetic(tmp_path / "clips")
-    run = Run(load_config(TINY, [f"data.path={tmp_path / 'clips'}", "data.views=2", "data.frames=5",
-                                 "model.depth=1", "mesh.data=1", "mesh.seq=1"]), devices=jax.devices()[:1])
+    run = Run(
+        load_config(
+            TINY,
+            [
+                f"data.path={tmp_path / 'clips'}",
+                "data.views=2",
+                "data.frames=5",
+                "model.depth=1",
+                "mesh.data=1",
+                "mesh.seq=1",
+            ],
+        ),
+        devices=jax.devices()[:1],
+    )
     inputs = model_inputs(next(iter(run.dataset())), run.training.model)
     params = run.training.dit.init_params(0, batch=1, views=2, frames=5, height=8, width=14)
     loss = jax.jit(lambda p, inp, k: flow_step.flow_loss_fn(run.training, p, None, inp, k)[0])

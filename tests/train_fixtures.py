@@ -8,8 +8,8 @@ def write_synthetic(out, *, first: int = 0, train: int = 3, frames: int = 9, vie
     validation scene, written as a TFDS dataset at ``out``; returns ``out``."""
     from jaxdrive.data.synthetic import generate_clip
     from jaxdrive.data.tfds_io import write_dataset
-    clips = lambda seed, n: (generate_clip(seed + i, views=views, frames=frames, height=32, width=56)
-                             for i in range(n))
+
+    clips = lambda seed, n: (generate_clip(seed + i, views=views, frames=frames, height=32, width=56) for i in range(n))
     write_dataset(out, {"train": clips(first, train), "validation": clips(100, 1)}, name="jaxdrive_synthetic")
     return out
 
@@ -20,9 +20,13 @@ def write_same_clips(out, *, seed: int, frames: int, copies: int, shard_bytes: i
     1: one clip per shard). Returns ``out``."""
     from jaxdrive.data.synthetic import generate_clip
     from jaxdrive.data.tfds_io import write_dataset
-    write_dataset(out, {"train": (generate_clip(seed, views=6, frames=frames, height=32, width=56)
-                                  for _ in range(copies))}, name="jaxdrive_synthetic",
-                  **({} if shard_bytes is None else {"shard_bytes": shard_bytes}))
+
+    write_dataset(
+        out,
+        {"train": (generate_clip(seed, views=6, frames=frames, height=32, width=56) for _ in range(copies))},
+        name="jaxdrive_synthetic",
+        **({} if shard_bytes is None else {"shard_bytes": shard_bytes}),
+    )
     return out
 
 
@@ -35,6 +39,7 @@ def save_run(config, workdir, devices=None):
     from jaxdrive.config import to_dict
     from jaxdrive.train.checkpoint import Checkpoints
     from jaxdrive.train.run import CONFIG_FILE, Run
+
     state = Run(config, devices=devices).init_state()[0]
     ckpts = Checkpoints(workdir, asynchronous=False)
     ckpts.save(0, state, {}, {"step": 0})
@@ -54,6 +59,7 @@ def train_with_a_stop(config, workdir, *, stop_at: int):
     def stop(step, metrics):
         if step == stop_at:
             os.kill(os.getpid(), signal.SIGTERM)
+
     part = train(config, workdir, progress=False, on_step=stop)
     return part, train(config, workdir, progress=False)
 
@@ -62,6 +68,7 @@ def assert_same_state(a, b):
     """Every leaf of two train states (params, Adam moments, EMA, rng) bit for bit."""
     import jax
     import numpy as np
+
     for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
@@ -72,10 +79,27 @@ def tiny_run(workdir, data, *sets):
     from pathlib import Path
 
     from jaxdrive.cli import main as cli
-    args = ["train", "--config", str(Path(__file__).resolve().parents[1] / "configs" / "tiny.py"), "--workdir",
-            str(workdir), "--steps", "1", "--no-progress"]
-    for s in (f"data.path={data}", "model.controls.boxes=true", "data.frames=5", "data.views=6",
-              "data.batch_size=2", "mesh.data=2", "mesh.seq=4", *sets):
+
+    args = [
+        "train",
+        "--config",
+        str(Path(__file__).resolve().parents[1] / "configs" / "tiny.py"),
+        "--workdir",
+        str(workdir),
+        "--steps",
+        "1",
+        "--no-progress",
+    ]
+    for s in (
+        f"data.path={data}",
+        "model.controls.boxes=true",
+        "data.frames=5",
+        "data.views=6",
+        "data.batch_size=2",
+        "mesh.data=2",
+        "mesh.seq=4",
+        *sets,
+    ):
         args += ["--set", s]
     assert cli(args) == 0
     return workdir

@@ -47,8 +47,8 @@ def _fori(lower, upper, body, init):
 # buffers (dynamic_update_slice) rather than stacking blocked copies: besides the inputs and
 # outputs, only one score tile per head and a few tile-sized arrays are alive.
 
-def tiled_attend(q, k, v, mask, *, scale, causal_block, bq, bk, q_start=0, k_start=0, k_step=None,
-                 acc=None):
+
+def tiled_attend(q, k, v, mask, *, scale, causal_block, bq, bk, q_start=0, k_start=0, k_step=None, acc=None):
     """``(o [B, Lq, H, D], lse [B, H, Lq])`` over tiles of ``bq x bk`` (lengths multiples of them).
 
     The building block of :func:`blockwise_attention` and of each ring or all-to-all step.
@@ -66,11 +66,18 @@ def tiled_attend(q, k, v, mask, *, scale, causal_block, bq, bk, q_start=0, k_sta
 
         def key_tile(j, acc):
             def attend():
-                o, lse = sb.attend_block(qi, _tile(k, j * bk, bk), _tile(v, j * bk, bk), scale=scale,
-                                         kv_mask=None if mask is None else _tile(mask, j * bk, bk),
-                                         causal_block=causal_block, q_start=q_start + i * bq,
-                                         k_start=k_start + j * k_step)
+                o, lse = sb.attend_block(
+                    qi,
+                    _tile(k, j * bk, bk),
+                    _tile(v, j * bk, bk),
+                    scale=scale,
+                    kv_mask=None if mask is None else _tile(mask, j * bk, bk),
+                    causal_block=causal_block,
+                    q_start=q_start + i * bq,
+                    k_start=k_start + j * k_step,
+                )
                 return sb.merge(*acc, o, lse)
+
             if causal_block is None:
                 return attend()
             hidden = sb.hidden(q_start + i * bq, bq, k_start + j * k_step, causal_block)
@@ -83,8 +90,9 @@ def tiled_attend(q, k, v, mask, *, scale, causal_block, bq, bk, q_start=0, k_sta
     return _fori(0, nq, query_tile, sb.empty(q) if acc is None else acc)
 
 
-def tiled_grads(q, k, v, mask, lse, delta, do, *, scale, causal_block, bq, bk, q_start=0, k_start=0,
-                k_step=None, acc=None):
+def tiled_grads(
+    q, k, v, mask, lse, delta, do, *, scale, causal_block, bq, bk, q_start=0, k_start=0, k_step=None, acc=None
+):
     """``(dq, dk, dv)`` (float32) of :func:`tiled_attend`'s key range, given the final ``lse`` and
     :func:`~jaxdrive.attention.softmax_blocks.delta` of the query rows over all keys (FlashAttention
     backward, one score tile alive at a time). ``k_step`` as in :func:`tiled_attend`; ``acc``:
@@ -104,10 +112,20 @@ def tiled_grads(q, k, v, mask, lse, delta, do, *, scale, causal_block, bq, bk, q
 
             def add():
                 gq, gk, gv = sb.attend_block_grads(
-                    _tile(q, i * bq, bq), kj, vj, _tile(lse, i * bq, bq, axis=2),
-                    _tile(delta, i * bq, bq, axis=2), _tile(do, i * bq, bq), scale=scale, kv_mask=mj,
-                    causal_block=causal_block, q_start=q_start + i * bq, k_start=k_start + j * k_step)
+                    _tile(q, i * bq, bq),
+                    kj,
+                    vj,
+                    _tile(lse, i * bq, bq, axis=2),
+                    _tile(delta, i * bq, bq, axis=2),
+                    _tile(do, i * bq, bq),
+                    scale=scale,
+                    kv_mask=mj,
+                    causal_block=causal_block,
+                    q_start=q_start + i * bq,
+                    k_start=k_start + j * k_step,
+                )
                 return _put(dq, _tile(dq, i * bq, bq) + gq, i * bq), dkj + gk, dvj + gv
+
             if causal_block is None:
                 return add()
             hidden = sb.hidden(q_start + i * bq, bq, k_start + j * k_step, causal_block)
@@ -142,8 +160,7 @@ def _kernel(scale: float, causal_block, bq: int, bk: int):
     return kernel
 
 
-def blockwise_attention(q, k, v, *, scale, kv_mask=None, causal_block=None, block_q: int = 512,
-                        block_k: int = 512):
+def blockwise_attention(q, k, v, *, scale, kv_mask=None, causal_block=None, block_q: int = 512, block_k: int = 512):
     """Softmax attention ``[B, Lq, H, D]`` in O(L) memory (see the module docstring).
 
     ``kv_mask [B, Lk]`` (True = attend), ``causal_block`` as in
@@ -156,6 +173,9 @@ def blockwise_attention(q, k, v, *, scale, kv_mask=None, causal_block=None, bloc
     lq_pad, lk_pad = -(-lq // bq) * bq, -(-lk // bk) * bk
     mask = jnp.ones((b, lk), bool) if kv_mask is None else jnp.asarray(kv_mask, bool)
     out = _kernel(float(scale), causal_block, bq, bk)(
-        sb.pad_sequence(q, lq_pad), sb.pad_sequence(k, lk_pad), sb.pad_sequence(v, lk_pad),
-        sb.pad_sequence(mask, lk_pad, value=False))
+        sb.pad_sequence(q, lq_pad),
+        sb.pad_sequence(k, lk_pad),
+        sb.pad_sequence(v, lk_pad),
+        sb.pad_sequence(mask, lk_pad, value=False),
+    )
     return out[:, :lq].astype(q.dtype)

@@ -48,21 +48,22 @@ def _check_inputs(q, k, v, kv_mask, causal_block):
     if k.shape != v.shape:
         raise ValueError(f"v: expected the shape of k {list(k.shape)}, got {list(v.shape)}")
     if (k.shape[0], k.shape[2], k.shape[3]) != (q.shape[0], q.shape[2], q.shape[3]):
-        raise ValueError(f"k: expected shape [{q.shape[0]}, Lk, {q.shape[2]}, {q.shape[3]}] "
-                         f"(B, H, D of q), got {list(k.shape)}")
+        raise ValueError(
+            f"k: expected shape [{q.shape[0]}, Lk, {q.shape[2]}, {q.shape[3]}] (B, H, D of q), got {list(k.shape)}"
+        )
     if not (q.dtype == k.dtype == v.dtype):
         raise ValueError(f"k, v: expected the dtype of q ({q.dtype}), got {k.dtype} and {v.dtype}")
     if kv_mask is not None:
         if tuple(np.shape(kv_mask)) != (k.shape[0], k.shape[1]):
-            raise ValueError(f"kv_mask: expected shape [{k.shape[0]}, {k.shape[1]}] ([B, Lk]), "
-                             f"got {list(np.shape(kv_mask))}")
+            raise ValueError(
+                f"kv_mask: expected shape [{k.shape[0]}, {k.shape[1]}] ([B, Lk]), got {list(np.shape(kv_mask))}"
+            )
         if jnp.result_type(kv_mask) != jnp.bool_:
             raise ValueError(f"kv_mask: expected dtype bool, got {jnp.result_type(kv_mask)}")
     if causal_block is not None:
         check_positive_int("causal_block", causal_block)
         if q.shape[1] != k.shape[1]:
-            raise ValueError(f"causal_block: needs self-attention (Lq == Lk), got Lq = {q.shape[1]}, "
-                             f"Lk = {k.shape[1]}")
+            raise ValueError(f"causal_block: needs self-attention (Lq == Lk), got Lq = {q.shape[1]}, Lk = {k.shape[1]}")
 
 
 def _check_entered(mesh, impl):
@@ -71,9 +72,11 @@ def _check_entered(mesh, impl):
     error about device assignment), so ask for the context up front."""
     context = context_mesh()
     if context is None or context != getattr(mesh, "abstract_mesh", mesh):
-        raise ValueError(f"mesh: impl {impl!r} runs on the mesh it is given only inside it: call "
-                         f"attention within `with jax.set_mesh(mesh):`; got mesh {dict(mesh.shape)} "
-                         f"under context mesh {None if context is None else dict(context.shape)}")
+        raise ValueError(
+            f"mesh: impl {impl!r} runs on the mesh it is given only inside it: call "
+            f"attention within `with jax.set_mesh(mesh):`; got mesh {dict(mesh.shape)} "
+            f"under context mesh {None if context is None else dict(context.shape)}"
+        )
 
 
 def _seq_size(mesh) -> int:
@@ -81,8 +84,7 @@ def _seq_size(mesh) -> int:
 
 
 def _cudnn_applies(q, kv_mask, causal_block) -> bool:
-    return (jax.default_backend() == "gpu" and q.dtype in (jnp.float16, jnp.bfloat16)
-            and causal_block is None)
+    return jax.default_backend() == "gpu" and q.dtype in (jnp.float16, jnp.bfloat16) and causal_block is None
 
 
 def _ring_applies(q, k, v, mesh, kv_mask, causal_block) -> bool:
@@ -142,15 +144,20 @@ def _batch_like(q, k, v, kv_mask):
         if x is None or tuple(spec_of(x)) == want:
             return x
         return jax.sharding.reshard(x, jax.sharding.PartitionSpec(*want))
+
     ks, vs = spec_of(k), spec_of(v)
-    return (like(k, (qs[0], ks[1], qs[2], ks[3])), like(v, (qs[0], vs[1], qs[2], vs[3])),
-            None if kv_mask is None else like(kv_mask, (qs[0],) + spec_of(kv_mask)[1:]))
+    return (
+        like(k, (qs[0], ks[1], qs[2], ks[3])),
+        like(v, (qs[0], vs[1], qs[2], vs[3])),
+        None if kv_mask is None else like(kv_mask, (qs[0],) + spec_of(kv_mask)[1:]),
+    )
 
 
 def _xla(q, k, v, scale, kv_mask, causal_block):
     k, v, kv_mask = _batch_like(q, *_gather_kv(k, v, kv_mask))
-    return softmax_blocks.attend_block(q, k, v, scale=scale, kv_mask=kv_mask,
-                                       causal_block=causal_block)[0].astype(q.dtype)
+    return softmax_blocks.attend_block(q, k, v, scale=scale, kv_mask=kv_mask, causal_block=causal_block)[0].astype(
+        q.dtype
+    )
 
 
 def _cudnn(q, k, v, scale, kv_mask):
@@ -158,8 +165,19 @@ def _cudnn(q, k, v, scale, kv_mask):
     return jax.nn.dot_product_attention(q, k, v, mask=mask, scale=scale, implementation="cudnn")
 
 
-def attention(q, k, v, *, impl: str = "auto", kv_mask=None, causal_block=None, mesh=None,
-              scale=None, block_q: int = 512, block_k: int = 512):
+def attention(
+    q,
+    k,
+    v,
+    *,
+    impl: str = "auto",
+    kv_mask=None,
+    causal_block=None,
+    mesh=None,
+    scale=None,
+    block_q: int = 512,
+    block_k: int = 512,
+):
     """Softmax attention ``softmax(q k^T * scale) v`` over ``q [B, Lq, H, D]``, ``k, v [B, Lk, H, D]``.
 
     ``scale`` defaults to ``1 / sqrt(D)``. ``mesh`` (or the mesh set with ``jax.set_mesh``) is
@@ -179,21 +197,26 @@ def attention(q, k, v, *, impl: str = "auto", kv_mask=None, causal_block=None, m
     if impl == "xla":
         return _xla(q, k, v, scale, kv_mask, causal_block)
     if impl == "blockwise":
-        return _blockwise(q, k, v, scale=scale, kv_mask=kv_mask, causal_block=causal_block,
-                          block_q=block_q, block_k=block_k)
+        return _blockwise(
+            q, k, v, scale=scale, kv_mask=kv_mask, causal_block=causal_block, block_q=block_q, block_k=block_k
+        )
     if impl == "cudnn":
         if not _cudnn_applies(q, kv_mask, causal_block):
-            raise ValueError(f"impl: 'cudnn' needs a GPU backend, fp16/bf16 inputs and no causal_block, "
-                             f"got backend {jax.default_backend()}, dtype {q.dtype}, "
-                             f"causal_block {causal_block}")
+            raise ValueError(
+                f"impl: 'cudnn' needs a GPU backend, fp16/bf16 inputs and no causal_block, "
+                f"got backend {jax.default_backend()}, dtype {q.dtype}, "
+                f"causal_block {causal_block}"
+            )
         return _cudnn(q, k, v, scale, kv_mask)
     if impl == "splash":
         if not splash.available():
             raise ValueError(f"impl: 'splash' needs a TPU backend, got {jax.default_backend()}")
         return splash.splash_attention(q, k, v, scale=scale, kv_mask=kv_mask, causal_block=causal_block)
     if mesh is None or "seq" not in mesh.axis_names:
-        raise ValueError(f"mesh: impl {impl!r} needs a mesh with a 'seq' axis, got "
-                         f"{None if mesh is None else tuple(mesh.axis_names)}")
+        raise ValueError(
+            f"mesh: impl {impl!r} needs a mesh with a 'seq' axis, got "
+            f"{None if mesh is None else tuple(mesh.axis_names)}"
+        )
     _check_entered(mesh, impl)
     if impl == "ring":
         return ring_attention(q, k, v, mesh=mesh, scale=scale, kv_mask=kv_mask, causal_block=causal_block)

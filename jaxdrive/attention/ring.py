@@ -42,7 +42,7 @@ def _ring_kernel(scale: float, causal_block, axis: str, n: int, has_mask: bool, 
     place; in the backward the piece's dK/dV accumulators travel with it and land in dK/dV at home.
     """
     tiles = dict(scale=scale, causal_block=causal_block, bq=bq, bk=bk)
-    shift = [(i, (i + 1) % n) for i in range(n)]      # piece on device i moves to device i + 1
+    shift = [(i, (i + 1) % n) for i in range(n)]  # piece on device i moves to device i + 1
     piece = lambda x, p: None if x is None else jax.lax.dynamic_slice_in_dim(x, p * bk, bk, axis=1)
 
     def round_trips(k, start, visit, land, state):
@@ -50,11 +50,14 @@ def _ring_kernel(scale: float, causal_block, axis: str, n: int, has_mask: bool, 
         runs at ring step t (returning both), and after ``n`` rotations ``land(p, state,
         travelling)`` receives it back home. One loop body for all steps: a peeled or shortened
         last step would be a second copy of the tile loops with buffers of its own."""
+
         def one_piece(p, state):
             def step(t, carry):
                 state, travelling = visit(p, t, *carry)
                 return state, jax.lax.ppermute(travelling, axis, shift)
+
             return land(p, *jax.lax.fori_loop(0, n, step, (state, start(p))))
+
         return jax.lax.fori_loop(0, k.shape[1] // bk, one_piece, state)
 
     def positions(q, k, p, t):
@@ -68,8 +71,7 @@ def _ring_kernel(scale: float, causal_block, axis: str, n: int, has_mask: bool, 
         def visit(p, t, acc, travelling):
             kp, vp, mp = travelling
             q_start, k_start = positions(q, k, p, t)
-            return tiled_attend(q, kp, vp, mp, q_start=q_start, k_start=k_start, acc=acc,
-                                **tiles), travelling
+            return tiled_attend(q, kp, vp, mp, q_start=q_start, k_start=k_start, acc=acc, **tiles), travelling
 
         start = lambda p: (piece(k, p), piece(v, p), piece(mask, p))
         return round_trips(k, start, visit, lambda p, acc, _: acc, sb.empty(q))
@@ -80,7 +82,7 @@ def _ring_kernel(scale: float, causal_block, axis: str, n: int, has_mask: bool, 
 
     def kernel_fwd(q, k, v, mask):
         o, lse = forward(q, k, v, mask)
-        o = o.astype(q.dtype)   # the output doubles as the residual (only delta needs it)
+        o = o.astype(q.dtype)  # the output doubles as the residual (only delta needs it)
         return o, (q, k, v, mask, o, lse)
 
     def kernel_bwd(res, do):
@@ -96,11 +98,12 @@ def _ring_kernel(scale: float, causal_block, axis: str, n: int, has_mask: bool, 
         def visit(p, t, grads, travelling):
             kp, vp, mp, dkp, dvp = travelling
             q_start, k_start = positions(q, k, p, t)
-            dq, dkp, dvp = tiled_grads(q, kp, vp, mp, lse, delta, do, q_start=q_start,
-                                       k_start=k_start, acc=(grads[0], dkp, dvp), **tiles)
+            dq, dkp, dvp = tiled_grads(
+                q, kp, vp, mp, lse, delta, do, q_start=q_start, k_start=k_start, acc=(grads[0], dkp, dvp), **tiles
+            )
             return (dq, *grads[1:]), (kp, vp, mp, dkp, dvp)
 
-        def land(p, grads, travelling):   # piece p is home, its dK/dV complete: store in k's dtype
+        def land(p, grads, travelling):  # piece p is home, its dK/dV complete: store in k's dtype
             dq, dk, dv = grads
             put = lambda x, g: jax.lax.dynamic_update_slice_in_dim(x, g.astype(x.dtype), p * bk, axis=1)
             return dq, put(dk, travelling[3]), put(dv, travelling[4])
@@ -113,8 +116,7 @@ def _ring_kernel(scale: float, causal_block, axis: str, n: int, has_mask: bool, 
     return kernel
 
 
-def ring_attention(q, k, v, *, mesh, scale, kv_mask=None, causal_block=None, seq_axis="seq",
-                   block: int = 512):
+def ring_attention(q, k, v, *, mesh, scale, kv_mask=None, causal_block=None, seq_axis="seq", block: int = 512):
     """Softmax attention of ``q [B, Lq, H, D]`` over ``k, v [B, Lk, H, D]`` as a ring over ``seq``.
 
     ``kv_mask [B, Lk]`` bool (True = attend) and ``causal_block`` follow

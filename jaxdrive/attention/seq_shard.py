@@ -27,10 +27,10 @@ class Layout:
     """How ``[B, L, H, D]`` arrays are laid out on the mesh for sequence-sharded attention."""
 
     seq_axis: str
-    n: int                      # size of the seq axis
-    batch_axes: tuple           # mesh axes sharding the batch
-    head_axis: str | None       # mesh axis sharding the heads
-    heads_per_shard: int        # heads on one tensor shard
+    n: int  # size of the seq axis
+    batch_axes: tuple  # mesh axes sharding the batch
+    head_axis: str | None  # mesh axis sharding the heads
+    heads_per_shard: int  # heads on one tensor shard
 
     @property
     def qkv_spec(self):
@@ -63,13 +63,15 @@ def layout(q, k, v, kv_mask, causal_block, mesh, seq_axis) -> Layout:
     for a in batch_axes:
         nb *= sizes[a]
     if b % nb:
-        raise ValueError(f"q: expected a batch size divisible by the batch mesh axes {batch_axes} "
-                         f"(size {nb}), got batch {b}")
+        raise ValueError(
+            f"q: expected a batch size divisible by the batch mesh axes {batch_axes} (size {nb}), got batch {b}"
+        )
     head_axis = HEAD_AXIS if HEAD_AXIS in names else None
     nt = sizes[head_axis] if head_axis else 1
     if h % nt:
-        raise ValueError(f"q: expected a number of heads divisible by the mesh axis "
-                         f"{HEAD_AXIS!r} (size {nt}), got {h} heads")
+        raise ValueError(
+            f"q: expected a number of heads divisible by the mesh axis {HEAD_AXIS!r} (size {nt}), got {h} heads"
+        )
     return Layout(seq_axis, sizes[seq_axis], batch_axes, head_axis, h // nt)
 
 
@@ -155,6 +157,7 @@ def pad_to_tiles(q, k, v, kv_mask, n: int, tile: int | None):
 def run(kernel, mesh, lay: Layout, q, k, v, kv_mask, length: int, like):
     """``kernel(q, k, v, mask)`` on every device's chunks (``shard_map`` over the layout), then
     :func:`unpad` to ``length`` query rows typed like ``like``."""
-    fn = jax.shard_map(kernel, mesh=mesh, in_specs=(lay.qkv_spec,) * 3 + (lay.mask_spec,),
-                       out_specs=lay.qkv_spec, check_vma=False)
+    fn = jax.shard_map(
+        kernel, mesh=mesh, in_specs=(lay.qkv_spec,) * 3 + (lay.mask_spec,), out_specs=lay.qkv_spec, check_vma=False
+    )
     return unpad(fn(*to_specs(mesh, lay, q, k, v, kv_mask)), length, mesh, lay, like=like)

@@ -61,11 +61,12 @@ def _scores(q, k, scale, mask):
 
 def attend_block(q, k, v, *, scale, kv_mask=None, causal_block=None, q_start=0, k_start=0):
     """``(o [B, Lq, H, D], lse [B, H, Lq])`` of softmax attention restricted to this key block."""
-    mask = allowed(q.shape[0], q.shape[1], k.shape[1], kv_mask=kv_mask, causal_block=causal_block,
-                   q_start=q_start, k_start=k_start)
+    mask = allowed(
+        q.shape[0], q.shape[1], k.shape[1], kv_mask=kv_mask, causal_block=causal_block, q_start=q_start, k_start=k_start
+    )
     s = _scores(q, k, scale, mask)
     m = jnp.max(s, axis=-1, keepdims=True)
-    m = jnp.where(jnp.isfinite(m), m, 0.0)            # rows with no allowed key
+    m = jnp.where(jnp.isfinite(m), m, 0.0)  # rows with no allowed key
     p = jnp.exp(s - m)
     total = jnp.sum(p, axis=-1, keepdims=True)
     o = jnp.einsum("bhqk,bkhd->bqhd", p / jnp.where(total > 0, total, 1.0), v.astype(jnp.float32))
@@ -77,7 +78,7 @@ def merge(o1, lse1, o2, lse2):
     """Combine two partial results over disjoint key sets into the result over their union."""
     lse = jnp.logaddexp(lse1, lse2)
     ref = jnp.where(jnp.isfinite(lse), lse, 0.0)
-    w1 = jnp.exp(lse1 - ref)                          # 0 where lse1 = -inf
+    w1 = jnp.exp(lse1 - ref)  # 0 where lse1 = -inf
     w2 = jnp.exp(lse2 - ref)
     to_rows = lambda w: jnp.swapaxes(w, 1, 2)[..., None]  # [B, H, Lq] -> [B, Lq, H, 1]
     return o1 * to_rows(w1) + o2 * to_rows(w2), lse
@@ -96,23 +97,23 @@ def delta(o, do):
     needs the output. Computed once per query row before the tile loops, so the output itself need
     not stay alive through them."""
     # a fused multiply-and-reduce: as a batched dot, XLA would transpose both operands first
-    rows = jnp.sum(do.astype(jnp.float32) * o.astype(jnp.float32), axis=-1)     # [B, Lq, H]
+    rows = jnp.sum(do.astype(jnp.float32) * o.astype(jnp.float32), axis=-1)  # [B, Lq, H]
     return jnp.swapaxes(rows, 1, 2)
 
 
-def attend_block_grads(q, k, v, lse, delta_rows, do, *, scale, kv_mask=None, causal_block=None,
-                       q_start=0, k_start=0):
+def attend_block_grads(q, k, v, lse, delta_rows, do, *, scale, kv_mask=None, causal_block=None, q_start=0, k_start=0):
     """``(dq, dk, dv)`` contributed by this (query block, key block) pair.
 
     ``lse`` is the final log-sum-exp of the query rows over *all* keys, ``delta_rows`` their
     :func:`delta` and ``do`` the output cotangent; summing the contributions over all key blocks
     gives ``dq``, over all query blocks ``dk`` and ``dv``. Float32 results.
     """
-    mask = allowed(q.shape[0], q.shape[1], k.shape[1], kv_mask=kv_mask, causal_block=causal_block,
-                   q_start=q_start, k_start=k_start)
+    mask = allowed(
+        q.shape[0], q.shape[1], k.shape[1], kv_mask=kv_mask, causal_block=causal_block, q_start=q_start, k_start=k_start
+    )
     s = _scores(q, k, scale, mask)
     finite = jnp.isfinite(lse)[..., None]
-    p = jnp.where(finite, jnp.exp(s - jnp.where(finite, lse[..., None], 0.0)), 0.0)   # [B, H, Lq, Lk]
+    p = jnp.where(finite, jnp.exp(s - jnp.where(finite, lse[..., None], 0.0)), 0.0)  # [B, H, Lq, Lk]
     do = do.astype(jnp.float32)
     dv = jnp.einsum("bhqk,bqhd->bkhd", p, do)
     dp = jnp.einsum("bqhd,bkhd->bhqk", do, v.astype(jnp.float32))

@@ -42,6 +42,7 @@ def _block_causal_mask(shape: tuple[int, int], block: int):
         def __init__(self):
             def mask_function(q_ids, kv_ids):
                 return kv_ids // block <= q_ids // block
+
             super().__init__(shape=shape, mask_function=mask_function)
 
         def __eq__(self, other):
@@ -59,24 +60,31 @@ def _kernel(shape: tuple[int, int], heads: int, causal_block, tile_q: int, tile_
     from jax.experimental.pallas.ops.tpu.splash_attention import splash_attention_mask as masks
 
     one = masks.FullMask(shape) if causal_block is None else _block_causal_mask(shape, causal_block)
-    blocks = splash.BlockSizes(block_q=tile_q, block_kv=tile_k, block_kv_compute=tile_k,
-                               block_q_dkv=tile_q, block_kv_dkv=tile_k, block_kv_dkv_compute=tile_k,
-                               block_q_dq=tile_q, block_kv_dq=tile_k)
-    return splash.make_splash_mha(masks.MultiHeadMask([one] * heads), block_sizes=blocks, head_shards=1,
-                                  q_seq_shards=1, interpret=interpret)
+    blocks = splash.BlockSizes(
+        block_q=tile_q,
+        block_kv=tile_k,
+        block_kv_compute=tile_k,
+        block_q_dkv=tile_q,
+        block_kv_dkv=tile_k,
+        block_kv_dkv_compute=tile_k,
+        block_q_dq=tile_q,
+        block_kv_dq=tile_k,
+    )
+    return splash.make_splash_mha(
+        masks.MultiHeadMask([one] * heads), block_sizes=blocks, head_shards=1, q_seq_shards=1, interpret=interpret
+    )
 
 
 def _has_key(kv_mask, lq: int, causal_block):
     """``[B, Lq]``: whether query row i has any allowed key."""
     if causal_block is None:
         return jnp.broadcast_to(jnp.any(kv_mask, axis=1, keepdims=True), (kv_mask.shape[0], lq))
-    seen = jnp.cumsum(kv_mask, axis=1)                                   # allowed keys so far
+    seen = jnp.cumsum(kv_mask, axis=1)  # allowed keys so far
     last = np.minimum((np.arange(lq) // causal_block + 1) * causal_block, kv_mask.shape[1]) - 1
     return seen[:, last] > 0
 
 
-def splash_attention(q, k, v, *, scale, kv_mask=None, causal_block=None, tile: int = 512,
-                     interpret: bool = False):
+def splash_attention(q, k, v, *, scale, kv_mask=None, causal_block=None, tile: int = 512, interpret: bool = False):
     """Softmax attention ``[B, Lq, H, D]`` through the splash kernel (see the module docstring)."""
     from jax.experimental.pallas.ops.tpu.splash_attention import splash_attention_kernel as splash
 
@@ -85,11 +93,12 @@ def splash_attention(q, k, v, *, scale, kv_mask=None, causal_block=None, tile: i
     tile_q, tile_k = min(tile, -(-lq // 128) * 128), min(tile, -(-lk // 128) * 128)
     lq_pad, lk_pad = -(-lq // tile_q) * tile_q, -(-lk // tile_k) * tile_k
     mask = jnp.ones((b, lk), bool) if kv_mask is None else jnp.asarray(kv_mask, bool)
-    heads_first = lambda x: jnp.swapaxes(x, 1, 2)                        # [B, L, H, D] -> [B, H, L, D]
+    heads_first = lambda x: jnp.swapaxes(x, 1, 2)  # [B, L, H, D] -> [B, H, L, D]
     qh = heads_first(pad_sequence(q * jnp.asarray(scale, q.dtype), lq_pad))
     kh, vh = heads_first(pad_sequence(k, lk_pad)), heads_first(pad_sequence(v, lk_pad))
-    segments = splash.SegmentIds(q=jnp.zeros((b, lq_pad), jnp.int32),
-                                 kv=jnp.where(pad_sequence(mask, lk_pad), 0, 1).astype(jnp.int32))
+    segments = splash.SegmentIds(
+        q=jnp.zeros((b, lq_pad), jnp.int32), kv=jnp.where(pad_sequence(mask, lk_pad), 0, 1).astype(jnp.int32)
+    )
     kernel = _kernel((lq_pad, lk_pad), h, causal_block, tile_q, tile_k, interpret)
     out = jax.vmap(lambda q, k, v, s: kernel(q, k, v, segment_ids=s))(qh, kh, vh, segments)
     out = jnp.swapaxes(out, 1, 2)[:, :lq]

@@ -61,6 +61,7 @@ def _seq_in_tiles(x, axis, n, tile, dtype):
     def part(p):
         y = jax.lax.dynamic_slice_in_dim(blocks, p * tile, tile, axis=2)
         return _to_seq(y.reshape(b, n * tile, *x.shape[2:]).astype(dtype), axis)
+
     step = lambda p, out: jax.lax.dynamic_update_slice_in_dim(out, part(p), p * tile, axis=1)
     # The result starts as the padded first tile, not as zeros: XLA copies a zero constant into
     # the loop's buffer at program start, holding a chunk-sized buffer through the forward.
@@ -92,6 +93,7 @@ def _ulysses_kernel(scale: float, causal_block, axis: str, n: int, has_mask: boo
         def one_piece(p, acc):
             kp, vp, mp = gathered(k, v, mask, p)
             return tiled_attend(qh, kp, vp, mp, k_start=p * bk, k_step=k.shape[1], acc=acc, **tiles)
+
         o, lse = key_pieces(k, one_piece, sb.empty(qh))
         return _seq_in_tiles(o, axis, n, bq, q.dtype), lse
 
@@ -113,11 +115,21 @@ def _ulysses_kernel(scale: float, causal_block, axis: str, n: int, has_mask: boo
             dqh, dk, dv = grads
             kp, vp, mp = gathered(k, v, mask, p)
             zeros = lambda x: jnp.zeros(x.shape, jnp.float32)
-            dqh, dkp, dvp = tiled_grads(qh, kp, vp, mp, lse, delta, doh, k_start=p * bk,
-                                        k_step=k.shape[1], acc=(dqh, zeros(kp), zeros(vp)), **tiles)
+            dqh, dkp, dvp = tiled_grads(
+                qh,
+                kp,
+                vp,
+                mp,
+                lse,
+                delta,
+                doh,
+                k_start=p * bk,
+                k_step=k.shape[1],
+                acc=(dqh, zeros(kp), zeros(vp)),
+                **tiles,
+            )
             # piece p is complete: back to its owners, in k's dtype
-            put = lambda x, g: jax.lax.dynamic_update_slice_in_dim(
-                x, _to_seq(g.astype(x.dtype), axis), p * bk, axis=1)
+            put = lambda x, g: jax.lax.dynamic_update_slice_in_dim(x, _to_seq(g.astype(x.dtype), axis), p * bk, axis=1)
             return dqh, put(dk, dkp), put(dv, dvp)
 
         like = lambda x: jnp.zeros(x.shape, x.dtype)
@@ -130,16 +142,19 @@ def _ulysses_kernel(scale: float, causal_block, axis: str, n: int, has_mask: boo
 
 def _whole(local, scale, causal_block, axis, has_mask):
     """Per-device all-to-all around an arbitrary single-device kernel (q, k, v cross whole)."""
+
     def per_device(q, k, v, mask):
         qh, kh, vh = (_to_heads(x, axis) for x in (q, k, v))
         full_mask = jax.lax.all_gather(mask, axis, axis=1, tiled=True) if has_mask else None
         o = local(qh, kh, vh, scale=scale, kv_mask=full_mask, causal_block=causal_block)
         return _to_seq(o.astype(q.dtype), axis)
+
     return per_device
 
 
-def ulysses_attention(q, k, v, *, mesh, scale, kv_mask=None, causal_block=None, seq_axis="seq",
-                      block: int = 512, local=None):
+def ulysses_attention(
+    q, k, v, *, mesh, scale, kv_mask=None, causal_block=None, seq_axis="seq", block: int = 512, local=None
+):
     """Softmax attention of ``q [B, Lq, H, D]`` over ``k, v [B, Lk, H, D]`` by all-to-all over ``seq``.
 
     ``kv_mask [B, Lk]`` bool (True = attend) and ``causal_block`` follow
@@ -155,11 +170,13 @@ def ulysses_attention(q, k, v, *, mesh, scale, kv_mask=None, causal_block=None, 
     """
     lay = seq_shard.layout(q, k, v, kv_mask, causal_block, mesh, seq_axis)
     if lay.heads_per_shard % lay.n:
-        raise ValueError(f"q: expected a number of heads per {seq_shard.HEAD_AXIS!r} shard divisible "
-                         f"by the size {lay.n} of mesh axis {seq_axis!r}, got {q.shape[2]} heads "
-                         f"({lay.heads_per_shard} per shard)")
+        raise ValueError(
+            f"q: expected a number of heads per {seq_shard.HEAD_AXIS!r} shard divisible "
+            f"by the size {lay.n} of mesh axis {seq_axis!r}, got {q.shape[2]} heads "
+            f"({lay.heads_per_shard} per shard)"
+        )
     lq, q_type = q.shape[1], jax.typeof(q)
-    if local is None:   # a device holds all query rows of its heads: they set the tile
+    if local is None:  # a device holds all query rows of its heads: they set the tile
         tile = seq_shard.tile_size(lay.n * seq_shard.chunk(lq, lay.n), q.shape[3], block)
         q, k, v, kv_mask, bq, bk, has_mask = seq_shard.pad_to_tiles(q, k, v, kv_mask, lay.n, tile)
         kernel = _ulysses_kernel(float(scale), causal_block, seq_axis, lay.n, has_mask, bq, bk)

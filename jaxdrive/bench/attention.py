@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import argparse
 
-TARGET = 1 / 6   # per-device memory at the largest seq size over the smallest (seq 8 over seq 1)
+TARGET = 1 / 6  # per-device memory at the largest seq size over the smallest (seq 8 over seq 1)
 SHARDED = ("ring", "ulysses")
 DEFINITIONS = {"per_device_memory": "footprint_bytes", "per_device_temp_memory": "temp_bytes"}
 
@@ -47,6 +47,7 @@ def _grad_fn(impl, mesh=None, **kw):
 
     def loss(q, k, v):
         return attention(q, k, v, impl=impl, mesh=mesh, **kw).astype("float32").sum()
+
     return jax.jit(jax.grad(loss, argnums=(0, 1, 2)))
 
 
@@ -69,13 +70,31 @@ def run(lengths, seq_sizes, time_max, heads, dim, block):
             fn = _grad_fn(impl, block_q=block, block_k=block) if impl == "blockwise" else _grad_fn(impl)
             compiled = fn.lower(shape, shape, shape).compile()
             row[f"{impl}_temp_mib"] = mib(report.temp_bytes(compiled))
-            emit(name, "temp_memory", row[f"{impl}_temp_mib"], "MiB", impl=impl, tokens=length, heads=heads,
-                 dim=dim, backend=jax.default_backend())
+            emit(
+                name,
+                "temp_memory",
+                row[f"{impl}_temp_mib"],
+                "MiB",
+                impl=impl,
+                tokens=length,
+                heads=heads,
+                dim=dim,
+                backend=jax.default_backend(),
+            )
             if length <= time_max:
                 x = jax.random.normal(jax.random.PRNGKey(0), shape.shape, jnp.float32)
                 row[f"{impl}_ms"] = round(1e3 * best_time(lambda: compiled(x, x, x), repeats=2), 1)
-                emit(name, "fwd_bwd_time", row[f"{impl}_ms"], "ms", impl=impl, tokens=length, heads=heads,
-                     dim=dim, backend=jax.default_backend())
+                emit(
+                    name,
+                    "fwd_bwd_time",
+                    row[f"{impl}_ms"],
+                    "ms",
+                    impl=impl,
+                    tokens=length,
+                    heads=heads,
+                    dim=dim,
+                    backend=jax.default_backend(),
+                )
         if row["xla_temp_mib"]:
             row["blockwise_vs_xla"] = round(row["blockwise_temp_mib"] / row["xla_temp_mib"], 4)
             emit(name, "blockwise_temp_fraction_of_dense", row["blockwise_vs_xla"], "ratio", tokens=length)
@@ -85,11 +104,16 @@ def run(lengths, seq_sizes, time_max, heads, dim, block):
             for n in seq_sizes:
                 if n > len(jax.devices()):
                     continue
-                mesh = jax.make_mesh((1, 1, n, 1), ("data", "fsdp", "seq", "tensor"),
-                                     axis_types=(AxisType.Explicit,) * 4, devices=jax.devices()[:n])
-                sharded = jax.ShapeDtypeStruct(shape.shape, jnp.float32,
-                                               sharding=NamedSharding(mesh, P(None, "seq", None, None)))
-                with jax.set_mesh(mesh):   # attention() runs a mesh it is given only inside it
+                mesh = jax.make_mesh(
+                    (1, 1, n, 1),
+                    ("data", "fsdp", "seq", "tensor"),
+                    axis_types=(AxisType.Explicit,) * 4,
+                    devices=jax.devices()[:n],
+                )
+                sharded = jax.ShapeDtypeStruct(
+                    shape.shape, jnp.float32, sharding=NamedSharding(mesh, P(None, "seq", None, None))
+                )
+                with jax.set_mesh(mesh):  # attention() runs a mesh it is given only inside it
                     compiled = _grad_fn(impl, mesh=mesh).lower(sharded, sharded, sharded).compile()
                 for figure, measure in DEFINITIONS.items():
                     value = mib(getattr(report, measure)(compiled))
@@ -100,16 +124,25 @@ def run(lengths, seq_sizes, time_max, heads, dim, block):
                 if first and last:
                     fig_row["ratio"] = round(last / first, 4)
                     fig_row["met"] = fig_row["ratio"] <= TARGET
-                    emit(name, f"{figure}_ratio", fig_row["ratio"], "ratio", impl=impl, tokens=length,
-                         seq_from=seq_sizes[0], seq_to=seq_sizes[-1], target=round(TARGET, 4),
-                         met=fig_row["met"])
+                    emit(
+                        name,
+                        f"{figure}_ratio",
+                        fig_row["ratio"],
+                        "ratio",
+                        impl=impl,
+                        tokens=length,
+                        seq_from=seq_sizes[0],
+                        seq_to=seq_sizes[-1],
+                        target=round(TARGET, 4),
+                        met=fig_row["met"],
+                    )
                 sharded_rows.append(fig_row)
-    print(table(rows, ["tokens", "xla_temp_mib", "blockwise_temp_mib", "blockwise_vs_xla", "xla_ms",
-                       "blockwise_ms"]))
-    print(f"\nper device, MiB (target: seq{seq_sizes[-1]} / seq{seq_sizes[0]} <= {TARGET:.4f}, "
-          f"checked on per_device_memory)")
-    print(table(sharded_rows, ["tokens", "impl", "memory"] + [f"seq{n}_mib" for n in seq_sizes]
-                + ["ratio", "met"]))
+    print(table(rows, ["tokens", "xla_temp_mib", "blockwise_temp_mib", "blockwise_vs_xla", "xla_ms", "blockwise_ms"]))
+    print(
+        f"\nper device, MiB (target: seq{seq_sizes[-1]} / seq{seq_sizes[0]} <= {TARGET:.4f}, "
+        f"checked on per_device_memory)"
+    )
+    print(table(sharded_rows, ["tokens", "impl", "memory"] + [f"seq{n}_mib" for n in seq_sizes] + ["ratio", "met"]))
     return rows, sharded_rows
 
 
@@ -123,6 +156,7 @@ def main(argv=None):
     parser.add_argument("--block", type=int, default=512)
     args = parser.parse_args(argv)
     from jaxdrive.bench.report import ensure_devices
+
     ensure_devices(max(args.seq))
     return run(args.lengths, args.seq, args.time_max, args.heads, args.dim, args.block)
 

@@ -36,8 +36,9 @@ NAME = "buckets"
 DEFAULT = Path(__file__).resolve().parents[2] / "configs" / "magicdrive_v2.py"
 
 
-def run(config_arg: str, sets, repeats: int, views: int, rebalance: bool = False, max_batch: int = 0,
-        rounds: int = 3) -> dict:
+def run(
+    config_arg: str, sets, repeats: int, views: int, rebalance: bool = False, max_batch: int = 0, rounds: int = 3
+) -> dict:
     import jax
 
     from jaxdrive.config import load_config
@@ -46,10 +47,11 @@ def run(config_arg: str, sets, repeats: int, views: int, rebalance: bool = False
 
     data = Path(tempfile.mkdtemp(prefix="jaxdrive-bench-buckets-")) / "data"
     config = load_config(config_arg, [f"data.path={data}", f"data.views={views}", *sets])
-    run = Run(config)                                   # checks the buckets; the dataset comes next
+    run = Run(config)  # checks the buckets; the dataset comes next
     longest = max(b.frames for b in run.buckets)
-    write_synthetic_dataset(data, train=64, validation=1, views=views, frames=longest * config.data.stride,
-                            overwrite=True)
+    write_synthetic_dataset(
+        data, train=64, validation=1, views=views, frames=longest * config.data.stride, overwrite=True
+    )
     state, optimizer, shardings = run.init_state()
     step, frozen = run.step_fn(optimizer, shardings), run.frozen_params()
     groups = _groups(run)
@@ -61,13 +63,13 @@ def run(config_arg: str, sets, repeats: int, views: int, rebalance: bool = False
 
     def measure(sizes: dict) -> list[dict]:
         nonlocal state
-        jax.clear_caches()         # each round compiles new shapes: the old programs' code pages add up
+        jax.clear_caches()  # each round compiles new shapes: the old programs' code pages add up
         rows = []
         with jax.set_mesh(run.mesh):
             for bucket in run.buckets:
                 size = sizes[bucket.key]
                 batch = run.global_batch([_resize_batch(batches[bucket.key], size // jax.process_count())])
-                state, metrics = step(state, frozen, batch)           # compiles this bucket's program
+                state, metrics = step(state, frozen, batch)  # compiles this bucket's program
                 jax.block_until_ready(metrics)
                 times = []
                 for _ in range(repeats):
@@ -77,14 +79,22 @@ def run(config_arg: str, sets, repeats: int, views: int, rebalance: bool = False
                     times.append(time.perf_counter() - t)
                 sec = statistics.median(times)
                 tokens = run.batch_tokens(batch)
-                rows.append(dict(bucket="x".join(map(str, bucket.key)), batch=size, tokens=tokens,
-                                 step_s=round(sec, 4), steps_per_s=round(1 / sec, 2),
-                                 tokens_per_s=round(tokens / sec)))
+                rows.append(
+                    dict(
+                        bucket="x".join(map(str, bucket.key)),
+                        batch=size,
+                        tokens=tokens,
+                        step_s=round(sec, 4),
+                        steps_per_s=round(1 / sec, 2),
+                        tokens_per_s=round(tokens / sec),
+                    )
+                )
         return rows
 
     def report(rows, label):
-        ctx0 = dict(config=config_arg, views=views, backend=jax.default_backend(), devices=jax.device_count(),
-                    batches=label)
+        ctx0 = dict(
+            config=config_arg, views=views, backend=jax.default_backend(), devices=jax.device_count(), batches=label
+        )
         for r in rows:
             emit(NAME, "step_time", r["step_s"], "s", bucket=r["bucket"], batch=r["batch"], **ctx0)
             emit(NAME, "tokens_per_s", r["tokens_per_s"], "tokens/s", bucket=r["bucket"], batch=r["batch"], **ctx0)
@@ -132,9 +142,10 @@ def _fit_batch(points, target: float, groups: int, max_batch: int) -> int:
     slope the wrong way (round 4 of a 9-bucket run sent a bucket from batch 120 to 2). The
     slope is kept at least a fifth of the proportional one (time / batch)."""
     import numpy as np
+
     b, t = (np.asarray(v, float) for v in zip(*points))
     proportional = t.mean() / b.mean()
-    slope = proportional                               # one batch size measured: time ~ batch
+    slope = proportional  # one batch size measured: time ~ batch
     if np.ptp(b) > 0:
         slope = max(float(np.polyfit(b, t, 1)[0]), 0.2 * proportional)
     a = t.mean() - slope * b.mean()
@@ -151,10 +162,11 @@ def _drawing_run(config, groups: int):
 
     from jaxdrive.data.buckets import parse_bucket_specs
     from jaxdrive.train.run import Run
+
     if not config.data.buckets:
         return Run(config)
     specs = parse_bucket_specs(config.data.buckets)
-    small = tuple(f"{h}x{w}x{f}:{groups}:1" for h, w, f in specs)          # equal shares: each fills
+    small = tuple(f"{h}x{w}x{f}:{groups}:1" for h, w, f in specs)  # equal shares: each fills
     return Run(dataclasses.replace(config, data=dataclasses.replace(config.data, buckets=small)))
 
 
@@ -167,6 +179,7 @@ def _groups(run) -> int:
 def _resize_batch(batch, n: int):
     """A pipeline batch with ``n`` samples: its own, repeated (or cut) along the batch axis."""
     import numpy as np
+
     b = len(batch["index"])
 
     def fit(v):
@@ -177,6 +190,7 @@ def _resize_batch(batch, n: int):
         if isinstance(v, np.ndarray) and v.ndim and v.shape[0] == b:
             return v[np.arange(n) % b]
         return v
+
     return fit(batch)
 
 
@@ -187,8 +201,11 @@ def main(argv=None):
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--views", type=int, default=1, choices=(1, 6))
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
-    parser.add_argument("--rebalance", action="store_true", help="fit each bucket's step time to its batch and "
-                        "re-time the buckets at batches that match the slowest one")
+    parser.add_argument(
+        "--rebalance",
+        action="store_true",
+        help="fit each bucket's step time to its batch and re-time the buckets at batches that match the slowest one",
+    )
     parser.add_argument("--max-batch", type=int, default=64, help="--rebalance: the largest batch it proposes")
     parser.add_argument("--rounds", type=int, default=3, help="--rebalance: refits at most (stops at balance 1.25)")
     args = parser.parse_args(argv)

@@ -77,19 +77,31 @@ from jaxdrive.bench.report import emit, table
 NAME = "controls"
 PATHWAYS = ("boxes", "layout", "map", "waypoints", "trajectory", "warp", "camera")
 DEFAULTS = dict(steps=60, batch=8, seed=0, lr=1e-2, clips=16)
-H = W = 8                  # latent grid; the image is 8x larger (vae_spatial)
+H = W = 8  # latent grid; the image is 8x larger (vae_spatial)
 CHANNELS = 4
 MAP_HW = 32
 # XLA's backend optimisations off: compiling a one-layer DiT's train step then takes less than
 # half the CPU time (8 against 20 s measured), and the toys' steps are milliseconds either way
 _FAST_COMPILE = {"xla_backend_optimization_level": 0}
 # the control fields of each pathway (rolled together by the shuffle)
-FIELDS = {"boxes": ("boxes", "box_classes", "box_valid"), "layout": ("boxes", "box_classes", "box_valid"),
-          "map": ("bev_map",), "waypoints": ("waypoints",), "trajectory": ("ego_to_world",), "warp": ("warp",),
-          "camera": ("intrinsics", "cam_to_ego")}
-_CONTROLS = {"boxes": dict(boxes=True), "layout": dict(layout=True, layout_hidden=16),
-             "map": dict(map=True, map_blocks=1, map_hidden=16), "waypoints": dict(waypoints=True),
-             "trajectory": dict(trajectory=True), "warp": dict(warp=True), "camera": dict(camera=True)}
+FIELDS = {
+    "boxes": ("boxes", "box_classes", "box_valid"),
+    "layout": ("boxes", "box_classes", "box_valid"),
+    "map": ("bev_map",),
+    "waypoints": ("waypoints",),
+    "trajectory": ("ego_to_world",),
+    "warp": ("warp",),
+    "camera": ("intrinsics", "cam_to_ego"),
+}
+_CONTROLS = {
+    "boxes": dict(boxes=True),
+    "layout": dict(layout=True, layout_hidden=16),
+    "map": dict(map=True, map_blocks=1, map_hidden=16),
+    "waypoints": dict(waypoints=True),
+    "trajectory": dict(trajectory=True),
+    "warp": dict(warp=True),
+    "camera": dict(camera=True),
+}
 
 
 def check_pathways(pathways) -> tuple[str, ...]:
@@ -115,16 +127,24 @@ def check_options(*, steps: int, batch: int, clips: int, lr: float, seed: int = 
 def config(pathway: str):
     """The one-layer DiT with only ``pathway``'s control (module docstring)."""
     from jaxdrive.models.dit.presets import preset
+
     check_pathways([pathway])
-    return preset("tiny", depth=1, heads=2, head_dim=16, in_channels=CHANNELS, prediction="data",
-                  controls=dict(text=None, fps=False, cond_frames="replace", reference_frame="residual",
-                                **_CONTROLS[pathway]))
+    return preset(
+        "tiny",
+        depth=1,
+        heads=2,
+        head_dim=16,
+        in_channels=CHANNELS,
+        prediction="data",
+        controls=dict(text=None, fps=False, cond_frames="replace", reference_frame="residual", **_CONTROLS[pathway]),
+    )
 
 
 def _cameras(batch: int, yaw=None, focal_scale=None):
     """One camera at (1, 0, 1.5) m per clip, 70-degree field of view (times ``1 / focal_scale``),
     turned by ``yaw`` (radians, left positive) about the ego's z axis."""
     from jaxdrive.models.dit.inputs import example_cameras
+
     cams = example_cameras(batch, 1, 8 * H, 8 * W)
     if yaw is not None:
         c, s = np.cos(yaw), np.sin(yaw)
@@ -151,9 +171,19 @@ def _cover_fn():
 
     def cover(boxes, intrinsics, cam_to_ego):
         b, _, n = boxes.shape[:3]
-        canvas = layout_canvas(boxes, np.zeros((b, 1, n), np.int32), np.ones((b, 1, n), bool), intrinsics,
-                               cam_to_ego, (8 * H, 8 * W), (H, W), num_classes=1, samples=2)
+        canvas = layout_canvas(
+            boxes,
+            np.zeros((b, 1, n), np.int32),
+            np.ones((b, 1, n), bool),
+            intrinsics,
+            cam_to_ego,
+            (8 * H, 8 * W),
+            (H, W),
+            num_classes=1,
+            samples=2,
+        )
         return canvas[:, 0, ..., :1]
+
     return jax.jit(cover, compiler_options=_FAST_COMPILE)
 
 
@@ -164,7 +194,7 @@ def _cover(*args):
 def _ahead_in_view(intrinsics, cam_to_ego):
     """``[B]``: 1 where the direction straight ahead of the ego lies inside the horizontal field of
     view of the clip's camera (``intrinsics [B, 1, 3, 3]``, ``cam_to_ego [B, 1, 4, 4]``), else 0."""
-    d = np.einsum("bji,j->bi", np.asarray(cam_to_ego)[:, 0, :3, :3], np.array([1.0, 0.0, 0.0]))   # in the camera
+    d = np.einsum("bji,j->bi", np.asarray(cam_to_ego)[:, 0, :3, :3], np.array([1.0, 0.0, 0.0]))  # in the camera
     k = np.asarray(intrinsics)[:, 0]
     u = k[:, 0, 0] * d[:, 0] / np.maximum(d[:, 2], 1e-9) + k[:, 0, 2]
     return ((d[:, 2] > 0) & (u >= 0) & (u <= 8 * W)).astype(np.float32)
@@ -175,8 +205,9 @@ def toy_clips(pathway: str, rng: np.random.Generator, batch: int):
     ``cond`` a :class:`~jaxdrive.models.dit.conditions.Conditions` with the control and frame 0 as the
     given frame."""
     from jaxdrive.models.dit.conditions import Conditions
+
     check_pathways([pathway])
-    x0 = rng.standard_normal((batch, 1, H, W, CHANNELS)).astype(np.float32)     # [B, V, h, w, C]
+    x0 = rng.standard_normal((batch, 1, H, W, CHANNELS)).astype(np.float32)  # [B, V, h, w, C]
     kw = {}
     if pathway in ("boxes", "layout"):
         boxes = np.zeros((batch, 2, 1, 7), np.float32)
@@ -184,13 +215,14 @@ def toy_clips(pathway: str, rng: np.random.Generator, batch: int):
         boxes[..., 2:6] = (1.0, 3.0, 2.5, 2.0)
         cams = _cameras(batch)
         x1 = x0 + 2 * _box_cover(boxes[:, :1], cams)
-        kw = dict(boxes=boxes, box_classes=np.zeros((batch, 2, 1), np.int32), box_valid=np.ones((batch, 2, 1), bool),
-                  **cams)
+        kw = dict(
+            boxes=boxes, box_classes=np.zeros((batch, 2, 1), np.int32), box_valid=np.ones((batch, 2, 1), bool), **cams
+        )
     elif pathway == "map":
         road = (rng.uniform(size=(batch, 4, 4)) < 0.5).astype(np.float32)
         bev = np.zeros((batch, 2, MAP_HW, MAP_HW, 8), np.float32)
         bev[..., 0] = np.repeat(np.repeat(road, MAP_HW // 4, 1), MAP_HW // 4, 2)[:, None]
-        tokens = bev[:, 0, ..., 0].reshape(batch, 4, MAP_HW // 4, 4, MAP_HW // 4).mean((2, 4))   # token grid
+        tokens = bev[:, 0, ..., 0].reshape(batch, 4, MAP_HW // 4, 4, MAP_HW // 4).mean((2, 4))  # token grid
         cells = np.repeat(np.repeat(tokens, H // 4, 1), W // 4, 2)
         x1 = x0 + 2 * cells[:, None, :, :, None]
         kw = dict(bev_map=bev)
@@ -208,18 +240,19 @@ def toy_clips(pathway: str, rng: np.random.Generator, batch: int):
             for f in range(2):
                 poses[:, f, 0, 0], poses[:, f, 0, 1], poses[:, f, 1, 0], poses[:, f, 1, 1] = c, -s, s, c
             poses[:, 0, :2, 3] = rng.uniform(-50, 50, (batch, 2))
-            poses[:, 1, :2, 3] = poses[:, 0, :2, 3] + np.stack([c * forward - s * lateral,
-                                                                s * forward + c * lateral], -1)
+            poses[:, 1, :2, 3] = poses[:, 0, :2, 3] + np.stack(
+                [c * forward - s * lateral, s * forward + c * lateral], -1
+            )
             kw = dict(ego_to_world=poses)
     elif pathway == "warp":
         shift = rng.integers(-2, 3, (batch, 2))
         x1 = np.stack([np.roll(x0[i], tuple(shift[i]), axis=(1, 2)) for i in range(batch)])
         kw = dict(warp=np.stack([x0, x1], axis=2))
-    else:                                                                       # camera
+    else:  # camera
         yaw, focal = rng.uniform(-np.pi / 2, np.pi / 2, batch), rng.uniform(0.6, 1.5, batch)
         kw = _cameras(batch, yaw, focal)
         x1 = x0 + 2 * _ahead_in_view(kw["intrinsics"], kw["cam_to_ego"])[:, None, None, None, None]
-    x = np.stack([x0, x1], axis=2)                                              # [B, V, 2, h, w, C]
+    x = np.stack([x0, x1], axis=2)  # [B, V, 2, h, w, C]
     mask = np.zeros((batch, 2), bool)
     mask[:, 0] = True
     return x, Conditions(cond_latents=x, cond_mask=mask, **kw)
@@ -245,8 +278,9 @@ def _functions(cfg, lr: float):
 
     def loss(params, x, cond, noise, sigma):
         x_t = flow.add_noise(x, noise, sigma)
-        v = flow.velocity_from_output(dit.forward(params, x_t, sigma, cond), x_t, sigma, cfg.prediction,
-                                      cfg.prediction_min_sigma)
+        v = flow.velocity_from_output(
+            dit.forward(params, x_t, sigma, cond), x_t, sigma, cfg.prediction, cfg.prediction_min_sigma
+        )
         return flow.flow_loss(v, x, noise, cond_mask=cond.cond_mask)
 
     @functools.partial(jax.jit, compiler_options=_FAST_COMPILE)
@@ -257,13 +291,21 @@ def _functions(cfg, lr: float):
         updates, state = opt.update(grads, state, params)
         return optax.apply_updates(params, updates), state, value
 
-    predict = jax.jit(lambda params, x_t, sigma, cond: dit.forward(params, x_t, sigma, cond),
-                      compiler_options=_FAST_COMPILE)
+    predict = jax.jit(
+        lambda params, x_t, sigma, cond: dit.forward(params, x_t, sigma, cond), compiler_options=_FAST_COMPILE
+    )
     return dit, opt, step, predict
 
 
-def measure(pathway: str, *, steps: int = DEFAULTS["steps"], batch: int = DEFAULTS["batch"],
-            seed: int = DEFAULTS["seed"], lr: float = DEFAULTS["lr"], clips: int = DEFAULTS["clips"]) -> dict:
+def measure(
+    pathway: str,
+    *,
+    steps: int = DEFAULTS["steps"],
+    batch: int = DEFAULTS["batch"],
+    seed: int = DEFAULTS["seed"],
+    lr: float = DEFAULTS["lr"],
+    clips: int = DEFAULTS["clips"],
+) -> dict:
     """Train ``pathway``'s toy model and measure it (module docstring): a dict with ``pathway``,
     ``steps``, ``loss_repeat``, ``loss_true``, ``loss_shuffled``, ``ratio``, ``moved``,
     ``follow`` and ``train_loss`` (the mean over the last ``min(10, steps)`` steps)."""
@@ -276,8 +318,9 @@ def measure(pathway: str, *, steps: int = DEFAULTS["steps"], batch: int = DEFAUL
     check_options(steps=steps, batch=batch, clips=clips, lr=lr)
     cfg = config(pathway)
     dit, opt, step, predict = _functions(cfg, lr)
-    params = jax.tree_util.tree_map(jnp.asarray, dit.init_params(seed, batch=batch, views=1, frames=2,
-                                                                 height=H, width=W))
+    params = jax.tree_util.tree_map(
+        jnp.asarray, dit.init_params(seed, batch=batch, views=1, frames=2, height=H, width=W)
+    )
     init = params
     state, rng, key = opt.init(params), np.random.default_rng(seed), jax.random.PRNGKey(seed)
     # every clip drawn at once (the box toys' canvas runs op by op: one shape, compiled once);
@@ -297,7 +340,7 @@ def measure(pathway: str, *, steps: int = DEFAULTS["steps"], batch: int = DEFAUL
     sigma = np.stack([np.zeros(clips), np.linspace(0.3, 0.9, clips)], 1).astype(np.float32)
     x_t = flow.add_noise(x, noise, sigma)
 
-    def frame1(params, cond):          # the data prediction of frame 1 and the flow loss over it
+    def frame1(params, cond):  # the data prediction of frame 1 and the flow loss over it
         out = predict(params, x_t, sigma, cond)
         v = flow.velocity_from_output(out, x_t, sigma, cfg.prediction, cfg.prediction_min_sigma)
         return np.asarray(out)[:, :, 1], float(flow.flow_loss(v, x, noise, cond_mask=cond.cond_mask))
@@ -305,11 +348,17 @@ def measure(pathway: str, *, steps: int = DEFAULTS["steps"], batch: int = DEFAUL
     (true, loss_true), (shuf, loss_shuffled) = frame1(params, cond), frame1(params, other)
     norm = lambda a: float(np.sqrt(np.sum(np.square(a))))
     moved = norm(true - shuf)
-    return dict(pathway=pathway, steps=steps, loss_repeat=round(frame1(init, cond)[1], 4),
-                loss_true=round(loss_true, 4), loss_shuffled=round(loss_shuffled, 4),
-                ratio=round(loss_true / loss_shuffled, 4), moved=round(moved / norm(x[:, :, 1] - x[:, :, 0]), 4),
-                follow=round(moved / max(norm(x[:, :, 1] - shuffled_target(pathway, x)), 1e-12), 4),
-                train_loss=round(float(np.mean(np.asarray(losses[-min(10, steps):]))), 4))
+    return dict(
+        pathway=pathway,
+        steps=steps,
+        loss_repeat=round(frame1(init, cond)[1], 4),
+        loss_true=round(loss_true, 4),
+        loss_shuffled=round(loss_shuffled, 4),
+        ratio=round(loss_true / loss_shuffled, 4),
+        moved=round(moved / norm(x[:, :, 1] - x[:, :, 0]), 4),
+        follow=round(moved / max(norm(x[:, :, 1] - shuffled_target(pathway, x)), 1e-12), 4),
+        train_loss=round(float(np.mean(np.asarray(losses[-min(10, steps) :]))), 4),
+    )
 
 
 def shuffled_target(pathway: str, x):
@@ -332,6 +381,7 @@ def shuffled_target(pathway: str, x):
 def run(pathways=PATHWAYS, **options) -> list[dict]:
     """Measure each of ``pathways`` (module docstring); print one JSON line each and the table."""
     import jax
+
     pathways = check_pathways(pathways)
     check_options(**{k: options.get(k, v) for k, v in DEFAULTS.items()})
     rows = []
@@ -339,8 +389,15 @@ def run(pathways=PATHWAYS, **options) -> list[dict]:
         row = measure(pathway, **options)
         rows.append(row)
         ctx = {k: v for k, v in row.items() if k != "ratio"}
-        emit(NAME, "control_ratio", row["ratio"], "loss_true / loss_shuffled", backend=jax.default_backend(),
-             **{k: v for k, v in options.items() if k != "steps"}, **ctx)
+        emit(
+            NAME,
+            "control_ratio",
+            row["ratio"],
+            "loss_true / loss_shuffled",
+            backend=jax.default_backend(),
+            **{k: v for k, v in options.items() if k != "steps"},
+            **ctx,
+        )
     print(table(rows, ["pathway", "steps", "loss_repeat", "loss_true", "loss_shuffled", "ratio", "moved", "follow"]))
     return rows
 

@@ -17,8 +17,12 @@ from __future__ import annotations
 import argparse
 
 # shapes per preset: (batch, views, latent frames, latent height, latent width)
-SHAPES = {"tiny": (1, 2, 4, 16, 16), "small": (1, 6, 4, 16, 32),
-          "tiny-full": (1, 2, 4, 16, 16), "small-full": (1, 6, 4, 16, 32)}
+SHAPES = {
+    "tiny": (1, 2, 4, 16, 16),
+    "small": (1, 6, 4, 16, 32),
+    "tiny-full": (1, 2, 4, 16, 16),
+    "small-full": (1, 6, 4, 16, 32),
+}
 
 
 def run(presets, seq_sizes, repeats):
@@ -48,6 +52,7 @@ def run(presets, seq_sizes, repeats):
 
         def loss(params, lat, sig, cond):
             return jnp.mean(jnp.square(dit.forward(params, lat, sig, cond) - lat))
+
         grad = jax.jit(jax.grad(loss))
         n_params = param_count(cfg)
         for n in seq_sizes:
@@ -61,10 +66,17 @@ def run(presets, seq_sizes, repeats):
                 compile_s = time.perf_counter() - t0
                 step = best_time(lambda: compiled(params, lat, sig, cond), repeats=repeats)
             mem = compiled.memory_analysis()
-            row = dict(preset=pname, params=n_params, tokens=tokens, seq=n, compile_s=round(compile_s, 1),
-                       fwd_bwd_ms=round(1e3 * step, 1), tokens_per_s=round(tokens / step),
-                       temp_mib=mib(getattr(mem, "temp_size_in_bytes", None)),
-                       args_mib=mib(getattr(mem, "argument_size_in_bytes", None)))
+            row = dict(
+                preset=pname,
+                params=n_params,
+                tokens=tokens,
+                seq=n,
+                compile_s=round(compile_s, 1),
+                fwd_bwd_ms=round(1e3 * step, 1),
+                tokens_per_s=round(tokens / step),
+                temp_mib=mib(getattr(mem, "temp_size_in_bytes", None)),
+                args_mib=mib(getattr(mem, "argument_size_in_bytes", None)),
+            )
             ctx = dict(preset=pname, seq=n, tokens=tokens, shape=[b, v, f, h, w], backend=jax.default_backend())
             emit(name, "fwd_bwd_time", row["fwd_bwd_ms"], "ms", **ctx)
             emit(name, "tokens_per_s", row["tokens_per_s"], "tokens/s", **ctx)
@@ -75,10 +87,21 @@ def run(presets, seq_sizes, repeats):
         first = next((r for r in rows if r["preset"] == pname and r["seq"] == seq_sizes[0]), None)
         last = next((r for r in rows if r["preset"] == pname and r["seq"] == seq_sizes[-1]), None)
         if first and last and first["temp_mib"]:
-            emit(name, "per_device_temp_memory_ratio", round(last["temp_mib"] / first["temp_mib"], 4), "ratio",
-                 preset=pname, seq_from=seq_sizes[0], seq_to=seq_sizes[-1])
-    print(table(rows, ["preset", "params", "tokens", "seq", "compile_s", "fwd_bwd_ms", "tokens_per_s", "temp_mib",
-                       "args_mib"]))
+            emit(
+                name,
+                "per_device_temp_memory_ratio",
+                round(last["temp_mib"] / first["temp_mib"], 4),
+                "ratio",
+                preset=pname,
+                seq_from=seq_sizes[0],
+                seq_to=seq_sizes[-1],
+            )
+    print(
+        table(
+            rows,
+            ["preset", "params", "tokens", "seq", "compile_s", "fwd_bwd_ms", "tokens_per_s", "temp_mib", "args_mib"],
+        )
+    )
     return rows
 
 
@@ -89,6 +112,7 @@ def main(argv=None):
     parser.add_argument("--repeats", type=int, default=2)
     args = parser.parse_args(argv)
     from jaxdrive.bench.report import ensure_devices
+
     ensure_devices(max(args.seq))
     return run(args.presets, args.seq, args.repeats)
 

@@ -34,9 +34,19 @@ import math
 
 # Dense bf16 peak TFLOP/s per chip / GPU (vendor figures), matched in order against the lower-cased
 # device_kind ("TPU v5 lite" is v5e, "TPU v5" v5p, "TPU v6 lite" v6e).
-PEAK_TFLOPS = (("tpu v6 lite", 918.0), ("tpu v6e", 918.0), ("tpu v5 lite", 197.0), ("tpu v5e", 197.0),
-               ("tpu v5p", 459.0), ("tpu v5", 459.0), ("tpu v4", 275.0), ("h200", 989.0),
-               ("h100 pcie", 756.0), ("h100", 989.0), ("a100", 312.0))
+PEAK_TFLOPS = (
+    ("tpu v6 lite", 918.0),
+    ("tpu v6e", 918.0),
+    ("tpu v5 lite", 197.0),
+    ("tpu v5e", 197.0),
+    ("tpu v5p", 459.0),
+    ("tpu v5", 459.0),
+    ("tpu v4", 275.0),
+    ("h200", 989.0),
+    ("h100 pcie", 756.0),
+    ("h100", 989.0),
+    ("a100", 312.0),
+)
 
 
 def peak_tflops(device, given: float | None) -> tuple[float | None, str]:
@@ -47,8 +57,10 @@ def peak_tflops(device, given: float | None) -> tuple[float | None, str]:
     for key, value in PEAK_TFLOPS:
         if key in kind.lower():
             return value, f"dense bf16 peak of {kind!r}"
-    return None, (f"no peak FLOP/s known for {device.platform} device {kind!r}; pass --peak-tflops "
-                  f"(TFLOP/s of this device) for an MFU")
+    return None, (
+        f"no peak FLOP/s known for {device.platform} device {kind!r}; pass --peak-tflops "
+        f"(TFLOP/s of this device) for an MFU"
+    )
 
 
 def step_flops(cfg, params, *, batch: int, views: int, frames: int, height: int, width: int) -> dict:
@@ -69,7 +81,7 @@ def step_flops(cfg, params, *, batch: int, views: int, frames: int, height: int,
             continue
         size = math.prod(leaf.shape)
         block_params += size
-        if not name.endswith("kernel") or "_linear/" in name:      # adaLN modulation: per frame
+        if not name.endswith("kernel") or "_linear/" in name:  # adaLN modulation: per frame
             continue
         cross = "cross_attn/" in name
         if cross and ("/to_k/" in name or "/to_v/" in name):
@@ -78,19 +90,25 @@ def step_flops(cfg, params, *, batch: int, views: int, frames: int, height: int,
             tokens = n + txt if full else n
         matmul += 2 * size * tokens * batch
         if name.endswith("/to_q/kernel"):
-            layers = size // (d * d)                                 # > 1 for scanned layers
+            layers = size // (d * d)  # > 1 for scanned layers
             if cross:
                 pairs = n * txt
             elif full:
                 pairs = (n + txt) ** 2
             elif "temporal/" in name or "attn_temp/" in name:
-                pairs = views * s * ft ** 2
+                pairs = views * s * ft**2
             else:
                 pairs = ft * (views * s) ** 2
             attn += 4 * pairs * d * layers * batch
     flops = 3 * (matmul + attn) if modelled else None
-    return dict(flops=flops, matmul_flops=3 * matmul, attention_flops=3 * attn, block_params=block_params,
-                video_tokens=batch * n, text_tokens=batch * txt)
+    return dict(
+        flops=flops,
+        matmul_flops=3 * matmul,
+        attention_flops=3 * attn,
+        block_params=block_params,
+        video_tokens=batch * n,
+        text_tokens=batch * txt,
+    )
 
 
 def measured_peak_tflops(size: int, dtype: str = "bfloat16", repeats: int = 5) -> float:
@@ -104,4 +122,4 @@ def measured_peak_tflops(size: int, dtype: str = "bfloat16", repeats: int = 5) -
     a = jax.random.normal(jax.random.key(0), (size, size), dtype)
     b = jax.random.normal(jax.random.key(1), (size, size), dtype)
     dot = jax.jit(lambda a, b: jnp.matmul(a, b, preferred_element_type=jnp.float32))
-    return 2 * size ** 3 / median_time(lambda: jax.block_until_ready(dot(a, b)), repeats=repeats) / 1e12
+    return 2 * size**3 / median_time(lambda: jax.block_until_ready(dot(a, b)), repeats=repeats) / 1e12

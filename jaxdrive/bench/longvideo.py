@@ -35,29 +35,53 @@ from jaxdrive.bench.report import emit, quiet, table
 
 NAME = "longvideo"
 # each row's --strategies name (the all-in-one coarse-fine row has its own)
-KEYS = {"rollout": "rollout", "coarse-to-refine": "coarse-to-refine", "coarse-fine": "coarse-fine",
-        "coarse-fine (all in one)": "coarse-fine-all", "streaming": "streaming"}
+KEYS = {
+    "rollout": "rollout",
+    "coarse-to-refine": "coarse-to-refine",
+    "coarse-fine": "coarse-fine",
+    "coarse-fine (all in one)": "coarse-fine-all",
+    "streaming": "streaming",
+}
 CONFIG = Path(__file__).resolve().parents[2] / "configs" / "tiny.py"
 
 
 def _models(config, views: int, steps: int):
     from jaxdrive.generate.windows import WindowModel
     from jaxdrive.models.dit.model import DiT
+
     d = config.data
     dit = DiT(config.model)
     window = d.frames
-    params = jax.tree_util.tree_map(jax.numpy.asarray, dit.init_params(0, batch=1, views=views, frames=window,
-                                                                      height=d.height // 4, width=d.width // 4))
+    params = jax.tree_util.tree_map(
+        jax.numpy.asarray,
+        dit.init_params(0, batch=1, views=views, frames=window, height=d.height // 4, width=d.width // 4),
+    )
     base = WindowModel(dit, params, window=window, cond_frames=config.flow.cond_frames, steps=steps)
     refine = dataclasses.replace(base, jdc_anchor_rate=0.75)
     from jaxdrive.generate.streaming import WINDOW
+
     stage = DiT(config.model.replace(htft_layers=(0,)))
-    stage_params = jax.tree_util.tree_map(jax.numpy.asarray, stage.init_params(
-        0, batch=1, views=views, frames=WINDOW, height=d.height // 4, width=d.width // 4))
-    stream = WindowModel(stage, stage_params, window=WINDOW, cond_frames=1, steps=steps, streaming=True,
-                         stream_buffer=10, stream_taps=(-1, -5, -10))
-    return {"main": base, "refine": refine, "coarse": dataclasses.replace(base, cond_frames=1, stride=window - 1),
-            "fine": dataclasses.replace(base, cond_frames=1, patterns=("prefix", "ends")), "stream": stream}
+    stage_params = jax.tree_util.tree_map(
+        jax.numpy.asarray,
+        stage.init_params(0, batch=1, views=views, frames=WINDOW, height=d.height // 4, width=d.width // 4),
+    )
+    stream = WindowModel(
+        stage,
+        stage_params,
+        window=WINDOW,
+        cond_frames=1,
+        steps=steps,
+        streaming=True,
+        stream_buffer=10,
+        stream_taps=(-1, -5, -10),
+    )
+    return {
+        "main": base,
+        "refine": refine,
+        "coarse": dataclasses.replace(base, cond_frames=1, stride=window - 1),
+        "fine": dataclasses.replace(base, cond_frames=1, patterns=("prefix", "ends")),
+        "stream": stream,
+    }
 
 
 def _horizon(config, frames: int, views: int):
@@ -65,6 +89,7 @@ def _horizon(config, frames: int, views: int):
     from jaxdrive.data.batches import model_inputs
     from jaxdrive.data.pipeline import CONDITIONS, collate, sample_clip
     from jaxdrive.data.synthetic import generate_clip
+
     d = config.data
     clip = generate_clip(0, views=views, frames=frames, height=d.height, width=d.width)
     batch = collate([sample_clip(clip, size=(d.height, d.width), frames=frames)])
@@ -77,39 +102,68 @@ def run(frames_list, steps: int, views: int, strategies=None, device_memory=None
     from jaxdrive.generate.long_video import sample_long
     from jaxdrive.generate.strategies import Models
     from jaxdrive.models.latents import LatentCodec
+
     config = load_config(CONFIG)
     codec = LatentCodec.from_config(config.latents)
     m = _models(config, views, steps)
-    cases = [("rollout", Models(m["main"]), {}), ("coarse-to-refine", Models(m["refine"]), {}),
-             ("coarse-fine", Models(m["coarse"], m["fine"]), {"device_memory": device_memory}),
-             ("coarse-fine (all in one)", Models(m["coarse"], m["fine"]), {"segment_batch": 10**9}),
-             ("streaming", Models(m["stream"]), {})]
-    keep = lambda label, frames: (not strategies or KEYS[label] in strategies
-                                  or (label == "rollout" and frames == config.data.frames))   # the one window
+    cases = [
+        ("rollout", Models(m["main"]), {}),
+        ("coarse-to-refine", Models(m["refine"]), {}),
+        ("coarse-fine", Models(m["coarse"], m["fine"]), {"device_memory": device_memory}),
+        ("coarse-fine (all in one)", Models(m["coarse"], m["fine"]), {"segment_batch": 10**9}),
+        ("streaming", Models(m["stream"]), {}),
+    ]
+    keep = lambda label, frames: (
+        not strategies or KEYS[label] in strategies or (label == "rollout" and frames == config.data.frames)
+    )  # the one window
     rows, seconds = [], {}
     out = Path(tempfile.mkdtemp(prefix="jaxdrive-bench-longvideo-"))
     for frames in [config.data.frames] + list(frames_list):
         inputs = _horizon(config, frames, views)
-        first = np.asarray(codec.encode(None, inputs["video"][:, :, :config.flow.cond_frames]))
+        first = np.asarray(codec.encode(None, inputs["video"][:, :, : config.flow.cond_frames]))
         for label, models, options in cases:
             name = label.split(" ")[0]
             if (frames == config.data.frames and name != "rollout") or not keep(label, frames):
-                continue                                   # one window: the rollout's single call
+                continue  # one window: the rollout's single call
             given = 1 if name in ("coarse-fine", "streaming") else config.flow.cond_frames
             # compile outside the figure: a first run of the same length (coarse-fine's batched
             # call has a shape of its own for every length)
             with quiet("jaxdrive.generate.long_video"):
-                sample_long(name, models, codec, inputs["cond"], first[:, :, :given], frames, out / "warm",
-                            key=jax.random.key(0), **options)
+                sample_long(
+                    name,
+                    models,
+                    codec,
+                    inputs["cond"],
+                    first[:, :, :given],
+                    frames,
+                    out / "warm",
+                    key=jax.random.key(0),
+                    **options,
+                )
                 t = time.perf_counter()
-                report = sample_long(name, models, codec, inputs["cond"], first[:, :, :given], frames, out / label,
-                                     key=jax.random.key(0), **options)
+                report = sample_long(
+                    name,
+                    models,
+                    codec,
+                    inputs["cond"],
+                    first[:, :, :given],
+                    frames,
+                    out / label,
+                    key=jax.random.key(0),
+                    **options,
+                )
                 wall = time.perf_counter() - t
             seconds[(label, frames)] = wall
-            row = dict(strategy=label, frames=frames, seconds=round(wall, 2), s_per_frame=round(wall / frames, 4),
-                       sequential_calls=report["sequential_sampler_calls"],
-                       peak_mib=round(report["peak_device_bytes"] / 2**20, 1), programs=report["compiled_programs"],
-                       segment_batch=report.get("segment_batch", {}).get("segment_batch", ""))
+            row = dict(
+                strategy=label,
+                frames=frames,
+                seconds=round(wall, 2),
+                s_per_frame=round(wall / frames, 4),
+                sequential_calls=report["sequential_sampler_calls"],
+                peak_mib=round(report["peak_device_bytes"] / 2**20, 1),
+                programs=report["compiled_programs"],
+                segment_batch=report.get("segment_batch", {}).get("segment_batch", ""),
+            )
             rows.append(row)
             ctx = dict(strategy=label, frames=frames, views=views, steps=steps, backend=jax.default_backend())
             emit(NAME, "seconds", row["seconds"], "s", **ctx)
@@ -117,8 +171,21 @@ def run(frames_list, steps: int, views: int, strategies=None, device_memory=None
             emit(NAME, "peak_device_memory", row["peak_mib"], "MiB", **ctx)
             emit(NAME, "seconds_per_frame", row["s_per_frame"], "s", **ctx)
             emit(NAME, "compiled_programs", row["programs"], "programs", **ctx)
-    print(table(rows, ["strategy", "frames", "seconds", "s_per_frame", "sequential_calls", "peak_mib", "programs",
-                       "segment_batch"]))
+    print(
+        table(
+            rows,
+            [
+                "strategy",
+                "frames",
+                "seconds",
+                "s_per_frame",
+                "sequential_calls",
+                "peak_mib",
+                "programs",
+                "segment_batch",
+            ],
+        )
+    )
     window = seconds[("rollout", config.data.frames)]
     if ("coarse-fine", 145) in seconds:
         cf = seconds[("coarse-fine", 145)]
@@ -142,14 +209,26 @@ def run(frames_list, steps: int, views: int, strategies=None, device_memory=None
 
 def main(argv=None):
     parser = argparse.ArgumentParser(prog="jaxdrive bench longvideo", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--frames", type=int, nargs="+", default=[33, 145, 721],
-                        help="pixel frames (1 + 8n for the tiny coarse-fine models)")
+    parser.add_argument(
+        "--frames",
+        type=int,
+        nargs="+",
+        default=[33, 145, 721],
+        help="pixel frames (1 + 8n for the tiny coarse-fine models)",
+    )
     parser.add_argument("--steps", type=int, default=10)
     parser.add_argument("--views", type=int, default=6)
-    parser.add_argument("--device-memory", help="coarse-fine's per-device budget of its automatic segment batch "
-                                                "(default: the device's free memory, or a CPU's share)")
-    parser.add_argument("--strategies", nargs="+", choices=list(KEYS.values()),
-                        help="only these rows (and rollout's one window, the reference)")
+    parser.add_argument(
+        "--device-memory",
+        help="coarse-fine's per-device budget of its automatic segment batch "
+        "(default: the device's free memory, or a CPU's share)",
+    )
+    parser.add_argument(
+        "--strategies",
+        nargs="+",
+        choices=list(KEYS.values()),
+        help="only these rows (and rollout's one window, the reference)",
+    )
     args = parser.parse_args(argv)
     bad = [f for f in args.frames if (f - 1) % 8]
     if bad:

@@ -23,6 +23,7 @@ from jaxdrive.bench.report import median_time
 
 def _layer_norm(x, eps=1e-5):
     import jax.numpy as jnp
+
     mean = jnp.mean(x, -1, keepdims=True)
     var = jnp.mean(jnp.square(x - mean), -1, keepdims=True)
     return (x - mean) / jnp.sqrt(var + eps)
@@ -36,8 +37,10 @@ def _operations(w: int, heads: int, t: int) -> list[tuple[str, int | None, objec
     import torch
 
     keys = iter(jax.random.split(jax.random.key(0), 6))
-    x, w1, dy, s, ds, dx = (jax.random.normal(next(keys), shape) for shape in
-                            ((t, w), (w, 4 * w), (t, 4 * w), (heads, t, t), (heads, t, t), (t, w)))
+    x, w1, dy, s, ds, dx = (
+        jax.random.normal(next(keys), shape)
+        for shape in ((t, w), (w, 4 * w), (t, 4 * w), (heads, t, t), (heads, t, t), (t, w))
+    )
     tx, tw1, tdy, ts, tds, tdx = (torch.from_numpy(np.asarray(a)) for a in (x, w1, dy, s, ds, dx))
     vjp = lambda f: jax.jit(lambda a, ct: jax.vjp(f, a)[1](ct)[0])
 
@@ -52,22 +55,43 @@ def _operations(w: int, heads: int, t: int) -> list[tuple[str, int | None, objec
         def call():
             with torch.enable_grad() if grad else torch.no_grad():
                 return fn(*args)
+
         return call
 
     layer_norm = lambda a: torch.nn.functional.layer_norm(a, (w,), eps=1e-5)
     mm = 2 * t * w * 4 * w
     return [
         (f"matmul {t}x{w}x{4 * w}", mm, jax_call(jax.jit(jnp.matmul), x, w1), torch_call(torch.mm, tx, tw1)),
-        (f"matmul x^T dy {w}x{t}x{4 * w}", mm, jax_call(jax.jit(lambda a, b: a.T @ b), x, dy),
-         torch_call(lambda a, b: torch.mm(a.t(), b), tx, tdy)),
-        (f"token sum {t}x{4 * w}", None, jax_call(jax.jit(lambda a: jnp.sum(a, 0)), dy),
-         torch_call(lambda a: a.sum(0), tdy)),
-        (f"transpose {t}x{4 * w}", None, jax_call(jax.jit(jnp.transpose), dy),
-         torch_call(lambda a: a.t().contiguous(), tdy)),
-        (f"layer norm fwd+bwd {t}x{w}", None, jax_call(vjp(_layer_norm), x, dx),
-         torch_call(torch_vjp, layer_norm, tx, tdx, grad=True)),
-        (f"softmax fwd+bwd {heads}x{t}x{t}", None, jax_call(vjp(lambda a: jax.nn.softmax(a, -1)), s, ds),
-         torch_call(torch_vjp, lambda a: torch.softmax(a, -1), ts, tds, grad=True)),
+        (
+            f"matmul x^T dy {w}x{t}x{4 * w}",
+            mm,
+            jax_call(jax.jit(lambda a, b: a.T @ b), x, dy),
+            torch_call(lambda a, b: torch.mm(a.t(), b), tx, tdy),
+        ),
+        (
+            f"token sum {t}x{4 * w}",
+            None,
+            jax_call(jax.jit(lambda a: jnp.sum(a, 0)), dy),
+            torch_call(lambda a: a.sum(0), tdy),
+        ),
+        (
+            f"transpose {t}x{4 * w}",
+            None,
+            jax_call(jax.jit(jnp.transpose), dy),
+            torch_call(lambda a: a.t().contiguous(), tdy),
+        ),
+        (
+            f"layer norm fwd+bwd {t}x{w}",
+            None,
+            jax_call(vjp(_layer_norm), x, dx),
+            torch_call(torch_vjp, layer_norm, tx, tdx, grad=True),
+        ),
+        (
+            f"softmax fwd+bwd {heads}x{t}x{t}",
+            None,
+            jax_call(vjp(lambda a: jax.nn.softmax(a, -1)), s, ds),
+            torch_call(torch_vjp, lambda a: torch.softmax(a, -1), ts, tds, grad=True),
+        ),
     ]
 
 
@@ -85,7 +109,15 @@ def op_rows(cfg, *, tokens: int, threads: int, repeats: int) -> list[dict]:
     rows = []
     for (name, flops, _, _), jax_s, torch_s in zip(ops, jax_times, torch_times):
         for impl, sec in (("jaxdrive", jax_s), ("torch", torch_s)):
-            rows.append(dict(model=f"op: {name}", impl=impl, tokens=tokens, step_ms=round(1e3 * sec, 4),
-                             gflops=None if flops is None else round(flops / sec / 1e9, 1),
-                             ratio_to_torch=round(torch_s / jax_s, 3), torch_threads=threads))
+            rows.append(
+                dict(
+                    model=f"op: {name}",
+                    impl=impl,
+                    tokens=tokens,
+                    step_ms=round(1e3 * sec, 4),
+                    gflops=None if flops is None else round(flops / sec / 1e9, 1),
+                    ratio_to_torch=round(torch_s / jax_s, 3),
+                    torch_threads=threads,
+                )
+            )
     return rows

@@ -28,8 +28,9 @@ def _random_clip(rng, views, frames, height, width, boxes=16, bev=64):
     e2w[:, 0, 3] = np.arange(frames)
     return {
         "video": rng.integers(0, 256, (views, frames, height, width, 3), dtype=np.uint8),
-        "intrinsics": np.tile(np.array([[width, 0, width / 2], [0, width, height / 2], [0, 0, 1]], np.float32),
-                              (views, 1, 1)),
+        "intrinsics": np.tile(
+            np.array([[width, 0, width / 2], [0, width, height / 2], [0, 0, 1]], np.float32), (views, 1, 1)
+        ),
         "cam_to_ego": np.tile(np.eye(4, dtype=np.float32), (views, 1, 1)),
         "ego_to_world": e2w,
         "boxes": rng.normal(size=(frames, boxes, 7)).astype(np.float32),
@@ -48,8 +49,16 @@ def run(data, *, out, batch, threads, batches, stride, seed=0):
     F, H, W = out
     rows = []
     for n in threads:
-        ds = pipeline.make_pipeline(source, {(H, W, F): batch}, stride=stride, seed=seed, shard_index=0,
-                                    shard_count=1, num_threads=n, prefetch=max(2 * n, 1))
+        ds = pipeline.make_pipeline(
+            source,
+            {(H, W, F): batch},
+            stride=stride,
+            seed=seed,
+            shard_index=0,
+            shard_count=1,
+            num_threads=n,
+            prefetch=max(2 * n, 1),
+        )
         it = iter(ds)
         first = next(it)  # warm-up (opens files, fills the prefetch buffer)
         views = first["video"].shape[1]
@@ -57,9 +66,14 @@ def run(data, *, out, batch, threads, batches, stride, seed=0):
         for _ in range(batches):
             next(it)
         dt = time.perf_counter() - t0
-        row = dict(threads=n, batch=batch, out=f"{views}x{F}x{H}x{W}", batches_per_s=round(batches / dt, 2),
-                   clips_per_s=round(batches * batch / dt, 2),
-                   frames_per_s=round(batches * batch * views * F / dt, 1))
+        row = dict(
+            threads=n,
+            batch=batch,
+            out=f"{views}x{F}x{H}x{W}",
+            batches_per_s=round(batches / dt, 2),
+            clips_per_s=round(batches * batch / dt, 2),
+            frames_per_s=round(batches * batch * views * F / dt, 1),
+        )
         rows.append(row)
         ctx = dict(threads=n, batch=batch, views=views, frames=F, height=H, width=W, stride=stride)
         emit(NAME, "batches_per_s", row["batches_per_s"], "1/s", **ctx)
@@ -84,8 +98,7 @@ def main(argv=None):
     parser.add_argument("--compression", choices=("bytes", "zlib"), default="bytes")
     args = parser.parse_args(argv)
     logging.getLogger("jaxdrive.data.pipeline").setLevel(logging.WARNING)
-    kw = dict(out=tuple(args.out), batch=args.batch, threads=args.threads, batches=args.batches,
-              stride=args.stride)
+    kw = dict(out=tuple(args.out), batch=args.batch, threads=args.threads, batches=args.batches, stride=args.stride)
     if args.data:
         return run(args.data, **kw)
     rng = np.random.default_rng(0)
@@ -94,9 +107,18 @@ def main(argv=None):
         t0 = time.perf_counter()
         path = tfds_io.write_dataset(f"{tmp}/clips", {"train": clips}, compression=args.compression)
         write_s = time.perf_counter() - t0
-        emit(NAME, "write_clips_per_s", round(args.clips / write_s, 2), "1/s", clips=args.clips,
-             views=args.views, frames=args.frames, height=args.size[0], width=args.size[1],
-             compression=args.compression)
+        emit(
+            NAME,
+            "write_clips_per_s",
+            round(args.clips / write_s, 2),
+            "1/s",
+            clips=args.clips,
+            views=args.views,
+            frames=args.frames,
+            height=args.size[0],
+            width=args.size[1],
+            compression=args.compression,
+        )
         return run(path, **kw)
 
 

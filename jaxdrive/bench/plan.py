@@ -40,11 +40,13 @@ def _real_codec(latents):
     from jaxdrive.models.latents import LatentCodec
     from jaxdrive.models.vae.model import CausalVAE, VAEConfig
     from jaxdrive.train.plan import abstract_codec
+
     _, what = abstract_codec(latents)
     if latents.source != "vae" or "has none" not in what:
         return LatentCodec.from_config(latents)
-    vae = CausalVAE(VAEConfig(mode=latents.vae_mode, frame_wise_batch=latents.vae_frame_batch,
-                              clip_batch=latents.vae_clip_batch))
+    vae = CausalVAE(
+        VAEConfig(mode=latents.vae_mode, frame_wise_batch=latents.vae_frame_batch, clip_batch=latents.vae_clip_batch)
+    )
     return LatentCodec("vae", 1, 1.0, vae, vae.init(jax.random.PRNGKey(0)))
 
 
@@ -63,26 +65,33 @@ def measure(config) -> dict:
         transient_bytes,
     )
     from jaxdrive.train.run import Run
+
     config = accelerator_attention(dataclasses.replace(config, mesh=MeshConfig(data=1)), {})
     device = jax.devices()[:1]
     plan = plan_memory(config, {"data": 1}, devices=device, compile_step=False)["per_device"]
     run = Run(config, devices=device, codec=_real_codec(config.latents), check_data=False)
     state, optimizer, shardings = run.init_state()
-    batch = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype, device=s.sharding),
-                                   abstract_batch(run, planned_bucket(run)))
+    batch = jax.tree_util.tree_map(
+        lambda s: jnp.zeros(s.shape, s.dtype, device=s.sharding), abstract_batch(run, planned_bucket(run))
+    )
     frozen = run.frozen_params()
     with jax.set_mesh(run.mesh):
         compiled = run.step_fn(optimizer, shardings).lower(state, frozen, batch).compile()
         a = compiled.memory_analysis()
         resident = sum(x.nbytes for x in jax.live_arrays())
         before = _vm("VmRSS")
-        Path("/proc/self/clear_refs").write_text("5")           # VmHWM := VmRSS
+        Path("/proc/self/clear_refs").write_text("5")  # VmHWM := VmRSS
         jax.block_until_ready(compiled(state, frozen, batch))
         transient = _vm("VmHWM") - before
     planned = {"resident": resident_bytes(plan), "transient": transient_bytes(a)}
-    return {"planned_resident": planned["resident"], "measured_resident": resident,
-            "planned_transient": planned["transient"], "measured_transient": transient,
-            "planned_total": sum(planned.values()), "measured_total": resident + transient}
+    return {
+        "planned_resident": planned["resident"],
+        "measured_resident": resident,
+        "planned_transient": planned["transient"],
+        "measured_transient": transient,
+        "planned_total": sum(planned.values()),
+        "measured_total": resident + transient,
+    }
 
 
 def main(argv=None):
@@ -92,13 +101,20 @@ def main(argv=None):
     args = parser.parse_args(argv)
     ensure_devices(1)
     from jaxdrive.config import load_config
+
     out = measure(load_config(args.config, args.set))
     rows = []
     for part in ("resident", "transient", "total"):
         p, m = out[f"planned_{part}"], out[f"measured_{part}"]
         emit(NAME, part, m, "bytes", planned=p, config=args.config, sets=args.set)
-        rows.append({"part": part, "planned MiB": f"{p / 2 ** 20:.1f}", "measured MiB": f"{m / 2 ** 20:.1f}",
-                     "measured / planned": f"{m / p:.2f}"})
+        rows.append(
+            {
+                "part": part,
+                "planned MiB": f"{p / 2**20:.1f}",
+                "measured MiB": f"{m / 2**20:.1f}",
+                "measured / planned": f"{m / p:.2f}",
+            }
+        )
     print(table(rows, ["part", "planned MiB", "measured MiB", "measured / planned"]))
     return out
 

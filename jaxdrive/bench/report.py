@@ -44,8 +44,7 @@ def table(rows: list[dict], columns: list[str]) -> str:
     """A plain-text table of ``rows`` restricted to ``columns``."""
     cells = [[str(r.get(c, "")) for c in columns] for r in rows]
     widths = [max(len(c), *(len(row[i]) for row in cells)) for i, c in enumerate(columns)]
-    lines = ["  ".join(c.ljust(w) for c, w in zip(columns, widths)),
-             "  ".join("-" * w for w in widths)]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(columns, widths)), "  ".join("-" * w for w in widths)]
     lines += ["  ".join(v.ljust(w) for v, w in zip(row, widths)) for row in cells]
     return "\n".join(lines)
 
@@ -66,6 +65,7 @@ def median_time(fn, *, repeats: int) -> float:
     ``fn`` blocks on its own result (a JAX function wrapped in ``jax.block_until_ready``, or a
     PyTorch CPU call, which returns when done)."""
     import statistics
+
     fn()
     times = []
     for _ in range(repeats):
@@ -93,12 +93,14 @@ def peak_device_bytes(device=None) -> int | None:
 # Threads of a trace that repeat the device's work at another level (whole modules, steps, name
 # scopes) rather than being it: left out of the sums so that nothing counts twice.
 _DERIVED_LINES = ("xla modules", "steps", "xla ops", "framework", "tensorflow", "source", "xla tracemes")
-_CATEGORIES = (("attention", ("fmha", "flash", "cudnn", "attention", "sdpa")),      # before matmul: wgmma inside
-               # before matmul: an fp32 or tf32 GEMM in a bf16 step is a matmul that left the tensor cores' bf16 path
-               ("matmul fp32/tf32", ("f32f32", "s1688gemm", "sgemm", "gemmsn_nn_kernel<float")),
-               ("matmul", ("gemm", "cublas", "cutlass", "xmma", "nvjet", "matmul", "dot", "ynn_fusion")),
-               ("memory copy", ("memcpy", "memset", "copy")),
-               ("collective", ("nccl", "all-reduce", "all-gather", "reduce-scatter", "all-to-all")))
+_CATEGORIES = (
+    ("attention", ("fmha", "flash", "cudnn", "attention", "sdpa")),  # before matmul: wgmma inside
+    # before matmul: an fp32 or tf32 GEMM in a bf16 step is a matmul that left the tensor cores' bf16 path
+    ("matmul fp32/tf32", ("f32f32", "s1688gemm", "sgemm", "gemmsn_nn_kernel<float")),
+    ("matmul", ("gemm", "cublas", "cutlass", "xmma", "nvjet", "matmul", "dot", "ynn_fusion")),
+    ("memory copy", ("memcpy", "memset", "copy")),
+    ("collective", ("nccl", "all-reduce", "all-gather", "reduce-scatter", "all-to-all")),
+)
 
 
 def _category(*names: str) -> str:
@@ -120,8 +122,9 @@ def trace_costs(log_dir, *, steps: int = 1, top: int = 3) -> dict:
     import os
     from collections import defaultdict
 
-    found = sorted(glob.glob(os.path.join(str(log_dir), "**", "perfetto_trace.json.gz"), recursive=True),
-                   key=os.path.getmtime)
+    found = sorted(
+        glob.glob(os.path.join(str(log_dir), "**", "perfetto_trace.json.gz"), recursive=True), key=os.path.getmtime
+    )
     if not found:
         raise ValueError(f"log_dir: expected a perfetto_trace.json.gz under {str(log_dir)!r}, found none")
     with gzip.open(found[-1], "rt") as f:
@@ -136,8 +139,12 @@ def trace_costs(log_dir, *, steps: int = 1, top: int = 3) -> dict:
     device = {pid for pid, name in processes.items() if name.startswith("/device:")}
     spans = [e for e in events if e.get("ph") == "X" and "dur" in e]
     if device:
-        spans = [e for e in spans if e.get("pid") in device
-                 and not threads.get((e.get("pid"), e.get("tid")), "").lower().startswith(_DERIVED_LINES)]
+        spans = [
+            e
+            for e in spans
+            if e.get("pid") in device
+            and not threads.get((e.get("pid"), e.get("tid")), "").lower().startswith(_DERIVED_LINES)
+        ]
     else:
         spans = [e for e in spans if "hlo_op" in (e.get("args") or {})]
     total = defaultdict(float)
@@ -157,12 +164,23 @@ def trace_costs(log_dir, *, steps: int = 1, top: int = 3) -> dict:
         categories[_category(op, str(e.get("name")))] += float(e["dur"])
     whole = sum(total.values())
     ranked = sorted(total, key=total.get, reverse=True)[:top]
-    result = {"trace": found[-1], "steps": steps, "device_ms_per_step": round(whole / 1e3 / steps, 3),
-              "top": [{"op": op, "ms_per_step": round(total[op] / 1e3 / steps, 3),
-                       "share": round(total[op] / whole, 4) if whole else None, "events": count[op],
-                       "kernel": kernel[op][:200], "category": _category(op, kernel[op])} for op in ranked],
-              "categories": {c: round(d / 1e3 / steps, 3)
-                             for c, d in sorted(categories.items(), key=lambda kv: -kv[1])}}
+    result = {
+        "trace": found[-1],
+        "steps": steps,
+        "device_ms_per_step": round(whole / 1e3 / steps, 3),
+        "top": [
+            {
+                "op": op,
+                "ms_per_step": round(total[op] / 1e3 / steps, 3),
+                "share": round(total[op] / whole, 4) if whole else None,
+                "events": count[op],
+                "kernel": kernel[op][:200],
+                "category": _category(op, kernel[op]),
+            }
+            for op in ranked
+        ],
+        "categories": {c: round(d / 1e3 / steps, 3) for c, d in sorted(categories.items(), key=lambda kv: -kv[1])},
+    }
     with open(os.path.join(str(log_dir), "top_costs.json"), "w") as f:
         json.dump(result, f, indent=1)
     return result

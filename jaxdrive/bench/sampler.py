@@ -45,8 +45,10 @@ def _toy_model(params, x, sigma, cond):
 
 def _init(key, channels, hidden):
     k1, k2 = jax.random.split(key)
-    return {"w1": jax.random.normal(k1, (channels, hidden)) / channels ** 0.5,
-            "w2": jax.random.normal(k2, (hidden, channels)) / hidden ** 0.5}
+    return {
+        "w1": jax.random.normal(k1, (channels, hidden)) / channels**0.5,
+        "w2": jax.random.normal(k2, (hidden, channels)) / hidden**0.5,
+    }
 
 
 def run(steps_list, shape, hidden, method):
@@ -65,8 +67,9 @@ def run(steps_list, shape, hidden, method):
         scan_s = best_time(lambda: compiled(x, sched), repeats=3)
 
         # The same steps driven from Python, one jitted step per call.
-        one_step = jax.jit(lambda x, pair: flow.sample(velocity, x, jnp.stack(pair), cond_mask=cond_mask,
-                                                        method=method))
+        one_step = jax.jit(
+            lambda x, pair: flow.sample(velocity, x, jnp.stack(pair), cond_mask=cond_mask, method=method)
+        )
 
         pairs = [(sched[i], sched[i + 1]) for i in range(steps)]
 
@@ -75,11 +78,16 @@ def run(steps_list, shape, hidden, method):
             for pair in pairs:
                 state = one_step(state, pair)
             return state
+
         loop_s = best_time(python_loop, repeats=3)
-        row = dict(steps=steps, method=method, compile_s=round(compile_s, 3),
-                   scan_ms_per_step=round(1e3 * scan_s / steps, 3),
-                   loop_ms_per_step=round(1e3 * loop_s / steps, 3),
-                   temp_mib=None if temp_bytes(compiled) is None else round(temp_bytes(compiled) / 2**20, 2))
+        row = dict(
+            steps=steps,
+            method=method,
+            compile_s=round(compile_s, 3),
+            scan_ms_per_step=round(1e3 * scan_s / steps, 3),
+            loop_ms_per_step=round(1e3 * loop_s / steps, 3),
+            temp_mib=None if temp_bytes(compiled) is None else round(temp_bytes(compiled) / 2**20, 2),
+        )
         rows.append(row)
         ctx = dict(steps=steps, method=method, shape=list(shape), backend=jax.default_backend())
         emit(NAME, "compile_time", row["compile_s"], "s", **ctx)
@@ -90,8 +98,9 @@ def run(steps_list, shape, hidden, method):
     return rows
 
 
-def model_rows(presets, *, steps: int, frames: int, height: int, width: int, repeats: int,
-               threads: int | None = None) -> list[dict]:
+def model_rows(
+    presets, *, steps: int, frames: int, height: int, width: int, repeats: int, threads: int | None = None
+) -> list[dict]:
     """The ``--model`` comparison (module docstring), one row per preset."""
     import diffusers
     import numpy as np
@@ -120,8 +129,7 @@ def model_rows(presets, *, steps: int, frames: int, height: int, width: int, rep
         x, sigma, cond = ex["latents"], jnp.full((1, frames), 0.5, jnp.float32), ex["cond"]
         forward = jax.jit(lambda x, s, c: dit.forward(params, x, s, c))
         sched = flow.frame_schedule(flow.sampling_sigmas(steps), jnp.zeros((1, frames), bool))
-        loop = jax.jit(lambda x, sched, c: flow.sample(lambda x, s, c: dit.forward(params, x, s, c), x, sched,
-                                                       cond=c))
+        loop = jax.jit(lambda x, sched, c: flow.sample(lambda x, s, c: dit.forward(params, x, s, c), x, sched, cond=c))
         t0 = time.perf_counter()
         compiled = loop.lower(x, sched, cond).compile()
         compile_s = time.perf_counter() - t0
@@ -132,33 +140,67 @@ def model_rows(presets, *, steps: int, frames: int, height: int, width: int, rep
         model = diffusers.CogVideoXTransformer3DModel(**dcfg).eval()
         if sum(p.numel() for p in model.parameters()) != count_params(params):
             raise RuntimeError(f"{name}: expected the same parameter count in jaxdrive and diffusers")
-        hidden = torch.from_numpy(np.asarray(x)[:, 0]).permute(0, 1, 4, 2, 3).contiguous()   # [B, F, C, h, w]
+        hidden = torch.from_numpy(np.asarray(x)[:, 0]).permute(0, 1, 4, 2, 3).contiguous()  # [B, F, C, h, w]
         text = torch.randn(1, dcfg["max_text_seq_length"], dcfg["text_embed_dim"])
         t = torch.full((1,), 500.0)
         with torch.no_grad():
             torch_s = median_time(lambda: model(hidden, text, t, return_dict=False)[0], repeats=repeats)
-        row = dict(model=f"{name}/diffusers", steps=steps, params=count_params(params), compile_s=round(compile_s, 1),
-                   forward_ms=round(1e3 * fwd_s, 2), loop_ms_per_step=round(1e3 * loop_s, 2),
-                   loop_overhead=round(loop_s / fwd_s - 1, 4), torch_forward_ms=round(1e3 * torch_s, 2),
-                   ratio_to_torch=round(torch_s / fwd_s, 3), torch_threads=threads, backend=jax.default_backend())
+        row = dict(
+            model=f"{name}/diffusers",
+            steps=steps,
+            params=count_params(params),
+            compile_s=round(compile_s, 1),
+            forward_ms=round(1e3 * fwd_s, 2),
+            loop_ms_per_step=round(1e3 * loop_s, 2),
+            loop_overhead=round(loop_s / fwd_s - 1, 4),
+            torch_forward_ms=round(1e3 * torch_s, 2),
+            ratio_to_torch=round(torch_s / fwd_s, 3),
+            torch_threads=threads,
+            backend=jax.default_backend(),
+        )
         rows.append(row)
-        for key, unit in (("forward_ms", "ms"), ("loop_ms_per_step", "ms"), ("loop_overhead", "fraction"),
-                          ("torch_forward_ms", "ms"), ("ratio_to_torch", "x")):
+        for key, unit in (
+            ("forward_ms", "ms"),
+            ("loop_ms_per_step", "ms"),
+            ("loop_overhead", "fraction"),
+            ("torch_forward_ms", "ms"),
+            ("ratio_to_torch", "x"),
+        ):
             emit(NAME, key, row[key], unit, **{k: v for k, v in row.items() if k not in (key,)})
-    print(table(rows, ["model", "params", "steps", "compile_s", "forward_ms", "loop_ms_per_step", "loop_overhead",
-                       "torch_forward_ms", "ratio_to_torch"]))
+    print(
+        table(
+            rows,
+            [
+                "model",
+                "params",
+                "steps",
+                "compile_s",
+                "forward_ms",
+                "loop_ms_per_step",
+                "loop_overhead",
+                "torch_forward_ms",
+                "ratio_to_torch",
+            ],
+        )
+    )
     return rows
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(prog="jaxdrive bench sampler", description=__doc__.split("\n\n")[0])
     parser.add_argument("--steps", type=int, nargs="+", default=None, help="default: 10 50; 10 with --model")
-    parser.add_argument("--shape", type=int, nargs="+", default=[1, 6, 8, 16, 28, 16],
-                        help="latent shape [B, V, F, h, w, C]")
+    parser.add_argument(
+        "--shape", type=int, nargs="+", default=[1, 6, 8, 16, 28, 16], help="latent shape [B, V, F, h, w, C]"
+    )
     parser.add_argument("--hidden", type=int, default=256)
     parser.add_argument("--method", choices=flow.sampler.METHODS, default="euler")
-    parser.add_argument("--model", nargs="+", default=None, metavar="PRESET",
-                        help="full-layout DiT presets to compare with diffusers' forward (e.g. tiny-full small-full)")
+    parser.add_argument(
+        "--model",
+        nargs="+",
+        default=None,
+        metavar="PRESET",
+        help="full-layout DiT presets to compare with diffusers' forward (e.g. tiny-full small-full)",
+    )
     parser.add_argument("--frames", type=int, default=5, help="--model: latent frames")
     parser.add_argument("--height", type=int, default=16, help="--model: latent height")
     parser.add_argument("--width", type=int, default=16, help="--model: latent width")
@@ -174,8 +216,15 @@ def main(argv=None):
     if args.model:
         if len(args.steps) != 1:
             parser.error(f"--steps: expected one step count with --model, got {args.steps}")
-        return model_rows(args.model, steps=args.steps[0], frames=args.frames, height=args.height, width=args.width,
-                          repeats=args.repeats, threads=args.torch_threads)
+        return model_rows(
+            args.model,
+            steps=args.steps[0],
+            frames=args.frames,
+            height=args.height,
+            width=args.width,
+            repeats=args.repeats,
+            threads=args.torch_threads,
+        )
     if len(args.shape) < 5:
         parser.error(f"--shape: expected [B, ..., F, h, w, C] (5 or more sizes), got {args.shape}")
     return run(args.steps, tuple(args.shape), args.hidden, args.method)

@@ -31,15 +31,23 @@ def run(sizes, clips):
     for size in sizes:
         views, frames, height, width = _parse(size)
         kwargs = dict(views=views, frames=frames, height=height, width=width)
-        generate_clip(10_000, **kwargs)   # warm-up
+        generate_clip(10_000, **kwargs)  # warm-up
         times = []
         for seed in range(clips):
             start = time.perf_counter()
             generate_clip(seed, **kwargs)
             times.append(time.perf_counter() - start)
         mean = sum(times) / len(times)
-        row = dict(views=views, frames=frames, height=height, width=width, clips=clips,
-                   s_per_clip=round(mean, 4), best_s=round(min(times), 4), clips_per_s=round(1.0 / mean, 3))
+        row = dict(
+            views=views,
+            frames=frames,
+            height=height,
+            width=width,
+            clips=clips,
+            s_per_clip=round(mean, 4),
+            best_s=round(min(times), 4),
+            clips_per_s=round(1.0 / mean, 3),
+        )
         rows.append(row)
         ctx = dict(views=views, frames=frames, height=height, width=width, clips=clips)
         emit(NAME, "seconds_per_clip", row["s_per_clip"], "s", **ctx)
@@ -51,8 +59,9 @@ def run(sizes, clips):
 def main(argv=None):
     parser = argparse.ArgumentParser(prog="jaxdrive bench synthetic", description=__doc__.split("\n\n")[0])
     parser.add_argument("--clips", type=int, default=5, help="clips rendered per size")
-    parser.add_argument("--sizes", nargs="+", default=list(DEFAULT_SIZES),
-                        help="VIEWSxFRAMESxHEIGHTxWIDTH, e.g. 6x33x64x112")
+    parser.add_argument(
+        "--sizes", nargs="+", default=list(DEFAULT_SIZES), help="VIEWSxFRAMESxHEIGHTxWIDTH, e.g. 6x33x64x112"
+    )
     args = parser.parse_args(argv)
     if args.clips < 1:
         parser.error(f"--clips: expected an integer >= 1, got {args.clips}")

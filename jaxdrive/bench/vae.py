@@ -30,8 +30,10 @@ from jaxdrive.bench.report import best_time, emit, peak_device_bytes, table, tem
 
 NAME = "vae"
 # --arch: the architecture timed (random weights); "tiny" is a small one for a quick run
-ARCHS = {"cogvideox-2b": {}, "tiny": dict(block_out_channels=(8, 8, 16), layers_per_block=1, latent_channels=4,
-                                         norm_num_groups=4)}
+ARCHS = {
+    "cogvideox-2b": {},
+    "tiny": dict(block_out_channels=(8, 8, 16), layers_per_block=1, latent_channels=4, norm_num_groups=4),
+}
 
 
 def _memory(compiled):
@@ -41,9 +43,20 @@ def _memory(compiled):
     return a.temp_size_in_bytes, a.output_size_in_bytes
 
 
-def run(frames_list, size, speed_size, speed_frames, mode_list, *, speed_modes=("chunked",),
-        speed_ops=("encode", "decode"), speed_repeats: int = 2, dtype: str = "float32", arch: str = "cogvideox-2b",
-        memory: bool = True):
+def run(
+    frames_list,
+    size,
+    speed_size,
+    speed_frames,
+    mode_list,
+    *,
+    speed_modes=("chunked",),
+    speed_ops=("encode", "decode"),
+    speed_repeats: int = 2,
+    dtype: str = "float32",
+    arch: str = "cogvideox-2b",
+    memory: bool = True,
+):
     from jaxdrive.models.vae.model import CausalVAE, VAEConfig
 
     vae = CausalVAE(VAEConfig(dtype=dtype, **ARCHS[arch]))
@@ -55,14 +68,22 @@ def run(frames_list, size, speed_size, speed_frames, mode_list, *, speed_modes=(
     for mode in mode_list if memory else ():
         for frames in frames_list:
             latents = vae.latent_frames(frames)
-            z = jax.ShapeDtypeStruct((1, latents, h // c.spatial_compression, w // c.spatial_compression,
-                                      c.latent_channels), jnp.float32)
+            z = jax.ShapeDtypeStruct(
+                (1, latents, h // c.spatial_compression, w // c.spatial_compression, c.latent_channels), jnp.float32
+            )
             x = jax.ShapeDtypeStruct((1, frames, h, w, 3), jnp.float32)
             dec = jax.jit(lambda p, z: vae.decode(p, z, mode=mode)).lower(abstract, z).compile()
             enc = jax.jit(lambda p, x: vae.encode(p, x, mode=mode)).lower(abstract, x).compile()
             (dt, do), (et, eo) = _memory(dec), _memory(enc)
-            row = dict(mode=mode, frames=frames, latent_frames=latents, decode_temp_mib=mib(dt),
-                       decode_output_mib=mib(do), encode_temp_mib=mib(et), encode_output_mib=mib(eo))
+            row = dict(
+                mode=mode,
+                frames=frames,
+                latent_frames=latents,
+                decode_temp_mib=mib(dt),
+                decode_output_mib=mib(do),
+                encode_temp_mib=mib(et),
+                encode_output_mib=mib(eo),
+            )
             rows.append(row)
             ctx = dict(mode=mode, frames=frames, height=h, width=w, config=arch, dtype=dtype)
             emit(NAME, "decode_temp_memory", row["decode_temp_mib"], "MiB", **ctx)
@@ -73,19 +94,42 @@ def run(frames_list, size, speed_size, speed_frames, mode_list, *, speed_modes=(
         if first["decode_temp_mib"] and last["decode_temp_mib"]:
             for kind in ("decode", "encode"):
                 ratio = round(last[f"{kind}_temp_mib"] / first[f"{kind}_temp_mib"], 3)
-                emit(NAME, f"{kind}_temp_ratio", ratio, "ratio", mode=mode, frames_from=first["frames"],
-                     frames_to=last["frames"], height=h, width=w, target="<= 1.1 (chunked)")
+                emit(
+                    NAME,
+                    f"{kind}_temp_ratio",
+                    ratio,
+                    "ratio",
+                    mode=mode,
+                    frames_from=first["frames"],
+                    frames_to=last["frames"],
+                    height=h,
+                    width=w,
+                    target="<= 1.1 (chunked)",
+                )
     if rows:
-        print(table(rows, ["mode", "frames", "latent_frames", "decode_temp_mib", "decode_output_mib",
-                           "encode_temp_mib", "encode_output_mib"]))
+        print(
+            table(
+                rows,
+                [
+                    "mode",
+                    "frames",
+                    "latent_frames",
+                    "decode_temp_mib",
+                    "decode_output_mib",
+                    "encode_temp_mib",
+                    "encode_output_mib",
+                ],
+            )
+        )
 
     # Speed: random weights of the same architecture (no download).
     params = vae.init(jax.random.PRNGKey(0))
     sh, sw = speed_size
     s = c.spatial_compression
     x = jnp.tanh(jax.random.normal(jax.random.PRNGKey(1), (1, speed_frames, sh, sw, 3)))
-    z = jax.random.normal(jax.random.PRNGKey(2), (1, vae.latent_frames(speed_frames), sh // s, sw // s,
-                                                  c.latent_channels))
+    z = jax.random.normal(
+        jax.random.PRNGKey(2), (1, vae.latent_frames(speed_frames), sh // s, sw // s, c.latent_channels)
+    )
     mib = lambda b: None if b is None else round(b / 2**20, 1)
     speed = []
     for mode in speed_modes:
@@ -97,21 +141,44 @@ def run(frames_list, size, speed_size, speed_frames, mode_list, *, speed_modes=(
             compile_s = time.perf_counter() - t0
             seconds = best_time(lambda: compiled(params, arg), repeats=speed_repeats)
             if kind == "encode" and "decode" in speed_ops:
-                z = compiled(params, x)                          # decode what was encoded
+                z = compiled(params, x)  # decode what was encoded
             fps = round(speed_frames / seconds, 2)
             peak = mib(peak_device_bytes())
-            speed.append(dict(op=kind, mode=mode, frames=speed_frames, height=sh, width=sw, seconds=round(seconds, 3),
-                              frames_per_s=fps, compile_s=round(compile_s, 1), temp_mib=mib(temp_bytes(compiled)),
-                              peak_mib=peak))
-            ctx = dict(mode=mode, frames=speed_frames, height=sh, width=sw, config=arch, dtype=dtype,
-                       backend=jax.default_backend(), device=str(jax.devices()[0].device_kind))
+            speed.append(
+                dict(
+                    op=kind,
+                    mode=mode,
+                    frames=speed_frames,
+                    height=sh,
+                    width=sw,
+                    seconds=round(seconds, 3),
+                    frames_per_s=fps,
+                    compile_s=round(compile_s, 1),
+                    temp_mib=mib(temp_bytes(compiled)),
+                    peak_mib=peak,
+                )
+            )
+            ctx = dict(
+                mode=mode,
+                frames=speed_frames,
+                height=sh,
+                width=sw,
+                config=arch,
+                dtype=dtype,
+                backend=jax.default_backend(),
+                device=str(jax.devices()[0].device_kind),
+            )
             emit(NAME, f"{kind}_seconds", round(seconds, 4), "s", **ctx)
             emit(NAME, f"{kind}_frames_per_s", fps, "frames/s", **ctx)
             emit(NAME, f"{kind}_compile_time", round(compile_s, 2), "s", **ctx)
             emit(NAME, f"{kind}_compiled_temp_memory", mib(temp_bytes(compiled)), "MiB", **ctx)
             emit(NAME, f"{kind}_peak_device_memory", peak, "MiB", note="the process's peak so far", **ctx)
-    print(table(speed, ["op", "mode", "frames", "height", "width", "seconds", "frames_per_s", "compile_s", "temp_mib",
-                        "peak_mib"]))
+    print(
+        table(
+            speed,
+            ["op", "mode", "frames", "height", "width", "seconds", "frames_per_s", "compile_s", "temp_mib", "peak_mib"],
+        )
+    )
     return rows, speed
 
 
@@ -119,8 +186,9 @@ def main(argv=None):
     from jaxdrive.models.vae.model import VAEConfig
 
     parser = argparse.ArgumentParser(prog="jaxdrive bench vae", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--frames", type=int, nargs="+", default=[33, 241],
-                        help="clip lengths (1 + 4k) for the memory figures")
+    parser.add_argument(
+        "--frames", type=int, nargs="+", default=[33, 241], help="clip lengths (1 + 4k) for the memory figures"
+    )
     parser.add_argument("--size", type=int, nargs=2, default=[480, 720], metavar=("H", "W"))
     parser.add_argument("--modes", nargs="+", default=["chunked", "whole"], choices=["chunked", "whole"])
     parser.add_argument("--speed-size", type=int, nargs=2, default=[64, 112], metavar=("H", "W"))
@@ -141,9 +209,19 @@ def main(argv=None):
     for name, (h, w) in (("--size", args.size), ("--speed-size", args.speed_size)):
         if h < 1 or w < 1 or h % s or w % s:
             parser.error(f"{name}: expected positive multiples of the spatial compression {s}, got {h} {w}")
-    return run(args.frames, tuple(args.size), tuple(args.speed_size), args.speed_frames, args.modes,
-               speed_modes=args.speed_modes, speed_ops=args.speed_ops, speed_repeats=args.speed_repeats,
-               dtype=args.dtype, arch=args.arch, memory=not args.no_memory)
+    return run(
+        args.frames,
+        tuple(args.size),
+        tuple(args.speed_size),
+        args.speed_frames,
+        args.modes,
+        speed_modes=args.speed_modes,
+        speed_ops=args.speed_ops,
+        speed_repeats=args.speed_repeats,
+        dtype=args.dtype,
+        arch=args.arch,
+        memory=not args.no_memory,
+    )
 
 
 if __name__ == "__main__":

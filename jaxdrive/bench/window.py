@@ -33,12 +33,21 @@ def _model(views: int):
     from jaxdrive.generate.windows import WindowModel
     from jaxdrive.models.dit.model import DiT
     from jaxdrive.models.dit.presets import preset
-    cfg = preset("tiny", in_channels=C, vae_spatial=4, vae_temporal=1, patch=(1, 2, 2), prediction="data",
-                 final_conv=32, controls=dict(text=None, waypoints=True, fps=True, cond_frames="replace",
-                                              reference_frame="residual"))
+
+    cfg = preset(
+        "tiny",
+        in_channels=C,
+        vae_spatial=4,
+        vae_temporal=1,
+        patch=(1, 2, 2),
+        prediction="data",
+        final_conv=32,
+        controls=dict(text=None, waypoints=True, fps=True, cond_frames="replace", reference_frame="residual"),
+    )
     dit = DiT(cfg)
-    params = jax.tree_util.tree_map(jnp.asarray, nn.unbox(dit.init_params(0, batch=1, views=views, frames=2,
-                                                                          height=H, width=W)))
+    params = jax.tree_util.tree_map(
+        jnp.asarray, nn.unbox(dit.init_params(0, batch=1, views=views, frames=2, height=H, width=W))
+    )
     return WindowModel(dit, params, window=2, cond_frames=2, steps=2, lengths=(1, 2))
 
 
@@ -49,6 +58,7 @@ def footprint(model, mesh, frames: int, views: int) -> int:
 
     from jaxdrive.generate.windows import jitted_sample_window, to_mesh
     from jaxdrive.models.dit.conditions import Conditions
+
     m = dataclasses.replace(model, window=frames)
     x = np.zeros((1, views, frames, H, W, C), np.float32)
     cond = np.zeros((1, frames), bool)
@@ -75,6 +85,7 @@ def run(seqs, views: int, budget_frames: int, budget_mib: float | None):
     import jax
 
     from jaxdrive.parallel import make_mesh
+
     model = _model(views)
     one = make_mesh(seq=1, devices=jax.devices()[:1])
     budget = int(budget_mib * 2**20) if budget_mib else footprint(model, one, budget_frames, views)
@@ -82,10 +93,24 @@ def run(seqs, views: int, budget_frames: int, budget_mib: float | None):
     for seq in seqs:
         mesh = make_mesh(seq=seq, devices=jax.devices()[:seq])
         frames = longest(model, mesh, views, budget)
-        rows.append(dict(seq=seq, longest_latent_frames=frames, per_device_mib=round(
-            footprint(model, mesh, frames, views) / 2**20, 1), budget_mib=round(budget / 2**20, 1)))
-        emit(NAME, "longest_window", frames, "latent frames", seq=seq, views=views, budget_mib=rows[-1]["budget_mib"],
-             backend=jax.default_backend())
+        rows.append(
+            dict(
+                seq=seq,
+                longest_latent_frames=frames,
+                per_device_mib=round(footprint(model, mesh, frames, views) / 2**20, 1),
+                budget_mib=round(budget / 2**20, 1),
+            )
+        )
+        emit(
+            NAME,
+            "longest_window",
+            frames,
+            "latent frames",
+            seq=seq,
+            views=views,
+            budget_mib=rows[-1]["budget_mib"],
+            backend=jax.default_backend(),
+        )
     base = rows[0]["longest_latent_frames"] or 1
     for r in rows:
         r["x_seq1"] = round(r["longest_latent_frames"] / base, 2)
@@ -97,8 +122,9 @@ def main(argv=None):
     parser = argparse.ArgumentParser(prog="jaxdrive bench window", description=__doc__.split("\n\n")[0])
     parser.add_argument("--seq", type=int, nargs="+", default=[1, 2, 4, 8])
     parser.add_argument("--views", type=int, default=6)
-    parser.add_argument("--budget-frames", type=int, default=33, help="budget: the footprint of this many frames "
-                                                                         "on one device")
+    parser.add_argument(
+        "--budget-frames", type=int, default=33, help="budget: the footprint of this many frames on one device"
+    )
     parser.add_argument("--budget-mib", type=float, help="budget in MiB per device (overrides --budget-frames)")
     args = parser.parse_args(argv)
     bad = [s for s in args.seq if s < 1 or 32 % s]

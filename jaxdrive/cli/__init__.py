@@ -17,11 +17,15 @@ from jaxdrive.cli.options import as_flags
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="jaxdrive",
-        description="Long-horizon multi-view driving world models in JAX/Flax.")
+        prog="jaxdrive", description="Long-horizon multi-view driving world models in JAX/Flax."
+    )
     parser.add_argument("--version", action="version", version=f"jaxdrive {jaxdrive.__version__}")
-    parser.add_argument("-q", "--quiet", action="store_true",
-                        help="log warnings and errors only (default: jaxdrive's INFO messages too, on stderr)")
+    parser.add_argument(
+        "-q",
+        "--quiet",
+        action="store_true",
+        help="log warnings and errors only (default: jaxdrive's INFO messages too, on stderr)",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     bench.add_commands(sub)
     data.add_commands(sub)
@@ -55,7 +59,7 @@ def stderr_logging(*, quiet: bool = False):
     level, propagate = logger.level, logger.propagate
     logger.addHandler(handler)
     logger.setLevel(logging.WARNING if quiet else logging.INFO)
-    logger.propagate = False        # a dependency may configure the root logger: print each message once
+    logger.propagate = False  # a dependency may configure the root logger: print each message once
     try:
         yield
     finally:
@@ -66,13 +70,14 @@ def stderr_logging(*, quiet: bool = False):
 
 def command_parser(parser: argparse.ArgumentParser, command: str) -> argparse.ArgumentParser:
     """The sub-parser of ``command`` (its options name the library's arguments in errors)."""
-    group = next(a for a in parser._actions if isinstance(a.choices, dict))    # no public accessor
+    group = next(a for a in parser._actions if isinstance(a.choices, dict))  # no public accessor
     return group.choices[command]
 
 
 def main(argv=None) -> int:
     from jaxdrive.xla_flags import deterministic_cpu
-    deterministic_cpu()                 # before JAX starts its backend (jaxdrive.xla_flags says why)
+
+    deterministic_cpu()  # before JAX starts its backend (jaxdrive.xla_flags says why)
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser()
     args, rest = parser.parse_known_args(argv)
@@ -85,6 +90,8 @@ def main(argv=None) -> int:
         try:
             return args.run(args, rest)
         except ValueError as e:  # bad input: one line that names the option, not a traceback
-            print(f"jaxdrive {args.command}: error: {as_flags(str(e), command_parser(parser, args.command))}",
-                  file=sys.stderr)
+            print(
+                f"jaxdrive {args.command}: error: {as_flags(str(e), command_parser(parser, args.command))}",
+                file=sys.stderr,
+            )
             return 2

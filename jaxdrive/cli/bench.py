@@ -9,8 +9,10 @@ import pkgutil
 
 def _benchmarks() -> list[str]:
     import jaxdrive.bench as bench
-    return sorted(m.name for m in pkgutil.iter_modules(bench.__path__)
-                  if not m.name.startswith("_") and m.name != "report")
+
+    return sorted(
+        m.name for m in pkgutil.iter_modules(bench.__path__) if not m.name.startswith("_") and m.name != "report"
+    )
 
 
 def _bench(args, rest) -> int:
@@ -26,8 +28,10 @@ def _bench(args, rest) -> int:
 
 
 def add_commands(sub) -> None:
-    bench = sub.add_parser("bench", help="run a benchmark (no name: list them); "
-                                         "arguments after the name go to the benchmark",
-                           add_help=False)  # so `jaxdrive bench NAME --help` reaches the benchmark
+    bench = sub.add_parser(
+        "bench",
+        help="run a benchmark (no name: list them); arguments after the name go to the benchmark",
+        add_help=False,
+    )  # so `jaxdrive bench NAME --help` reaches the benchmark
     bench.add_argument("name", nargs="?", help="benchmark name, e.g. sampler")
     bench.set_defaults(run=_bench)

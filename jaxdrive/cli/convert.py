@@ -15,8 +15,10 @@ def _convert_vae(args, rest) -> int:
 
     vae, params = load_diffusers_vae(args.src)
     path = save_pretrained(args.dst, vae, params, overwrite=args.overwrite)
-    print(f"wrote the VAE ({count_params(params):,} parameters, {len(vae.config.block_out_channels)} "
-          f"blocks, {vae.config.latent_channels} latent channels) to {path}")
+    print(
+        f"wrote the VAE ({count_params(params):,} parameters, {len(vae.config.block_out_channels)} "
+        f"blocks, {vae.config.latent_channels} latent channels) to {path}"
+    )
     return 0
 
 
@@ -26,9 +28,10 @@ def _convert_eval_network(args, rest) -> int:
 
     from jaxdrive.eval import i3d, inception
     from jaxdrive.eval.weights import read_state_dict
+
     check = {"inception": inception.params_from_state_dict, "i3d": i3d.params_from_state_dict}[args.network]
     state = read_state_dict(args.src, option="--from")
-    check(state, source=f"--from {args.src}")                  # that network's tensors, or refused
+    check(state, source=f"--from {args.src}")  # that network's tensors, or refused
     out = Path(args.dst)
     if out.suffix != ".safetensors":
         raise ValueError(f"--out: expected a path ending in .safetensors, got {str(out)!r}")
@@ -37,7 +40,7 @@ def _convert_eval_network(args, rest) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(out.name + ".tmp")
     save_file({k: np.ascontiguousarray(v) for k, v in state.items()}, str(tmp))
-    tmp.replace(out)                                     # atomic: a crash leaves no half-written file
+    tmp.replace(out)  # atomic: a crash leaves no half-written file
     print(f"wrote the {args.network} network's {len(state)} tensors to {out}")
     return 0
 
@@ -50,8 +53,10 @@ def add_commands(sub) -> None:
     vae.add_argument("dst", help="directory to write (load with jaxdrive.models.pretrained.load_pretrained)")
     vae.add_argument("--overwrite", action="store_true")
     vae.set_defaults(run=_convert_vae)
-    for network, src, what in (("inception", "pt_inception-2015-12-05-6726825d.pth", "pytorch-fid's FID Inception"),
-                               ("i3d", "i3d_pretrained_400.pt", "cd-fvd's I3D of FVD")):
+    for network, src, what in (
+        ("inception", "pt_inception-2015-12-05-6726825d.pth", "pytorch-fid's FID Inception"),
+        ("i3d", "i3d_pretrained_400.pt", "cd-fvd's I3D of FVD"),
+    ):
         cmd = csub.add_parser(network, help=f"{what} (.pth state dict) -> safetensors (no torch needed to evaluate)")
         cmd.add_argument("--from", dest="src", required=True, help=src)
         cmd.add_argument("--out", dest="dst", required=True, help="FILE.safetensors to write")

@@ -27,15 +27,24 @@ def _data_synth(args, rest) -> int:
     from jaxdrive.data.synthetic import COUNTERFACTUAL_START, read_counterfactuals
 
     if args.counterfactuals is not None and not n_val:
-        raise ValueError(f"--counterfactuals: expected a dataset with validation clips (--scenes >= 2 and "
-                         f"--val-fraction > 0), got {n_val} validation clips")
-    path = write_synthetic_dataset(args.out, train=n_train, validation=n_val, seed=args.seed,
-                                   overwrite=args.overwrite, views=args.views, frames=args.frames,
-                                   height=args.height, width=args.width,
-                                   counterfactuals=args.counterfactuals or (),
-                                   counterfactual_start=(COUNTERFACTUAL_START if args.counterfactual_start is None
-                                                         else args.counterfactual_start),
-                                   skip_undrivable=args.skip_undrivable)
+        raise ValueError(
+            f"--counterfactuals: expected a dataset with validation clips (--scenes >= 2 and "
+            f"--val-fraction > 0), got {n_val} validation clips"
+        )
+    path = write_synthetic_dataset(
+        args.out,
+        train=n_train,
+        validation=n_val,
+        seed=args.seed,
+        overwrite=args.overwrite,
+        views=args.views,
+        frames=args.frames,
+        height=args.height,
+        width=args.width,
+        counterfactuals=args.counterfactuals or (),
+        counterfactual_start=(COUNTERFACTUAL_START if args.counterfactual_start is None else args.counterfactual_start),
+        skip_undrivable=args.skip_undrivable,
+    )
     routes = read_counterfactuals(path).get("routes", {})
     extra = "".join(f"; {name}: {len(r['clips'])} of {n_val} validation clips" for name, r in routes.items())
     print(f"wrote {n_train} train and {n_val} validation clips to {path}{extra}")
@@ -49,27 +58,46 @@ def _data_nuscenes(args, rest) -> int:
     from jaxdrive.data.tfds_io import write_dataset
 
     if (args.height is None) != (args.width is None):
-        raise SystemExit("jaxdrive data nuscenes: --height/--width: expected both or neither, "
-                         f"got height={args.height}, width={args.width}")
+        raise SystemExit(
+            "jaxdrive data nuscenes: --height/--width: expected both or neither, "
+            f"got height={args.height}, width={args.width}"
+        )
     tables = load_tables(args.dataroot, args.version)
     names = scene_names(tables)
     n_train, n_val = _split_counts(len(names), args.val_fraction)
     image_hw = None if args.height is None else (args.height, args.width)
-    skipped = []                # (scene, first frame, image file) of each clip left out
+    skipped = []  # (scene, first frame, image file) of each clip left out
 
     def clips(scenes):
-        for clip in read_clips(args.dataroot, args.version, frames=args.frames, stride=args.stride,
-                               image_hw=image_hw, scenes=scenes, tables=tables,
-                               skip_bad_records=args.skip_bad_records, skipped=skipped):
+        for clip in read_clips(
+            args.dataroot,
+            args.version,
+            frames=args.frames,
+            stride=args.stride,
+            image_hw=image_hw,
+            scenes=scenes,
+            tables=tables,
+            skip_bad_records=args.skip_bad_records,
+            skipped=skipped,
+        ):
             meta = clip.pop("meta")  # keep what a dataset row can hold: names and arrays
-            yield {**clip, "scene": meta["scene"],
-                   "timestamps": np.asarray(meta["timestamps"], np.int64)}
-    path = write_dataset(args.out, _splits(clips(names[:n_train]), clips(names[n_train:]), n_val),
-                         name="jaxdrive_nuscenes", overwrite=args.overwrite,
-                         metadata={"source": "nuscenes", "version": args.version, "frames": args.frames,
-                                   "stride": args.stride})
-    left_out = (f"; {len(skipped)} clips left out for unreadable images ({len({f for _, _, f in skipped})} "
-                f"files, named in the log)") if args.skip_bad_records else ""
+            yield {**clip, "scene": meta["scene"], "timestamps": np.asarray(meta["timestamps"], np.int64)}
+
+    path = write_dataset(
+        args.out,
+        _splits(clips(names[:n_train]), clips(names[n_train:]), n_val),
+        name="jaxdrive_nuscenes",
+        overwrite=args.overwrite,
+        metadata={"source": "nuscenes", "version": args.version, "frames": args.frames, "stride": args.stride},
+    )
+    left_out = (
+        (
+            f"; {len(skipped)} clips left out for unreadable images ({len({f for _, _, f in skipped})} "
+            f"files, named in the log)"
+        )
+        if args.skip_bad_records
+        else ""
+    )
     print(f"wrote nuScenes {args.version} ({n_train} train / {n_val} validation scenes) to {path}{left_out}")
     return 0
 
@@ -78,6 +106,7 @@ def _data_info(args, rest) -> int:
     import json
 
     from jaxdrive.data.tfds_io import dataset_info
+
     info = dataset_info(args.path)
     print(json.dumps(info, indent=2, default=str))
     return 0
@@ -104,11 +133,20 @@ def _data_encode(args, rest) -> int:
     from jaxdrive.train.encode import encode_dataset
 
     config = load_config(args.config, args.mesh, args.set)
-    start_jax()                 # several processes (launch/local.py, SLURM, a TPU pod) share the work
-    path = encode_dataset(config, args.out, splits=args.split, every=args.every, batch=args.batch,
-                          overwrite=args.overwrite, progress=not args.no_progress)
-    print(f"wrote the latent windows of {config.data.path} to {path}; train on them with "
-          f"--set data.path={path} --set latents.precomputed=true")
+    start_jax()  # several processes (launch/local.py, SLURM, a TPU pod) share the work
+    path = encode_dataset(
+        config,
+        args.out,
+        splits=args.split,
+        every=args.every,
+        batch=args.batch,
+        overwrite=args.overwrite,
+        progress=not args.no_progress,
+    )
+    print(
+        f"wrote the latent windows of {config.data.path} to {path}; train on them with "
+        f"--set data.path={path} --set latents.precomputed=true"
+    )
     return 0
 
 
@@ -125,14 +163,24 @@ def add_commands(sub) -> None:
     synth.add_argument("--val-fraction", type=float, default=0.125)
     synth.add_argument("--seed", type=int, default=0)
     synth.add_argument("--overwrite", action="store_true")
-    synth.add_argument("--counterfactuals", metavar="ROUTES",
-                       help="store each validation clip's re-render along these routes (comma-separated: stop, "
-                            "slower, faster, lane-left, lane-right, branch) in splits validation_route_<route>")
-    synth.add_argument("--counterfactual-start", type=int, default=None,
-                       help="the first frame a counterfactual route changes (default 8: after the given frames)")
-    synth.add_argument("--skip-undrivable", action="store_true",
-                       help="leave out a validation clip that cannot drive a route (off the road, into an agent, "
-                            "no intersection to branch at) instead of stopping with an error naming it")
+    synth.add_argument(
+        "--counterfactuals",
+        metavar="ROUTES",
+        help="store each validation clip's re-render along these routes (comma-separated: stop, "
+        "slower, faster, lane-left, lane-right, branch) in splits validation_route_<route>",
+    )
+    synth.add_argument(
+        "--counterfactual-start",
+        type=int,
+        default=None,
+        help="the first frame a counterfactual route changes (default 8: after the given frames)",
+    )
+    synth.add_argument(
+        "--skip-undrivable",
+        action="store_true",
+        help="leave out a validation clip that cannot drive a route (off the road, into an agent, "
+        "no intersection to branch at) instead of stopping with an error naming it",
+    )
     synth.set_defaults(run=_data_synth)
     nus = dsub.add_parser("nuscenes", help="convert a local nuScenes dataroot")
     nus.add_argument("--dataroot", required=True)
@@ -144,13 +192,19 @@ def add_commands(sub) -> None:
     nus.add_argument("--width", type=int, default=None)
     nus.add_argument("--val-fraction", type=float, default=0.15)
     nus.add_argument("--overwrite", action="store_true")
-    nus.add_argument("--skip-bad-records", action="store_true",
-                     help="leave out a clip whose camera image is missing or unreadable (each file named once in "
-                          "the log, the count in the summary) instead of stopping with an error naming it")
+    nus.add_argument(
+        "--skip-bad-records",
+        action="store_true",
+        help="leave out a clip whose camera image is missing or unreadable (each file named once in "
+        "the log, the count in the summary) instead of stopping with an error naming it",
+    )
     nus.set_defaults(run=_data_nuscenes)
-    text = dsub.add_parser("text-embed", help="precompute T5 embeddings of a dataset's captions "
-                                              "(needs the t5 extra, pip install \"jaxdrive[t5]\", and local T5 "
-                                              "weights)")
+    text = dsub.add_parser(
+        "text-embed",
+        help="precompute T5 embeddings of a dataset's captions "
+        '(needs the t5 extra, pip install "jaxdrive[t5]", and local T5 '
+        "weights)",
+    )
     text.add_argument("--dataset", required=True, help="TFDS dataset directory")
     text.add_argument("--encoder", required=True, help="folder of a T5 encoder (safetensors) and tokenizer")
     text.add_argument("--out", required=True, help="output .npz: captions, embeddings [N, L, D], mask [N, L]")
@@ -158,17 +212,26 @@ def add_commands(sub) -> None:
     text.add_argument("--max-length", type=int, default=300)
     text.add_argument("--batch-size", type=int, default=8)
     text.set_defaults(run=_data_text_embed)
-    enc = dsub.add_parser("encode", help="precompute the latents of a config's training windows "
-                                         "(train on them with latents.precomputed=true)")
+    enc = dsub.add_parser(
+        "encode",
+        help="precompute the latents of a config's training windows (train on them with latents.precomputed=true)",
+    )
     add_config(enc, "the training config: data.path, frames, stride, views, height, width and the latents codec")
     enc.add_argument("--out", required=True, help="dataset directory to create")
     enc.add_argument("--split", nargs="+", help="splits to encode (default: all of the dataset's)")
-    enc.add_argument("--every", type=int, help="source frames between window starts (default: the window's "
-                                               "span, no overlap)")
-    enc.add_argument("--batch", type=int, default=8, help="windows per encoder call, all processes together (a "
-                                                          "multiple of the mesh's batch axes data x fsdp)")
-    enc.add_argument("--mesh", help="mesh axis sizes, e.g. data=8 (default: the config's mesh; the batch is "
-                                    "sharded over data and fsdp)")
+    enc.add_argument(
+        "--every", type=int, help="source frames between window starts (default: the window's span, no overlap)"
+    )
+    enc.add_argument(
+        "--batch",
+        type=int,
+        default=8,
+        help="windows per encoder call, all processes together (a multiple of the mesh's batch axes data x fsdp)",
+    )
+    enc.add_argument(
+        "--mesh",
+        help="mesh axis sizes, e.g. data=8 (default: the config's mesh; the batch is sharded over data and fsdp)",
+    )
     enc.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config field (repeatable)")
     enc.add_argument("--overwrite", action="store_true")
     add_progress(enc, "the encoded windows")

@@ -9,36 +9,41 @@ import math
 from jaxdrive.cli.options import add_config
 
 # (column, per_device key, what it holds)
-COLUMNS = (("params", "params", "parameters (float32)"),
-           ("optimizer", "opt_state", "optimizer state"),
-           ("ema", "ema", "EMA parameters"),
-           ("frozen", "frozen", "parameters read, not trained (the VAE)"),
-           ("batch", "batch", "the step's input batch"),
-           ("temp", "temp", "activations kept for the backward pass and scratch"),
-           ("total", "total", "all of it while the step runs (state + frozen + batch + temp + outputs - donated)"))
+COLUMNS = (
+    ("params", "params", "parameters (float32)"),
+    ("optimizer", "opt_state", "optimizer state"),
+    ("ema", "ema", "EMA parameters"),
+    ("frozen", "frozen", "parameters read, not trained (the VAE)"),
+    ("batch", "batch", "the step's input batch"),
+    ("temp", "temp", "activations kept for the backward pass and scratch"),
+    ("total", "total", "all of it while the step runs (state + frozen + batch + temp + outputs - donated)"),
+)
 
 
 def gib(n) -> str:
-    return "-" if n is None else f"{n / 2 ** 30:.2f}"
+    return "-" if n is None else f"{n / 2**30:.2f}"
 
 
 def _start_cpu_devices(n: int) -> None:
     """``n`` fake CPU devices, before JAX starts its backend; where it has started (a caller
     in-process, e.g. the tests), the devices there are must be enough."""
     import jax
+
     try:
         jax.config.update("jax_platforms", "cpu")
         jax.config.update("jax_num_cpu_devices", n)
     except RuntimeError:
         pass
     if len(jax.devices()) < n:
-        raise ValueError(f"--mesh: expected at most the {len(jax.devices())} devices this process started with, "
-                         f"got a mesh of {n}")
+        raise ValueError(
+            f"--mesh: expected at most the {len(jax.devices())} devices this process started with, got a mesh of {n}"
+        )
 
 
 def _plan(args, rest) -> int:
     from jaxdrive.config import load_config
     from jaxdrive.train.plan import largest_fit, parse_bytes, parse_mesh, plan_memory
+
     memory = None if args.device_memory is None else parse_bytes(args.device_memory)
     try:
         scales = tuple(float(s) for s in args.scales.split(","))
@@ -51,8 +56,11 @@ def _plan(args, rest) -> int:
     sizes = parse_mesh(args.mesh, args.devices)
     config = load_config(args.config, args.set or [])
     _start_cpu_devices(math.prod(sizes.values()))
-    out = {"config": args.config, "sets": args.set or [],
-           **plan_memory(config, sizes, device_memory=memory, compile_step=not args.no_compile)}
+    out = {
+        "config": args.config,
+        "sets": args.set or [],
+        **plan_memory(config, sizes, device_memory=memory, compile_step=not args.no_compile),
+    }
     if memory is not None and not (args.no_fit or args.no_compile):
         out["fit"] = largest_fit(config, sizes, memory, scales=scales)
     if args.json:
@@ -69,8 +77,12 @@ def table(out: dict) -> str:
     head = f"{'mesh':20s} {'bucket':14s} {'batch':>5s} " + " ".join(f"{c:>9s}" for c, _, _ in COLUMNS)
     row = f"{mesh:20s} {out['bucket']:14s} {out['batch']:5d} " + " ".join(f"{gib(pd[k]):>9s}" for _, k, _ in COLUMNS)
     compiled = "not compiled" if out["compile_seconds"] is None else f"compiled in {out['compile_seconds']} s"
-    lines = [f"{out['config']}: per-device GiB of one train step on {out['devices']} fake CPU devices "
-             f"(latents: {out['codec']}; {compiled})", head, row]
+    lines = [
+        f"{out['config']}: per-device GiB of one train step on {out['devices']} fake CPU devices "
+        f"(latents: {out['codec']}; {compiled})",
+        head,
+        row,
+    ]
     if out["fits"] is not None:
         verdict = "fits" if out["fits"] else "does NOT fit"
         lines.append(f"{verdict} in {gib(out['device_memory'])} GiB per device")
@@ -84,19 +96,36 @@ def table(out: dict) -> str:
 
 
 def add_commands(sub) -> None:
-    plan = sub.add_parser("plan", help="per-device memory of a config's train step on a mesh, and the longest "
-                                       "clip that fits a device (fake CPU devices, nothing allocated)")
+    plan = sub.add_parser(
+        "plan",
+        help="per-device memory of a config's train step on a mesh, and the longest "
+        "clip that fits a device (fake CPU devices, nothing allocated)",
+    )
     add_config(plan, "the config to plan, e.g. configs/mila.py")
-    plan.add_argument("--mesh", required=True, help="mesh axis sizes, e.g. data=2,fsdp=4,seq=8,tensor=1 (missing "
-                                                    "axes are 1; the product is the fake device count)")
+    plan.add_argument(
+        "--mesh",
+        required=True,
+        help="mesh axis sizes, e.g. data=2,fsdp=4,seq=8,tensor=1 (missing "
+        "axes are 1; the product is the fake device count)",
+    )
     plan.add_argument("--devices", type=int, help="device count the mesh must multiply to (allows one -1 axis)")
-    plan.add_argument("--device-memory", help="memory per device, e.g. 80GiB, 16GB, 512MiB: says whether it "
-                                              "fits and searches the longest clip that does")
-    plan.add_argument("--scales", default="1", help="resolutions searched with --device-memory: the planned "
-                                                    "bucket's height x width times each scale (default 1)")
+    plan.add_argument(
+        "--device-memory",
+        help="memory per device, e.g. 80GiB, 16GB, 512MiB: says whether it "
+        "fits and searches the longest clip that does",
+    )
+    plan.add_argument(
+        "--scales",
+        default="1",
+        help="resolutions searched with --device-memory: the planned "
+        "bucket's height x width times each scale (default 1)",
+    )
     plan.add_argument("--no-fit", action="store_true", help="with --device-memory: only say whether it fits")
-    plan.add_argument("--no-compile", action="store_true", help="the state and batch only (seconds at any size): "
-                                                             "no temp / total, no fit")
+    plan.add_argument(
+        "--no-compile",
+        action="store_true",
+        help="the state and batch only (seconds at any size): no temp / total, no fit",
+    )
     plan.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config field (repeatable)")
     plan.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
     plan.set_defaults(run=_plan)

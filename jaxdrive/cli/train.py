@@ -22,9 +22,10 @@ def _train(args, rest) -> int:
     config = load_config(args.config, args.mesh, args.set, extra)
     start_jax()
     from jaxdrive.config import PredictorRunConfig, SegmenterRunConfig
-    if isinstance(config, PredictorRunConfig):        # configs/predictor.py: the future-controls predictor
+
+    if isinstance(config, PredictorRunConfig):  # configs/predictor.py: the future-controls predictor
         from jaxdrive.train.predictor_run import train_predictor as train
-    elif isinstance(config, SegmenterRunConfig):      # configs/segmenter.py: the segmentation evaluator
+    elif isinstance(config, SegmenterRunConfig):  # configs/segmenter.py: the segmentation evaluator
         from jaxdrive.train.segmenter_run import train_segmenter as train
     else:
         from jaxdrive.train.run import train
@@ -37,9 +38,18 @@ def _sample(args, rest) -> int:
     start_jax()
     if args.strategy is not None:
         from jaxdrive.cli.sample import sample_strategy
+
         return sample_strategy(args)
-    for name in ("fine_workdir", "anchor_every", "segment_batch", "device_memory", "overlap", "cond_frames", "route",
-                 "predictor"):
+    for name in (
+        "fine_workdir",
+        "anchor_every",
+        "segment_batch",
+        "device_memory",
+        "overlap",
+        "cond_frames",
+        "route",
+        "predictor",
+    ):
         if getattr(args, name) is not None:
             raise ValueError(f"--{name.replace('_', '-')}: expected only with --strategy, got {getattr(args, name)}")
     if args.controls != "recorded":
@@ -49,22 +59,34 @@ def _sample(args, rest) -> int:
     from jaxdrive.config import override
     from jaxdrive.generate.samples import write_samples
     from jaxdrive.train.run import Run, load_run_config, restore_params
+
     config = load_run_config(args.workdir)
     for s in args.set or []:
         config = override(config, s)
     config = config_with_mesh(config, args.mesh) if args.mesh else config
     from jaxdrive import compile_cache
+
     compile_cache.enable(config.train.compile_cache)
     run = Run(config)
     from jaxdrive.cli.options import guidance_options
-    controls = guidance_options(args, [run.sampling()])      # before anything compiles
+
+    controls = guidance_options(args, [run.sampling()])  # before anything compiles
     step, params = restore_params(run, args.workdir, ema=not args.no_ema)
     views = None if args.views is None else [int(v) for v in args.views]
     out_dir = Path(args.out or Path(args.workdir) / "samples" / f"sample_{step:07d}")
     t = time.perf_counter()
-    paths = write_samples(run.sampling(), params, out_dir, frames=args.frames, views=views, steps=args.steps,
-                          guidance=args.cfg, control_guidance=controls, seed=args.seed,
-                          progress=not args.no_progress)
+    paths = write_samples(
+        run.sampling(),
+        params,
+        out_dir,
+        frames=args.frames,
+        views=views,
+        steps=args.steps,
+        guidance=args.cfg,
+        control_guidance=controls,
+        seed=args.seed,
+        progress=not args.no_progress,
+    )
     if "quality" in paths:
         print(quality_lines(paths["quality"]))
     print(f"sampled from checkpoint {step} in {time.perf_counter() - t:.1f} s: {out_dir}")
@@ -80,6 +102,7 @@ def _demo_mesh(config, sets):
     import jax
 
     from jaxdrive.config import override
+
     if any(s.split("=", 1)[0].strip().startswith("mesh.") for s in sets or []):
         return config
     devices = jax.device_count()
@@ -96,51 +119,76 @@ def _demo(args, rest) -> int:
     then the validation scene along its recorded route and a counterfactual one."""
     workdir = Path(args.workdir)
     from jaxdrive.config import split_config_path
+
     config_path = args.config or str(REPO_CONFIGS / "world.py")
     if not split_config_path(config_path)[0].is_file():
-        raise ValueError(f"config: expected the world config at {config_path!r} (run from a checkout, or "
-                         f"pass --config), got a missing file")
+        raise ValueError(
+            f"config: expected the world config at {config_path!r} (run from a checkout, or "
+            f"pass --config), got a missing file"
+        )
     data = workdir / "data"
     extra = [f"data.path={data}", f"train.steps={args.steps}"]
     config = load_config(config_path, None, args.set, extra)
     if args.cfg is not None:
         from jaxdrive.generate.guidance import check_scale
+
         check_scale("--cfg", args.cfg)
     if args.scenes < config.data.batch_size + 1:
-        raise ValueError(f"--scenes: expected at least data.batch_size + 1 = {config.data.batch_size + 1} "
-                         f"(a batch of training scenes and one for validation), got {args.scenes}")
+        raise ValueError(
+            f"--scenes: expected at least data.batch_size + 1 = {config.data.batch_size + 1} "
+            f"(a batch of training scenes and one for validation), got {args.scenes}"
+        )
     start_jax()
     config = _demo_mesh(config, args.set)
     from jaxdrive.data.synth_routes import parse_routes
+
     routes = [] if args.routes.strip().lower() == "none" else parse_routes(args.routes, "--routes", recorded=False)
-    validation = config.mesh.data        # eval samples a multiple of the batch shards
+    validation = config.mesh.data  # eval samples a multiple of the batch shards
     if args.scenes < config.data.batch_size + validation:
-        raise ValueError(f"--scenes: expected at least data.batch_size + {validation} = "
-                         f"{config.data.batch_size + validation} (a batch of training scenes and {validation} for "
-                         f"validation on this mesh), got {args.scenes}")
+        raise ValueError(
+            f"--scenes: expected at least data.batch_size + {validation} = "
+            f"{config.data.batch_size + validation} (a batch of training scenes and {validation} for "
+            f"validation on this mesh), got {args.scenes}"
+        )
     t0 = time.perf_counter()
     if not data.exists():
         from jaxdrive.data.synthetic import drivable_clips, write_synthetic_dataset
+
         d = config.data
         frames = max(args.frames, d.frames)
         # the comparison needs a route every validation scene drives (on 1 device there is one
         # scene, and a route it cannot drive would stop the synthesis)
-        rows = drivable_clips(routes, args.scenes - validation, validation, views=6, frames=frames,
-                              height=2 * d.height, width=2 * d.width)
+        rows = drivable_clips(
+            routes, args.scenes - validation, validation, views=6, frames=frames, height=2 * d.height, width=2 * d.width
+        )
         skipped = [r for r in routes if len(rows[r]) < validation]
         if skipped:
             print(f"routes the validation scenes cannot all drive, left out: {', '.join(skipped)}")
         routes = [r for r in routes if r not in skipped]
-        print(f"[1/3] synthesising {args.scenes} driving scenes ({d.views} views x {frames} frames) in {data}"
-              + (f", the validation scenes also along {', '.join(routes)}" if routes else ""))
-        write_synthetic_dataset(data, train=args.scenes - validation, validation=validation, overwrite=True, views=6,
-                                frames=frames, height=2 * d.height, width=2 * d.width, counterfactuals=routes,
-                                skip_undrivable=True)
+        print(
+            f"[1/3] synthesising {args.scenes} driving scenes ({d.views} views x {frames} frames) in {data}"
+            + (f", the validation scenes also along {', '.join(routes)}" if routes else "")
+        )
+        write_synthetic_dataset(
+            data,
+            train=args.scenes - validation,
+            validation=validation,
+            overwrite=True,
+            views=6,
+            frames=frames,
+            height=2 * d.height,
+            width=2 * d.width,
+            counterfactuals=routes,
+            skip_undrivable=True,
+        )
     from jaxdrive.media import plot_losses
     from jaxdrive.train.metrics import read_metrics
     from jaxdrive.train.run import train
-    print(f"[2/3] training the tiny DiT ({split_config_path(config_path)[0].name}) for {config.train.steps} steps "
-          f"in {workdir}")
+
+    print(
+        f"[2/3] training the tiny DiT ({split_config_path(config_path)[0].name}) for {config.train.steps} steps "
+        f"in {workdir}"
+    )
     out = train(config, workdir, progress=not args.no_progress)
     if out["status"] != "done":
         print(f"training {out['status']} at step {out['step']}; run 'jaxdrive demo' again to resume")
@@ -148,17 +196,33 @@ def _demo(args, rest) -> int:
     rows = read_metrics(workdir)
     plot = plot_losses(workdir / "loss.png", [r["step"] for r in rows], [r["loss"] for r in rows])
     from jaxdrive.generate.samples import write_samples
-    print(f"[3/3] sampling a {args.frames}-frame, {config.data.views}-view clip "
-          f"({args.frames // config.data.frames + 1} windows of {config.data.frames})")
-    paths = write_samples(out["run"].sampling(), out["state"], workdir / "samples" / "demo", frames=args.frames,
-                          steps=config.train.sample_steps, guidance=args.cfg, progress=not args.no_progress)
+
+    print(
+        f"[3/3] sampling a {args.frames}-frame, {config.data.views}-view clip "
+        f"({args.frames // config.data.frames + 1} windows of {config.data.frames})"
+    )
+    paths = write_samples(
+        out["run"].sampling(),
+        out["state"],
+        workdir / "samples" / "demo",
+        frames=args.frames,
+        steps=config.train.sample_steps,
+        guidance=args.cfg,
+        progress=not args.no_progress,
+    )
     print(quality_lines(paths["quality"]))
     grid = _demo_routes(workdir, data, routes, validation, args, config)
-    print(f"done in {time.perf_counter() - t0:.0f} s:\n  video      {paths.get('video')}\n"
-          f"  frame grid {paths.get('grid')} (recorded | generated)\n  quality    {paths.get('quality_json')}\n"
-          + (f"  routes     {grid} (render | generated: the recorded route, a counterfactual one, the recorded "
-             f"route without its boxes)\n" if grid else "")
-          + f"  loss plot  {plot}\n  metrics    {workdir / 'metrics.jsonl'}")
+    print(
+        f"done in {time.perf_counter() - t0:.0f} s:\n  video      {paths.get('video')}\n"
+        f"  frame grid {paths.get('grid')} (recorded | generated)\n  quality    {paths.get('quality_json')}\n"
+        + (
+            f"  routes     {grid} (render | generated: the recorded route, a counterfactual one, the recorded "
+            f"route without its boxes)\n"
+            if grid
+            else ""
+        )
+        + f"  loss plot  {plot}\n  metrics    {workdir / 'metrics.jsonl'}"
+    )
     return 0
 
 
@@ -166,21 +230,41 @@ def _demo_routes(workdir: Path, data: Path, routes, clips: int, args, config):
     """Control, shown: ``jaxdrive eval --routes recorded,ROUTE`` on the validation scenes, ROUTE
     the first of ``routes`` that every one of them can drive; returns its ``routes.png``."""
     from jaxdrive.data.synthetic import read_counterfactuals
+
     stored = read_counterfactuals(data).get("routes", {})
     drivable = [r for r in routes if r in stored and len(stored[r]["clips"]) >= clips]
     if not drivable:
-        print(f"no route comparison: the validation scenes of {data} drive none of {', '.join(routes) or '(none)'}"
-              if routes else "no route comparison (--routes none)")
+        print(
+            f"no route comparison: the validation scenes of {data} drive none of {', '.join(routes) or '(none)'}"
+            if routes
+            else "no route comparison (--routes none)"
+        )
         return None
     out = workdir / "samples" / "routes"
-    print(f"[3/3] and the same given frames along the recorded route and along '{drivable[0]}', scored against the "
-          f"world's render of each (jaxdrive eval --routes)")
-    argv = ["eval", "--workdir", str(workdir), "--strategies", "rollout", "--clips", str(clips), "--frames",
-            str(args.frames), "--routes", f"recorded,{drivable[0]}", "--steps", str(config.train.sample_steps),
-            "--out", str(out)]
+    print(
+        f"[3/3] and the same given frames along the recorded route and along '{drivable[0]}', scored against the "
+        f"world's render of each (jaxdrive eval --routes)"
+    )
+    argv = [
+        "eval",
+        "--workdir",
+        str(workdir),
+        "--strategies",
+        "rollout",
+        "--clips",
+        str(clips),
+        "--frames",
+        str(args.frames),
+        "--routes",
+        f"recorded,{drivable[0]}",
+        "--steps",
+        str(config.train.sample_steps),
+        "--out",
+        str(out),
+    ]
     if args.cfg is not None:
         argv += ["--cfg", str(args.cfg)]
-    parser = argparse.ArgumentParser(prog="jaxdrive")          # the eval command's own options, as jaxdrive's
+    parser = argparse.ArgumentParser(prog="jaxdrive")  # the eval command's own options, as jaxdrive's
     eval_cli.add_commands(parser.add_subparsers(dest="command"))
     ev = parser.parse_args(argv)
     ev.run(ev, [])
@@ -189,14 +273,18 @@ def _demo_routes(workdir: Path, data: Path, routes, clips: int, args, config):
 
 def quality_lines(q: dict) -> str:
     """The quality report's summaries as a small table (``quality.json`` of a sample)."""
-    lines = [f"quality against the recorded clip ({q['views']} views; {q['cond_frames']} given frames):",
-             f"  {'':24s} {'PSNR dB':>8s} {'SSIM':>6s}"]
+    lines = [
+        f"quality against the recorded clip ({q['views']} views; {q['cond_frames']} given frames):",
+        f"  {'':24s} {'PSNR dB':>8s} {'SSIM':>6s}",
+    ]
     for key, title in (("first_window", "first window"), ("all_generated", "all generated")):
         s = q[key]
         span = f"{title} ({s['frames'][0]}-{s['frames'][-1]})"
-        lines += [f"  {span:24s} {s['psnr']:8.2f} {s['ssim']:6.3f}",
-                  f"  {'  repeat last given':24s} {s['repeat_psnr']:8.2f} {s['repeat_ssim']:6.3f}",
-                  f"  {'  noise':24s} {s['noise_psnr']:8.2f} {s['noise_ssim']:6.3f}"]
+        lines += [
+            f"  {span:24s} {s['psnr']:8.2f} {s['ssim']:6.3f}",
+            f"  {'  repeat last given':24s} {s['repeat_psnr']:8.2f} {s['repeat_ssim']:6.3f}",
+            f"  {'  noise':24s} {s['noise_psnr']:8.2f} {s['noise_ssim']:6.3f}",
+        ]
     return "\n".join(lines)
 
 
@@ -217,53 +305,92 @@ def add_commands(sub) -> None:
     sample.add_argument("--views", nargs="+", help="camera indices (default: the training views)")
     add_sampling(sample)
     sample.add_argument("--out", help="output directory (default WORKDIR/samples/sample_STEP)")
-    sample.add_argument("--strategy", help="long-video strategy: rollout, coarse-to-refine (MiLA), coarse-fine "
-                                           "(LongDWM), window (MagicDrive-V2: one window, models trained on "
-                                           "several lengths) or streaming (STAGE: frame by frame with the HTFT "
-                                           "buffer); writes sample.mp4, frames.png, latents.npy, report.json")
-    sample.add_argument("--fine-workdir", help="the fine model's run (coarse-fine; optional (Re)fine model of "
-                                               "coarse-to-refine)")
+    sample.add_argument(
+        "--strategy",
+        help="long-video strategy: rollout, coarse-to-refine (MiLA), coarse-fine "
+        "(LongDWM), window (MagicDrive-V2: one window, models trained on "
+        "several lengths) or streaming (STAGE: frame by frame with the HTFT "
+        "buffer); writes sample.mp4, frames.png, latents.npy, report.json",
+    )
+    sample.add_argument(
+        "--fine-workdir", help="the fine model's run (coarse-fine; optional (Re)fine model of coarse-to-refine)"
+    )
     sample.add_argument("--cond-frames", type=int, help="given latent frames (default: the run's flow.cond_frames)")
     sample.add_argument("--overlap", type=int, help="rollout / refine windows: frames each next window conditions on")
-    sample.add_argument("--anchor-every", type=int, help="coarse-to-refine: latent frames between anchors "
-                                                         "(default: the model's training spacing; 0: no anchors)")
-    sample.add_argument("--segment-batch", help="coarse-fine: segments per fine sampler call, or auto (default: the "
-                                                "largest group whose compiled call fits --device-memory; on a CPU "
-                                                "without it, one segment a call)")
-    sample.add_argument("--device-memory", help="coarse-fine: per-device memory budget of --segment-batch auto, "
-                                                "e.g. 16GiB (default: the device's free memory)")
-    sample.add_argument("--taps", help="streaming: the past frames HTFT fuses, e.g. --taps=-1,-5,-10 (default: the "
-                                       "run's stream.taps; 'none': HTFT off)")
-    sample.add_argument("--route", help="drive this route instead of the recorded one (--strategy): a JSON or CSV "
-                                        "file of ego waypoints (x, y[, t]) or a manoeuvre: 'straight 10m/s', "
-                                        "'left turn', 'right turn', 'stop'; a turn starts at the next "
-                                        "intersection on the scene's map within the frames generated")
-    sample.add_argument("--allow-off-road", action="store_true",
-                        help="drive a --route file even where it leaves the road of the scene's map or the map "
-                             "itself (refused otherwise when more than a few metres of it are off the road, or "
-                             "any point is beyond the map)")
-    sample.add_argument("--predictor", help="a run of configs/predictor.py: predicts the controls past the end of "
-                                            "the clip's recorded ones (--frames may exceed the clip), and the other "
-                                            "agents along a --route")
-    sample.add_argument("--controls", default="recorded", help="recorded (default: predicted only beyond the log) "
-                                                               "or predicted (from the given frames on)")
-    sample.add_argument("--clips", type=int, help="clips sampled side by side (--strategy; default: the mesh's "
-                                                  "data x fsdp size)")
+    sample.add_argument(
+        "--anchor-every",
+        type=int,
+        help="coarse-to-refine: latent frames between anchors (default: the model's training spacing; 0: no anchors)",
+    )
+    sample.add_argument(
+        "--segment-batch",
+        help="coarse-fine: segments per fine sampler call, or auto (default: the "
+        "largest group whose compiled call fits --device-memory; on a CPU "
+        "without it, one segment a call)",
+    )
+    sample.add_argument(
+        "--device-memory",
+        help="coarse-fine: per-device memory budget of --segment-batch auto, "
+        "e.g. 16GiB (default: the device's free memory)",
+    )
+    sample.add_argument(
+        "--taps",
+        help="streaming: the past frames HTFT fuses, e.g. --taps=-1,-5,-10 (default: the "
+        "run's stream.taps; 'none': HTFT off)",
+    )
+    sample.add_argument(
+        "--route",
+        help="drive this route instead of the recorded one (--strategy): a JSON or CSV "
+        "file of ego waypoints (x, y[, t]) or a manoeuvre: 'straight 10m/s', "
+        "'left turn', 'right turn', 'stop'; a turn starts at the next "
+        "intersection on the scene's map within the frames generated",
+    )
+    sample.add_argument(
+        "--allow-off-road",
+        action="store_true",
+        help="drive a --route file even where it leaves the road of the scene's map or the map "
+        "itself (refused otherwise when more than a few metres of it are off the road, or "
+        "any point is beyond the map)",
+    )
+    sample.add_argument(
+        "--predictor",
+        help="a run of configs/predictor.py: predicts the controls past the end of "
+        "the clip's recorded ones (--frames may exceed the clip), and the other "
+        "agents along a --route",
+    )
+    sample.add_argument(
+        "--controls",
+        default="recorded",
+        help="recorded (default: predicted only beyond the log) or predicted (from the given frames on)",
+    )
+    sample.add_argument(
+        "--clips", type=int, help="clips sampled side by side (--strategy; default: the mesh's data x fsdp size)"
+    )
     add_progress(sample, "the sampled windows")
     sample.set_defaults(run=_sample)
 
-    demo = sub.add_parser("demo", help="synthesise data, train a tiny DiT with controls, sample a long multi-view "
-                                       "clip and a counterfactual route")
+    demo = sub.add_parser(
+        "demo",
+        help="synthesise data, train a tiny DiT with controls, sample a long multi-view "
+        "clip and a counterfactual route",
+    )
     demo.add_argument("--workdir", default="jaxdrive-demo")
     add_config(demo, "default: configs/world.py of this checkout", required=False)
     demo.add_argument("--steps", type=int, default=600)
     demo.add_argument("--scenes", type=int, default=24, help="synthetic scenes (one kept for validation)")
     demo.add_argument("--frames", type=int, default=33, help="frames of the sampled clip")
-    demo.add_argument("--cfg", type=float, help="classifier-free guidance (1: none; default: the config's "
-                                                "sample.cfg, 1 for configs/tiny.py, whose model scores best without)")
-    demo.add_argument("--routes", default="lane-left,stop,faster",
-                      help="counterfactual routes to render for the validation scenes; the first one they can all "
-                           "drive is generated beside the recorded route (none: skip)")
+    demo.add_argument(
+        "--cfg",
+        type=float,
+        help="classifier-free guidance (1: none; default: the config's "
+        "sample.cfg, 1 for configs/tiny.py, whose model scores best without)",
+    )
+    demo.add_argument(
+        "--routes",
+        default="lane-left,stop,faster",
+        help="counterfactual routes to render for the validation scenes; the first one they can all "
+        "drive is generated beside the recorded route (none: skip)",
+    )
     demo.add_argument("--set", action="append", metavar="KEY=VALUE")
     add_progress(demo, "the training steps and the sampled windows")
     demo.set_defaults(run=_demo)

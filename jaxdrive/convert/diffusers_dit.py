@@ -39,10 +39,12 @@ def config_from_diffusers(config: dict, **overrides) -> DiTConfig:
         raise ValueError(f"config: expected _class_name {CLASS_NAME!r}, got {name!r}")
     get = lambda k, d: c.get(k, d)
     if get("use_learned_positional_embeddings", False):
-        raise ValueError("config: use_learned_positional_embeddings=True (CogVideoX-5B-I2V 1.0) is not "
-                         "supported")
-    for key, want in (("activation_fn", "gelu-approximate"), ("timestep_activation_fn", "silu"),
-                      ("norm_elementwise_affine", True)):
+        raise ValueError("config: use_learned_positional_embeddings=True (CogVideoX-5B-I2V 1.0) is not supported")
+    for key, want in (
+        ("activation_fn", "gelu-approximate"),
+        ("timestep_activation_fn", "silu"),
+        ("norm_elementwise_affine", True),
+    ):
         if get(key, want) != want:
             raise ValueError(f"config: expected {key} = {want!r}, got {get(key, want)!r}")
     p, pt = int(get("patch_size", 2)), get("patch_size_t", None)
@@ -54,17 +56,31 @@ def config_from_diffusers(config: dict, **overrides) -> DiTConfig:
     in_ch = int(get("in_channels", 16))
     out_ch = get("out_channels", 16)
     cfg = DiTConfig(
-        layout="full", depth=int(get("num_layers", 30)), heads=heads, head_dim=head_dim, mlp_ratio=4.0,
-        in_channels=in_ch, out_channels=in_ch if out_ch is None else int(out_ch),
-        patch=(1 if pt is None else int(pt), p, p), qk_norm="layer", qkv_bias=bool(get("attention_bias", True)),
-        norm_eps=float(get("norm_eps", 1e-5)), positions="rope" if rope else "sincos", rope_base=base,
+        layout="full",
+        depth=int(get("num_layers", 30)),
+        heads=heads,
+        head_dim=head_dim,
+        mlp_ratio=4.0,
+        in_channels=in_ch,
+        out_channels=in_ch if out_ch is None else int(out_ch),
+        patch=(1 if pt is None else int(pt), p, p),
+        qk_norm="layer",
+        qkv_bias=bool(get("attention_bias", True)),
+        norm_eps=float(get("norm_eps", 1e-5)),
+        positions="rope" if rope else "sincos",
+        rope_base=base,
         spatial_interpolation_scale=float(get("spatial_interpolation_scale", 1.875)),
         temporal_interpolation_scale=float(get("temporal_interpolation_scale", 1.0)),
-        time_embed_dim=int(get("time_embed_dim", 512)), time_freq_dim=heads * head_dim,
-        flip_sin_to_cos=bool(get("flip_sin_to_cos", True)), freq_shift=float(get("freq_shift", 0)),
-        timestep_scale=1000.0, text_dim=int(get("text_embed_dim", 4096)),
-        text_len=int(get("max_text_seq_length", 226)), ofs_embed_dim=get("ofs_embed_dim", None),
-        controls=Controls(text="embeddings", text_null=False))
+        time_embed_dim=int(get("time_embed_dim", 512)),
+        time_freq_dim=heads * head_dim,
+        flip_sin_to_cos=bool(get("flip_sin_to_cos", True)),
+        freq_shift=float(get("freq_shift", 0)),
+        timestep_scale=1000.0,
+        text_dim=int(get("text_embed_dim", 4096)),
+        text_len=int(get("max_text_seq_length", 226)),
+        ofs_embed_dim=get("ofs_embed_dim", None),
+        controls=Controls(text="embeddings", text_null=False),
+    )
     return cfg.replace(**overrides) if overrides else check_config(cfg)
 
 
@@ -97,16 +113,18 @@ def convert_state_dict(sd: dict, cfg: DiTConfig, source: str = "state dict") -> 
     params: dict = {}
     w = take("patch_embed.proj.weight")
     if w is not None:
-        if w.ndim == 4:            # Conv2d [D, C, p, p] -> rows ordered (ph, pw, C)
+        if w.ndim == 4:  # Conv2d [D, C, p, p] -> rows ordered (ph, pw, C)
             kernel = einops.rearrange(w, "d c ph pw -> (ph pw c) d")
-        else:                      # Linear [D, C pt p p] -> rows ordered (pt, ph, pw, C)
+        else:  # Linear [D, C pt p p] -> rows ordered (pt, ph, pw, C)
             kernel = einops.rearrange(w, "d (c pt ph pw) -> (pt ph pw c) d", c=cin, pt=pt, ph=p, pw=p)
         params["patch_embed"] = {"kernel": kernel, "bias": take("patch_embed.proj.bias", np.zeros(d, np.float32))}
     params["text_proj"] = _lin(take("patch_embed.text_proj.weight"), take("patch_embed.text_proj.bias"))
 
     def mlp2(prefix):
-        return {f"linear_{i}": _lin(take(f"{prefix}.linear_{i}.weight"), take(f"{prefix}.linear_{i}.bias"))
-                for i in (1, 2)}
+        return {
+            f"linear_{i}": _lin(take(f"{prefix}.linear_{i}.weight"), take(f"{prefix}.linear_{i}.bias")) for i in (1, 2)
+        }
+
     params["t_embedder"] = mlp2("time_embedding")
     if cfg.ofs_embed_dim is not None:
         params["ofs_embedder"] = mlp2("ofs_embedding")
@@ -126,42 +144,55 @@ def convert_state_dict(sd: dict, cfg: DiTConfig, source: str = "state dict") -> 
             layer[f"norm{n}_linear"] = _lin(take(f"{pre}.norm{n}.linear.weight"), take(f"{pre}.norm{n}.linear.bias"))
         wo = take(f"{pre}.attn1.to_out.0.weight")
         layer["attn"] = {
-            "to_q": heads_in(f"{pre}.attn1.to_q"), "to_k": heads_in(f"{pre}.attn1.to_k"),
+            "to_q": heads_in(f"{pre}.attn1.to_q"),
+            "to_k": heads_in(f"{pre}.attn1.to_k"),
             "to_v": heads_in(f"{pre}.attn1.to_v"),
             "norm_q": {"scale": take(f"{pre}.attn1.norm_q.weight"), "bias": take(f"{pre}.attn1.norm_q.bias")},
             "norm_k": {"scale": take(f"{pre}.attn1.norm_k.weight"), "bias": take(f"{pre}.attn1.norm_k.bias")},
-            "to_out": {"kernel": None if wo is None else einops.rearrange(wo, "d (h k) -> h k d", h=h),
-                       "bias": take(f"{pre}.attn1.to_out.0.bias")}}
-        layer["ff"] = {"fc1": _lin(take(f"{pre}.ff.net.0.proj.weight"), take(f"{pre}.ff.net.0.proj.bias")),
-                       "fc2": _lin(take(f"{pre}.ff.net.2.weight"), take(f"{pre}.ff.net.2.bias"))}
+            "to_out": {
+                "kernel": None if wo is None else einops.rearrange(wo, "d (h k) -> h k d", h=h),
+                "bias": take(f"{pre}.attn1.to_out.0.bias"),
+            },
+        }
+        layer["ff"] = {
+            "fc1": _lin(take(f"{pre}.ff.net.0.proj.weight"), take(f"{pre}.ff.net.0.proj.bias")),
+            "fc2": _lin(take(f"{pre}.ff.net.2.weight"), take(f"{pre}.ff.net.2.bias")),
+        }
         params[f"layers_{i}"] = {"layer": layer}
     params["norm_final"] = {"scale": take("norm_final.weight"), "bias": take("norm_final.bias")}
     params["norm_out_linear"] = _lin(take("norm_out.linear.weight"), take("norm_out.linear.bias"))
     params["norm_out"] = {"scale": take("norm_out.norm.weight"), "bias": take("norm_out.norm.bias")}
     wp, bp = take("proj_out.weight"), take("proj_out.bias")
-    if wp is not None:             # rows ordered (C, [pt,] ph, pw) -> (pt, ph, pw, C)
+    if wp is not None:  # rows ordered (C, [pt,] ph, pw) -> (pt, ph, pw, C)
         sizes = dict(c=cout, pt=pt, ph=p, pw=p)
         wp = einops.rearrange(wp, "(c pt ph pw) d -> d (pt ph pw c)", **sizes)
         bp = einops.rearrange(bp, "(c pt ph pw) -> (pt ph pw c)", **sizes)
         params["proj_out"] = {"kernel": np.ascontiguousarray(wp), "bias": bp}
     unused = sorted(set(sd) - used - {"patch_embed.pos_embedding"})
     if missing or unused:
-        raise ValueError(f"{source}: expected the tensors of a {CLASS_NAME} with {cfg.depth} layers; "
-                         f"missing {missing[:20]}{' ...' if len(missing) > 20 else ''}, "
-                         f"unexpected {unused[:20]}{' ...' if len(unused) > 20 else ''}")
+        raise ValueError(
+            f"{source}: expected the tensors of a {CLASS_NAME} with {cfg.depth} layers; "
+            f"missing {missing[:20]}{' ...' if len(missing) > 20 else ''}, "
+            f"unexpected {unused[:20]}{' ...' if len(unused) > 20 else ''}"
+        )
     return params
 
 
 def _check_tree(params, expected, source):
     from flax.traverse_util import flatten_dict
+
     got, want = flatten_dict(params), flatten_dict(expected)
     missing = sorted("/".join(k) for k in set(want) - set(got))
     extra = sorted("/".join(k) for k in set(got) - set(want))
-    bad = sorted(f"{'/'.join(k)}: expected {list(want[k].shape)}, got {list(np.shape(got[k]))}"
-                 for k in set(got) & set(want) if tuple(np.shape(got[k])) != tuple(want[k].shape))
+    bad = sorted(
+        f"{'/'.join(k)}: expected {list(want[k].shape)}, got {list(np.shape(got[k]))}"
+        for k in set(got) & set(want)
+        if tuple(np.shape(got[k])) != tuple(want[k].shape)
+    )
     if missing or extra or bad:
-        raise ValueError(f"{source}: the tensors do not fit the config: missing {missing}, unexpected "
-                         f"{extra}, wrong shapes {bad}")
+        raise ValueError(
+            f"{source}: the tensors do not fit the config: missing {missing}, unexpected {extra}, wrong shapes {bad}"
+        )
 
 
 def load_diffusers_transformer(path, **overrides):

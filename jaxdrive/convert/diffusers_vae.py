@@ -22,6 +22,7 @@ CLASS_NAME = "AutoencoderKLCogVideoX"
 
 def vae_config_from_diffusers(config: dict, source="config.json", **overrides) -> VAEConfig:
     """The :class:`VAEConfig` of a diffusers ``AutoencoderKLCogVideoX`` config dict."""
+
     def unsupported(key, value, want):
         raise ValueError(f"{source}: {key}: expected {want} (the CogVideoX VAE), got {value!r}")
 
@@ -37,15 +38,19 @@ def vae_config_from_diffusers(config: dict, source="config.json", **overrides) -
         if config.get(key) is not None:
             unsupported(key, config[key], "None")
     fields = dict(
-        in_channels=config.get("in_channels", 3), out_channels=config.get("out_channels", 3),
+        in_channels=config.get("in_channels", 3),
+        out_channels=config.get("out_channels", 3),
         block_out_channels=tuple(config.get("block_out_channels", (128, 256, 256, 512))),
-        layers_per_block=config.get("layers_per_block", 3), latent_channels=config.get("latent_channels", 16),
-        norm_num_groups=config.get("norm_num_groups", 32), norm_eps=config.get("norm_eps", 1e-6),
+        layers_per_block=config.get("layers_per_block", 3),
+        latent_channels=config.get("latent_channels", 16),
+        norm_num_groups=config.get("norm_num_groups", 32),
+        norm_eps=config.get("norm_eps", 1e-6),
         temporal_compression=int(config.get("temporal_compression_ratio", 4)),
         scaling_factor=config.get("scaling_factor", 1.15258426),
         shift_factor=config.get("shift_factor") or 0.0,
         tile_sample_height=config.get("sample_height", 480) // 2,
-        tile_sample_width=config.get("sample_width", 720) // 2)
+        tile_sample_width=config.get("sample_width", 720) // 2,
+    )
     fields.update(overrides)
     return VAEConfig(**fields)
 
@@ -61,7 +66,7 @@ def vae_param_path(name: str) -> tuple[str, ...]:
 def _convert(name: str, value: np.ndarray) -> tuple[tuple[str, ...], np.ndarray]:
     path = vae_param_path(name)
     if path[-1] == "weight":
-        if value.ndim == 5:        # PyTorch Conv3d [out, in, t, h, w] -> flax's taps first
+        if value.ndim == 5:  # PyTorch Conv3d [out, in, t, h, w] -> flax's taps first
             return path[:-1] + ("kernel",), einops.rearrange(value, "o i t h w -> t h w i o")
         if value.ndim == 4:
             return path[:-1] + ("kernel",), einops.rearrange(value, "o i h w -> h w i o")
@@ -82,4 +87,3 @@ def load_diffusers_vae(path, **overrides):
     expected = jax.eval_shape(vae.init, jax.random.PRNGKey(0))
     params = assemble_params(expected, flat, f"{path}/{WEIGHTS}", origin)
     return vae, jax.tree_util.tree_map(jax.numpy.asarray, params)
-

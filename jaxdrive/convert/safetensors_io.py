@@ -15,7 +15,7 @@ import numpy as np
 
 WEIGHTS = "diffusion_pytorch_model.safetensors"
 INDEX = "diffusion_pytorch_model.safetensors.index.json"
-PICKLE_SUFFIXES = (".bin", ".pt", ".pth", ".ckpt", ".pkl")   # unpickling runs arbitrary code
+PICKLE_SUFFIXES = (".bin", ".pt", ".pth", ".ckpt", ".pkl")  # unpickling runs arbitrary code
 
 
 def read_config(path, expected_class: str) -> dict:
@@ -23,8 +23,7 @@ def read_config(path, expected_class: str) -> dict:
     ``expected_class``."""
     file = Path(path) / "config.json"
     if not file.is_file():
-        raise ValueError(f"path: expected a diffusers directory with config.json, got {str(path)!r} "
-                         f"(no {file})")
+        raise ValueError(f"path: expected a diffusers directory with config.json, got {str(path)!r} (no {file})")
     try:
         config = json.loads(file.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
@@ -74,13 +73,15 @@ def read_weights(path) -> dict[str, np.ndarray]:
             tensors.update(_read_file(root / name))
         return tensors
     pickles = sorted(p.name for p in root.iterdir() if p.suffix in PICKLE_SUFFIXES) if root.is_dir() else []
-    hint = f" (found {pickles}: pickled weights are never loaded; re-save with safe_serialization=True)" \
-        if pickles else ""
+    hint = (
+        f" (found {pickles}: pickled weights are never loaded; re-save with safe_serialization=True)" if pickles else ""
+    )
     raise ValueError(f"path: expected {WEIGHTS} or {INDEX} in {str(root)!r}{hint}")
 
 
-def assemble_params(expected, flat: dict[tuple[str, ...], np.ndarray], source,
-                    origin: dict[tuple[str, ...], str] | None = None) -> dict:
+def assemble_params(
+    expected, flat: dict[tuple[str, ...], np.ndarray], source, origin: dict[tuple[str, ...], str] | None = None
+) -> dict:
     """Nest ``flat`` (parameter path -> array) into the structure of ``expected`` (a params tree
     of arrays or ``ShapeDtypeStruct``), as float32.
 
@@ -90,16 +91,23 @@ def assemble_params(expected, flat: dict[tuple[str, ...], np.ndarray], source,
     import jax
 
     origin = origin or {}
-    want = {tuple(getattr(k, "key", str(k)) for k in path): leaf
-            for path, leaf in jax.tree_util.tree_flatten_with_path(expected)[0]}
+    want = {
+        tuple(getattr(k, "key", str(k)) for k in path): leaf
+        for path, leaf in jax.tree_util.tree_flatten_with_path(expected)[0]
+    }
     unknown = sorted(origin.get(k, "/".join(k)) for k in flat.keys() - want.keys())
     missing = sorted("/".join(k) for k in want.keys() - flat.keys())
-    shapes = sorted(f"{'/'.join(k)}: expected {list(want[k].shape)}, got {list(flat[k].shape)}"
-                    for k in want.keys() & flat.keys() if tuple(want[k].shape) != tuple(flat[k].shape))
+    shapes = sorted(
+        f"{'/'.join(k)}: expected {list(want[k].shape)}, got {list(flat[k].shape)}"
+        for k in want.keys() & flat.keys()
+        if tuple(want[k].shape) != tuple(flat[k].shape)
+    )
     if unknown or missing or shapes:
-        parts = [f"{label} ({len(items)}): {items[:30]}{' ...' if len(items) > 30 else ''}"
-                 for label, items in (("unknown keys", unknown), ("missing keys", missing),
-                                      ("shape mismatches", shapes)) if items]
+        parts = [
+            f"{label} ({len(items)}): {items[:30]}{' ...' if len(items) > 30 else ''}"
+            for label, items in (("unknown keys", unknown), ("missing keys", missing), ("shape mismatches", shapes))
+            if items
+        ]
         raise ValueError(f"{source}: weights do not match the model; " + "; ".join(parts))
     out: dict = {}
     for path, value in flat.items():

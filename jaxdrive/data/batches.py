@@ -19,8 +19,8 @@ import numpy as np
 from jaxdrive.models.dit.conditions import Conditions
 from jaxdrive.models.dit.config import DiTConfig
 
-LOSS_FIELDS = ("boxes", "box_valid", "intrinsics", "cam_to_ego")   # what STAGE's W_aux reads
-POSES = "poses"     # a distillation teacher's inputs carry the clip's ego_to_world under this key
+LOSS_FIELDS = ("boxes", "box_valid", "intrinsics", "cam_to_ego")  # what STAGE's W_aux reads
+POSES = "poses"  # a distillation teacher's inputs carry the clip's ego_to_world under this key
 
 
 class TextEmbeddings:
@@ -29,8 +29,9 @@ class TextEmbeddings:
     def __init__(self, path):
         path = Path(path)
         if not path.is_file():
-            raise ValueError(f"data.text_embeddings: expected the .npz of 'jaxdrive data text-embed', "
-                             f"got {str(path)!r} (not found)")
+            raise ValueError(
+                f"data.text_embeddings: expected the .npz of 'jaxdrive data text-embed', got {str(path)!r} (not found)"
+            )
         with np.load(path) as f:
             self.index = {str(c): i for i, c in enumerate(f["captions"])}
             self.embeddings, self.mask = f["embeddings"], f["mask"]
@@ -38,8 +39,10 @@ class TextEmbeddings:
     def __call__(self, captions):
         missing = [c for c in captions if c not in self.index]
         if missing:
-            raise ValueError(f"data.text_embeddings: no embedding for captions {missing[:3]}; run "
-                             f"'jaxdrive data text-embed' on this dataset")
+            raise ValueError(
+                f"data.text_embeddings: no embedding for captions {missing[:3]}; run "
+                f"'jaxdrive data text-embed' on this dataset"
+            )
         idx = [self.index[c] for c in captions]
         return self.embeddings[idx], self.mask[idx]
 
@@ -50,11 +53,14 @@ def text_inputs(captions, model: DiTConfig, text_embeddings: TextEmbeddings | No
     c = model.controls
     if c.text == "caption":
         from jaxdrive.data.text import tokenize_captions
+
         return tokenize_captions(captions, vocab=c.caption_vocab, max_len=model.text_len)
     if c.text == "embeddings":
         if text_embeddings is None:
-            raise ValueError("data.text_embeddings: expected the .npz of 'jaxdrive data text-embed' for a model "
-                             "with text='embeddings', got none (or set model.controls.text=caption)")
+            raise ValueError(
+                "data.text_embeddings: expected the .npz of 'jaxdrive data text-embed' for a model "
+                "with text='embeddings', got none (or set model.controls.text=caption)"
+            )
         return text_embeddings(list(captions))
     return None, None
 
@@ -65,26 +71,36 @@ def conditions(batch: dict, model: DiTConfig, text_embeddings: TextEmbeddings | 
     return Conditions.from_batch(batch, model, text=text, text_mask=mask)
 
 
-def model_inputs(batch: dict, model: DiTConfig, text_embeddings: TextEmbeddings | None = None, *,
-                 foreground: bool = False, teacher: DiTConfig | None = None) -> dict:
+def model_inputs(
+    batch: dict,
+    model: DiTConfig,
+    text_embeddings: TextEmbeddings | None = None,
+    *,
+    foreground: bool = False,
+    teacher: DiTConfig | None = None,
+) -> dict:
     """What a step or a sampler needs from a pipeline batch (:mod:`jaxdrive.data.pipeline`):
     ``video`` (or the precomputed ``latents`` of a batch of latent windows) and ``cond``, the
     model's conditions (the batch's drops renamed to the DiT's conditions). With ``foreground``
     (STAGE's W_aux), ``loss`` holds the boxes and cameras it reads; with a distillation
     ``teacher``, ``teacher`` holds the fine model's ``cond`` and the ego poses (:data:`POSES`)."""
-    x = "latents" if "latents" in batch else "video"          # precomputed latent windows or pixels
+    x = "latents" if "latents" in batch else "video"  # precomputed latent windows or pixels
     out = {x: np.asarray(batch[x], np.float32), "cond": conditions(batch, model, text_embeddings)}
-    if model.controls.warp:       # LongDWM's warped frames: made by the pipeline (training) or the sampler
+    if model.controls.warp:  # LongDWM's warped frames: made by the pipeline (training) or the sampler
         if "warp_video" in batch:
-            out["warp_video"] = np.asarray(batch["warp_video"], np.float32)     # encoded by the step, like video
+            out["warp_video"] = np.asarray(batch["warp_video"], np.float32)  # encoded by the step, like video
         else:
-            out["warp"] = {k: np.asarray(batch[b], np.float32) for k, b in
-                           (("poses", "ego_to_world"), ("intrinsics", "intrinsics"), ("cam_to_ego", "cam_to_ego"))}
+            out["warp"] = {
+                k: np.asarray(batch[b], np.float32)
+                for k, b in (("poses", "ego_to_world"), ("intrinsics", "intrinsics"), ("cam_to_ego", "cam_to_ego"))
+            }
     if foreground:
         out["loss"] = {k: np.asarray(batch[k]) for k in LOSS_FIELDS}
     if teacher is not None:
-        out["teacher"] = {"cond": conditions(batch, teacher, text_embeddings),
-                          POSES: np.asarray(batch["ego_to_world"], np.float32)}
+        out["teacher"] = {
+            "cond": conditions(batch, teacher, text_embeddings),
+            POSES: np.asarray(batch["ego_to_world"], np.float32),
+        }
     return out
 
 

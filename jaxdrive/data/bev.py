@@ -26,8 +26,9 @@ def cell_centres(size: tuple[int, int], cell: tuple[float, float]) -> np.ndarray
     return np.stack(np.broadcast_arrays(x[:, None], y[None, :]), -1)
 
 
-def rasterize_map(layers: dict, ego_to_world: np.ndarray, *, size: tuple[int, int] = (200, 200),
-                  resolution: float = 0.5) -> np.ndarray:
+def rasterize_map(
+    layers: dict, ego_to_world: np.ndarray, *, size: tuple[int, int] = (200, 200), resolution: float = 0.5
+) -> np.ndarray:
     """BEV map ``[Hm, Wm, 8]`` uint8 in {0, 1} around one ego pose (ego at the centre, x up, y left).
 
     Cells follow :func:`cell_centres` with square cells of ``resolution`` metres.

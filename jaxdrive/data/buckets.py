@@ -27,7 +27,7 @@ class Bucket:
     frames: int
     batch_size: int
     prob: float
-    repeat: int | None = None      # rounds of clips an epoch (the pipeline's batch plan); None: automatic
+    repeat: int | None = None  # rounds of clips an epoch (the pipeline's batch plan); None: automatic
 
     @property
     def key(self) -> tuple[int, int, int]:
@@ -64,8 +64,9 @@ def parse_buckets(buckets, *, compression: int = 4) -> tuple[Bucket, ...]:
         if (f - 1) % compression:
             raise ValueError(f"buckets: bucket {key}: expected F = 1 + {compression}k frames, got {f}")
         if isinstance(value, tuple) and len(value) not in (2, 3):
-            raise ValueError(f"buckets[{key}]: expected batch_size, (batch_size, prob) or (batch_size, prob, "
-                             f"repeat), got {value!r}")
+            raise ValueError(
+                f"buckets[{key}]: expected batch_size, (batch_size, prob) or (batch_size, prob, repeat), got {value!r}"
+            )
         bs, p, repeat = (*value, None)[:3] if isinstance(value, tuple) else (value, 1.0, None)
         bs = check_positive_int(f"buckets[{key}] batch size", bs)
         if not (isinstance(p, (int, float)) and p >= 0):
@@ -101,11 +102,15 @@ def parse_bucket_specs(specs: Sequence[str], *, name: str = "data.buckets") -> d
             batch, prob = int(parts[1]), float(parts[2]) if len(parts) > 2 else 1.0
             repeat = _parse_repeat(parts[3] if len(parts) == 4 else "auto")
         except ValueError:
-            raise ValueError(f"{name}: expected {SPEC_FORMAT} (e.g. '32x56x9:2' or '32x56x1:4:1:3'; repeat an "
-                             f"integer or 'auto'), got {spec!r}") from None
+            raise ValueError(
+                f"{name}: expected {SPEC_FORMAT} (e.g. '32x56x9:2' or '32x56x1:4:1:3'; repeat an "
+                f"integer or 'auto'), got {spec!r}"
+            ) from None
         if min(key) < 1 or batch < 1 or not prob >= 0 or (repeat is not None and repeat < 1):
-            raise ValueError(f"{name}: expected positive H, W, F and batch, a probability >= 0 and a repeat "
-                             f">= 1 or 'auto', got {spec!r}")
+            raise ValueError(
+                f"{name}: expected positive H, W, F and batch, a probability >= 0 and a repeat "
+                f">= 1 or 'auto', got {spec!r}"
+            )
         if key in out:
             raise ValueError(f"{name}: expected each (H, W, F) once, got {key} twice")
         out[key] = (batch, prob, repeat)

@@ -19,11 +19,17 @@ def class_masks(instance_ids, box_ids, box_classes, box_valid) -> np.ndarray:
     ids no valid box of their frame carries stay background."""
     inst = np.asarray(instance_ids)
     ids, classes, valid = (np.asarray(x) for x in (box_ids, box_classes, box_valid))
-    if inst.ndim < 4 or ids.shape != classes.shape or ids.shape != valid.shape or \
-            ids.shape[:-1] != inst.shape[:-4] + (inst.shape[-3],):
-        raise ValueError(f"instance_ids: expected [..., V, F, H, W] with boxes [..., F, N] of the same frames, got "
-                         f"instance_ids {list(inst.shape)}, box_ids {list(ids.shape)}, box_classes "
-                         f"{list(classes.shape)}, box_valid {list(valid.shape)}")
+    if (
+        inst.ndim < 4
+        or ids.shape != classes.shape
+        or ids.shape != valid.shape
+        or ids.shape[:-1] != inst.shape[:-4] + (inst.shape[-3],)
+    ):
+        raise ValueError(
+            f"instance_ids: expected [..., V, F, H, W] with boxes [..., F, N] of the same frames, got "
+            f"instance_ids {list(inst.shape)}, box_ids {list(ids.shape)}, box_classes "
+            f"{list(classes.shape)}, box_valid {list(valid.shape)}"
+        )
     lead, (V, F, H, W) = inst.shape[:-4], inst.shape[-4:]
     inst = inst.reshape(-1, V, F, H * W)
     ids, classes, valid = (x.reshape(-1, F, x.shape[-1]) for x in (ids, classes, valid))

@@ -22,7 +22,7 @@ class BadRecordError(ValueError):
         self.path, self.detail = str(path), message
         super().__init__(f"{path}: {message}")
 
-    def __reduce__(self):           # picklable across grain worker processes
+    def __reduce__(self):  # picklable across grain worker processes
         return type(self), (self.path, self.detail)
 
 
@@ -40,8 +40,12 @@ class OncePerFile:
             if error.path in self._seen:
                 return False
             self._seen.add(error.path)
-        self.logger.warning("%s: unreadable, %s (further bad records of this file are not logged): %s",
-                            error.path, self.what, error.detail)
+        self.logger.warning(
+            "%s: unreadable, %s (further bad records of this file are not logged): %s",
+            error.path,
+            self.what,
+            error.detail,
+        )
         return True
 
     def __getstate__(self):

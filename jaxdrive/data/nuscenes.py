@@ -56,8 +56,17 @@ log = logging.getLogger(__name__)
 TABLE_FIELDS = {
     "scene": ("token", "name", "description", "log_token", "first_sample_token"),
     "sample": ("token", "timestamp", "scene_token"),
-    "sample_data": ("token", "sample_token", "ego_pose_token", "calibrated_sensor_token", "timestamp",
-                    "filename", "is_key_frame", "prev", "next"),
+    "sample_data": (
+        "token",
+        "sample_token",
+        "ego_pose_token",
+        "calibrated_sensor_token",
+        "timestamp",
+        "filename",
+        "is_key_frame",
+        "prev",
+        "next",
+    ),
     "ego_pose": ("token", "translation", "rotation"),
     "calibrated_sensor": ("token", "sensor_token", "translation", "rotation", "camera_intrinsic"),
     "sensor": ("token", "channel"),
@@ -71,20 +80,25 @@ TABLE_FIELDS = {
 _CLASS = {name: i for i, name in enumerate(OBJECT_CLASSES)}
 # nuScenes category -> OBJECT_CLASSES index (mmdet3d's / MagicDrive's NameMapping).
 CATEGORY_TO_CLASS = {
-    "vehicle.car": _CLASS["car"], "vehicle.truck": _CLASS["truck"],
+    "vehicle.car": _CLASS["car"],
+    "vehicle.truck": _CLASS["truck"],
     "vehicle.construction": _CLASS["construction_vehicle"],
-    "vehicle.bus.bendy": _CLASS["bus"], "vehicle.bus.rigid": _CLASS["bus"],
-    "vehicle.trailer": _CLASS["trailer"], "movable_object.barrier": _CLASS["barrier"],
-    "vehicle.motorcycle": _CLASS["motorcycle"], "vehicle.bicycle": _CLASS["bicycle"],
-    "human.pedestrian.adult": _CLASS["pedestrian"], "human.pedestrian.child": _CLASS["pedestrian"],
+    "vehicle.bus.bendy": _CLASS["bus"],
+    "vehicle.bus.rigid": _CLASS["bus"],
+    "vehicle.trailer": _CLASS["trailer"],
+    "movable_object.barrier": _CLASS["barrier"],
+    "vehicle.motorcycle": _CLASS["motorcycle"],
+    "vehicle.bicycle": _CLASS["bicycle"],
+    "human.pedestrian.adult": _CLASS["pedestrian"],
+    "human.pedestrian.child": _CLASS["pedestrian"],
     "human.pedestrian.construction_worker": _CLASS["pedestrian"],
     "human.pedestrian.police_officer": _CLASS["pedestrian"],
     "movable_object.trafficcone": _CLASS["traffic_cone"],
 }
 
 
-
 # ----------------------------------------------------------------------------------- tables
+
 
 def load_tables(dataroot: str, version: str = "v1.0-mini") -> dict:
     """``{table: {token: record}}`` for the tables in :data:`TABLE_FIELDS`.
@@ -108,8 +122,10 @@ def load_tables(dataroot: str, version: str = "v1.0-mini") -> dict:
             missing = [k for k in fields if not isinstance(rec, dict) or k not in rec]
             if missing:
                 who = rec.get("token", f"#{i}") if isinstance(rec, dict) else f"#{i}"
-                raise ValueError(f"{path}: record {who}: expected field {missing[0]!r}, got fields "
-                                 f"{sorted(rec) if isinstance(rec, dict) else type(rec).__name__}")
+                raise ValueError(
+                    f"{path}: record {who}: expected field {missing[0]!r}, got fields "
+                    f"{sorted(rec) if isinstance(rec, dict) else type(rec).__name__}"
+                )
         tables[name] = {rec["token"]: rec for rec in records}
     return tables
 
@@ -122,9 +138,13 @@ def scene_names(tables: dict) -> list[str]:
 def quaternion_to_matrix(q) -> np.ndarray:
     """nuScenes quaternion ``(w, x, y, z)`` -> rotation matrix ``[3, 3]`` (float64)."""
     w, x, y, z = np.asarray(q, np.float64) / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def _pose(rec) -> np.ndarray:
@@ -191,8 +211,10 @@ def _scene_grid(tables, idx, scene, views, trim_to_keyframes):
     rec = by_name[scene]
     first = idx.front_keyframe.get(rec["first_sample_token"])
     if first is None:
-        raise ValueError(f"sample_data.json: scene {scene!r}: expected a CAM_FRONT keyframe for its "
-                         f"first sample {rec['first_sample_token']}, got none")
+        raise ValueError(
+            f"sample_data.json: scene {scene!r}: expected a CAM_FRONT keyframe for its "
+            f"first sample {rec['first_sample_token']}, got none"
+        )
     sds = tables["sample_data"]
     tok = first
     while sds[tok]["prev"]:
@@ -206,7 +228,7 @@ def _scene_grid(tables, idx, scene, views, trim_to_keyframes):
         cut = len(chain) - (keys[-1] + 1 - keys[0])
         if cut:
             log.info("scene %s: %d CAM_FRONT sweeps outside the keyframe span left out", scene, cut)
-        chain = chain[keys[0]:keys[-1] + 1]
+        chain = chain[keys[0] : keys[-1] + 1]
     frames = []
     for ref in chain:
         t, row = sds[ref]["timestamp"], []
@@ -228,8 +250,11 @@ def _box_at(track, t):
     """Global (centre[3], wlh[3], yaw) of a track at time t, or None without a bracketing pair."""
     for (t0, a0), (t1, a1) in zip(track, track[1:] + [(None, None)]):
         if t == t0:
-            return (np.asarray(a0["translation"], float), np.asarray(a0["size"], float),
-                    _yaw(quaternion_to_matrix(a0["rotation"])))
+            return (
+                np.asarray(a0["translation"], float),
+                np.asarray(a0["size"], float),
+                _yaw(quaternion_to_matrix(a0["rotation"])),
+            )
         if t1 is not None and t0 < t < t1:
             a = (t - t0) / (t1 - t0)
             c = (1 - a) * np.asarray(a0["translation"], float) + a * np.asarray(a1["translation"], float)
@@ -247,8 +272,12 @@ def _boxes(idx: _Index, scene_token: str, ref_tokens, poses, max_boxes, scene_na
         if category[inst] not in CATEGORY_TO_CLASS:
             dropped[category[inst]] += len(idx.tracks[scene_token, inst])
     if dropped:
-        log.info("scene %s: dropped %d annotations of categories outside OBJECT_CLASSES: %s",
-                 scene_name, sum(dropped.values()), dict(dropped))
+        log.info(
+            "scene %s: dropped %d annotations of categories outside OBJECT_CLASSES: %s",
+            scene_name,
+            sum(dropped.values()),
+            dict(dropped),
+        )
     per_frame, ids = [], {}
     for ref, pose in zip(ref_tokens, poses):
         sd = t["sample_data"][ref]
@@ -284,15 +313,18 @@ def _boxes(idx: _Index, scene_token: str, ref_tokens, poses, max_boxes, scene_na
 
 # ----------------------------------------------------------------------------------- BEV map
 
+
 def load_map_expansion(path: str) -> dict:
     """``{layer: [(kind, [rings or polylines as [P, 2] global xy arrays], bbox)]}`` of a map file."""
     try:
         with open(path) as f:
             m = json.load(f)
         nodes = {n["token"]: (n["x"], n["y"]) for n in m["node"]}
-        polys = {p["token"]: [np.array([nodes[k] for k in p["exterior_node_tokens"]], float)]
-                 + [np.array([nodes[k] for k in h["node_tokens"]], float) for h in p["holes"] if h["node_tokens"]]
-                 for p in m["polygon"]}
+        polys = {
+            p["token"]: [np.array([nodes[k] for k in p["exterior_node_tokens"]], float)]
+            + [np.array([nodes[k] for k in h["node_tokens"]], float) for h in p["holes"] if h["node_tokens"]]
+            for p in m["polygon"]
+        }
         lines = {ln["token"]: [np.array([nodes[k] for k in ln["node_tokens"]], float)] for ln in m["line"]}
         out = {}
         for layer in POLYGON_LAYERS:
@@ -305,11 +337,14 @@ def load_map_expansion(path: str) -> dict:
             out[layer] = [lines[rec["line_token"]] for rec in m.get(layer, [])]
     except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
         raise ValueError(f"{path}: expected a nuScenes map expansion, got an unreadable file ({e!r})") from None
-    return {layer: [(rings, np.concatenate(rings).min(0), np.concatenate(rings).max(0)) for rings in items]
-            for layer, items in out.items()}
+    return {
+        layer: [(rings, np.concatenate(rings).min(0), np.concatenate(rings).max(0)) for rings in items]
+        for layer, items in out.items()
+    }
 
 
 # ----------------------------------------------------------------------------------- clips
+
 
 def _load_image(path: str, hw):
     try:
@@ -325,7 +360,7 @@ def _load_image(path: str, hw):
             if hw is not None and (im.height, im.width) != tuple(hw):
                 im = im.resize((hw[1], hw[0]), Image.BILINEAR)
             return np.asarray(im, np.uint8), size
-    except OSError as e:            # PIL: truncated data, or not an image at all
+    except OSError as e:  # PIL: truncated data, or not an image at all
         raise BadRecordError(path, f"expected a readable image, got {e}") from None
 
 
@@ -334,13 +369,24 @@ def _season(date: str) -> str:
     return ("winter", "spring", "summer", "autumn")[(month % 12) // 3]
 
 
-def read_clips(dataroot: str, version: str = "v1.0-mini", *, frames: int = 33, stride: int = 1,
-               views: Sequence[str] = CAMERAS, image_hw: tuple[int, int] | None = None,
-               scenes: Sequence[str] | None = None, clip_step: int | None = None,
-               max_boxes: int | None = None, bev_size: tuple[int, int] = (200, 200),
-               bev_resolution: float = 0.5, trim_to_keyframes: bool = True,
-               tables: dict | None = None, skip_bad_records: bool = False,
-               skipped: list | None = None) -> Iterator[dict]:
+def read_clips(
+    dataroot: str,
+    version: str = "v1.0-mini",
+    *,
+    frames: int = 33,
+    stride: int = 1,
+    views: Sequence[str] = CAMERAS,
+    image_hw: tuple[int, int] | None = None,
+    scenes: Sequence[str] | None = None,
+    clip_step: int | None = None,
+    max_boxes: int | None = None,
+    bev_size: tuple[int, int] = (200, 200),
+    bev_resolution: float = 0.5,
+    trim_to_keyframes: bool = True,
+    tables: dict | None = None,
+    skip_bad_records: bool = False,
+    skipped: list | None = None,
+) -> Iterator[dict]:
     """Yield schema clips (:func:`jaxdrive.data.schema.check_clip`) of ``frames`` frames.
 
     A clip takes every ``stride``-th frame of a scene, so it spans ``(frames - 1) * stride + 1``
@@ -380,8 +426,10 @@ def read_clips(dataroot: str, version: str = "v1.0-mini", *, frames: int = 33, s
     for name in names:
         ref, grid = _scene_grid(tables, idx, name, views, trim_to_keyframes)
         if len(grid) < span:
-            msg = (f"scene {name!r}: has {len(grid)} CAM_FRONT frames, a clip of frames={frames} with "
-                   f"stride={stride} needs {span}")
+            msg = (
+                f"scene {name!r}: has {len(grid)} CAM_FRONT frames, a clip of frames={frames} with "
+                f"stride={stride} needs {span}"
+            )
             if scenes is not None:
                 raise ValueError(msg)
             log.warning("%s; scene left out", msg)
@@ -401,9 +449,22 @@ def read_clips(dataroot: str, version: str = "v1.0-mini", *, frames: int = 33, s
                 log.warning("%s: no map expansion, bev_map is zeros for %s", path, location)
         for s in starts:
             try:
-                clip = _clip(tables, idx, scene, ref[s:s + span:stride], grid[s:s + span:stride], views, image_hw,
-                             dataroot, maps[location], location, log_rec["date_captured"], max_boxes, bev_size,
-                             bev_resolution)
+                clip = _clip(
+                    tables,
+                    idx,
+                    scene,
+                    ref[s : s + span : stride],
+                    grid[s : s + span : stride],
+                    views,
+                    image_hw,
+                    dataroot,
+                    maps[location],
+                    location,
+                    log_rec["date_captured"],
+                    max_boxes,
+                    bev_size,
+                    bev_resolution,
+                )
             except BadRecordError as e:
                 if not skip_bad_records:
                     raise
@@ -419,8 +480,22 @@ def read_clips(dataroot: str, version: str = "v1.0-mini", *, frames: int = 33, s
         log.warning("%d clips left out: a camera image could not be read (skip_bad_records)", bad)
 
 
-def _clip(tables, idx, scene, ref, grid, views, image_hw, dataroot, layers, location, date, max_boxes,
-          bev_size, bev_resolution) -> dict:
+def _clip(
+    tables,
+    idx,
+    scene,
+    ref,
+    grid,
+    views,
+    image_hw,
+    dataroot,
+    layers,
+    location,
+    date,
+    max_boxes,
+    bev_size,
+    bev_resolution,
+) -> dict:
     sds = tables["sample_data"]
     poses = np.stack([_pose(tables["ego_pose"][sds[r]["ego_pose_token"]]) for r in ref])
     video, intrinsics, cam_to_ego = [], [], []
@@ -437,8 +512,10 @@ def _clip(tables, idx, scene, ref, grid, views, image_hw, dataroot, layers, loca
         cs = tables["calibrated_sensor"][sds[grid[0][v]]["calibrated_sensor_token"]]
         k = np.array(cs["camera_intrinsic"], np.float64)
         if k.shape != (3, 3):
-            raise ValueError(f"calibrated_sensor.json: record {cs['token']}: field 'camera_intrinsic': "
-                             f"expected a 3x3 matrix, got shape {list(k.shape)}")
+            raise ValueError(
+                f"calibrated_sensor.json: record {cs['token']}: field 'camera_intrinsic': "
+                f"expected a 3x3 matrix, got shape {list(k.shape)}"
+            )
         k[:2, 2] += 0.5
         if image_hw is not None:
             k[0] *= image_hw[1] / size0[0]
@@ -456,12 +533,22 @@ def _clip(tables, idx, scene, ref, grid, views, image_hw, dataroot, layers, loca
     sensor = "6 cameras" if set(views) == set(CAMERAS) else ", ".join(views)
     daytime = "night" if "night" in scene["description"].lower() else "day"
     return {
-        "video": np.stack(video), "intrinsics": np.stack(intrinsics).astype(np.float32),
-        "cam_to_ego": np.stack(cam_to_ego).astype(np.float32), "ego_to_world": poses,
-        "boxes": boxes, "box_classes": classes, "box_ids": ids, "box_valid": valid, "bev_map": bev,
-        "waypoints": rel[:2].T.astype(np.float32), "fps": float(fps),
+        "video": np.stack(video),
+        "intrinsics": np.stack(intrinsics).astype(np.float32),
+        "cam_to_ego": np.stack(cam_to_ego).astype(np.float32),
+        "ego_to_world": poses,
+        "boxes": boxes,
+        "box_classes": classes,
+        "box_ids": ids,
+        "box_valid": valid,
+        "bev_map": bev,
+        "waypoints": rel[:2].T.astype(np.float32),
+        "fps": float(fps),
         "caption": caption(sensor=sensor, location=location, season=_season(date), daytime=daytime),
-        "meta": {"scene": scene["name"], "timestamps": times,
-                 "sample_data_tokens": [[row[v] for row in grid] for v in range(len(views))],
-                 "instance_tokens": instances},
+        "meta": {
+            "scene": scene["name"],
+            "timestamps": times,
+            "sample_data_tokens": [[row[v] for row in grid] for v in range(len(views))],
+            "instance_tokens": instances,
+        },
     }

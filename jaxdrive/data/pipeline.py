@@ -76,26 +76,41 @@ log = logging.getLogger(__name__)
 
 CONDITIONS = ("text", "boxes", "map", "trajectory", "camera")
 DEFAULT_DROP_PROBS = {name: 0.15 for name in CONDITIONS}
-_INFINITE = 2 ** 62
+_INFINITE = 2**62
 _TAG_PERM, _TAG_BUCKET, _TAG_ORDER, _TAG_SAMPLE, _TAG_START = 1, 2, 3, 4, 5
-MAX_AUTO_REPEAT = 1000      # rounds an automatic repeat may take before it gives up (a bucket of tiny probability)
+MAX_AUTO_REPEAT = 1000  # rounds an automatic repeat may take before it gives up (a bucket of tiny probability)
 
 
 # ----------------------------------------------------------------------------- per-clip transforms
+
 
 def _view_indices(views, num_views: int, where: str) -> np.ndarray:
     if views is None:
         return np.arange(num_views)
     idx = [schema.CAMERAS.index(v) if isinstance(v, str) and v in schema.CAMERAS else v for v in views]
     if any(isinstance(i, str) for i in idx) or any(not 0 <= int(i) < num_views for i in idx):
-        raise ValueError(f"views: expected indices in [0, {num_views}) or names in {list(schema.CAMERAS)} "
-                         f"for {where} with {num_views} views, got {list(views)}")
+        raise ValueError(
+            f"views: expected indices in [0, {num_views}) or names in {list(schema.CAMERAS)} "
+            f"for {where} with {num_views} views, got {list(views)}"
+        )
     return np.asarray(idx, np.int64)
 
 
-def sample_clip(clip: Mapping, *, size: tuple[int, int], frames: int, stride: int = 1, start: int = 0,
-                views=None, crop: str = "center", rng: np.random.Generator | None = None,
-                where: str = "clip", head: int = 0, tail_stride: int | None = None, instances: bool = False) -> dict:
+def sample_clip(
+    clip: Mapping,
+    *,
+    size: tuple[int, int],
+    frames: int,
+    stride: int = 1,
+    start: int = 0,
+    views=None,
+    crop: str = "center",
+    rng: np.random.Generator | None = None,
+    where: str = "clip",
+    head: int = 0,
+    tail_stride: int | None = None,
+    instances: bool = False,
+) -> dict:
     """One training sample from a clip: ``frames`` frames from ``start`` every ``stride``, a view
     subset, resized and cropped to ``size`` with intrinsics to match, waypoints re-expressed in
     the ego frame of the first sampled frame.
@@ -114,9 +129,11 @@ def sample_clip(clip: Mapping, *, size: tuple[int, int], frames: int, stride: in
     need = int(offsets[-1]) + 1
     if start < 0 or start + need > T:
         rate = f"stride {stride}" if tail == stride else f"stride {stride} ({head} frames) then {tail}"
-        raise ValueError(f"{where}: {frames} frames at {rate} from frame {start} need "
-                         f"{need} source frames, but the clip has {T}: the clip length or frame stride "
-                         f"is too long for this scene")
+        raise ValueError(
+            f"{where}: {frames} frames at {rate} from frame {start} need "
+            f"{need} source frames, but the clip has {T}: the clip length or frame stride "
+            f"is too long for this scene"
+        )
     t = start + offsets
     v = _view_indices(views, int(np.shape(clip["video"])[0]), where)
     video = np.asarray(clip["video"])[v[:, None], t[None, :]]
@@ -137,8 +154,10 @@ def sample_clip(clip: Mapping, *, size: tuple[int, int], frames: int, stride: in
         out[name] = np.asarray(clip[name])[t]
     if instances:
         if "instance_ids" not in clip:
-            raise ValueError(f"{where}: expected per-pixel instance_ids (synthetic clips have them; nuScenes clips "
-                             f"do not), got a clip without them")
+            raise ValueError(
+                f"{where}: expected per-pixel instance_ids (synthetic clips have them; nuScenes clips "
+                f"do not), got a clip without them"
+            )
         out["instance_ids"] = resize_crop_labels(np.asarray(clip["instance_ids"])[v[:, None], t[None, :]], plan)
     for name, value in clip.items():
         if isinstance(value, str):
@@ -152,15 +171,17 @@ def take_window(record: Mapping, *, frames: int, views=None, where: str = "windo
     ``latents`` for ``video``."""
     have = int(np.shape(record["ego_to_world"])[0])
     if have != frames:
-        raise ValueError(f"{where}: expected a latent window of {frames} frames (the bucket's), got {have}: "
-                         f"encode the dataset with the frame count you train with")
+        raise ValueError(
+            f"{where}: expected a latent window of {frames} frames (the bucket's), got {have}: "
+            f"encode the dataset with the frame count you train with"
+        )
     v = _view_indices(views, int(np.shape(record["latents"])[0]), where)
     out = {}
     for name, (_, spec) in schema.WINDOW_FIELDS.items():
         value = np.asarray(record[name])
         out[name] = value[v] if spec[0] == "V" else value
-    out["fps"] = np.float32(record["fps"])          # stored as float64 by TFDS; sample_clip's dtype
-    out["frame_times"] = (np.arange(frames) / float(record["fps"])).astype(np.float32)   # uniform frames
+    out["fps"] = np.float32(record["fps"])  # stored as float64 by TFDS; sample_clip's dtype
+    out["frame_times"] = (np.arange(frames) / float(record["fps"])).astype(np.float32)  # uniform frames
     for name, value in record.items():
         if isinstance(value, str):
             out[name] = value
@@ -200,8 +221,10 @@ def collate(samples: Sequence[dict], *, max_boxes: int | None = None) -> dict:
         else:
             shapes = {np.shape(s[k]) for s in samples}
             if len(shapes) > 1:
-                raise ValueError(f"batch field {k!r}: expected one shape within a bucket, got {sorted(shapes)} "
-                                 f"(indices {[s.get('index') for s in samples]})")
+                raise ValueError(
+                    f"batch field {k!r}: expected one shape within a bucket, got {sorted(shapes)} "
+                    f"(indices {[s.get('index') for s in samples]})"
+                )
             batch[k] = np.stack([s[k] for s in samples])
     return batch
 
@@ -229,8 +252,9 @@ class _BatchPlan:
     frame of a seeded order of the clip's start frames (:meth:`start_frame`), so the samples of one
     clip differ while it has frames to spare (an image bucket takes several frames of a clip)."""
 
-    def __init__(self, frame_counts, buckets, *, stride, seed, shard_index, shard_count, num_epochs,
-                 rate_head=0, rate_strides=()):
+    def __init__(
+        self, frame_counts, buckets, *, stride, seed, shard_index, shard_count, num_epochs, rate_head=0, rate_strides=()
+    ):
         self.counts = np.asarray(frame_counts, np.int64)
         self.buckets, self.stride, self.seed = buckets, stride, seed
         self.rate_head, self.rate_strides = rate_head, tuple(rate_strides)
@@ -259,30 +283,43 @@ class _BatchPlan:
         n, longest = len(self.counts), int(self.counts.max(initial=0))
         short = int((~self.eligible.any(1)).sum())
         if short:
-            log.warning("skipping %d of %d clips: shorter than the %d source frames the shortest bucket "
-                        "needs at %s", short, n, min(self.needed(b) for b in self.buckets), self._rate())
-        for i, b in enumerate(self.buckets):    # no repeat can fill these: no clip (on a shard) is long enough
+            log.warning(
+                "skipping %d of %d clips: shorter than the %d source frames the shortest bucket needs at %s",
+                short,
+                n,
+                min(self.needed(b) for b in self.buckets),
+                self._rate(),
+            )
+        for i, b in enumerate(self.buckets):  # no repeat can fill these: no clip (on a shard) is long enough
             if b.prob == 0:
                 continue
-            on_shard = np.bincount(np.flatnonzero(self.eligible[:, i]) % self.shard_count,
-                                   minlength=self.shard_count)
+            on_shard = np.bincount(np.flatnonzero(self.eligible[:, i]) % self.shard_count, minlength=self.shard_count)
             if not on_shard.any():
                 span = "1 + (F - 1) * stride" if not self.rate_strides else "the mixed-rate span"
-                self._refuse(b, f"each clip needs {span} = {self.needed(b)} source frames at {self._rate()}, but "
-                               f"the longest of the {n} clips has {longest}: the frame stride or clip length is "
-                               f"longer than every scene")
+                self._refuse(
+                    b,
+                    f"each clip needs {span} = {self.needed(b)} source frames at {self._rate()}, but "
+                    f"the longest of the {n} clips has {longest}: the frame stride or clip length is "
+                    f"longer than every scene",
+                )
             if b.repeat is None and not on_shard.all():
                 s = int(np.argmin(on_shard))
-                self._refuse(b, f"expected a clip of at least {self.needed(b)} source frames on every shard, got "
-                               f"none on shard {s} of {self.shard_count} (the clips of index % {self.shard_count} "
-                               f"== {s}): use more clips or fewer processes")
+                self._refuse(
+                    b,
+                    f"expected a clip of at least {self.needed(b)} source frames on every shard, got "
+                    f"none on shard {s} of {self.shard_count} (the clips of index % {self.shard_count} "
+                    f"== {s}): use more clips or fewer processes",
+                )
         got = {b for b, *_ in self._epoch(0)}
         for i, b in enumerate(self.buckets):
-            if b.prob > 0 and i not in got:        # only a fixed repeat gets here: an automatic one fills
-                self._refuse(b, f"fewer clips were assigned to it ({self._assigned_min(i)} on some shard in epoch "
-                               f"0, over its {b.repeat} round(s)) than its batch size {b.batch_size}: use a smaller "
-                               f"batch size, a higher probability or repeat (or leave the repeat out: automatic), "
-                               f"or more clips")
+            if b.prob > 0 and i not in got:  # only a fixed repeat gets here: an automatic one fills
+                self._refuse(
+                    b,
+                    f"fewer clips were assigned to it ({self._assigned_min(i)} on some shard in epoch "
+                    f"0, over its {b.repeat} round(s)) than its batch size {b.batch_size}: use a smaller "
+                    f"batch size, a higher probability or repeat (or leave the repeat out: automatic), "
+                    f"or more clips",
+                )
 
     @staticmethod
     def _refuse(bucket: Bucket, why: str):
@@ -313,11 +350,13 @@ class _BatchPlan:
         draws = []
         while None in repeats or len(draws) < max(repeats):
             k = len(draws)
-            if k == MAX_AUTO_REPEAT and None in repeats:    # unlikely: _check found a clip on every shard
+            if k == MAX_AUTO_REPEAT and None in repeats:  # unlikely: _check found a clip on every shard
                 i = repeats.index(None)
-                raise ValueError(f"buckets: bucket (H, W, F) = {self.buckets[i].key}: expected a full batch within "
-                                 f"{MAX_AUTO_REPEAT} automatic repeats in epoch {epoch}, got {have[i].min()} clips "
-                                 f"on some shard: give it a higher probability or an explicit repeat")
+                raise ValueError(
+                    f"buckets: bucket (H, W, F) = {self.buckets[i].key}: expected a full batch within "
+                    f"{MAX_AUTO_REPEAT} automatic repeats in epoch {epoch}, got {have[i].min()} clips "
+                    f"on some shard: give it a higher probability or an explicit repeat"
+                )
             draws.append(self._assign(epoch, k))
             order, bucket = draws[-1]
             for i, b in enumerate(self.buckets):
@@ -332,8 +371,10 @@ class _BatchPlan:
         """``(clips, rounds)``: the global clips of bucket ``b`` over its first ``repeat`` rounds,
         in planned order, and the round of each."""
         taken = [(order[bucket == b], k) for k, (order, bucket) in enumerate(draws[:repeat])]
-        return (np.concatenate([c for c, _ in taken]).astype(np.int64),
-                np.concatenate([np.full(len(c), k, np.int64) for c, k in taken]))
+        return (
+            np.concatenate([c for c, _ in taken]).astype(np.int64),
+            np.concatenate([np.full(len(c), k, np.int64) for c, k in taken]),
+        )
 
     def _epoch(self, epoch: int) -> list:
         return self._schedule(epoch)[0]
@@ -361,12 +402,16 @@ class _BatchPlan:
         for i in kinds:
             bs, u = self.buckets[i].batch_size, used[i]
             clips, rounds, occ = mine[i]
-            batches.append((int(i), clips[u:u + bs], rounds[u:u + bs], None if occ is None else occ[u:u + bs]))
+            batches.append((int(i), clips[u : u + bs], rounds[u : u + bs], None if occ is None else occ[u : u + bs]))
             used[i] += bs
-        if dropped:     # the same count every epoch: said once at INFO (the CLI shows INFO), then DEBUG
+        if dropped:  # the same count every epoch: said once at INFO (the CLI shows INFO), then DEBUG
             (log.info if epoch == 0 else log.debug)(
                 "epoch %d shard %d/%d: %d clips left over after batching (not used this epoch)",
-                epoch, self.shard_index, self.shard_count, dropped)
+                epoch,
+                self.shard_index,
+                self.shard_count,
+                dropped,
+            )
         self._log_repeats(epoch, repeats)
         if len(self._cache) > 4:
             self._cache.pop(min(self._cache))
@@ -378,8 +423,9 @@ class _BatchPlan:
         if epoch in self._logged:
             return
         self._logged.add(epoch)
-        said = ", ".join(f"{'x'.join(map(str, b.key))} {r}{'' if b.repeat else ' (auto)'}"
-                         for b, r in zip(self.buckets, repeats))
+        said = ", ".join(
+            f"{'x'.join(map(str, b.key))} {r}{'' if b.repeat else ' (auto)'}" for b, r in zip(self.buckets, repeats)
+        )
         (log.info if max(repeats) > 1 else log.debug)("epoch %d: bucket repeats (rounds of clips): %s", epoch, said)
 
     def start_frame(self, epoch: int, bucket: int, index: int, occurrence: int, starts: int) -> int:
@@ -396,8 +442,8 @@ class _BatchPlan:
         with self._lock:
             mine = self._schedule(epoch)[1][bucket]
         at = int(np.flatnonzero(mine == index)[0])
-        rest = np.concatenate([mine[at + 1:], mine[:at]])
-        return rest[rest != index]          # a repeating bucket holds a clip more than once
+        rest = np.concatenate([mine[at + 1 :], mine[:at]])
+        return rest[rest != index]  # a repeating bucket holds a clip more than once
 
     def __len__(self) -> int:
         if self.num_epochs is None:
@@ -443,10 +489,16 @@ def clip_warp(sample: Mapping, depth: float) -> np.ndarray:
     along the sample's ego poses at one ``depth``, holes inpainted on the host
     (:func:`jaxdrive.warp.warp_views`): ``[V, F, H, W, 3]`` in [-1, 1] like ``video``."""
     from jaxdrive.warp import warp_views
+
     e2w = np.asarray(sample["ego_to_world"], np.float64)
     poses = np.linalg.inv(e2w[0]) @ e2w
-    return warp_views(np.asarray(sample["video"])[:, 0], np.asarray(sample["intrinsics"]),
-                      np.asarray(sample["cam_to_ego"]), poses.astype(np.float32), depth)
+    return warp_views(
+        np.asarray(sample["video"])[:, 0],
+        np.asarray(sample["intrinsics"]),
+        np.asarray(sample["cam_to_ego"]),
+        poses.astype(np.float32),
+        depth,
+    )
 
 
 class _LoadBatch:
@@ -456,13 +508,13 @@ class _LoadBatch:
     the first readable clip of :meth:`_BatchPlan.substitutes`, sampled with the draws of the slot
     it fills; the batch carries ``bad_records``, the number of its slots so filled."""
 
-    def __init__(self, source, plan: _BatchPlan, *, views, crop, drop_probs, max_boxes, warp_depth=0.0,
-                 skip_bad_records=False):
+    def __init__(
+        self, source, plan: _BatchPlan, *, views, crop, drop_probs, max_boxes, warp_depth=0.0, skip_bad_records=False
+    ):
         self.source, self.plan, self.views, self.crop = source, plan, views, crop
         self.drop_probs, self.max_boxes, self.warp_depth = dict(drop_probs), max_boxes, warp_depth
         self.skip_bad_records = skip_bad_records
-        self.bad_files = OncePerFile(log, "its records are skipped and counted in bad_records "
-                                          "(data.skip_bad_records)")
+        self.bad_files = OncePerFile(log, "its records are skipped and counted in bad_records (data.skip_bad_records)")
 
     def _read(self, epoch: int, b: int, idx: int) -> tuple[int, dict, bool]:
         """``(index read, clip, whether it stands in for idx)``."""
@@ -478,9 +530,11 @@ class _LoadBatch:
                 return int(other), self.source[int(other)], True
             except BadRecordError as e:
                 self.bad_files.note(e)
-        raise ValueError(f"data.skip_bad_records: no readable clip left to stand in for clip {idx} of bucket "
-                         f"{self.plan.buckets[b].key} on shard {self.plan.shard_index}/{self.plan.shard_count} "
-                         f"in epoch {epoch}: every one is unreadable (the first: {first})")
+        raise ValueError(
+            f"data.skip_bad_records: no readable clip left to stand in for clip {idx} of bucket "
+            f"{self.plan.buckets[b].key} on shard {self.plan.shard_index}/{self.plan.shard_count} "
+            f"in epoch {epoch}: every one is unreadable (the first: {first})"
+        )
 
     def __call__(self, spec) -> dict:
         epoch, b, indices, rounds, occurrences = spec
@@ -492,19 +546,28 @@ class _LoadBatch:
             idx, clip, stand_in = self._read(epoch, b, int(planned))
             replaced += stand_in
             T = int(np.shape(clip["ego_to_world"])[0])
-            strides = self.plan.rate_strides       # no draw without them: the same samples as before
+            strides = self.plan.rate_strides  # no draw without them: the same samples as before
             tail = int(strides[rng.integers(len(strides))]) if strides else None
             starts = T - self.plan.needed(bucket, tail) + 1
-            start = int(rng.integers(0, starts))        # drawn always: the crop and drops draw after it
+            start = int(rng.integers(0, starts))  # drawn always: the crop and drops draw after it
             if occurrences is not None:
                 start = self.plan.start_frame(epoch, b, int(planned), int(occurrences[j]), starts)
             if "latents" in clip:
                 s = take_window(clip, frames=bucket.frames, views=self.views, where=f"source window {idx}")
             else:
-                s = sample_clip(clip, size=(bucket.height, bucket.width), frames=bucket.frames,
-                                stride=self.plan.stride, start=start, views=self.views, crop=self.crop,
-                                rng=rng, where=f"source clip {idx}", head=self.plan.rate_head,
-                                tail_stride=tail)
+                s = sample_clip(
+                    clip,
+                    size=(bucket.height, bucket.width),
+                    frames=bucket.frames,
+                    stride=self.plan.stride,
+                    start=start,
+                    views=self.views,
+                    crop=self.crop,
+                    rng=rng,
+                    where=f"source clip {idx}",
+                    head=self.plan.rate_head,
+                    tail_stride=tail,
+                )
             if self.warp_depth > 0:
                 s["warp_video"] = clip_warp(s, self.warp_depth)
             s["drop"] = {n: bool(rng.random() < p) for n, p in sorted(self.drop_probs.items())}
@@ -516,13 +579,28 @@ class _LoadBatch:
         return batch
 
 
-def make_pipeline(source, buckets, *, stride: int = 1, views=None, crop: str = "center",
-                  drop_probs: Mapping[str, float] | None = None, max_boxes: int | None = None,
-                  seed: int = 0, num_epochs: int | None = None, shard_index: int | None = None,
-                  shard_count: int | None = None, frame_counts: Sequence[int] | None = None,
-                  num_threads: int = 4, prefetch: int = 8, compression: int = 4, rate_head: int = 0,
-                  rate_strides: Sequence[int] = (), warp_depth: float = 0.0,
-                  skip_bad_records: bool = False) -> grain.IterDataset:
+def make_pipeline(
+    source,
+    buckets,
+    *,
+    stride: int = 1,
+    views=None,
+    crop: str = "center",
+    drop_probs: Mapping[str, float] | None = None,
+    max_boxes: int | None = None,
+    seed: int = 0,
+    num_epochs: int | None = None,
+    shard_index: int | None = None,
+    shard_count: int | None = None,
+    frame_counts: Sequence[int] | None = None,
+    num_threads: int = 4,
+    prefetch: int = 8,
+    compression: int = 4,
+    rate_head: int = 0,
+    rate_strides: Sequence[int] = (),
+    warp_depth: float = 0.0,
+    skip_bad_records: bool = False,
+) -> grain.IterDataset:
     """A grain ``IterDataset`` of training batches from a random-access clip ``source``.
 
     ``buckets``: ``{(H, W, F): batch_size}``, ``{(H, W, F): (batch_size, prob)}`` or
@@ -542,15 +620,18 @@ def make_pipeline(source, buckets, *, stride: int = 1, views=None, crop: str = "
     parsed = parse_buckets(buckets, compression=compression)
     stride = check_positive_int("stride", stride)
     if getattr(source, "kind", "clips") == "windows" and stride != 1:
-        raise ValueError(f"stride: expected 1 for a source of latent windows (their frames were strided when "
-                         f"encoded), got {stride}")
+        raise ValueError(
+            f"stride: expected 1 for a source of latent windows (their frames were strided when encoded), got {stride}"
+        )
     rate_head = check_positive_int("rate_head", rate_head, minimum=0)
     rate_strides = tuple(check_positive_int("rate_strides", s) for s in rate_strides)
     if getattr(source, "kind", "clips") == "windows" and rate_strides:
-        raise ValueError(f"rate_strides: expected () for a source of latent windows (their frames are uniform), "
-                         f"got {rate_strides}")
+        raise ValueError(
+            f"rate_strides: expected () for a source of latent windows (their frames are uniform), got {rate_strides}"
+        )
     if shard_index is None or shard_count is None:
         import jax
+
         shard_index, shard_count = jax.process_index(), jax.process_count()
     shard_count = check_positive_int("shard_count", shard_count)
     if not 0 <= shard_index < shard_count:
@@ -566,8 +647,7 @@ def make_pipeline(source, buckets, *, stride: int = 1, views=None, crop: str = "
     if not (np.isfinite(warp_depth) and warp_depth >= 0):
         raise ValueError(f"warp_depth: expected a depth in metres >= 0 (0: no warped frames), got {warp_depth}")
     if warp_depth > 0 and getattr(source, "kind", "clips") == "windows":
-        raise ValueError("warp_depth: expected 0 for a source of latent windows (no pixels to warp), "
-                         f"got {warp_depth}")
+        raise ValueError(f"warp_depth: expected 0 for a source of latent windows (no pixels to warp), got {warp_depth}")
     if len(source) == 0:
         raise ValueError(f"source: expected at least one clip, got an empty {source!r}")
     if frame_counts is None:
@@ -577,11 +657,31 @@ def make_pipeline(source, buckets, *, stride: int = 1, views=None, crop: str = "
         frame_counts = [int(np.shape(source[i]["ego_to_world"])[0]) for i in range(len(source))]
     if len(frame_counts) != len(source):
         raise ValueError(f"frame_counts: expected {len(source)} counts (one per clip), got {len(frame_counts)}")
-    plan = _BatchPlan(frame_counts, parsed, stride=stride, seed=seed, shard_index=int(shard_index),
-                      shard_count=shard_count, num_epochs=num_epochs, rate_head=rate_head, rate_strides=rate_strides)
+    plan = _BatchPlan(
+        frame_counts,
+        parsed,
+        stride=stride,
+        seed=seed,
+        shard_index=int(shard_index),
+        shard_count=shard_count,
+        num_epochs=num_epochs,
+        rate_head=rate_head,
+        rate_strides=rate_strides,
+    )
     if not isinstance(skip_bad_records, bool):
         raise ValueError(f"skip_bad_records: expected True or False, got {skip_bad_records!r}")
-    load = _LoadBatch(source, plan, views=views, crop=crop, drop_probs=drop_probs, max_boxes=max_boxes,
-                      warp_depth=float(warp_depth), skip_bad_records=skip_bad_records)
-    return grain.MapDataset.source(plan).map(load).to_iter_dataset(
-        grain.ReadOptions(num_threads=num_threads, prefetch_buffer_size=prefetch))
+    load = _LoadBatch(
+        source,
+        plan,
+        views=views,
+        crop=crop,
+        drop_probs=drop_probs,
+        max_boxes=max_boxes,
+        warp_depth=float(warp_depth),
+        skip_bad_records=skip_bad_records,
+    )
+    return (
+        grain.MapDataset.source(plan)
+        .map(load)
+        .to_iter_dataset(grain.ReadOptions(num_threads=num_threads, prefetch_buffer_size=prefetch))
+    )

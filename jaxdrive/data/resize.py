@@ -22,8 +22,9 @@ def _resize_weights(n_in: int, n_resized: int, offset: int, n_out: int) -> np.nd
     return (w / w.sum(axis=1, keepdims=True)).astype(np.float32)
 
 
-def resize_plan(in_hw: tuple[int, int], out_hw: tuple[int, int], *, crop: str = "center",
-                rng: np.random.Generator | None = None) -> dict:
+def resize_plan(
+    in_hw: tuple[int, int], out_hw: tuple[int, int], *, crop: str = "center", rng: np.random.Generator | None = None
+) -> dict:
     """Cover-resize then crop: the scale factors (sy, sx), resized size and crop offset (oy, ox)."""
     (h, w), (H, W) = in_hw, out_hw
     s = max(H / h, W / w)
@@ -60,7 +61,6 @@ def resize_crop_video(video: np.ndarray, plan: dict) -> np.ndarray:
     y = (x.reshape(-1, w) @ rx.T).reshape(-1, h, c * W)
     z = np.matmul(ry, y).reshape(-1, H, c, W).transpose(0, 1, 3, 2) - np.float32(1.0)
     return np.clip(z, -1.0, 1.0).reshape(*lead, H, W, c)
-
 
 
 def resize_crop_labels(labels: np.ndarray, plan: dict) -> np.ndarray:

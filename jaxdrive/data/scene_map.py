@@ -24,7 +24,7 @@ import numpy as np
 from jaxdrive.classes import BEV_CLASSES
 from jaxdrive.data.bev import cell_centres
 
-DEFAULT_RANGE = (100.0, 100.0)   # metres (x, y) a BEV map spans: the synthetic world's and nuScenes' default
+DEFAULT_RANGE = (100.0, 100.0)  # metres (x, y) a BEV map spans: the synthetic world's and nuScenes' default
 # the surfaces a car drives on: walkways are not, the divider lines lie on drivable area anyway (a
 # stray line cell alone is no road), and a cell with no class set is verge or building
 ROAD_CLASSES = ("drivable_area", "ped_crossing", "stop_line", "carpark_area", "road_block")
@@ -49,7 +49,7 @@ class SceneMap:
     raster: np.ndarray
     covered: np.ndarray
     origin: np.ndarray
-    resolution: float = flax.struct.field(pytree_node=False)      # static under jit: the grid's shape
+    resolution: float = flax.struct.field(pytree_node=False)  # static under jit: the grid's shape
     cell: tuple[float, float] = flax.struct.field(pytree_node=False)
     size: tuple[int, int] = flax.struct.field(pytree_node=False)
 
@@ -59,11 +59,13 @@ class SceneMap:
         takes the nearest BEV cell of the newest frame that saw it."""
         bev_map, poses = np.asarray(bev_map), np.asarray(ego_to_world, np.float64)
         if bev_map.ndim != 4 or poses.shape != (bev_map.shape[0], 4, 4):
-            raise ValueError(f"bev_map, ego_to_world: expected [F, Hm, Wm, C] and [F, 4, 4], got "
-                             f"{list(bev_map.shape)} and {list(poses.shape)}")
+            raise ValueError(
+                f"bev_map, ego_to_world: expected [F, Hm, Wm, C] and [F, 4, 4], got "
+                f"{list(bev_map.shape)} and {list(poses.shape)}"
+            )
         hm, wm = bev_map.shape[1:3]
         cell = (float(bev_range[0]) / hm, float(bev_range[1]) / wm)
-        res = min(cell) / 2                # finer than a BEV cell: re-cutting at another pose moves a line by less
+        res = min(cell) / 2  # finer than a BEV cell: re-cutting at another pose moves a line by less
         half = 0.5 * np.hypot(*bev_range)
         lo = poses[:, :2, 3].min(0) - half
         hi = poses[:, :2, 3].max(0) + half
@@ -72,12 +74,12 @@ class SceneMap:
         covered = np.zeros(shape, bool)
         gx = lo[0] + (np.arange(shape[0]) + 0.5) * res
         gy = lo[1] + (np.arange(shape[1]) + 0.5) * res
-        for f in range(len(poses)):                       # newest last: it overwrites older views
+        for f in range(len(poses)):  # newest last: it overwrites older views
             rot, t = poses[f, :2, :2], poses[f, :2, 3]
             r0, r1 = np.searchsorted(gx, [t[0] - half, t[0] + half])
             c0, c1 = np.searchsorted(gy, [t[1] - half, t[1] + half])
             world = np.stack(np.meshgrid(gx[r0:r1], gy[c0:c1], indexing="ij"), -1) - t
-            local = world @ rot                            # ego frame: R^T (p - t)
+            local = world @ rot  # ego frame: R^T (p - t)
             row = np.floor(hm / 2 - local[..., 0] / cell[0]).astype(int)
             col = np.floor(wm / 2 - local[..., 1] / cell[1]).astype(int)
             inside = (row >= 0) & (row < hm) & (col >= 0) & (col < wm)
@@ -125,16 +127,18 @@ class SceneMap:
         """The arrays as device arrays (what :func:`cut` under jit takes), padded with unseen cells
         to a ``multiple`` of cells per side, so that scenes of similar extent share one program."""
         pad = [(0, -n % multiple) for n in self.covered.shape]
-        return self.replace(raster=jnp.asarray(np.pad(self.raster, pad + [(0, 0)])),
-                            covered=jnp.asarray(np.pad(self.covered, pad)),
-                            origin=jnp.asarray(self.origin, jnp.float32))
+        return self.replace(
+            raster=jnp.asarray(np.pad(self.raster, pad + [(0, 0)])),
+            covered=jnp.asarray(np.pad(self.covered, pad)),
+            origin=jnp.asarray(self.origin, jnp.float32),
+        )
 
 
 def cut(scene: SceneMap, pose, fallback):
     """The BEV map ``[Hm, Wm, 8]`` (``fallback``'s dtype) at ego ``pose = (x, y, yaw)`` (world):
     the stitched map where it was seen, else its column's typical value, else ``fallback``
     (module docstring). Pure ``jax.numpy``: traceable under jit and vmap."""
-    centres = jnp.asarray(cell_centres(scene.size, scene.cell), jnp.float32)       # ego frame
+    centres = jnp.asarray(cell_centres(scene.size, scene.cell), jnp.float32)  # ego frame
     c, s = jnp.cos(pose[2]), jnp.sin(pose[2])
     wx = pose[0] + c * centres[..., 0] - s * centres[..., 1]
     wy = pose[1] + s * centres[..., 0] + c * centres[..., 1]

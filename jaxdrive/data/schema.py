@@ -15,11 +15,11 @@ import numpy as np
 from jaxdrive.classes import BEV_CLASSES, OBJECT_CLASSES  # noqa: F401  (the record's class vocabularies)
 
 # nuScenes camera channels in jaxdrive's view order (clockwise from the front).
-CAMERAS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT",
-           "CAM_FRONT_LEFT")
+CAMERAS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_FRONT_LEFT")
 
-CAPTION_TEMPLATE = ("This is a driving scene video captured by camera in {sensor} of a car at "
-                    "{location} during {season} {daytime}.")
+CAPTION_TEMPLATE = (
+    "This is a driving scene video captured by camera in {sensor} of a car at {location} during {season} {daytime}."
+)
 
 
 def caption(*, sensor: str, location: str, season: str, daytime: str) -> str:
@@ -87,12 +87,15 @@ def check_clip(clip: Mapping, *, source: str = "clip", kind: str = "clips") -> d
                 ok = sizes.setdefault(sym, size) == size
             if not ok:
                 want = sym if isinstance(sym, int) else f"{sym} = {sizes[sym]}"
-                raise ValueError(f"{source}: field {name!r}: expected shape {list(spec)} with {want}, "
-                                 f"got {list(value.shape)}")
+                raise ValueError(
+                    f"{source}: field {name!r}: expected shape {list(spec)} with {want}, got {list(value.shape)}"
+                )
     for name, kind in SCALAR_FIELDS.items():
         if name not in clip:
             raise ValueError(f"{source}: field {name!r} is missing (expected {kind.__name__})")
         if not isinstance(clip[name], (kind, np.generic)) or (kind is float and not float(clip[name]) > 0):
-            raise ValueError(f"{source}: field {name!r}: expected a {'positive ' if kind is float else ''}"
-                             f"{kind.__name__}, got {clip[name]!r}")
+            raise ValueError(
+                f"{source}: field {name!r}: expected a {'positive ' if kind is float else ''}"
+                f"{kind.__name__}, got {clip[name]!r}"
+            )
     return sizes

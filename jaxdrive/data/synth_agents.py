@@ -59,21 +59,31 @@ def sample_agents(rng, count, xc, route_xy):
         lanes = _lanes(name, xc)
         origin, direction, stop_s = lanes[rng.integers(len(lanes))]
         origin, direction = np.array(origin), np.array(direction)
-        if direction[1] == 0.0:   # along the main street: s = x * direction_x
+        if direction[1] == 0.0:  # along the main street: s = x * direction_x
             s0 = rng.uniform(x_lo, x_hi) * direction[0]
         elif rng.random() < 0.5:  # cross street, approaching the main street
             s0 = -rng.uniform(STOP + 3.0, 60.0)
-        else:                     # cross street, leaving the main street
+        else:  # cross street, leaving the main street
             s0, stop_s = rng.uniform(ROAD + SIDEWALK, 60.0), np.inf
         jitter = 1.0 + rng.uniform(-0.08, 0.08, 3)
         stop_window = (np.inf, np.inf)
         if rng.random() < 0.3:
             t0 = rng.uniform(0.0, 3.0)
             stop_window = (t0, t0 + rng.uniform(0.5, 4.0))
-        out.append(dict(cls=OBJECT_CLASSES.index(name), name=name, origin=origin, direction=direction,
-                        s0=s0, v0=rng.uniform(0.0, 1.0) * v_hi if rng.random() < 0.3 else rng.uniform(v_lo, v_hi),
-                        cruise=rng.uniform(v_lo, v_hi), size=np.array(size) * jitter,
-                        stop_s=stop_s, stop_window=stop_window))
+        out.append(
+            dict(
+                cls=OBJECT_CLASSES.index(name),
+                name=name,
+                origin=origin,
+                direction=direction,
+                s0=s0,
+                v0=rng.uniform(0.0, 1.0) * v_hi if rng.random() < 0.3 else rng.uniform(v_lo, v_hi),
+                cruise=rng.uniform(v_lo, v_hi),
+                size=np.array(size) * jitter,
+                stop_s=stop_s,
+                stop_window=stop_window,
+            )
+        )
     return out
 
 
@@ -137,8 +147,7 @@ def simulate(agents, ego_xy, ego_yaw, fps, *, driver=None):
         target = np.where((t >= window[:, 0]) & (t < window[:, 1]), 0.0, cruise)
         target = np.minimum(target, np.maximum(0.0, gap - gap0) / 1.2)
         to_stop = stop_s - (s + 0.5 * length)
-        target = np.where(to_stop > -0.5, np.minimum(target, np.sqrt(2 * brake * np.maximum(to_stop, 0.0))),
-                          target)
+        target = np.where(to_stop > -0.5, np.minimum(target, np.sqrt(2 * brake * np.maximum(to_stop, 0.0))), target)
         v = np.clip(v + np.clip((target - v) / 0.6, -brake, accel) * dt, 0.0, None)
         s = s + v * dt
         s = np.where(np.isfinite(gap), np.minimum(s, s + np.maximum(gap, 0.0) - 0.3), s)
@@ -152,8 +161,13 @@ def rect_corners(xy, yaw, length, width):
     fx, fy = c * length / 2, s * length / 2
     lx, ly = -s * width / 2, c * width / 2
     signs = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]])
-    return np.stack([xy[..., 0, None] + signs[:, 0] * fx[..., None] + signs[:, 1] * lx[..., None],
-                     xy[..., 1, None] + signs[:, 0] * fy[..., None] + signs[:, 1] * ly[..., None]], -1)
+    return np.stack(
+        [
+            xy[..., 0, None] + signs[:, 0] * fx[..., None] + signs[:, 1] * lx[..., None],
+            xy[..., 1, None] + signs[:, 0] * fy[..., None] + signs[:, 1] * ly[..., None],
+        ],
+        -1,
+    )
 
 
 def overlaps(rects_a, rects_b):
@@ -176,8 +190,9 @@ def colliding(agents, xy, yaw, ego_xy, ego_yaw, margin=0.4):
     size = np.stack([a["size"] for a in agents])
     rects = rect_corners(xy, np.broadcast_to(yaw, xy.shape[:2]), size[:, 0] + margin, size[:, 1] + margin)
     ego_c = ego_xy + EGO_CENTRE * np.stack([np.cos(ego_yaw), np.sin(ego_yaw)], -1)
-    ego = rect_corners(ego_c, ego_yaw, np.full_like(ego_yaw, EGO_SIZE[0] + 1.0),
-                        np.full_like(ego_yaw, EGO_SIZE[1] + 0.8))
+    ego = rect_corners(
+        ego_c, ego_yaw, np.full_like(ego_yaw, EGO_SIZE[0] + 1.0), np.full_like(ego_yaw, EGO_SIZE[1] + 0.8)
+    )
     bad = overlaps(rects, ego[:, None]).any(0)
     pair = overlaps(rects[:, :, None], rects[:, None, :]).any(0) & ~np.eye(n, dtype=bool)
     # Drop the later-sampled agent of each colliding pair.

@@ -24,16 +24,19 @@ RIG = (
     ((1.52, 0.49, 1.51), 55.0, 70.0),
 )
 
-_CORNERS = np.array([[1, 1, -1], [-1, 1, -1], [-1, -1, -1], [1, -1, -1],
-                     [1, 1, 1], [-1, 1, 1], [-1, -1, 1], [1, -1, 1]], np.float64) * 0.5
-_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4],
-                   [0, 4], [1, 5], [2, 6], [3, 7]])
+_CORNERS = (
+    np.array(
+        [[1, 1, -1], [-1, 1, -1], [-1, -1, -1], [1, -1, -1], [1, 1, 1], [-1, 1, 1], [-1, -1, 1], [1, -1, 1]], np.float64
+    )
+    * 0.5
+)
+_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7]])
 
 
 def camera_rig(views: int, height: int, width: int):
     """``(intrinsics [V, 3, 3], cam_to_ego [V, 4, 4])`` float64 for 1 (front) or 6 views."""
     intr, c2e = [], []
-    for (pos, yaw_deg, hfov) in RIG[:views]:
+    for pos, yaw_deg, hfov in RIG[:views]:
         f = (width / 2) / np.tan(np.radians(hfov) / 2)
         intr.append([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
         psi = np.radians(yaw_deg)
@@ -59,23 +62,22 @@ def pixel_rays(intrinsics, height, width):
     v = np.arange(height) + 0.5
     fx, fy = intrinsics[:, 0, 0], intrinsics[:, 1, 1]
     cx, cy = intrinsics[:, 0, 2], intrinsics[:, 1, 2]
-    a = (u[None, :] - cx[:, None]) / fx[:, None]   # [V, W]
-    b = (v[None, :] - cy[:, None]) / fy[:, None]   # [V, H]
+    a = (u[None, :] - cx[:, None]) / fx[:, None]  # [V, W]
+    b = (v[None, :] - cy[:, None]) / fy[:, None]  # [V, H]
     shape = (len(intrinsics), height, width)
-    return np.stack([np.broadcast_to(a[:, None, :], shape), np.broadcast_to(b[:, :, None], shape),
-                     np.ones(shape)], -1)
+    return np.stack([np.broadcast_to(a[:, None, :], shape), np.broadcast_to(b[:, :, None], shape), np.ones(shape)], -1)
 
 
 def _screen_rects(corners_cam, intrinsics, height, width, max_depth):
     """Pixel index ranges ``[V, B, 4]`` (r0, r1, c0, c1 inclusive) covering each box's projection;
     r0 > r1 marks a culled pair."""
-    z = corners_cam[..., 2]                                         # [V, B, 8]
+    z = corners_cam[..., 2]  # [V, B, 8]
     a, b = corners_cam[..., _EDGES[:, 0], :], corners_cam[..., _EDGES[:, 1], :]
     za, zb = a[..., 2], b[..., 2]
     cross = (za - NEAR) * (zb - NEAR) < 0
     with np.errstate(divide="ignore", invalid="ignore"):
         w = np.where(cross, (NEAR - za) / (zb - za), 0.0)
-    clip_pts = a + w[..., None] * (b - a)                           # [V, B, 12, 3] on the near plane
+    clip_pts = a + w[..., None] * (b - a)  # [V, B, 12, 3] on the near plane
     pts = np.concatenate([corners_cam, clip_pts], -2)
     ok = np.concatenate([z >= NEAR, cross], -1)
     zs = np.where(ok, pts[..., 2], 1.0)
@@ -111,28 +113,37 @@ def raycast(cam_to_world, intrinsics, boxes, height, width, *, max_depth=120.0):
     axis = np.zeros(nv * npx, np.int64)
     local = np.zeros((nv * npx, 3))
     if len(boxes) == 0:
-        return (depth.reshape(nv, height, width), owner.reshape(nv, height, width),
-                axis.reshape(nv, height, width), local.reshape(nv, height, width, 3))
+        return (
+            depth.reshape(nv, height, width),
+            owner.reshape(nv, height, width),
+            axis.reshape(nv, height, width),
+            local.reshape(nv, height, width, 3),
+        )
     rot_c, pos_c = cam_to_world[:, :3, :3], cam_to_world[:, :3, 3]
     # Drop boxes beyond max_depth of every camera before any per-pair work.
-    reach = (np.linalg.norm(boxes[:, None, :3] - pos_c[None], axis=-1).min(1)
-             - 0.5 * np.linalg.norm(boxes[:, 3:6], axis=1))
+    reach = np.linalg.norm(boxes[:, None, :3] - pos_c[None], axis=-1).min(1) - 0.5 * np.linalg.norm(
+        boxes[:, 3:6], axis=1
+    )
     index = np.flatnonzero(reach < max_depth)
     boxes = boxes[index]
-    rot_b = yaw_matrix(boxes[:, 6])                                  # [B, 3, 3]
+    rot_b = yaw_matrix(boxes[:, 6])  # [B, 3, 3]
     half = boxes[:, 3:6] / 2
     corners_w = boxes[:, None, :3] + (_CORNERS * boxes[:, None, 3:6]) @ np.swapaxes(rot_b, -1, -2)
     corners_cam = (corners_w[None] - pos_c[:, None, None]) @ rot_c[:, None]
     rects = _screen_rects(corners_cam, intrinsics, height, width, max_depth)
     vi, bi = np.nonzero((rects[..., 1] >= rects[..., 0]) & (rects[..., 3] >= rects[..., 2]))
     if len(vi) == 0:
-        return (depth.reshape(nv, height, width), owner.reshape(nv, height, width),
-                axis.reshape(nv, height, width), local.reshape(nv, height, width, 3))
+        return (
+            depth.reshape(nv, height, width),
+            owner.reshape(nv, height, width),
+            axis.reshape(nv, height, width),
+            local.reshape(nv, height, width, 3),
+        )
     r0, r1, c0, c1 = rects[vi, bi].T
     rw = c1 - c0 + 1
     area = (r1 - r0 + 1) * rw
     # Per pair: camera->box-local rotation and the camera centre in the box frame.
-    m = np.swapaxes(rot_b[bi], -1, -2) @ rot_c[vi]                   # R_b^T R_c  [P, 3, 3]
+    m = np.swapaxes(rot_b[bi], -1, -2) @ rot_c[vi]  # R_b^T R_c  [P, 3, 3]
     o = ((pos_c[vi] - boxes[bi, :3])[:, None, :] @ rot_b[bi])[:, 0]  # R_b^T (c - b)  [P, 3]
     fx, fy = intrinsics[vi, 0, 0], intrinsics[vi, 1, 1]
     cx, cy = intrinsics[vi, 0, 2], intrinsics[vi, 1, 2]
@@ -174,5 +185,9 @@ def raycast(cam_to_world, intrinsics, boxes, height, width, *, max_depth=120.0):
     p = o[pair] + t[:, None] * d
     local[key] = p
     axis[key] = np.argmax(np.abs(p) / np.maximum(half[bi[pair]], 1e-6), -1)
-    return (depth.reshape(nv, height, width), owner.reshape(nv, height, width),
-            axis.reshape(nv, height, width), local.reshape(nv, height, width, 3))
+    return (
+        depth.reshape(nv, height, width),
+        owner.reshape(nv, height, width),
+        axis.reshape(nv, height, width),
+        local.reshape(nv, height, width, 3),
+    )

@@ -47,13 +47,13 @@ from jaxdrive.data.synth_agents import EGO_CENTRE, EGO_SIZE, overlaps, rect_corn
 from jaxdrive.data.synth_world import LANE, ROAD, EgoRoute, along_path, road_classes, straight_path, turn_path
 
 ROUTES = ("recorded", "stop", "slower", "faster", "lane-left", "lane-right", "branch")
-MAP_MARGIN = 40.0               # metres the ego may drive beyond the recorded route's bounding box
+MAP_MARGIN = 40.0  # metres the ego may drive beyond the recorded route's bounding box
 LANE_CHANGE_SECONDS = 2.0
-GAP_BEHIND, GAP_AHEAD = 8.0, 12.0   # metres of free target lane a lane change waits for
-TURN_SPEED = 7.0                # the synthetic world's speed cap on turn arcs (as ego_route)
-LATERAL_ACCEL = 3.0             # m/s^2 in curves
-ACCEL, BRAKE, HARD_BRAKE = 2.5, 2.5, 7.0   # m/s^2 of the driven ego: comfortable, and for an obstacle
-LOOKAHEAD = np.arange(0.5, 40.0, 0.5)   # metres along the path checked for obstacles
+GAP_BEHIND, GAP_AHEAD = 8.0, 12.0  # metres of free target lane a lane change waits for
+TURN_SPEED = 7.0  # the synthetic world's speed cap on turn arcs (as ego_route)
+LATERAL_ACCEL = 3.0  # m/s^2 in curves
+ACCEL, BRAKE, HARD_BRAKE = 2.5, 2.5, 7.0  # m/s^2 of the driven ego: comfortable, and for an obstacle
+LOOKAHEAD = np.arange(0.5, 40.0, 0.5)  # metres along the path checked for obstacles
 
 
 def parse_routes(routes, option: str, *, recorded: bool = True) -> list[str]:
@@ -62,8 +62,9 @@ def parse_routes(routes, option: str, *, recorded: bool = True) -> list[str]:
     names = [n.strip() for n in (routes.split(",") if isinstance(routes, str) else routes) if n.strip()]
     allowed = ROUTES if recorded else ROUTES[1:]
     if any(n not in allowed for n in names) or len(set(names)) != len(names):
-        raise ValueError(f"{option}: expected distinct comma-separated routes from {', '.join(allowed)}, got "
-                         f"{routes!r}")
+        raise ValueError(
+            f"{option}: expected distinct comma-separated routes from {', '.join(allowed)}, got {routes!r}"
+        )
     return names
 
 
@@ -98,7 +99,7 @@ class EgoDriver:
         seglen = np.linalg.norm(np.diff(self.points, axis=0), axis=-1)
         self._cum = np.concatenate([[0.0], np.cumsum(seglen)])
         self.lateral = np.zeros(len(self.target))
-        self.shift_from = None if self.shift else -np.inf     # arc length where the lane change began
+        self.shift_from = None if self.shift else -np.inf  # arc length where the lane change began
 
     def _offset(self, s):
         if self.shift_from is None:
@@ -127,7 +128,7 @@ class EgoDriver:
         if len(agents) == 0:
             return np.inf
         ego = self._footprints(self.s + LOOKAHEAD, np.full(len(LOOKAHEAD), lateral))
-        hit = overlaps(ego[:, None], agents[None]).any(1)                                   # [L]
+        hit = overlaps(ego[:, None], agents[None]).any(1)  # [L]
         return float(LOOKAHEAD[np.argmax(hit)]) if hit.any() else np.inf
 
     def _gap_free(self, agents):
@@ -169,8 +170,10 @@ def _branch_path(rec: EgoRoute, s0: float, route: str, clip: str):
     """The polyline of the other branch, or UndrivableRoute when no intersection lies ahead."""
     if rec.turn != "straight":
         if s0 >= rec.turn_start:
-            raise UndrivableRoute(f"route {route!r}: expected clip {clip} to reach its turn after the route's "
-                                  f"start, got the ego {s0 - rec.turn_start:.1f} m past it")
+            raise UndrivableRoute(
+                f"route {route!r}: expected clip {clip} to reach its turn after the route's "
+                f"start, got the ego {s0 - rec.turn_start:.1f} m past it"
+            )
         return straight_path(rec.lane_y, rec.dist[-1] + 100.0), "straight"
     turn = "left" if rec.lane_y > -LANE else "right"
     radius = ROAD + LANE / 2 + 1.0 if turn == "left" else ROAD - LANE / 2 + 0.75
@@ -178,8 +181,10 @@ def _branch_path(rec: EgoRoute, s0: float, route: str, clip: str):
     starts = ends - radius
     ahead = starts[starts > s0 + 1.0]
     if len(ahead) == 0 or ahead.min() > rec.dist[-1]:
-        raise UndrivableRoute(f"route {route!r}: expected clip {clip} to reach an intersection after the route's "
-                              f"start, got none within the {rec.dist[-1] - s0:.1f} m it drives")
+        raise UndrivableRoute(
+            f"route {route!r}: expected clip {clip} to reach an intersection after the route's "
+            f"start, got none within the {rec.dist[-1] - s0:.1f} m it drives"
+        )
     return turn_path(float(ahead.min()), rec.lane_y, turn, radius), turn
 
 
@@ -214,8 +219,18 @@ def plan(route: str, rec: EgoRoute, fps: float, start: int, *, clip: str = "") -
     return EgoDriver(start, fps, points, heading, target, s0, float(v_rec[start - 1]))
 
 
-def check_drivable(route: str, clip: str, rec: EgoRoute, driver: EgoDriver, ego_xy, ego_yaw, agents_xy,
-                   agents_yaw, agent_sizes, track_ids) -> None:
+def check_drivable(
+    route: str,
+    clip: str,
+    rec: EgoRoute,
+    driver: EgoDriver,
+    ego_xy,
+    ego_yaw,
+    agents_xy,
+    agents_yaw,
+    agent_sizes,
+    track_ids,
+) -> None:
     """``UndrivableRoute`` naming the route, the clip and the first bad frame when the driven ego
     leaves the road or the map, touches an agent, or (``branch``) never reaches its new branch."""
     f0 = driver.start
@@ -225,28 +240,38 @@ def check_drivable(route: str, clip: str, rec: EgoRoute, driver: EgoDriver, ego_
     on_road = road_classes(ego[..., 0], ego[..., 1], rec.crosses)[..., 0].all(-1)
     if not on_road.all():
         f = f0 + int(np.argmin(on_road))
-        raise UndrivableRoute(f"route {route!r}: expected clip {clip} to stay on the road, got the ego off the "
-                              f"drivable area at frame {f} (x = {ego_xy[f, 0]:.1f}, y = {ego_xy[f, 1]:.1f} m)")
+        raise UndrivableRoute(
+            f"route {route!r}: expected clip {clip} to stay on the road, got the ego off the "
+            f"drivable area at frame {f} (x = {ego_xy[f, 0]:.1f}, y = {ego_xy[f, 1]:.1f} m)"
+        )
     lo, hi = rec.xy.min(0) - MAP_MARGIN, rec.xy.max(0) + MAP_MARGIN
     inside = ((xy >= lo) & (xy <= hi)).all(-1)
     if not inside.all():
         f = f0 + int(np.argmin(inside))
-        raise UndrivableRoute(f"route {route!r}: expected clip {clip} to stay within {MAP_MARGIN:.0f} m of the "
-                              f"recorded route (the town's extent), got the ego out of the map at frame {f}")
+        raise UndrivableRoute(
+            f"route {route!r}: expected clip {clip} to stay within {MAP_MARGIN:.0f} m of the "
+            f"recorded route (the town's extent), got the ego out of the map at frame {f}"
+        )
     if len(agent_sizes):
         size = np.asarray(agent_sizes)
-        rects = rect_corners(agents_xy[f0:], np.broadcast_to(agents_yaw, agents_xy[f0:].shape[:2]),
-                              size[:, 0], size[:, 1])                                           # [F, N, 4, 2]
-        touch = overlaps(rects, ego[:, None])                                                   # [F, N]
+        rects = rect_corners(
+            agents_xy[f0:], np.broadcast_to(agents_yaw, agents_xy[f0:].shape[:2]), size[:, 0], size[:, 1]
+        )  # [F, N, 4, 2]
+        touch = overlaps(rects, ego[:, None])  # [F, N]
         if touch.any():
             f, n = np.argwhere(touch)[0]
-            raise UndrivableRoute(f"route {route!r}: expected clip {clip} to be driven without a collision, got "
-                                  f"the ego touching agent {int(track_ids[n])} at frame {f0 + int(f)}")
+            raise UndrivableRoute(
+                f"route {route!r}: expected clip {clip} to be driven without a collision, got "
+                f"the ego touching agent {int(track_ids[n])} at frame {f0 + int(f)}"
+            )
     if driver.shift and driver.shift_from is None:
-        raise UndrivableRoute(f"route {route!r}: expected clip {clip} to offer a free gap in the target lane "
-                              f"before it ends, got none")
+        raise UndrivableRoute(
+            f"route {route!r}: expected clip {clip} to offer a free gap in the target lane before it ends, got none"
+        )
     if route == "branch":
         diverged = np.linalg.norm(ego_xy - rec.xy, axis=-1).max()
         if diverged < 0.5:
-            raise UndrivableRoute(f"route {route!r}: expected clip {clip} to reach its other branch before the "
-                                  f"clip ends, got a drive within {diverged:.2f} m of the recorded one")
+            raise UndrivableRoute(
+                f"route {route!r}: expected clip {clip} to reach its other branch before the "
+                f"clip ends, got a drive within {diverged:.2f} m of the recorded one"
+            )

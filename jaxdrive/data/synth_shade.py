@@ -10,18 +10,44 @@ from jaxdrive.classes import OBJECT_CLASSES
 from jaxdrive.data.synth_world import AGENT_KIND, BUILDING, LAMP, ROAD, nearest_cross, road_classes
 
 LOOKS = {
-    "day": dict(sky_top=(0.33, 0.55, 0.88), sky_horizon=(0.78, 0.86, 0.95), ambient=0.55, sun=0.55,
-                fog=(0.8, 0.86, 0.93), fog_dist=260.0, asphalt=0.34),
-    "night": dict(sky_top=(0.005, 0.008, 0.03), sky_horizon=(0.05, 0.06, 0.1), ambient=0.12, sun=0.04,
-                  fog=(0.03, 0.035, 0.06), fog_dist=110.0, asphalt=0.3),
-    "rain": dict(sky_top=(0.42, 0.44, 0.47), sky_horizon=(0.6, 0.62, 0.65), ambient=0.5, sun=0.12,
-                 fog=(0.55, 0.57, 0.6), fog_dist=75.0, asphalt=0.2),
+    "day": dict(
+        sky_top=(0.33, 0.55, 0.88),
+        sky_horizon=(0.78, 0.86, 0.95),
+        ambient=0.55,
+        sun=0.55,
+        fog=(0.8, 0.86, 0.93),
+        fog_dist=260.0,
+        asphalt=0.34,
+    ),
+    "night": dict(
+        sky_top=(0.005, 0.008, 0.03),
+        sky_horizon=(0.05, 0.06, 0.1),
+        ambient=0.12,
+        sun=0.04,
+        fog=(0.03, 0.035, 0.06),
+        fog_dist=110.0,
+        asphalt=0.3,
+    ),
+    "rain": dict(
+        sky_top=(0.42, 0.44, 0.47),
+        sky_horizon=(0.6, 0.62, 0.65),
+        ambient=0.5,
+        sun=0.12,
+        fog=(0.55, 0.57, 0.6),
+        fog_dist=75.0,
+        asphalt=0.2,
+    ),
 }
 DAYTIME = {"day": "daytime", "night": "night", "rain": "rainy daytime"}
-_GRASS = {"summer": (0.3, 0.42, 0.2), "spring": (0.34, 0.5, 0.24), "autumn": (0.42, 0.4, 0.22),
-          "winter": (0.82, 0.83, 0.86)}
-_VEHICLES = tuple(OBJECT_CLASSES.index(n) for n in ("car", "truck", "construction_vehicle", "bus",
-                                                      "trailer", "motorcycle"))
+_GRASS = {
+    "summer": (0.3, 0.42, 0.2),
+    "spring": (0.34, 0.5, 0.24),
+    "autumn": (0.42, 0.4, 0.22),
+    "winter": (0.82, 0.83, 0.86),
+}
+_VEHICLES = tuple(
+    OBJECT_CLASSES.index(n) for n in ("car", "truck", "construction_vehicle", "bus", "trailer", "motorcycle")
+)
 _PED = OBJECT_CLASSES.index("pedestrian")
 
 
@@ -73,7 +99,7 @@ def box_colour(owner, axis, local, boxes, colours, kinds, classes, box_key, ligh
     coord = np.take_along_axis(local, axis[:, None], 1)[:, 0]
     sign = np.where(coord >= 0, np.float32(1), np.float32(-1))
     # World normal of the face: the box's yaw turns local axes 0, 1; axis 2 is vertical.
-    yaw = (boxes[:, 6] + np.pi / 2 * np.arange(2)[:, None]).T          # [B, 2]: heading of axes 0, 1
+    yaw = (boxes[:, 6] + np.pi / 2 * np.arange(2)[:, None]).T  # [B, 2]: heading of axes 0, 1
     face_yaw = np.take_along_axis(yaw[owner], np.minimum(axis, 1)[:, None], 1)[:, 0]
     side = axis != 2
     lambert_side = (np.cos(face_yaw) * light[0] + np.sin(face_yaw) * light[1]) * sign
@@ -125,7 +151,7 @@ def box_colour(owner, axis, local, boxes, colours, kinds, classes, box_key, ligh
 def ego_headlights(x_ego, y_ego):
     """Extra light on the ground in front of the ego (ego-frame ground points) at night."""
     x = x_ego - 3.0
-    cone = np.exp(-(y_ego / (0.45 * np.maximum(x, 0.0) + 1.0)) ** 2)
+    cone = np.exp(-((y_ego / (0.45 * np.maximum(x, 0.0) + 1.0)) ** 2))
     return np.where(x > 0, cone * np.clip(x / 3.0, 0, 1) * np.exp(-x / 30.0), 0.0) * 1.6
 
 

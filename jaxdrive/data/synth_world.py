@@ -17,12 +17,12 @@ import dataclasses
 import numpy as np
 
 LANE = 3.5
-ROAD = 2 * LANE                 # half-width of a street's carriageway
-SIDEWALK = 3.0                  # sidewalk band: ROAD <= |offset| < ROAD + SIDEWALK
+ROAD = 2 * LANE  # half-width of a street's carriageway
+SIDEWALK = 3.0  # sidewalk band: ROAD <= |offset| < ROAD + SIDEWALK
 SETBACK = ROAD + SIDEWALK + 2.0  # buildings start here
-STOP = ROAD + SIDEWALK + 0.5    # stop lines at this distance from the crossing street's centre
-LINE_HW = 0.08                  # half-width of painted lines (m)
-STOP_HW = 0.25                  # half-width of a stop line (m)
+STOP = ROAD + SIDEWALK + 0.5  # stop lines at this distance from the crossing street's centre
+LINE_HW = 0.08  # half-width of painted lines (m)
+STOP_HW = 0.25  # half-width of a stop line (m)
 
 # Static scenery kinds (agents use AGENT_KIND + class id).
 BUILDING, TRUNK, CANOPY, POLE, LAMP = 0, 1, 2, 3, 4
@@ -54,11 +54,9 @@ def road_classes(x, y, crosses, *, pad: float = 0.0) -> np.ndarray:
     walkway = (band_y & ~on_cross) | (band_x & ~on_main)
     crossing = (on_cross & band_y) | (on_main & band_x)
     shw, lhw = STOP_HW + pad, LINE_HW + pad
-    stop = ((on_main & (np.abs(ax - STOP) < shw) & (sx * y > 0))
-            | (on_cross & (np.abs(ay - STOP) < shw) & (sx * y < 0)))
+    stop = (on_main & (np.abs(ax - STOP) < shw) & (sx * y > 0)) | (on_cross & (np.abs(ay - STOP) < shw) & (sx * y < 0))
     road_div = ((ay < 2 * lhw) & on_main & ~on_cross) | ((ax < 2 * lhw) & on_cross & ~on_main)
-    lane_div = (((np.abs(ay - LANE) < lhw) & on_main & ~on_cross)
-                | ((np.abs(ax - LANE) < lhw) & on_cross & ~on_main))
+    lane_div = ((np.abs(ay - LANE) < lhw) & on_main & ~on_cross) | ((np.abs(ax - LANE) < lhw) & on_cross & ~on_main)
     carpark = np.zeros_like(drivable)
     road_block = drivable & ~inter
     return np.stack([drivable, crossing, walkway, stop, carpark, road_div, lane_div, road_block], -1)
@@ -197,14 +195,19 @@ def static_scenery(rng, crosses, xy_route, *, reach: float = 90.0, season: str =
     boxes, colours, kinds = [], [], []
     x_lo, x_hi = xy_route[:, 0].min() - reach, xy_route[:, 0].max() + reach
     y_lo, y_hi = xy_route[:, 1].min() - reach, xy_route[:, 1].max() + reach
-    canopy = {"summer": (0.22, 0.45, 0.18), "spring": (0.35, 0.58, 0.25),
-              "autumn": (0.65, 0.38, 0.12), "winter": (0.55, 0.55, 0.5)}[season]
+    canopy = {
+        "summer": (0.22, 0.45, 0.18),
+        "spring": (0.35, 0.58, 0.25),
+        "autumn": (0.65, 0.38, 0.12),
+        "winter": (0.55, 0.55, 0.5),
+    }[season]
 
     def building(cx, cy, along, depth, yaw):
         height = rng.uniform(5.0, 24.0)
         boxes.append((cx, cy, height / 2, along, depth, height, yaw))
-        base = rng.choice([(0.62, 0.55, 0.48), (0.55, 0.35, 0.3), (0.7, 0.7, 0.68),
-                           (0.45, 0.47, 0.52), (0.78, 0.72, 0.6)])
+        base = rng.choice(
+            [(0.62, 0.55, 0.48), (0.55, 0.35, 0.3), (0.7, 0.7, 0.68), (0.45, 0.47, 0.52), (0.78, 0.72, 0.6)]
+        )
         colours.append(np.clip(np.array(base) + rng.normal(0, 0.04, 3), 0, 1))
         kinds.append(BUILDING)
 
@@ -249,5 +252,8 @@ def static_scenery(rng, crosses, xy_route, *, reach: float = 90.0, season: str =
                 if abs(pos) > corridor:
                     furniture(xc + side * (ROAD + SIDEWALK - 0.7), pos)
                 pos += rng.uniform(8.0, 16.0)
-    return (np.asarray(boxes, np.float64).reshape(-1, 7), np.asarray(colours, np.float64).reshape(-1, 3),
-            np.asarray(kinds, np.int32))
+    return (
+        np.asarray(boxes, np.float64).reshape(-1, 7),
+        np.asarray(colours, np.float64).reshape(-1, 3),
+        np.asarray(kinds, np.int32),
+    )

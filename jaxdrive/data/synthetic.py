@@ -38,11 +38,10 @@ from jaxdrive.data.synth_shade import (
 from jaxdrive.data.synth_world import AGENT_KIND, LAMP, ego_route, road_classes, static_scenery
 from jaxdrive.validate import check_choice, check_positive_int, check_range
 
-TOWNS = ("synthtown-harbour", "synthtown-old-quarter", "gridville-centre", "boxford-heights",
-         "raycast-bay")
+TOWNS = ("synthtown-harbour", "synthtown-old-quarter", "gridville-centre", "boxford-heights", "raycast-bay")
 SEASONS = ("spring", "summer", "autumn", "winter")
 MAX_AGENTS = 20
-COUNTERFACTUAL_START = 8   # the first frame a counterfactual route changes (after the given frames)
+COUNTERFACTUAL_START = 8  # the first frame a counterfactual route changes (after the given frames)
 
 
 def _pose(xy, yaw):
@@ -55,7 +54,7 @@ def _pose(xy, yaw):
 def bev_maps(ego_to_world, crosses, bev_size, bev_range):
     """Rasterise the road layout around each ego pose -> uint8 ``[F, Hm, Wm, 8]`` (x up, y left)."""
     rx, ry = bev_range[0] / bev_size[0], bev_range[1] / bev_size[1]
-    pts = cell_centres(bev_size, (rx, ry))                                    # [Hm, Wm, 2]
+    pts = cell_centres(bev_size, (rx, ry))  # [Hm, Wm, 2]
     rot, trans = ego_to_world[:, :2, :2], ego_to_world[:, :2, 3]
     world = np.einsum("fij,hwj->fhwi", rot, pts) + trans[:, None, None]
     return road_classes(world[..., 0], world[..., 1], crosses, pad=0.5 * max(rx, ry)).astype(np.uint8)
@@ -65,8 +64,9 @@ def _render_frame(cam_to_world, intrinsics, rays, boxes, scene, look, season, li
     """Colour ``[V, H, W, 3]`` float32 and box index ``[V, H, W]`` (-1: ground or sky) of one frame."""
     views, height, width, _ = rays.shape
     npx = views * height * width
-    depth, owner, axis, local = (a.reshape(npx, *a.shape[3:]) for a in
-                                 raycast(cam_to_world, intrinsics, boxes, height, width))
+    depth, owner, axis, local = (
+        a.reshape(npx, *a.shape[3:]) for a in raycast(cam_to_world, intrinsics, boxes, height, width)
+    )
     dirs = (rays.reshape(views, -1, 3) @ np.swapaxes(cam_to_world[:, :3, :3], -1, -2)).reshape(npx, 3)
     cam_pos = np.repeat(cam_to_world[:, :3, 3], height * width, axis=0)
     down = np.flatnonzero(dirs[:, 2] < -1e-9)
@@ -89,8 +89,18 @@ def _render_frame(cam_to_world, intrinsics, rays, boxes, scene, look, season, li
         lamps = scene["lamps"]
         light_g = light_g + lamp_light(gx, gy, lamps[np.linalg.norm(lamps - ego_xy, axis=1) < 70.0])
     col[ground] = ground_colour(gx, gy, scene["crosses"], look, season) * np.asarray(light_g)[..., None]
-    col[hit] = box_colour(owner[hit], axis[hit], local[hit], boxes, scene["colours"], scene["kinds"],
-                          scene["classes"], scene["box_key"], light, look)
+    col[hit] = box_colour(
+        owner[hit],
+        axis[hit],
+        local[hit],
+        boxes,
+        scene["colours"],
+        scene["kinds"],
+        scene["classes"],
+        scene["box_key"],
+        light,
+        look,
+    )
     solid = np.concatenate([ground, hit])
     col[solid] = fog(col[solid], np.concatenate([t_ground[ground], depth[hit]]), look)
     return col.reshape(views, height, width, 3), owner.reshape(views, height, width)
@@ -142,20 +152,43 @@ def _draw_scene(seed, views, frames, height, width, fps, num_agents, look, max_b
     n_agents = len(agents)
     a_size = np.array([a["size"] for a in agents]).reshape(-1, 3)
     a_cls = np.array([a["cls"] for a in agents], np.int32)
-    a_col = np.array([rng.uniform(0.1, 0.95, 3) if a["name"] != "bus" else (0.85, 0.6, 0.1)
-                      for a in agents]).reshape(-1, 3)
+    a_col = np.array([rng.uniform(0.1, 0.95, 3) if a["name"] != "bus" else (0.85, 0.6, 0.1) for a in agents]).reshape(
+        -1, 3
+    )
     track_ids = np.sort(rng.choice(1000, size=n_agents, replace=False)).astype(np.int32)
     sun_az = rng.uniform(0, 2 * np.pi)
     light = np.array([np.cos(sun_az) * 0.5, np.sin(sun_az) * 0.5, 0.75])
     light /= np.linalg.norm(light)
     n_static = len(s_boxes)
-    scene = dict(colours=np.concatenate([s_colours, a_col]), kinds=np.concatenate([s_kinds, AGENT_KIND + a_cls]),
-                 classes=np.concatenate([np.full(n_static, -1, np.int32), a_cls]),
-                 box_key=np.arange(n_static + n_agents, dtype=np.float64), crosses=route.crosses,
-                 lamps=s_boxes[s_kinds == LAMP, :2])
-    return dict(views=views, frames=frames, height=height, width=width, fps=fps, look=look, season=season,
-                town=town, route=route, s_boxes=s_boxes, agents=agents, a_xy=a_xy, a_yaw=a_yaw, a_size=a_size,
-                a_cls=a_cls, track_ids=track_ids, light=light, scene=scene, max_boxes=max_boxes), rng
+    scene = dict(
+        colours=np.concatenate([s_colours, a_col]),
+        kinds=np.concatenate([s_kinds, AGENT_KIND + a_cls]),
+        classes=np.concatenate([np.full(n_static, -1, np.int32), a_cls]),
+        box_key=np.arange(n_static + n_agents, dtype=np.float64),
+        crosses=route.crosses,
+        lamps=s_boxes[s_kinds == LAMP, :2],
+    )
+    return dict(
+        views=views,
+        frames=frames,
+        height=height,
+        width=width,
+        fps=fps,
+        look=look,
+        season=season,
+        town=town,
+        route=route,
+        s_boxes=s_boxes,
+        agents=agents,
+        a_xy=a_xy,
+        a_yaw=a_yaw,
+        a_size=a_size,
+        a_cls=a_cls,
+        track_ids=track_ids,
+        light=light,
+        scene=scene,
+        max_boxes=max_boxes,
+    ), rng
 
 
 def _render_clip(d, rng, ego_xy, ego_yaw, a_xy, a_yaw, bev_size, bev_range) -> dict:
@@ -166,16 +199,26 @@ def _render_clip(d, rng, ego_xy, ego_yaw, a_xy, a_yaw, bev_size, bev_range) -> d
     n_static, n_agents = len(d["s_boxes"]), len(d["agents"])
     ego_to_world = _pose(ego_xy, ego_yaw)
     intrinsics, cam_to_ego = camera_rig(views, height, width)
-    rays = pixel_rays(intrinsics, height, width)                             # [V, H, W, 3]
+    rays = pixel_rays(intrinsics, height, width)  # [V, H, W, 3]
     video = np.empty((views, frames, height, width, 3), np.float32)
     instance = np.full((views, frames, height, width), -1, np.int32)
     boxes_ego = np.zeros((frames, max_boxes, 7), np.float32)
     for f in range(frames):
         a_boxes = np.concatenate([a_xy[f], 0.5 * a_size[:, 2:3], a_size, a_yaw[:, None]], 1)
         world_boxes = np.concatenate([d["s_boxes"], a_boxes])
-        cam_to_world = ego_to_world[f] @ cam_to_ego                           # [V, 4, 4]
-        img, owner = _render_frame(cam_to_world, intrinsics, rays, world_boxes, d["scene"], look, d["season"],
-                                   d["light"], ego_xy[f], ego_yaw[f])
+        cam_to_world = ego_to_world[f] @ cam_to_ego  # [V, 4, 4]
+        img, owner = _render_frame(
+            cam_to_world,
+            intrinsics,
+            rays,
+            world_boxes,
+            d["scene"],
+            look,
+            d["season"],
+            d["light"],
+            ego_xy[f],
+            ego_yaw[f],
+        )
         video[:, f] = img
         agent = owner >= n_static
         instance[:, f][agent] = track_ids[owner[agent] - n_static]
@@ -207,14 +250,30 @@ def _render_clip(d, rng, ego_xy, ego_yaw, a_xy, a_yaw, bev_size, bev_range) -> d
         "waypoints": waypoints.astype(np.float32),
         "instance_ids": instance,
         "fps": d["fps"],
-        "caption": schema.caption(sensor="CAM_FRONT" if views == 1 else "6 surround cameras",
-                                  location=d["town"], season=d["season"], daytime=DAYTIME[look]),
+        "caption": schema.caption(
+            sensor="CAM_FRONT" if views == 1 else "6 surround cameras",
+            location=d["town"],
+            season=d["season"],
+            daytime=DAYTIME[look],
+        ),
     }
 
 
-def generate_clip(seed, *, views=6, frames=33, height=64, width=112, fps=12.0, num_agents=None,
-                  look=None, max_boxes=MAX_AGENTS, bev_size=(64, 64), bev_range=(100.0, 100.0),
-                  scenery=True) -> dict:
+def generate_clip(
+    seed,
+    *,
+    views=6,
+    frames=33,
+    height=64,
+    width=112,
+    fps=12.0,
+    num_agents=None,
+    look=None,
+    max_boxes=MAX_AGENTS,
+    bev_size=(64, 64),
+    bev_range=(100.0, 100.0),
+    scenery=True,
+) -> dict:
     """One clip of the synthetic town, a dict per :data:`jaxdrive.data.schema.CLIP_FIELDS`.
 
     seed: non-negative int; the same seed gives identical arrays. views: 6 (the CAMERAS rig) or 1
@@ -224,14 +283,40 @@ def generate_clip(seed, *, views=6, frames=33, height=64, width=112, fps=12.0, n
     ego at the centre, x up. scenery=False leaves out buildings, trees and lamps (tests use it to
     check agent occlusion alone).
     """
-    return counterfactual_clip(seed, "recorded", views=views, frames=frames, height=height, width=width, fps=fps,
-                               num_agents=num_agents, look=look, max_boxes=max_boxes, bev_size=bev_size,
-                               bev_range=bev_range, scenery=scenery)
+    return counterfactual_clip(
+        seed,
+        "recorded",
+        views=views,
+        frames=frames,
+        height=height,
+        width=width,
+        fps=fps,
+        num_agents=num_agents,
+        look=look,
+        max_boxes=max_boxes,
+        bev_size=bev_size,
+        bev_range=bev_range,
+        scenery=scenery,
+    )
 
 
-def counterfactual_clip(seed, route: str, *, start: int = COUNTERFACTUAL_START, views=6, frames=33, height=64,
-                        width=112, fps=12.0, num_agents=None, look=None, max_boxes=MAX_AGENTS, bev_size=(64, 64),
-                        bev_range=(100.0, 100.0), scenery=True) -> dict:
+def counterfactual_clip(
+    seed,
+    route: str,
+    *,
+    start: int = COUNTERFACTUAL_START,
+    views=6,
+    frames=33,
+    height=64,
+    width=112,
+    fps=12.0,
+    num_agents=None,
+    look=None,
+    max_boxes=MAX_AGENTS,
+    bev_size=(64, 64),
+    bev_range=(100.0, 100.0),
+    scenery=True,
+) -> dict:
     """The clip of :func:`generate_clip` with the same arguments, its ego driven along ``route``
     (one of :data:`jaxdrive.data.synth_routes.ROUTES`) from frame ``start`` on: the same town,
     scenery, look and agents, re-rendered; frames before ``start`` are the recorded clip's.
@@ -245,8 +330,17 @@ def counterfactual_clip(seed, route: str, *, start: int = COUNTERFACTUAL_START, 
         raise ValueError(f"route: expected one of {', '.join(ROUTES)}, got {route!r}")
     if route != "recorded" and not (isinstance(start, (int, np.integer)) and 1 <= start < frames):
         raise ValueError(f"start: expected a frame in [1, {frames - 1}] for a clip of {frames} frames, got {start!r}")
-    kw = dict(views=views, frames=frames, height=height, width=width, fps=fps, num_agents=num_agents, look=look,
-              max_boxes=max_boxes, scenery=scenery)
+    kw = dict(
+        views=views,
+        frames=frames,
+        height=height,
+        width=width,
+        fps=fps,
+        num_agents=num_agents,
+        look=look,
+        max_boxes=max_boxes,
+        scenery=scenery,
+    )
     d, rng, ego_xy, ego_yaw, a_xy, a_yaw = _drive(seed, route, start, kw)
     return _render_clip(d, rng, ego_xy, ego_yaw, a_xy, a_yaw, bev_size, bev_range)
 
@@ -254,16 +348,26 @@ def counterfactual_clip(seed, route: str, *, start: int = COUNTERFACTUAL_START, 
 def _drive(seed, route, start, kw):
     """The scene of ``seed`` and the ego's and agents' paths along ``route`` (no rendering):
     ``(scene, rng, ego_xy, ego_yaw, agents_xy, agents_yaw)``; UndrivableRoute when it cannot."""
-    d, rng = _draw_scene(seed, kw.get("views", 6), kw.get("frames", 33), kw.get("height", 64), kw.get("width", 112),
-                         float(kw.get("fps", 12.0)), kw.get("num_agents"), kw.get("look"),
-                         kw.get("max_boxes", MAX_AGENTS), kw.get("scenery", True))
+    d, rng = _draw_scene(
+        seed,
+        kw.get("views", 6),
+        kw.get("frames", 33),
+        kw.get("height", 64),
+        kw.get("width", 112),
+        float(kw.get("fps", 12.0)),
+        kw.get("num_agents"),
+        kw.get("look"),
+        kw.get("max_boxes", MAX_AGENTS),
+        kw.get("scenery", True),
+    )
     rec = d["route"]
     driver = routes.plan(route, rec, d["fps"], int(start), clip=f"seed {seed}")
     if driver is None:
         return d, rng, rec.xy, rec.yaw, d["a_xy"], d["a_yaw"]
     a_xy, a_yaw, ego_xy, ego_yaw = simulate(d["agents"], rec.xy, rec.yaw, d["fps"], driver=driver)
-    routes.check_drivable(route, f"seed {seed}", rec, driver, ego_xy, ego_yaw, a_xy, a_yaw,
-                          d["a_size"][:, :2], d["track_ids"])
+    routes.check_drivable(
+        route, f"seed {seed}", rec, driver, ego_xy, ego_yaw, a_xy, a_yaw, d["a_size"][:, :2], d["track_ids"]
+    )
     return d, rng, ego_xy, ego_yaw, a_xy, a_yaw
 
 
@@ -272,8 +376,15 @@ def counterfactual_split(route: str) -> str:
     return "validation_route_" + route.replace("-", "_")
 
 
-def drivable_clips(names, first_seed: int, count: int, *, start: int = COUNTERFACTUAL_START,
-                   skip_undrivable: bool = True, **clip_kwargs) -> dict:
+def drivable_clips(
+    names,
+    first_seed: int,
+    count: int,
+    *,
+    start: int = COUNTERFACTUAL_START,
+    skip_undrivable: bool = True,
+    **clip_kwargs,
+) -> dict:
     """``{route: [i, ...]}``: which of the ``count`` clips of seeds ``first_seed + i`` can drive
     each route of ``names`` from frame ``start`` (the routes are driven, nothing is rendered). An
     undrivable clip is left out, or with ``skip_undrivable=False`` a ``ValueError`` naming the
@@ -293,9 +404,18 @@ def drivable_clips(names, first_seed: int, count: int, *, start: int = COUNTERFA
     return out
 
 
-def write_synthetic_dataset(out, *, train: int, validation: int = 0, seed: int = 0, overwrite: bool = False,
-                            counterfactuals=(), counterfactual_start: int = COUNTERFACTUAL_START,
-                            skip_undrivable: bool = False, **clip_kwargs):
+def write_synthetic_dataset(
+    out,
+    *,
+    train: int,
+    validation: int = 0,
+    seed: int = 0,
+    overwrite: bool = False,
+    counterfactuals=(),
+    counterfactual_start: int = COUNTERFACTUAL_START,
+    skip_undrivable: bool = False,
+    **clip_kwargs,
+):
     """A TFDS dataset of ``train`` (+ ``validation``) synthetic scenes under ``out``, one seed per
     scene (``seed + i``: reproducible, disjoint splits); ``clip_kwargs`` go to :func:`generate_clip`.
     Returns the dataset path.
@@ -316,14 +436,19 @@ def write_synthetic_dataset(out, *, train: int, validation: int = 0, seed: int =
         raise ValueError(f"counterfactuals: expected validation clips to re-render, got validation={validation}")
     frames = clip_kwargs.get("frames", 33)
     if names and not (isinstance(counterfactual_start, (int, np.integer)) and 1 <= counterfactual_start < frames):
-        raise ValueError(f"counterfactual_start: expected a frame in [1, {frames - 1}] for clips of {frames} "
-                         f"frames, got {counterfactual_start!r}")
-    drivable = drivable_clips(names, seed + train, validation, start=int(counterfactual_start),
-                              skip_undrivable=skip_undrivable, **clip_kwargs)
+        raise ValueError(
+            f"counterfactual_start: expected a frame in [1, {frames - 1}] for clips of {frames} "
+            f"frames, got {counterfactual_start!r}"
+        )
+    drivable = drivable_clips(
+        names, seed + train, validation, start=int(counterfactual_start), skip_undrivable=skip_undrivable, **clip_kwargs
+    )
     for name, rows in drivable.items():
         if not rows:
-            raise ValueError(f"counterfactuals: expected route {name!r} to be drivable by at least one of the "
-                             f"{validation} validation clips, got none")
+            raise ValueError(
+                f"counterfactuals: expected route {name!r} to be drivable by at least one of the "
+                f"{validation} validation clips, got none"
+            )
 
     def clips(first, count):
         for i in range(first, first + count):
@@ -332,6 +457,7 @@ def write_synthetic_dataset(out, *, train: int, validation: int = 0, seed: int =
     def counterfactual(name):
         for row in drivable[name]:
             yield counterfactual_clip(seed + train + row, name, start=int(counterfactual_start), **clip_kwargs)
+
     splits = {"train": clips(0, train)}
     if validation:
         splits["validation"] = clips(train, validation)
@@ -339,9 +465,10 @@ def write_synthetic_dataset(out, *, train: int, validation: int = 0, seed: int =
         splits[counterfactual_split(name)] = counterfactual(name)
     meta = {"source": "synthetic", "seed": seed, **clip_kwargs}
     if names:
-        meta["counterfactuals"] = {"start": int(counterfactual_start),
-                                   "routes": {n: {"split": counterfactual_split(n), "clips": drivable[n]}
-                                              for n in names}}
+        meta["counterfactuals"] = {
+            "start": int(counterfactual_start),
+            "routes": {n: {"split": counterfactual_split(n), "clips": drivable[n]} for n in names},
+        }
     return write_dataset(out, splits, name="jaxdrive_synthetic", overwrite=overwrite, metadata=meta)
 
 

@@ -85,8 +85,10 @@ def precompute_t5(captions: Sequence[str], encoder_dir, *, max_length: int = 300
         import torch
         from transformers import AutoTokenizer, T5EncoderModel
     except ImportError as e:
-        raise ImportError(f"precompute_t5 needs the packages 'transformers' and 'torch', which jaxdrive does "
-                          f"not depend on: pip install \"jaxdrive[t5]\" ({e})") from None
+        raise ImportError(
+            f"precompute_t5 needs the packages 'transformers' and 'torch', which jaxdrive does "
+            f'not depend on: pip install "jaxdrive[t5]" ({e})'
+        ) from None
     folder = pathlib.Path(encoder_dir)
     if not folder.is_dir():
         raise ValueError(f"encoder_dir: expected a folder with a T5 encoder, got {str(folder)!r}")
@@ -95,14 +97,21 @@ def precompute_t5(captions: Sequence[str], encoder_dir, *, max_length: int = 300
         tokenizer = AutoTokenizer.from_pretrained(str(tok_dir), local_files_only=True)
         model = T5EncoderModel.from_pretrained(str(folder), local_files_only=True, use_safetensors=True).eval()
     except (OSError, ValueError) as e:
-        raise ValueError(f"{folder}: expected a T5 encoder (safetensors) and its tokenizer, could not load: "
-                         f"{e}") from None
+        raise ValueError(
+            f"{folder}: expected a T5 encoder (safetensors) and its tokenizer, could not load: {e}"
+        ) from None
     device = "cuda" if torch.cuda.is_available() else "cpu"
     model = model.to(device)
     embs, masks = [], []
     for i in range(0, len(captions), batch_size):
-        batch = tokenizer(list(captions[i:i + batch_size]), padding="max_length", max_length=max_length,
-                          truncation=True, add_special_tokens=True, return_tensors="pt")
+        batch = tokenizer(
+            list(captions[i : i + batch_size]),
+            padding="max_length",
+            max_length=max_length,
+            truncation=True,
+            add_special_tokens=True,
+            return_tensors="pt",
+        )
         with torch.no_grad():
             out = model(batch.input_ids.to(device), attention_mask=batch.attention_mask.to(device))[0]
         embs.append(out.float().cpu().numpy())

@@ -79,11 +79,11 @@ def _features(first: Mapping, compression: str, kind: str) -> tuple[tfds.feature
         elif np.ndim(value) == 0 and isinstance(value, (bool, int, float, np.generic)):
             feats[name] = tfds.features.Scalar(dtype=np.asarray(value).dtype)
         elif isinstance(value, np.ndarray):
-            feats[name] = tfds.features.Tensor(shape=(None,) * value.ndim, dtype=value.dtype,
-                                               encoding="bytes")
+            feats[name] = tfds.features.Tensor(shape=(None,) * value.ndim, dtype=value.dtype, encoding="bytes")
         else:
-            raise ValueError(f"clip field {name!r}: expected a string, a number or a NumPy array, "
-                             f"got {type(value).__name__}")
+            raise ValueError(
+                f"clip field {name!r}: expected a string, a number or a NumPy array, got {type(value).__name__}"
+            )
     return tfds.features.FeaturesDict(feats), texts
 
 
@@ -100,8 +100,9 @@ class _Features:
         return self.dict
 
 
-def _write_split(tmp: Path, prefix: str, split: str, clips: Iterable[dict], features: _Features,
-                 shard_bytes: int) -> dict:
+def _write_split(
+    tmp: Path, prefix: str, split: str, clips: Iterable[dict], features: _Features, shard_bytes: int
+) -> dict:
     """Stream one split into ArrayRecord parts ``<split>.<prefix>.partN`` (TFDS serialisation,
     written in order); returns the parts' record counts, the records' frame counts and bytes."""
     lengths, frames, total = [], [], 0
@@ -112,14 +113,17 @@ def _write_split(tmp: Path, prefix: str, split: str, clips: Iterable[dict], feat
             sizes = schema.check_clip(clip, source=where, kind=features.kind)
             feats = features.of(clip)
             if set(clip.keys()) != features.keys:
-                raise ValueError(f"{where}: expected the fields of the first clip {sorted(features.keys)}, "
-                                 f"got {sorted(clip.keys())}")
+                raise ValueError(
+                    f"{where}: expected the fields of the first clip {sorted(features.keys)}, got {sorted(clip.keys())}"
+                )
             data = feats.serialize_example({k: (float(v) if k == "fps" else v) for k, v in clip.items()})
             if writer is None or size >= shard_bytes:
                 if writer is not None:
                     writer.close()
-                writer, size = ArrayRecordWriter(os.fspath(tmp / f"{split}.{prefix}.part{len(lengths)}"),
-                                                 "group_size:1"), 0
+                writer, size = (
+                    ArrayRecordWriter(os.fspath(tmp / f"{split}.{prefix}.part{len(lengths)}"), "group_size:1"),
+                    0,
+                )
                 lengths.append(0)
             writer.write(data)
             size += len(data)
@@ -132,19 +136,20 @@ def _write_split(tmp: Path, prefix: str, split: str, clips: Iterable[dict], feat
     return {"lengths": lengths, "frames": frames, "num_bytes": total}
 
 
-def _write_part(tmp: Path, index: int, splits: Mapping[str, Iterable[dict]], features: _Features,
-                shard_bytes: int) -> None:
+def _write_part(
+    tmp: Path, index: int, splits: Mapping[str, Iterable[dict]], features: _Features, shard_bytes: int
+) -> None:
     """Process ``index``'s records of every split, in split order, and ``p<index>.json``: what
     :func:`_assemble` needs of them (the features its first record gave, per split its parts)."""
     prefix = f"p{index:05d}"
-    written = {split: _write_split(tmp, prefix, split, clips, features, shard_bytes)
-               for split, clips in splits.items()}
+    written = {split: _write_split(tmp, prefix, split, clips, features, shard_bytes) for split, clips in splits.items()}
     summary = {"features": None if features.dict is None else features.dict.to_json(), "splits": written}
     (tmp / f"{prefix}.json").write_text(json.dumps(summary))
 
 
-def _assemble(tmp: Path, out_dir: Path, count: int, splits: list[str], *, name: str, description: str,
-              metadata: dict, kind: str) -> dict:
+def _assemble(
+    tmp: Path, out_dir: Path, count: int, splits: list[str], *, name: str, description: str, metadata: dict, kind: str
+) -> dict:
     """The parts of processes ``0..count-1`` (:func:`_write_part`), in process order, as the
     TFDS dataset in ``tmp``: shards renamed ``<name>-<split>.array_record-NNNNN-of-NNNNN``, TFDS
     metadata written; returns the per-split frame counts."""
@@ -154,12 +159,16 @@ def _assemble(tmp: Path, out_dir: Path, count: int, splits: list[str], *, name: 
         raise ValueError(f"splits: expected at least one clip for {out_dir}, got none")
     for i, f in enumerate(s["features"] for s in summaries):
         if f is not None and f != given[0]:
-            raise ValueError(f"splits: expected the fields of the first clip in every process, got others in "
-                             f"process {i}")
+            raise ValueError(
+                f"splits: expected the fields of the first clip in every process, got others in process {i}"
+            )
     features = tfds.features.FeatureConnector.from_json(given[0])
     template = tfds.core.ShardedFileTemplate(
-        data_dir=tmp, template="{DATASET}-{SPLIT}.{FILEFORMAT}-{SHARD_X_OF_Y}", dataset_name=name,
-        filetype_suffix="array_record")
+        data_dir=tmp,
+        template="{DATASET}-{SPLIT}.{FILEFORMAT}-{SHARD_X_OF_Y}",
+        dataset_name=name,
+        filetype_suffix="array_record",
+    )
     infos, counts = [], {}
     for split in splits:
         rows = [s["splits"][split] for s in summaries]
@@ -168,27 +177,48 @@ def _assemble(tmp: Path, out_dir: Path, count: int, splits: list[str], *, name: 
             raise ValueError(f"splits[{split!r}]: expected at least one clip for {out_dir}, got none")
         named = template.replace(split=split)
         for shard, (i, k) in enumerate(parts):
-            os.rename(tmp / f"{split}.p{i:05d}.part{k}", named.sharded_filepath(shard_index=shard,
-                                                                              num_shards=len(parts)))
+            os.rename(
+                tmp / f"{split}.p{i:05d}.part{k}", named.sharded_filepath(shard_index=shard, num_shards=len(parts))
+            )
         counts[split] = [n for r in rows for n in r["frames"]]
-        infos.append(tfds.core.SplitInfo(name=split, shard_lengths=[n for r in rows for n in r["lengths"]],
-                                         num_bytes=sum(r["num_bytes"] for r in rows), filename_template=named))
+        infos.append(
+            tfds.core.SplitInfo(
+                name=split,
+                shard_lengths=[n for r in rows for n in r["lengths"]],
+                num_bytes=sum(r["num_bytes"] for r in rows),
+                filename_template=named,
+            )
+        )
     for i in range(count):
         (tmp / f"p{i:05d}.json").unlink()
-    metadata[_RESERVED_METADATA] = {"kind": kind, "frame_counts": counts,
-                                    "schema_fields": sorted(features.keys())}
+    metadata[_RESERVED_METADATA] = {"kind": kind, "frame_counts": counts, "schema_fields": sorted(features.keys())}
     tfds.folder_dataset.write_metadata(
-        data_dir=tmp, features=features, split_infos=infos, version=VERSION,
-        filename_template=template, check_data=False, description=description,
-        metadata=tfds.core.MetadataDict(metadata), disable_shuffling=True)
+        data_dir=tmp,
+        features=features,
+        split_infos=infos,
+        version=VERSION,
+        filename_template=template,
+        check_data=False,
+        description=description,
+        metadata=tfds.core.MetadataDict(metadata),
+        disable_shuffling=True,
+    )
     return counts
 
 
-def write_dataset(out_dir, splits: Mapping[str, Iterable[dict]], *, name: str = "jaxdrive_clips",
-                  description: str = "jaxdrive driving clips (see jaxdrive.data.schema).",
-                  metadata: Mapping | None = None, compression: str = "bytes",
-                  overwrite: bool = False, shard_bytes: int = 1 << 30, kind: str = "clips",
-                  processes=None) -> Path:
+def write_dataset(
+    out_dir,
+    splits: Mapping[str, Iterable[dict]],
+    *,
+    name: str = "jaxdrive_clips",
+    description: str = "jaxdrive driving clips (see jaxdrive.data.schema).",
+    metadata: Mapping | None = None,
+    compression: str = "bytes",
+    overwrite: bool = False,
+    shard_bytes: int = 1 << 30,
+    kind: str = "clips",
+    processes=None,
+) -> Path:
     """Write clip iterables as one TFDS ArrayRecord dataset at ``out_dir``; return its path.
 
     ``splits`` maps split names (e.g. ``"train"``, ``"validation"``) to iterables of clip dicts
@@ -224,30 +254,35 @@ def write_dataset(out_dir, splits: Mapping[str, Iterable[dict]], *, name: str = 
         raise ValueError(f"metadata: the key {_RESERVED_METADATA!r} is reserved, got it in {sorted(metadata)}")
     index, count = (0, 1) if processes is None else (processes.index, processes.count)
     gather = (lambda v: [v]) if processes is None else processes.gather
-    token = gather(uuid.uuid4().int % (1 << 31))[0]         # process 0's: one temporary directory for all
+    token = gather(uuid.uuid4().int % (1 << 31))[0]  # process 0's: one temporary directory for all
     tmp = out_dir.parent / f".{out_dir.name}.tmp-{token:08x}"
     error = None
     try:
         tmp.mkdir(parents=True, exist_ok=True)
         _write_part(tmp, index, splits, _Features(compression, kind), shard_bytes)
     except Exception as e:
-        if count > 1:       # stop now: the others may be inside a collective of their records' making
-            _reraise(e, out_dir, f"the others stop at their next collective; the partial dataset stays in {tmp}: "
-                                 f"remove it with rm -rf '{tmp}'")
+        if count > 1:  # stop now: the others may be inside a collective of their records' making
+            _reraise(
+                e,
+                out_dir,
+                f"the others stop at their next collective; the partial dataset stays in {tmp}: "
+                f"remove it with rm -rf '{tmp}'",
+            )
         error = e
-    gather(1)                                                       # every part is written here
+    gather(1)  # every part is written here
     if index == 0:
         try:
             if error is None:
-                counts = _assemble(tmp, out_dir, count, list(splits), name=name, description=description,
-                                   metadata=metadata, kind=kind)
+                counts = _assemble(
+                    tmp, out_dir, count, list(splits), name=name, description=description, metadata=metadata, kind=kind
+                )
                 move_into_place(tmp, out_dir)
                 log.info("wrote dataset %s: %s", out_dir, {s: len(c) for s, c in counts.items()})
         except Exception as e:
             error = e
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
-    if not gather(int(error is None))[0] and error is None:        # process 0 has finished (or failed)
+    if not gather(int(error is None))[0] and error is None:  # process 0 has finished (or failed)
         error = ValueError("process 0 could not finish it (its error says why)")
     if error is not None:
         _reraise(error, out_dir, "nothing was left under that name")
@@ -270,11 +305,12 @@ def _dataset_dir(path) -> Path:
         raise ValueError(f"path: expected a TFDS dataset directory, got {path} (it does not exist)")
     if (path / "dataset_info.json").is_file():
         return path
-    found = sorted(p.parent for pat in ("*/dataset_info.json", "*/*/dataset_info.json")
-                   for p in path.glob(pat))
+    found = sorted(p.parent for pat in ("*/dataset_info.json", "*/*/dataset_info.json") for p in path.glob(pat))
     if len(found) != 1:
-        raise ValueError(f"path: expected a directory with dataset_info.json (or exactly one dataset "
-                         f"below it), got {path} with {len(found)} datasets below it")
+        raise ValueError(
+            f"path: expected a directory with dataset_info.json (or exactly one dataset "
+            f"below it), got {path} with {len(found)} datasets below it"
+        )
     return found[0]
 
 
@@ -309,7 +345,7 @@ class ClipSource:
             raise ValueError(f"split: expected one of {splits} for {self.path}, got {split!r}")
         self._texts = [k for k, f in builder.info.features.items() if isinstance(f, tfds.features.Text)]
         ours = (builder.info.metadata or {}).get(_RESERVED_METADATA, {})
-        self.kind = ours.get("kind", "clips")     # datasets written before kinds existed hold clips
+        self.kind = ours.get("kind", "clips")  # datasets written before kinds existed hold clips
         counts = ours.get("frame_counts", {}).get(split)
         self.frame_counts = None if counts is None else np.asarray(counts, np.int64)
         self._len = int(builder.info.splits[split].num_examples)
@@ -339,11 +375,14 @@ class ClipSource:
         source = self._open()
         try:
             return self._decode(source[index])
-        except Exception as e:       # array_record / TFDS raise RuntimeError, TypeError, ... for damage
+        except Exception as e:  # array_record / TFDS raise RuntimeError, TypeError, ... for damage
             shard, position = self.shard_of(index)
-            raise BadRecordError(shard, f"record {position} (clip {index} of split {self.split!r} of {self.path}) "
-                                        f"could not be read: the shard file is corrupt or truncated "
-                                        f"({type(e).__name__}: {str(e)[:300]})") from e
+            raise BadRecordError(
+                shard,
+                f"record {position} (clip {index} of split {self.split!r} of {self.path}) "
+                f"could not be read: the shard file is corrupt or truncated "
+                f"({type(e).__name__}: {str(e)[:300]})",
+            ) from e
 
     def shard_of(self, index: int) -> tuple[str, int]:
         """``(shard file, record position in it)`` of clip ``index``."""
@@ -363,9 +402,18 @@ class ClipSource:
         return clip
 
     def __getstate__(self):
-        return {"path": self.path, "split": self.split, "kind": self.kind, "_texts": self._texts,
-                "frame_counts": self.frame_counts, "_len": self._len, "_shards": self._shards,
-                "_starts": self._starts, "_builder": None, "_source": None}
+        return {
+            "path": self.path,
+            "split": self.split,
+            "kind": self.kind,
+            "_texts": self._texts,
+            "frame_counts": self.frame_counts,
+            "_len": self._len,
+            "_shards": self._shards,
+            "_starts": self._starts,
+            "_builder": None,
+            "_source": None,
+        }
 
     def __repr__(self):
         return f"ClipSource({str(self.path)!r}, {self.split!r}, len={self._len})"
@@ -388,16 +436,26 @@ def dataset_info(path) -> dict:
         if isinstance(f, tfds.features.Text):
             features[k] = {"kind": "text"}
         else:
-            features[k] = {"kind": "tensor", "shape": [None if s is None else int(s) for s in f.shape],
-                           "dtype": np.dtype(f.np_dtype).name}
+            features[k] = {
+                "kind": "tensor",
+                "shape": [None if s is None else int(s) for s in f.shape],
+                "dtype": np.dtype(f.np_dtype).name,
+            }
     splits = {}
     for s, split in info.splits.items():
         row = {"num_examples": int(split.num_examples), "num_bytes": int(split.num_bytes)}
         counts = ours.get("frame_counts", {}).get(s)
         if counts:
-            row.update(min_frames=int(min(counts)), max_frames=int(max(counts)),
-                       total_frames=int(sum(counts)))
+            row.update(min_frames=int(min(counts)), max_frames=int(max(counts)), total_frames=int(sum(counts)))
         splits[s] = row
-    return {"path": str(d), "name": info.name, "version": str(info.version),
-            "description": info.description, "file_format": "array_record", "kind": ours.get("kind", "clips"),
-            "splits": splits, "features": features, "metadata": meta}
+    return {
+        "path": str(d),
+        "name": info.name,
+        "version": str(info.version),
+        "description": info.description,
+        "file_format": "array_record",
+        "kind": ours.get("kind", "clips"),
+        "splits": splits,
+        "features": features,
+        "metadata": meta,
+    }

@@ -39,21 +39,28 @@ def clip_tracks(clip, ref: int = -1) -> dict:
     frames, n = valid.shape
     ego = planar(e2w)
     ref = ref % frames
-    if (ids[ref][valid[ref]] >= 0).all() and valid[ref].any():        # follow ids: slots may reorder
+    if (ids[ref][valid[ref]] >= 0).all() and valid[ref].any():  # follow ids: slots may reorder
         same = (ids[:, None, :] == ids[ref][None, :, None]) & valid[:, None, :] & valid[ref][None, :, None]
-        slot = np.where(same.any(-1), same.argmax(-1), -1)            # [F, N]: frame f's slot of track k
+        slot = np.where(same.any(-1), same.argmax(-1), -1)  # [F, N]: frame f's slot of track k
     else:
         slot = np.where(valid, np.arange(n), -1)
     seen = slot >= 0
-    take = np.take_along_axis(boxes, np.maximum(slot, 0)[..., None], 1)          # [F, N, 7]
+    take = np.take_along_axis(boxes, np.maximum(slot, 0)[..., None], 1)  # [F, N, 7]
     c, s = np.cos(ego[:, 2])[:, None], np.sin(ego[:, 2])[:, None]
     x = ego[:, None, 0] + c * take[..., 0] - s * take[..., 1]
     y = ego[:, None, 1] + s * take[..., 0] + c * take[..., 1]
     agents = np.stack([x, y, wrap(take[..., 6] + ego[:, None, 2])], -1)
     agents = np.where(seen[..., None], agents, 0.0)
-    return {"ego": ego, "agents": agents, "seen": seen & valid[ref][None], "size": boxes[ref, :, 3:6],
-            "z": boxes[ref, :, 2], "classes": classes[ref].astype(np.int32), "ids": ids[ref].astype(np.int32),
-            "valid": valid[ref]}
+    return {
+        "ego": ego,
+        "agents": agents,
+        "seen": seen & valid[ref][None],
+        "size": boxes[ref, :, 3:6],
+        "z": boxes[ref, :, 2],
+        "classes": classes[ref].astype(np.int32),
+        "ids": ids[ref].astype(np.int32),
+        "valid": valid[ref],
+    }
 
 
 def clip_fields(ego, agents, *, size, z, classes, ids, valid, ego_z: float = 0.0) -> dict:
@@ -78,11 +85,14 @@ def clip_fields(ego, agents, *, size, z, classes, ids, valid, ego_z: float = 0.0
     zz = np.broadcast_to(np.asarray(z, np.float64), (frames, n))
     boxes = np.concatenate([np.stack([bx, by, zz], -1), size, wrap(agents[..., 2] - ego[:, None, 2])[..., None]], -1)
     keep = np.broadcast_to(np.asarray(valid, bool), (frames, n))
-    return {"ego_to_world": e2w, "waypoints": waypoints.astype(np.float32),
-            "boxes": np.where(keep[..., None], boxes, 0.0).astype(np.float32),
-            "box_classes": np.where(keep, np.asarray(classes, np.int32), -1).astype(np.int32),
-            "box_ids": np.where(keep, np.asarray(ids, np.int32), -1).astype(np.int32),
-            "box_valid": keep.copy()}
+    return {
+        "ego_to_world": e2w,
+        "waypoints": waypoints.astype(np.float32),
+        "boxes": np.where(keep[..., None], boxes, 0.0).astype(np.float32),
+        "box_classes": np.where(keep, np.asarray(classes, np.int32), -1).astype(np.int32),
+        "box_ids": np.where(keep, np.asarray(ids, np.int32), -1).astype(np.int32),
+        "box_valid": keep.copy(),
+    }
 
 
 def interpolate(times, values, at, *, angle_last: bool = True):
@@ -108,6 +118,7 @@ def load_controls(path, split: str, *, max_agents: int) -> list[dict]:
     (:func:`jaxdrive.data.pipeline.pad_boxes`)."""
     from jaxdrive.data.pipeline import pad_boxes
     from jaxdrive.data.tfds_io import open_source
+
     source = open_source(path, split)
     clips = []
     for i in range(len(source)):
@@ -125,5 +136,13 @@ def window_traffic(clip: dict, frames: np.ndarray, history: int) -> dict:
     NumPy) of the first ``history`` steps and the targets of the rest, and each step's ``bev``."""
     sub = {k: clip[k][frames] for k in ("ego_to_world", "boxes", "box_classes", "box_ids", "box_valid")}
     tr = clip_tracks(sub, ref=history - 1)
-    return {"ego": tr["ego"], "agents": tr["agents"], "seen": tr["seen"], "size": tr["size"], "z": tr["z"],
-            "classes": np.maximum(tr["classes"], 0), "ids": tr["ids"], "bev": clip["bev_map"][frames]}
+    return {
+        "ego": tr["ego"],
+        "agents": tr["agents"],
+        "seen": tr["seen"],
+        "size": tr["size"],
+        "z": tr["z"],
+        "classes": np.maximum(tr["classes"], 0),
+        "ids": tr["ids"],
+        "bev": clip["bev_map"][frames],
+    }

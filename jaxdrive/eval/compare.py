@@ -23,7 +23,7 @@ from jaxdrive.generate.quality import psnr, ssim
 logger = logging.getLogger(__name__)
 
 FVD_FRAMES = 16
-EFFECT_METRICS = ("psnr", "ssim", "miou")    # the route effects (:mod:`jaxdrive.eval.routes`) of each row
+EFFECT_METRICS = ("psnr", "ssim", "miou")  # the route effects (:mod:`jaxdrive.eval.routes`) of each row
 
 
 def parse_buckets(text: str | None, given: int, frames: int) -> list[tuple[int, int]]:
@@ -43,16 +43,20 @@ def parse_buckets(text: str | None, given: int, frames: int) -> list[tuple[int, 
             out.append((a, b + 1))
     for a, b in out:
         if not given <= a < b <= frames:
-            raise ValueError(f"buckets: expected ranges within the generated frames {given}-{frames - 1}, got "
-                             f"{a}-{b - 1} (clips shorter than the horizon buckets)")
+            raise ValueError(
+                f"buckets: expected ranges within the generated frames {given}-{frames - 1}, got "
+                f"{a}-{b - 1} (clips shorter than the horizon buckets)"
+            )
     whole = (min(a for a, _ in out), max(b for _, b in out))
     return out + [whole] if len(out) > 1 and whole not in out else out
 
 
 def _horizon_rows(rows: list) -> list:
     """The per-bucket rows of a result, without the overall one (:func:`parse_buckets`)."""
-    if len(rows) > 2 and rows[-1]["frames"] == [min(r["frames"][0] for r in rows[:-1]),
-                                                max(r["frames"][1] for r in rows[:-1])]:
+    if len(rows) > 2 and rows[-1]["frames"] == [
+        min(r["frames"][0] for r in rows[:-1]),
+        max(r["frames"][1] for r in rows[:-1]),
+    ]:
         return rows[:-1]
     return rows
 
@@ -66,10 +70,13 @@ def controllability(segment, video, masks, buckets) -> dict:
     ``per_class``, ``pixel_accuracy``) of ``video [B, V, F, H, W, 3]`` against the class ids
     ``masks [B, V, F, H, W]`` (and the bucket's ``frames``); ``segment(frames) -> class ids``."""
     from jaxdrive.models.segmenter import confusion, summary
+
     lo, hi = min(a for a, _ in buckets), max(b for _, b in buckets)
-    pred = segment(video[:, :, lo:hi])           # once: the buckets overlap (the whole span is one)
-    return {f"{a}-{b - 1}": {"frames": [a, b - 1], **summary(confusion(pred[:, :, a - lo:b - lo], masks[:, :, a:b]))}
-            for a, b in buckets}
+    pred = segment(video[:, :, lo:hi])  # once: the buckets overlap (the whole span is one)
+    return {
+        f"{a}-{b - 1}": {"frames": [a, b - 1], **summary(confusion(pred[:, :, a - lo : b - lo], masks[:, :, a:b]))}
+        for a, b in buckets
+    }
 
 
 def score(video, recorded, buckets, *, fid_features=None, fvd_features=None, segment=None, masks=None) -> dict:
@@ -82,30 +89,37 @@ def score(video, recorded, buckets, *, fid_features=None, fvd_features=None, seg
     out = {}
     control = controllability(segment, video, masks, buckets) if segment is not None else {}
     lo, hi = min(a for a, _ in buckets), max(b for _, b in buckets)
-    if fid_features is not None:                 # every frame's features once: the buckets overlap
+    if fid_features is not None:  # every frame's features once: the buckets overlap
+
         def frame_features(x):
             x = x[:, :, lo:hi]
             return np.asarray(fid_features(_to_255(x.reshape(-1, *x.shape[3:])))).reshape(*x.shape[:3], -1)
-        frame_feats = [frame_features(x) for x in (video, recorded)]          # [B, V, F, D] each
+
+        frame_feats = [frame_features(x) for x in (video, recorded)]  # [B, V, F, D] each
     for a, b in buckets:
         g, r = video[:, :, a:b], recorded[:, :, a:b]
-        row = {"frames": [a, b - 1], "psnr": float(np.minimum(np.asarray(psnr(g, r)), 100.0).mean()),
-               "ssim": float(np.asarray(ssim(g, r)).mean())}
+        row = {
+            "frames": [a, b - 1],
+            "psnr": float(np.minimum(np.asarray(psnr(g, r)), 100.0).mean()),
+            "ssim": float(np.asarray(ssim(g, r)).mean()),
+        }
         if control:
             c = control[f"{a}-{b - 1}"]
             row["miou"] = c["miou"]
             row["miou_per_class"] = {k: v for k, v in c["per_class"].items() if k != "background" and v is not None}
         if fid_features is not None:
-            fg, fr = (f[:, :, a - lo:b - lo] for f in frame_feats)
+            fg, fr = (f[:, :, a - lo : b - lo] for f in frame_feats)
             stats = lambda f: FeatureStats(f.shape[-1]).add(f.reshape(-1, f.shape[-1]))
             row["fid_per_view"] = [round(stats(fg[:, v]).fid(stats(fr[:, v])), 4) for v in range(fg.shape[1])]
             row["fid"] = stats(fg).fid(stats(fr))
         if fvd_features is not None:
             starts = range(a, b - FVD_FRAMES + 1, FVD_FRAMES)
             if len(starts) * video.shape[0] * video.shape[1] >= 2:
+
                 def windows(x):
-                    w = np.stack([x[:, :, s:s + FVD_FRAMES] for s in starts], 2)    # [B, V, W, 16, H, W, 3]
+                    w = np.stack([x[:, :, s : s + FVD_FRAMES] for s in starts], 2)  # [B, V, W, 16, H, W, 3]
                     return _to_255(w.reshape(-1, *w.shape[3:]))
+
                 f = [np.asarray(fvd_features(windows(x))) for x in (video, recorded)]
                 row["fvd"] = FeatureStats(f[0].shape[1]).add(f[0]).fid(FeatureStats(f[1].shape[1]).add(f[1]))
             else:
@@ -114,7 +128,7 @@ def score(video, recorded, buckets, *, fid_features=None, fvd_features=None, seg
     return out
 
 
-REPEAT = "repeat frame "          # the baseline rows: "repeat frame 1" holds frame 1 (2 given frames)
+REPEAT = "repeat frame "  # the baseline rows: "repeat frame 1" holds frame 1 (2 given frames)
 
 
 def repeat_name(given: int) -> str:
@@ -125,13 +139,29 @@ def repeat_baseline(recorded, given: int, buckets, **features) -> dict:
     """The baseline row :func:`repeat_name`: the recorded clip's last given frame held for every
     later frame, scored as a strategy (:func:`score`); what a model that learned no motion gets."""
     video = np.array(recorded, copy=True)
-    video[:, :, given:] = video[:, :, given - 1:given]
+    video[:, :, given:] = video[:, :, given - 1 : given]
     return {"seconds": None, "peak_device_bytes": None, "buckets": score(video, recorded, buckets, **features)}
 
 
-def run_strategies(strategies, models, codec, controls, first, length, recorded, buckets, *, key, mesh=None,
-                   fid_features=None, fvd_features=None, segment=None, masks=None, targets=None,
-                   keep=False) -> dict:
+def run_strategies(
+    strategies,
+    models,
+    codec,
+    controls,
+    first,
+    length,
+    recorded,
+    buckets,
+    *,
+    key,
+    mesh=None,
+    fid_features=None,
+    fvd_features=None,
+    segment=None,
+    masks=None,
+    targets=None,
+    keep=False,
+) -> dict:
     """Every strategy of ``strategies`` (name -> its options) on the same inputs, decoded and
     scored (:func:`score`); returns ``{name: {"seconds", "sequential_sampler_calls",
     "peak_device_bytes", "buckets": {...}}}``. ``targets`` (label -> ``(video, masks)``): each
@@ -141,14 +171,16 @@ def run_strategies(strategies, models, codec, controls, first, length, recorded,
     writing the results as JSON). Each strategy's time is logged at INFO."""
     from jaxdrive.generate.strategies import run_strategy
     from jaxdrive.generate.windows import Tracker
+
     results = {}
     for name, opts in strategies.items():
         tracker = Tracker()
         start = time.perf_counter()
         decoder = codec.stream_decoder(length)
         parts = []
-        for part in run_strategy(name, models, controls, first, length, key=key, tracker=tracker, mesh=mesh,
-                                 **(opts or {})):
+        for part in run_strategy(
+            name, models, controls, first, length, key=key, tracker=tracker, mesh=mesh, **(opts or {})
+        ):
             video = decoder.push(part)
             if video is not None and video.shape[2]:
                 parts.append(np.asarray(video))
@@ -158,25 +190,46 @@ def run_strategies(strategies, models, codec, controls, first, length, recorded,
             parts.append(np.asarray(tail))
         seconds = time.perf_counter() - start
         video = np.concatenate(parts, axis=2)
-        results[name] = {"seconds": round(seconds, 3), "sequential_sampler_calls": tracker.calls,
-                         "peak_device_bytes": int(tracker.peak_bytes),
-                         "buckets": score(video, recorded, buckets, fid_features=fid_features,
-                                          fvd_features=fvd_features, segment=segment, masks=masks)}
+        results[name] = {
+            "seconds": round(seconds, 3),
+            "sequential_sampler_calls": tracker.calls,
+            "peak_device_bytes": int(tracker.peak_bytes),
+            "buckets": score(
+                video,
+                recorded,
+                buckets,
+                fid_features=fid_features,
+                fvd_features=fvd_features,
+                segment=segment,
+                masks=masks,
+            ),
+        }
         if keep:
             results[name]["video"] = video[0]
         if targets:
-            results[name]["against"] = {label: score(video, target, buckets, segment=segment, masks=target_masks)
-                                        for label, (target, target_masks) in targets.items()}
-        logger.info("%s: %d frames x %d views x %d clips in %.1f s", name, video.shape[2], video.shape[1],
-                    video.shape[0], seconds)
+            results[name]["against"] = {
+                label: score(video, target, buckets, segment=segment, masks=target_masks)
+                for label, (target, target_masks) in targets.items()
+            }
+        logger.info(
+            "%s: %d frames x %d views x %d clips in %.1f s",
+            name,
+            video.shape[2],
+            video.shape[1],
+            video.shape[0],
+            seconds,
+        )
     return results
 
 
 def table(results: dict, ceiling: dict | None = None) -> str:
     """A markdown table: one row per strategy and bucket; ``ceiling`` (:func:`controllability` of
     the recorded frames) adds the segmenter's mIoU on them as rows ``recorded frames``."""
-    metrics = [m for m in ("psnr", "ssim", "fid", "fvd", "miou") if any(m in row for r in results.values()
-                                                                         for row in r["buckets"].values())]
+    metrics = [
+        m
+        for m in ("psnr", "ssim", "fid", "fvd", "miou")
+        if any(m in row for r in results.values() for row in r["buckets"].values())
+    ]
     head = ["strategy", "frames", *[m.upper() if m != "miou" else "mIoU" for m in metrics], "seconds", "peak MiB"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, r in results.items():
@@ -198,8 +251,10 @@ def write_outputs(results: dict, out, *, meta: dict, ceiling: dict | None = None
     route effects of ``--routes`` (:func:`jaxdrive.eval.routes.route_effect`), ``eval.json``'s
     ``route_effect``, a second table in ``eval.md`` and a panel of the plot."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     extra = {} if ceiling is None else {"recorded_controllability": ceiling}
@@ -208,8 +263,10 @@ def write_outputs(results: dict, out, *, meta: dict, ceiling: dict | None = None
     (out / "eval.json").write_text(json.dumps({**meta, **extra, "strategies": results}, indent=1))
     md = table(results, ceiling)
     if effects:
-        md += "\n\nRoute effect (the generation under the route minus the recorded-route generation, both " \
-              "against the route's render; 0: the route was ignored):\n\n" + effect_table(effects)
+        md += (
+            "\n\nRoute effect (the generation under the route minus the recorded-route generation, both "
+            "against the route's render; 0: the route was ignored):\n\n" + effect_table(effects)
+        )
     (out / "eval.md").write_text(md + "\n")
     panels = [("psnr", "PSNR dB against the recorded clip", "PSNR vs horizon")]
     if any(row.get("miou") is not None for r in results.values() for row in r["buckets"].values()):
@@ -219,12 +276,12 @@ def write_outputs(results: dict, out, *, meta: dict, ceiling: dict | None = None
     for ax, (metric, label, title) in zip(axes[0], panels):
         for name, r in results.items():
             rows = _horizon_rows(list(r["buckets"].values()))
-            ax.plot([np.mean(row["frames"]) for row in rows], [row.get(metric) for row in rows], marker="o",
-                    label=name)
+            ax.plot([np.mean(row["frames"]) for row in rows], [row.get(metric) for row in rows], marker="o", label=name)
         if metric == "miou" and ceiling:
             rows = _horizon_rows(list(ceiling.values()))
-            ax.plot([np.mean(row["frames"]) for row in rows], [row["miou"] for row in rows], "k--",
-                    label="recorded frames")
+            ax.plot(
+                [np.mean(row["frames"]) for row in rows], [row["miou"] for row in rows], "k--", label="recorded frames"
+            )
         ax.set(xlabel="frame (bucket centre)", ylabel=label, title=title)
         ax.grid(alpha=0.3)
         ax.legend()
@@ -238,8 +295,9 @@ def write_outputs(results: dict, out, *, meta: dict, ceiling: dict | None = None
 
 def effect_table(effects: dict) -> str:
     """A markdown table of :func:`jaxdrive.eval.routes.route_effect`: one row per route, strategy and bucket."""
-    metrics = [m for m in EFFECT_METRICS if any(m in row for r in effects.values() for s in r.values()
-                                                for row in s.values())]
+    metrics = [
+        m for m in EFFECT_METRICS if any(m in row for r in effects.values() for s in r.values() for row in s.values())
+    ]
     head = ["route", "strategy", "frames", *[f"{m.upper() if m != 'miou' else 'mIoU'} effect" for m in metrics]]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for route, by_strategy in effects.items():
@@ -255,8 +313,12 @@ def _effect_panel(ax, effects):
     for route, by_strategy in effects.items():
         for name, spans in by_strategy.items():
             rows = _horizon_rows([{"frames": [int(v) for v in k.split("-")], **row} for k, row in spans.items()])
-            ax.plot([np.mean(r["frames"]) for r in rows], [r.get("psnr") for r in rows], marker="o",
-                    label=f"{name} @ {route}")
+            ax.plot(
+                [np.mean(r["frames"]) for r in rows],
+                [r.get("psnr") for r in rows],
+                marker="o",
+                label=f"{name} @ {route}",
+            )
     ax.axhline(0.0, color="k", lw=0.8)
     ax.set(xlabel="frame (bucket centre)", ylabel="PSNR dB, route minus recorded route", title="route effect")
     ax.grid(alpha=0.3)
@@ -283,14 +345,18 @@ def merge(dirs) -> tuple[dict, dict, dict | None, dict]:
             first, ceiling, want = report, report.get("recorded_controllability"), spans[0]
         for key in same:
             if report.get(key) != first.get(key):
-                raise ValueError(f"merge: expected the same {key} in every eval.json, got {first.get(key)!r} in "
-                                 f"{dirs[0]} and {report.get(key)!r} in {d}")
+                raise ValueError(
+                    f"merge: expected the same {key} in every eval.json, got {first.get(key)!r} in "
+                    f"{dirs[0]} and {report.get(key)!r} in {d}"
+                )
         if any(s != want for s in spans):
-            raise ValueError(f"merge: expected the same horizon buckets in every eval.json (evaluate with the same "
-                             f"buckets), got {want} in {dirs[0]} and {spans[0]} in {d}")
+            raise ValueError(
+                f"merge: expected the same horizon buckets in every eval.json (evaluate with the same "
+                f"buckets), got {want} in {dirs[0]} and {spans[0]} in {d}"
+            )
         run = Path(report.get("workdir") or report.get("videos") or str(d)).name
         for name, r in report["strategies"].items():
-            if name.startswith(REPEAT) or name.startswith("warp @ "):   # the data's, not a model's: once, last
+            if name.startswith(REPEAT) or name.startswith("warp @ "):  # the data's, not a model's: once, last
                 baselines.setdefault(name, r)
             else:
                 results[f"{name} ({run})"] = r

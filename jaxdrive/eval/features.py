@@ -11,6 +11,6 @@ from jaxdrive.parallel.batches import extract  # noqa: F401  (its old home; the 
 def stats_of(fn, params, items, *, dim: int, batch_size: int = 16, mesh=None) -> FeatureStats:
     """:class:`FeatureStats` of ``fn``'s features of ``items`` (extracted as :func:`extract`)."""
     stats = FeatureStats(dim)
-    for lo in range(0, len(items), 8 * batch_size):             # bounded host memory for long streams
-        stats.add(extract(fn, params, items[lo:lo + 8 * batch_size], batch_size=batch_size, mesh=mesh))
+    for lo in range(0, len(items), 8 * batch_size):  # bounded host memory for long streams
+        stats.add(extract(fn, params, items[lo : lo + 8 * batch_size], batch_size=batch_size, mesh=mesh))
     return stats

@@ -28,7 +28,7 @@ def frechet_distance(mu1, sigma1, mu2, sigma2) -> float:
         if not np.isfinite(value).all():
             raise ValueError(f"{name}: expected finite values, got {int((~np.isfinite(value)).sum())} non-finite")
     w, v = np.linalg.eigh((s1 + s1.T) / 2)
-    half = (v * np.sqrt(np.clip(w, 0, None))) @ v.T                         # S1^(1/2)
+    half = (v * np.sqrt(np.clip(w, 0, None))) @ v.T  # S1^(1/2)
     inner = np.linalg.eigvalsh(half @ ((s2 + s2.T) / 2) @ half)
     tr_covmean = np.sqrt(np.clip(inner, 0, None)).sum()
     diff = mu1 - mu2

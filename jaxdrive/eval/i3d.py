@@ -26,15 +26,26 @@ CLASSES = 400
 SIZE = 224
 
 # name -> (in, out, kernel (t, h, w), stride (t, h, w)); modules: (in, [b0, b1a, b1b, b2a, b2b, b3b])
-STEM = (("Conv3d_1a_7x7", 3, 64, (7, 7, 7), (2, 2, 2)), ("MaxPool3d_2a_3x3", (1, 3, 3), (1, 2, 2)),
-        ("Conv3d_2b_1x1", 64, 64, (1, 1, 1), (1, 1, 1)), ("Conv3d_2c_3x3", 64, 192, (3, 3, 3), (1, 1, 1)),
-        ("MaxPool3d_3a_3x3", (1, 3, 3), (1, 2, 2)))
-MODULES = (("Mixed_3b", 192, (64, 96, 128, 16, 32, 32)), ("Mixed_3c", 256, (128, 128, 192, 32, 96, 64)),
-           ("MaxPool3d_4a_3x3", (3, 3, 3), (2, 2, 2)),
-           ("Mixed_4b", 480, (192, 96, 208, 16, 48, 64)), ("Mixed_4c", 512, (160, 112, 224, 24, 64, 64)),
-           ("Mixed_4d", 512, (128, 128, 256, 24, 64, 64)), ("Mixed_4e", 512, (112, 144, 288, 32, 64, 64)),
-           ("Mixed_4f", 528, (256, 160, 320, 32, 128, 128)), ("MaxPool3d_5a_2x2", (2, 2, 2), (2, 2, 2)),
-           ("Mixed_5b", 832, (256, 160, 320, 32, 128, 128)), ("Mixed_5c", 832, (384, 192, 384, 48, 128, 128)))
+STEM = (
+    ("Conv3d_1a_7x7", 3, 64, (7, 7, 7), (2, 2, 2)),
+    ("MaxPool3d_2a_3x3", (1, 3, 3), (1, 2, 2)),
+    ("Conv3d_2b_1x1", 64, 64, (1, 1, 1), (1, 1, 1)),
+    ("Conv3d_2c_3x3", 64, 192, (3, 3, 3), (1, 1, 1)),
+    ("MaxPool3d_3a_3x3", (1, 3, 3), (1, 2, 2)),
+)
+MODULES = (
+    ("Mixed_3b", 192, (64, 96, 128, 16, 32, 32)),
+    ("Mixed_3c", 256, (128, 128, 192, 32, 96, 64)),
+    ("MaxPool3d_4a_3x3", (3, 3, 3), (2, 2, 2)),
+    ("Mixed_4b", 480, (192, 96, 208, 16, 48, 64)),
+    ("Mixed_4c", 512, (160, 112, 224, 24, 64, 64)),
+    ("Mixed_4d", 512, (128, 128, 256, 24, 64, 64)),
+    ("Mixed_4e", 512, (112, 144, 288, 32, 64, 64)),
+    ("Mixed_4f", 528, (256, 160, 320, 32, 128, 128)),
+    ("MaxPool3d_5a_2x2", (2, 2, 2), (2, 2, 2)),
+    ("Mixed_5b", 832, (256, 160, 320, 32, 128, 128)),
+    ("Mixed_5c", 832, (384, 192, 384, 48, 128, 128)),
+)
 FEATURES = 384 + 384 + 128 + 128
 
 
@@ -47,9 +58,16 @@ def _layers():
         elif entry[0].startswith("Mixed"):
             name, cin, (c0, c1a, c1b, c2a, c2b, c3b) = entry
             one, three = (1, 1, 1), (3, 3, 3)
-            out.update({f"{name}.b0": (cin, c0, one, one), f"{name}.b1a": (cin, c1a, one, one),
-                        f"{name}.b1b": (c1a, c1b, three, one), f"{name}.b2a": (cin, c2a, one, one),
-                        f"{name}.b2b": (c2a, c2b, three, one), f"{name}.b3b": (cin, c3b, one, one)})
+            out.update(
+                {
+                    f"{name}.b0": (cin, c0, one, one),
+                    f"{name}.b1a": (cin, c1a, one, one),
+                    f"{name}.b1b": (c1a, c1b, three, one),
+                    f"{name}.b2a": (cin, c2a, one, one),
+                    f"{name}.b2b": (c2a, c2b, three, one),
+                    f"{name}.b3b": (cin, c3b, one, one),
+                }
+            )
     return out
 
 
@@ -69,22 +87,28 @@ def _pads(shape, kernel, stride):
 def _unit(params, name, x, relu=True):
     _, _, kernel, stride = LAYERS[name] if name in LAYERS else (None, None, (1, 1, 1), (1, 1, 1))
     p = params[name]
-    y = jax.lax.conv_general_dilated(x, p["kernel"], stride, _pads(x.shape, kernel, stride),
-                                     dimension_numbers=("NDHWC", "DHWIO", "NDHWC"),
-                                     precision=jax.lax.Precision.HIGHEST)
+    y = jax.lax.conv_general_dilated(
+        x,
+        p["kernel"],
+        stride,
+        _pads(x.shape, kernel, stride),
+        dimension_numbers=("NDHWC", "DHWIO", "NDHWC"),
+        precision=jax.lax.Precision.HIGHEST,
+    )
     y = y * p["scale"] + p["shift"]
     return jax.nn.relu(y) if relu else y
 
 
 def _max_pool(x, kernel, stride):
-    x = jnp.pad(x, [(0, 0), *_pads(x.shape, kernel, stride), (0, 0)])        # zeros, as F.pad
+    x = jnp.pad(x, [(0, 0), *_pads(x.shape, kernel, stride), (0, 0)])  # zeros, as F.pad
     return jax.lax.reduce_window(x, -jnp.inf, jax.lax.max, (1, *kernel, 1), (1, *stride, 1), "VALID")
 
 
 def _module(params, name, x):
     u = lambda b, y: _unit(params, f"{name}.{b}", y)
-    return jnp.concatenate([u("b0", x), u("b1b", u("b1a", x)), u("b2b", u("b2a", x)),
-                            u("b3b", _max_pool(x, (3, 3, 3), (1, 1, 1)))], -1)
+    return jnp.concatenate(
+        [u("b0", x), u("b1b", u("b1a", x)), u("b2b", u("b2a", x)), u("b3b", _max_pool(x, (3, 3, 3), (1, 1, 1)))], -1
+    )
 
 
 @jax.jit
@@ -125,11 +149,15 @@ def params_from_state_dict(state: dict, *, source: str = "weights") -> dict:
     """The network's parameters from cd-fvd's ``InceptionI3d(400)`` state dict (NumPy arrays by
     their torch names); a missing or misshapen tensor is a ``ValueError`` naming it."""
     what = "the I3D tensor {key!r} (cd-fvd's i3d_pretrained_400.pt)"
-    params = {name: conv_batch_norm(state, f"{name}.conv3d", f"{name}.bn", (cout, cin, *kernel), BN_EPS,
-                                    source=source, what=what)
-              for name, (cin, cout, kernel, _) in LAYERS.items()}
-    params["logits"] = conv_batch_norm(state, "logits.conv3d", None, (CLASSES, FEATURES, 1, 1, 1), BN_EPS,
-                                       source=source, what=what, bias=True)
+    params = {
+        name: conv_batch_norm(
+            state, f"{name}.conv3d", f"{name}.bn", (cout, cin, *kernel), BN_EPS, source=source, what=what
+        )
+        for name, (cin, cout, kernel, _) in LAYERS.items()
+    }
+    params["logits"] = conv_batch_norm(
+        state, "logits.conv3d", None, (CLASSES, FEATURES, 1, 1, 1), BN_EPS, source=source, what=what, bias=True
+    )
     return params
 
 

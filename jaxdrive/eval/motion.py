@@ -26,6 +26,7 @@ def main(argv=None) -> int:
     from jaxdrive.data.scene_map import bev_range_of
     from jaxdrive.data.tfds_io import dataset_info
     from jaxdrive.data.traffic import load_controls
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--workdir", required=True, help="a predictor run (configs/predictor.py)")
     ap.add_argument("--data", help="dataset (default: the run's data.path)")
@@ -35,8 +36,7 @@ def main(argv=None) -> int:
     config, params, _ = load_predictor(args.workdir)
     path = args.data or config.data.path
     clips = load_controls(path, args.split, max_agents=config.predictor.max_agents)
-    scores = motion_errors(params, config.predictor, clips,
-                           bev_range=bev_range_of(dataset_info(path)["metadata"]))
+    scores = motion_errors(params, config.predictor, clips, bev_range=bev_range_of(dataset_info(path)["metadata"]))
     if scores is None:
         raise SystemExit(f"--data: the {args.split!r} clips of {path} are too short for a 1 s horizon")
     print(format_table(scores))

@@ -23,13 +23,14 @@ import numpy as np
 from jaxdrive.eval.compare import EFFECT_METRICS, effect_table, score  # noqa: F401  (effect_table: its old home)
 
 RECORDED = "recorded"
-SEP = " @ "                       # result names: "rollout @ stop", "repeat frame 1 @ stop", "warp @ stop"
+SEP = " @ "  # result names: "rollout @ stop", "repeat frame 1 @ stop", "warp @ stop"
 WARP = "warp"
 
 
 def parse_routes(text: str) -> list[str]:
     """``--routes "recorded,stop"`` -> at least one route name (:func:`jaxdrive.data.synth_routes.parse_routes`)."""
     from jaxdrive.data.synth_routes import parse_routes as parse
+
     names = parse(text, "routes")
     if not names:
         raise ValueError(f"routes: expected at least one route, got {text!r}")
@@ -43,27 +44,34 @@ def route_clips(dataset, routes, clips: int, given_frames: int, stride: int = 1)
     dataset has no counterfactuals, lacks a route, has too few clips with all of them, or when
     its routes change before the given frames end (``given_frames`` pixel frames at ``stride``)."""
     from jaxdrive.data.synthetic import read_counterfactuals
+
     meta = read_counterfactuals(dataset)
     others = [r for r in routes if r != RECORDED]
     if others and not meta:
-        raise ValueError(f"routes: expected a dataset with counterfactual routes (jaxdrive data synth "
-                         f"--counterfactuals ...), got {dataset} without any")
+        raise ValueError(
+            f"routes: expected a dataset with counterfactual routes (jaxdrive data synth "
+            f"--counterfactuals ...), got {dataset} without any"
+        )
     stored = meta.get("routes", {})
     missing = [r for r in others if r not in stored]
     if missing:
-        raise ValueError(f"routes: expected routes stored in {dataset} ({', '.join(stored) or 'none'}), got "
-                         f"{', '.join(missing)}")
+        raise ValueError(
+            f"routes: expected routes stored in {dataset} ({', '.join(stored) or 'none'}), got {', '.join(missing)}"
+        )
     if others and (given_frames - 1) * stride >= meta["start"]:
-        raise ValueError(f"routes: expected the given frames to end before the routes change (source frame "
-                         f"{meta['start']}), got {given_frames} given frames at stride {stride}")
+        raise ValueError(
+            f"routes: expected the given frames to end before the routes change (source frame "
+            f"{meta['start']}), got {given_frames} given frames at stride {stride}"
+        )
     have = [set(stored[r]["clips"]) for r in others]
     common = sorted(set.intersection(*have)) if have else None
     indices = list(range(clips)) if common is None else common[:clips]
     if len(indices) < clips:
-        raise ValueError(f"clips: expected at most {len(indices)} (the validation clips that have every route of "
-                         f"routes {','.join(routes)}), got {clips}")
-    rows = {r: list(range(clips)) if r == RECORDED else [stored[r]["clips"].index(i) for i in indices]
-            for r in routes}
+        raise ValueError(
+            f"clips: expected at most {len(indices)} (the validation clips that have every route of "
+            f"routes {','.join(routes)}), got {clips}"
+        )
+    rows = {r: list(range(clips)) if r == RECORDED else [stored[r]["clips"].index(i) for i in indices] for r in routes}
     splits = {r: None if r == RECORDED else stored[r]["split"] for r in routes}
     return {"indices": indices, "rows": rows, "splits": splits}
 
@@ -73,12 +81,14 @@ def warp_baseline(render, poses, given: int, depth: float, buckets, **features) 
     (``poses``: ``ego_to_world``, ``intrinsics``, ``cam_to_ego`` of :func:`dataset_inputs`), holes
     inpainted, scored against the route's ``render [B, V, F, H, W, 3]``."""
     from jaxdrive.warp import warp_views
+
     video = np.array(render, copy=True)
     for b in range(video.shape[0]):
         e2w = np.asarray(poses["ego_to_world"][b], np.float64)
-        rel = (np.linalg.inv(e2w[given - 1]) @ e2w[given - 1:]).astype(np.float32)
-        video[b, :, given:] = warp_views(video[b, :, given - 1], poses["intrinsics"][b], poses["cam_to_ego"][b],
-                                         rel, depth)[:, 1:]
+        rel = (np.linalg.inv(e2w[given - 1]) @ e2w[given - 1 :]).astype(np.float32)
+        video[b, :, given:] = warp_views(
+            video[b, :, given - 1], poses["intrinsics"][b], poses["cam_to_ego"][b], rel, depth
+        )[:, 1:]
     return {"seconds": None, "peak_device_bytes": None, "buckets": score(video, render, buckets, **features)}
 
 
@@ -95,15 +105,35 @@ def route_effect(results: dict, against: dict, routes) -> dict:
             mine = results[f"{name}{SEP}{route}"]["buckets"]
             base = by_route[route]
             out.setdefault(route, {})[name] = {
-                span: {m: round(mine[span][m] - base[span][m], 4) for m in EFFECT_METRICS
-                       if mine[span].get(m) is not None and base[span].get(m) is not None}
-                for span in mine}
+                span: {
+                    m: round(mine[span][m] - base[span][m], 4)
+                    for m in EFFECT_METRICS
+                    if mine[span].get(m) is not None and base[span].get(m) is not None
+                }
+                for span in mine
+            }
     return out
 
 
-def evaluate_routes(routes, plan, *, load_inputs, first_latents, strategies, models, codec, length, buckets, key,
-                    given: int, depth: float, mesh=None, segment=None, without_boxes: bool = False,
-                    **features) -> tuple[dict, dict, list]:
+def evaluate_routes(
+    routes,
+    plan,
+    *,
+    load_inputs,
+    first_latents,
+    strategies,
+    models,
+    codec,
+    length,
+    buckets,
+    key,
+    given: int,
+    depth: float,
+    mesh=None,
+    segment=None,
+    without_boxes: bool = False,
+    **features,
+) -> tuple[dict, dict, list]:
     """Every strategy under every route of ``routes`` (:func:`route_clips`'s ``plan``), scored
     against each route's render, with the ``repeat`` and ``warp`` rows per route; returns
     ``(results, effects, rows)``: the results and route effects for
@@ -118,6 +148,7 @@ def evaluate_routes(routes, plan, *, load_inputs, first_latents, strategies, mod
     (and the layout drawn from them) dropped to their learned nulls, named ``"NAME (no boxes)"``:
     what the boxes change."""
     from jaxdrive.eval.compare import repeat_baseline, repeat_name, run_strategies
+
     base = load_inputs(None, plan["indices"])
     inputs = {r: base if r == RECORDED else load_inputs(plan["splits"][r], plan["rows"][r]) for r in routes}
     first = first_latents(base)
@@ -127,12 +158,28 @@ def evaluate_routes(routes, plan, *, load_inputs, first_latents, strategies, mod
 
     def run(inp, names=strategies, cond=None, **kw):
         opts = {}
-        if warped:                    # LongDWM: each window's first frame warped along this route's poses
+        if warped:  # LongDWM: each window's first frame warped along this route's poses
             from jaxdrive.generate.warps import WarpGuide
+
             opts["warp"] = WarpGuide.from_inputs(inp, codec, depth=depth)
-        return run_strategies({n: opts for n in names}, models, codec, inp["cond"] if cond is None else cond, first,
-                              length, np.asarray(inp["video"]), buckets, key=key, mesh=mesh, segment=segment,
-                              masks=masks(inp), keep=True, **features, **kw)
+        return run_strategies(
+            {n: opts for n in names},
+            models,
+            codec,
+            inp["cond"] if cond is None else cond,
+            first,
+            length,
+            np.asarray(inp["video"]),
+            buckets,
+            key=key,
+            mesh=mesh,
+            segment=segment,
+            masks=masks(inp),
+            keep=True,
+            **features,
+            **kw,
+        )
+
     recorded = run(base, targets=targets)
     against = {name: r.pop("against") for name, r in recorded.items()}
     results, rows = {}, []
@@ -145,10 +192,14 @@ def evaluate_routes(routes, plan, *, load_inputs, first_latents, strategies, mod
             r = {k: v for k, v in r.items() if k != "video"}
             results[name if route == RECORDED else f"{name}{SEP}{route}"] = {**r, "route": route}
         label = "" if route == RECORDED else f"{SEP}{route}"
-        results[repeat_name(given) + label] = {**repeat_baseline(video, given, buckets, segment=segment,
-                                                                 masks=masks(inp), **features), "route": route}
-        results[f"{WARP}{SEP}{route}"] = {**warp_baseline(video, inp["poses"], given, depth, buckets, segment=segment,
-                                                          masks=masks(inp), **features), "route": route}
+        results[repeat_name(given) + label] = {
+            **repeat_baseline(video, given, buckets, segment=segment, masks=masks(inp), **features),
+            "route": route,
+        }
+        results[f"{WARP}{SEP}{route}"] = {
+            **warp_baseline(video, inp["poses"], given, depth, buckets, segment=segment, masks=masks(inp), **features),
+            "route": route,
+        }
     if without_boxes:
         # the box inputs left out, which the DiT reads as dropped (the learned null of box
         # cross-attention, nothing from the layout): the samplers take ``cond.drop`` as the names

@@ -57,6 +57,7 @@ def load_segmenter(workdir, *, option: str = "workdir") -> TrainedSegmenter:
     errors name ``option`` (how the caller calls ``workdir``)."""
     from jaxdrive.config import SegmenterRunConfig
     from jaxdrive.train.aux_run import load_trained
+
     init = lambda c: init_params(c.segmenter, jax.random.key(0), (c.data.height, c.data.width))
     config, params = load_trained(workdir, SegmenterRunConfig, "segmenter", init, option=option, what="segmenter")
     return TrainedSegmenter(config, params, (config.data.height, config.data.width))

@@ -17,6 +17,7 @@ def read_state_dict(path, *, option: str = "path") -> dict:
         raise ValueError(f"{option}: expected a weights file, got {str(path)!r} (not found)")
     if path.suffix == ".safetensors":
         from jaxdrive.convert.safetensors_io import read_tensors
+
         try:
             return read_tensors(path)
         except ValueError as e:
@@ -24,20 +25,24 @@ def read_state_dict(path, *, option: str = "path") -> dict:
     try:
         import torch
     except ImportError:
-        raise ValueError(f"{option}: reading {path.name} needs torch; convert it once with 'jaxdrive convert "
-                         f"{option.lstrip('-')} --from {path} --out WEIGHTS.safetensors'") from None
+        raise ValueError(
+            f"{option}: reading {path.name} needs torch; convert it once with 'jaxdrive convert "
+            f"{option.lstrip('-')} --from {path} --out WEIGHTS.safetensors'"
+        ) from None
     try:
         state = torch.load(str(path), map_location="cpu", weights_only=True)
-    except Exception as e:                 # torch raises several types for a truncated or foreign file
-        raise ValueError(f"{option}: could not read {path} as a state dict ({type(e).__name__}: "
-                         f"{str(e)[:200]})") from None
+    except Exception as e:  # torch raises several types for a truncated or foreign file
+        raise ValueError(
+            f"{option}: could not read {path} as a state dict ({type(e).__name__}: {str(e)[:200]})"
+        ) from None
     if not isinstance(state, dict):
         raise ValueError(f"{option}: expected a state dict in {path}, got {type(state).__name__}")
     return {k: v.detach().cpu().numpy() for k, v in state.items() if hasattr(v, "detach")}
 
 
-def conv_batch_norm(state: dict, conv: str, bn: str | None, shape: tuple, eps: float, *, source: str,
-                    what: str, bias: bool = False) -> dict:
+def conv_batch_norm(
+    state: dict, conv: str, bn: str | None, shape: tuple, eps: float, *, source: str, what: str, bias: bool = False
+) -> dict:
     """One convolution of a torch state dict as ``{"kernel": [..spatial, in, out], "scale",
     "shift"}``: ``conv.weight`` of ``shape`` (out, in, ..spatial) transposed, and the batch norm
     ``bn`` (eval mode) folded in, ``y = conv(x) * scale + shift`` (no ``bn``: scale 1, shift the
@@ -50,8 +55,7 @@ def conv_batch_norm(state: dict, conv: str, bn: str | None, shape: tuple, eps: f
         want[f"{conv}.bias"] = (shape[0],)
     for key, size in want.items():
         if key not in state:
-            raise ValueError(f"{source}: expected {what.format(key=key)}, got a file without it "
-                             f"({len(state)} tensors)")
+            raise ValueError(f"{source}: expected {what.format(key=key)}, got a file without it ({len(state)} tensors)")
         if tuple(np.shape(state[key])) != size:
             raise ValueError(f"{source}: tensor {key!r}: expected shape {list(size)}, got {list(np.shape(state[key]))}")
     g = lambda k: np.asarray(state[k], np.float64)
@@ -62,5 +66,8 @@ def conv_batch_norm(state: dict, conv: str, bn: str | None, shape: tuple, eps: f
     else:
         scale = g(f"{bn}.weight") / np.sqrt(g(f"{bn}.running_var") + eps)
         shift = g(f"{bn}.bias") - g(f"{bn}.running_mean") * scale
-    return {"kernel": jnp.asarray(kernel, jnp.float32), "scale": jnp.asarray(scale, jnp.float32),
-            "shift": jnp.asarray(shift, jnp.float32)}
+    return {
+        "kernel": jnp.asarray(kernel, jnp.float32),
+        "scale": jnp.asarray(scale, jnp.float32),
+        "shift": jnp.asarray(shift, jnp.float32),
+    }

@@ -52,8 +52,8 @@ def dct_lowpass(x, keep_ratio):
     keep = jnp.broadcast_to(keep, (x.shape[0],))
     # Separable projections as small matmuls: cheap at latent sizes and, unlike an FFT-based
     # DCT, indifferent to how the batch axes are sharded.
-    rows = _lowpass_projector(x.shape[-3], keep)                        # [B, h, h]
-    cols = _lowpass_projector(x.shape[-2], keep)                        # [B, w, w]
+    rows = _lowpass_projector(x.shape[-3], keep)  # [B, h, h]
+    cols = _lowpass_projector(x.shape[-2], keep)  # [B, w, w]
     out = jnp.einsum("bij,b...jwc->b...iwc", rows, x.astype(jnp.float32))
     out = jnp.einsum("bvw,b...hwc->b...hvc", cols, out)
     return out.astype(x.dtype)

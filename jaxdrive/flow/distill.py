@@ -26,8 +26,9 @@ BOUNDARIES = ("mean", "start", "end")
 def _num_segments(frames: int, segment_len: int, name: str) -> int:
     segment_len = check_positive_int("segment_len", segment_len, minimum=2)
     if frames < segment_len or (frames - 1) % (segment_len - 1):
-        raise ValueError(f"{name}: expected n * (segment_len - 1) + 1 frames with n >= 1 "
-                         f"(segment_len = {segment_len}), got {frames}")
+        raise ValueError(
+            f"{name}: expected n * (segment_len - 1) + 1 frames with n >= 1 (segment_len = {segment_len}), got {frames}"
+        )
     return (frames - 1) // (segment_len - 1)
 
 
@@ -54,9 +55,9 @@ def split_segments(x, segment_len: int):
     frame_axis = 1 if x.ndim == 2 else x.ndim + FRAME_AXIS
     n = _num_segments(x.shape[frame_axis], segment_len, "x frames")
     starts = jnp.arange(n) * (segment_len - 1)
-    idx = starts[:, None] + jnp.arange(segment_len)[None, :]              # [n, K]
-    seg = jnp.take(x, idx, axis=frame_axis)                               # [B, .., n, K, ...]
-    seg = jnp.moveaxis(seg, frame_axis, 1)                                # [B, n, .., K, ...]
+    idx = starts[:, None] + jnp.arange(segment_len)[None, :]  # [n, K]
+    seg = jnp.take(x, idx, axis=frame_axis)  # [B, .., n, K, ...]
+    seg = jnp.moveaxis(seg, frame_axis, 1)  # [B, n, .., K, ...]
     return seg.reshape((x.shape[0] * n,) + seg.shape[2:])
 
 
@@ -76,7 +77,7 @@ def coarse_from_segments(seg, batch: int, *, boundary: str = "mean"):
     n = seg.shape[0] // batch
     seg = seg.reshape((batch, n) + seg.shape[1:])
     fa = seg.ndim + FRAME_AXIS
-    first = jnp.take(seg, 0, axis=fa)                                     # [B, n, ..., h, w, C]
+    first = jnp.take(seg, 0, axis=fa)  # [B, n, ..., h, w, C]
     last = jnp.take(seg, seg.shape[fa] - 1, axis=fa)
     return jnp.moveaxis(coarse_from_ends(first, last, boundary=boundary), 1, fa - 1)
 
@@ -105,8 +106,7 @@ def distill_loss(student, teacher, *, cond_mask=None):
     the shared level, which differ from data estimates by the factor sigma).
     """
     check_same_shape("teacher", teacher, "student", student)
-    sq = jnp.square(jnp.asarray(student, jnp.float32)
-                    - jax.lax.stop_gradient(jnp.asarray(teacher, jnp.float32)))
+    sq = jnp.square(jnp.asarray(student, jnp.float32) - jax.lax.stop_gradient(jnp.asarray(teacher, jnp.float32)))
     if cond_mask is None:
         return jnp.mean(sq)
     student = jnp.asarray(student)

@@ -38,7 +38,8 @@ def _check_g_not_below_alpha1(g, alpha1):
         if gap.size and float(jnp.min(gap)) < 0.0:
             raise ValueError(
                 f"g: expected g >= alpha1 = {float(jnp.max(jnp.asarray(alpha1))):g} (eq. 12 cannot "
-                f"remove noise the anchor already has), got min g = {float(jnp.min(jnp.asarray(g))):g}")
+                f"remove noise the anchor already has), got min g = {float(jnp.min(jnp.asarray(g))):g}"
+            )
 
 
 def jdc_alpha2(g, alpha1):
@@ -140,15 +141,16 @@ def jdc_training_anchors(key, x, noise, levels, anchor_mask, alpha1=DEFAULT_ALPH
     check_range("levels", levels, 0.0, 1.0)
     anchor_mask = jnp.asarray(anchor_mask, bool)
     if anchor_mask.shape != levels.shape:
-        raise ValueError(f"anchor_mask: expected shape {list(levels.shape)} (that of levels), "
-                         f"got {list(anchor_mask.shape)}")
+        raise ValueError(
+            f"anchor_mask: expected shape {list(levels.shape)} (that of levels), got {list(anchor_mask.shape)}"
+        )
     x_t = add_noise(x, noise, levels)
     k_pred, k_renoise = jax.random.split(key)
     n1 = jax.random.normal(k_pred, x.shape, jnp.float32)
-    z = add_noise(x, n1.astype(x.dtype), jnp.broadcast_to(a1, x.shape[:1]))             # eq. 8
+    z = add_noise(x, n1.astype(x.dtype), jnp.broadcast_to(a1, x.shape[:1]))  # eq. 8
     renoise = anchor_mask & (levels >= a1) & (levels > 0.0)
-    g = jnp.where(renoise, levels, 1.0)          # off the re-noised anchors any g in [a1, 1] will do
-    x_n = jdc_renoise(k_renoise, z, g, alpha1)                                             # eq. 9
+    g = jnp.where(renoise, levels, 1.0)  # off the re-noised anchors any g in [a1, 1] will do
+    x_n = jdc_renoise(k_renoise, z, g, alpha1)  # eq. 9
     on = expand_per_frame(renoise, x, "anchor_mask")
     g_x = expand_per_frame(g, x, "levels")
     noise_eff = jnp.where(on, (x_n.astype(jnp.float32) - (1.0 - g_x) * x) / g_x, noise)

@@ -73,8 +73,9 @@ def flow_loss(v_pred, x, noise, *, cond_mask=None, frame_weight=None, weight_map
 def per_frame_flow_loss(v_pred, x, noise):
     """Mean squared velocity error of each frame, ``[B, F]``, for logging loss against frame index."""
     check_same_shape("v_pred", v_pred, "x", x)
-    err = jnp.square(jnp.asarray(v_pred, jnp.float32) - velocity_target(
-        jnp.asarray(x, jnp.float32), jnp.asarray(noise, jnp.float32)))
+    err = jnp.square(
+        jnp.asarray(v_pred, jnp.float32) - velocity_target(jnp.asarray(x, jnp.float32), jnp.asarray(noise, jnp.float32))
+    )
     frame_axis = x.ndim - 4
     other = tuple(a for a in range(1, x.ndim) if a != frame_axis)
     return jnp.mean(err, axis=other)
@@ -90,7 +91,7 @@ def high_pass_mask(height: int, width: int, cutoff: float):
     check_range("cutoff", cutoff, 0.0, 1.0)
     fy = jnp.fft.fftfreq(height)[:, None] / 0.5
     fx = jnp.fft.fftfreq(width)[None, :] / 0.5
-    return jnp.sqrt(fy ** 2 + fx ** 2) > cutoff
+    return jnp.sqrt(fy**2 + fx**2) > cutoff
 
 
 def high_pass(x, cutoff: float = 0.25):

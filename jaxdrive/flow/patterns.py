@@ -47,11 +47,15 @@ def _check_n_cond(n_cond, pattern, frames):
         raise ValueError(f"n_cond: expected an int or an int array [B], got dtype {n.dtype} shape {list(n.shape)}")
     most = max_cond(pattern, frames)
     if most < 0:
-        raise ValueError(f"frames: expected >= 2 for pattern {pattern!r} (the last frame is given and one "
-                         f"frame is generated), got {frames}")
+        raise ValueError(
+            f"frames: expected >= 2 for pattern {pattern!r} (the last frame is given and one "
+            f"frame is generated), got {frames}"
+        )
     if is_concrete(n) and n.size and (int(jnp.min(n)) < 0 or int(jnp.max(n)) > most):
-        raise ValueError(f"n_cond: expected values in [0, {most}] for pattern {pattern!r} with {frames} frames "
-                         f"(at least one frame generated), got {np.asarray(n).tolist()}")
+        raise ValueError(
+            f"n_cond: expected values in [0, {most}] for pattern {pattern!r} with {frames} frames "
+            f"(at least one frame generated), got {np.asarray(n).tolist()}"
+        )
     return n
 
 
@@ -93,8 +97,10 @@ def check_patterns(patterns, pattern_rates=(), anchor_every: int = 0, *, prefix:
         check_choice(f"{prefix}patterns", p, PATTERNS)
     if rates:
         if len(rates) != len(patterns):
-            raise ValueError(f"{prefix}pattern_rates: expected {len(patterns)} rates (one per pattern of "
-                             f"{list(patterns)}) or none, got {list(rates)}")
+            raise ValueError(
+                f"{prefix}pattern_rates: expected {len(patterns)} rates (one per pattern of "
+                f"{list(patterns)}) or none, got {list(rates)}"
+            )
         if any(not r >= 0 for r in rates) or abs(math.fsum(rates) - 1.0) > 1e-6:
             raise ValueError(f"{prefix}pattern_rates: expected non-negative rates summing to 1, got {list(rates)}")
     if "anchors" in patterns:
@@ -103,9 +109,18 @@ def check_patterns(patterns, pattern_rates=(), anchor_every: int = 0, *, prefix:
         check_positive_int(f"{prefix}anchor_every", anchor_every, minimum=0)
 
 
-def draw_condition_masks(key, batch: int, frames: int, *, patterns=("prefix",), pattern_rates=(),
-                         cond_frames: int = 1, cond_frames_random: bool = True, anchor_every: int = 0,
-                         anchor_rate: float = 0.0):
+def draw_condition_masks(
+    key,
+    batch: int,
+    frames: int,
+    *,
+    patterns=("prefix",),
+    pattern_rates=(),
+    cond_frames: int = 1,
+    cond_frames_random: bool = True,
+    anchor_every: int = 0,
+    anchor_rate: float = 0.0,
+):
     """Per clip a pattern, its given frames and its JDC anchors: ``(cond_mask, anchor_mask)`` ``[B, F]``.
 
     Each clip draws a pattern out of ``patterns`` with probabilities ``pattern_rates`` (empty:

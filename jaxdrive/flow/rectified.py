@@ -16,7 +16,7 @@ import jax.numpy as jnp
 from jaxdrive.validate import check_range, check_same_shape
 
 FRAME_AXIS = -4  # [B, ..., F, h, w, C]
-PREDICTIONS = ("velocity", "data")   # what a network's output is (DiTConfig.prediction)
+PREDICTIONS = ("velocity", "data")  # what a network's output is (DiTConfig.prediction)
 
 
 def expand_per_frame(values, x, name: str = "sigma"):
@@ -29,14 +29,18 @@ def expand_per_frame(values, x, name: str = "sigma"):
     xs = tuple(x.shape)
     if values.ndim == 1:
         if not xs or values.shape[0] != xs[0]:
-            raise ValueError(f"{name}: expected shape [B] or [B, F] with B = {xs[0] if xs else '?'} "
-                             f"(the batch of an array of shape {list(xs)}), got {list(values.shape)}")
+            raise ValueError(
+                f"{name}: expected shape [B] or [B, F] with B = {xs[0] if xs else '?'} "
+                f"(the batch of an array of shape {list(xs)}), got {list(values.shape)}"
+            )
         return values.reshape(values.shape + (1,) * (len(xs) - 1))
     if values.ndim == 2:
         if len(xs) < 5 or values.shape != (xs[0], xs[FRAME_AXIS]):
             want = f"[{xs[0]}, {xs[FRAME_AXIS]}]" if len(xs) >= 5 else "[B] (per-frame needs [B, ..., F, h, w, C])"
-            raise ValueError(f"{name}: expected shape [B] or [B, F] = {want} for an array of shape "
-                             f"{list(xs)}, got {list(values.shape)}")
+            raise ValueError(
+                f"{name}: expected shape [B] or [B, F] = {want} for an array of shape "
+                f"{list(xs)}, got {list(values.shape)}"
+            )
         middle = (1,) * (len(xs) - 5)
         return values.reshape((xs[0],) + middle + (xs[FRAME_AXIS], 1, 1, 1))
     raise ValueError(f"{name}: expected shape [B] or [B, F], got {list(values.shape)}")

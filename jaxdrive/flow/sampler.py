@@ -56,8 +56,10 @@ def _per_step_sigmas(sigmas, x, cond_mask):
         check_shape("sigmas", sigmas, (None, batch))
     elif sigmas.ndim == 3:
         if x.ndim < 5:
-            raise ValueError(f"sigmas: a per-frame schedule [N + 1, B, F] needs x of shape "
-                             f"[B, ..., F, h, w, C], got x of shape {list(x.shape)}")
+            raise ValueError(
+                f"sigmas: a per-frame schedule [N + 1, B, F] needs x of shape "
+                f"[B, ..., F, h, w, C], got x of shape {list(x.shape)}"
+            )
         check_shape("sigmas", sigmas, (None, batch, x.shape[-4]))
     else:
         raise ValueError(f"sigmas: expected shape [N + 1], [N + 1, B] or [N + 1, B, F], got {list(sigmas.shape)}")
@@ -68,8 +70,9 @@ def _per_step_sigmas(sigmas, x, cond_mask):
         if s.min() < 0.0 or s.max() > 1.0:
             raise ValueError(f"sigmas: expected values in [0, 1], got values in [{s.min():g}, {s.max():g}]")
         if (np.diff(s, axis=0) > 0).any():
-            raise ValueError("sigmas: expected a non-increasing schedule along the steps (axis 0), "
-                             "got a level that rises")
+            raise ValueError(
+                "sigmas: expected a non-increasing schedule along the steps (axis 0), got a level that rises"
+            )
     if cond_mask is not None:
         if x.ndim < 5:
             raise ValueError(f"cond_mask: needs x of shape [B, ..., F, h, w, C], got {list(x.shape)}")
@@ -88,8 +91,10 @@ def _control_variants(cond, null_cond, scale, control_guidance):
     """Compositional guidance of single controls (module docstring): the variants
     ``[v_c, (v_null,) v_{c without k}...]`` and their combination."""
     if isinstance(scale, Mapping):
-        raise ValueError("control_guidance: expected one guidance_scale number with it (the plain scale the "
-                         f"controls' own scales add to), got per-condition scales {dict(scale)}")
+        raise ValueError(
+            "control_guidance: expected one guidance_scale number with it (the plain scale the "
+            f"controls' own scales add to), got per-condition scales {dict(scale)}"
+        )
     scale = 1.0 if scale is None else scale
     _check_scale("guidance_scale", scale)
     names = list(control_guidance)
@@ -97,8 +102,7 @@ def _control_variants(cond, null_cond, scale, control_guidance):
     for k in names:
         entry = control_guidance[k]
         if not isinstance(entry, tuple) or len(entry) != 2:
-            raise ValueError(f"control_guidance[{k!r}]: expected (scale, cond without {k}), got "
-                             f"{type(entry).__name__}")
+            raise ValueError(f"control_guidance[{k!r}]: expected (scale, cond without {k}), got {type(entry).__name__}")
         _check_scale(f"control_guidance[{k!r}]", entry[0])
         pairs.append(entry)
     plain = not (isinstance(scale, (int, float)) and scale == 1.0)
@@ -111,6 +115,7 @@ def _control_variants(cond, null_cond, scale, control_guidance):
         v = v_c + (scale - 1.0) * (v_c - vs[1]) if plain else v_c
         rest = vs[2:] if plain else vs[1:]
         return v + sum((s_k - scale) * (v_c - v_k) for (s_k, _), v_k in zip(pairs, rest))
+
     return variants, combine
 
 
@@ -120,7 +125,7 @@ def _guidance_variants(cond, null_cond, guidance_scale, control_guidance=None):
         return _control_variants(cond, null_cond, guidance_scale, control_guidance)
     if guidance_scale is None:
         return [cond], lambda vs: vs[0]
-    for name, value in (guidance_scale.items() if isinstance(guidance_scale, Mapping) else [(None, guidance_scale)]):
+    for name, value in guidance_scale.items() if isinstance(guidance_scale, Mapping) else [(None, guidance_scale)]:
         _check_scale("guidance_scale" if name is None else f"guidance_scale[{name!r}]", value)
     if null_cond is None:
         raise ValueError("null_cond: expected the null conditions when guidance_scale is set, got None")
@@ -130,13 +135,16 @@ def _guidance_variants(cond, null_cond, guidance_scale, control_guidance=None):
             return [cond], lambda vs: vs[0]  # v_c + 0 * (...): skip the null half of the batch
         return [cond, null_cond], lambda vs: vs[0] + (scale - 1.0) * (vs[0] - vs[1])
     if not isinstance(cond, Mapping) or not isinstance(null_cond, Mapping):
-        raise ValueError("cond: per-condition guidance scales need cond and null_cond as mappings "
-                         f"keyed by condition name, got {type(cond).__name__} and {type(null_cond).__name__}")
+        raise ValueError(
+            "cond: per-condition guidance scales need cond and null_cond as mappings "
+            f"keyed by condition name, got {type(cond).__name__} and {type(null_cond).__name__}"
+        )
     names = list(guidance_scale)
     missing = [k for k in names if k not in cond or k not in null_cond]
     if missing:
-        raise ValueError(f"guidance_scale: expected names present in cond and null_cond "
-                         f"({sorted(cond)}), got unknown {missing}")
+        raise ValueError(
+            f"guidance_scale: expected names present in cond and null_cond ({sorted(cond)}), got unknown {missing}"
+        )
 
     def variant(on):
         return {k: (cond[k] if (k not in names or k in on) else null_cond[k]) for k in cond}
@@ -147,6 +155,7 @@ def _guidance_variants(cond, null_cond, guidance_scale, control_guidance=None):
     def combine(vs):
         v_null = vs[0]
         return v_null + sum(s * (v - v_null) for s, v in zip(scales, vs[1:]))
+
     return variants, combine
 
 
@@ -171,9 +180,11 @@ def _batched_velocity(velocity_fn, variants, combine, per_step: bool = False):
     n = len(variants)
     if n == 1:
         if per_step:
+
             def velocity(x, s, inp):
                 v, out = velocity_fn(x, s, variants[0], inp)
                 return _like(v, x), out
+
             return velocity
         return lambda x, s, inp=None: _like(velocity_fn(x, s, variants[0]), x)
     stacked = jax.tree_util.tree_map(lambda *leaves: _interleave(leaves), *variants)
@@ -189,12 +200,24 @@ def _batched_velocity(velocity_fn, variants, combine, per_step: bool = False):
         v = v.reshape((x.shape[0], n) + v.shape[1:])
         v = _like(combine([v[:, i] for i in range(n)]), x)
         return (v, out) if per_step else v
+
     return stacked_velocity
 
 
-def sample(velocity_fn: Callable, x, sigmas, *, cond=None, null_cond=None, guidance_scale=None,
-           cond_mask=None, method: str = "euler", return_trajectory: bool = False, step_inputs=None,
-           control_guidance=None):
+def sample(
+    velocity_fn: Callable,
+    x,
+    sigmas,
+    *,
+    cond=None,
+    null_cond=None,
+    guidance_scale=None,
+    cond_mask=None,
+    method: str = "euler",
+    return_trajectory: bool = False,
+    step_inputs=None,
+    control_guidance=None,
+):
     """Integrate the flow ODE from ``sigmas[0]`` to ``sigmas[-1]`` in one ``lax.scan``.
 
     Args:
@@ -250,10 +273,12 @@ def sample(velocity_fn: Callable, x, sigmas, *, cond=None, null_cond=None, guida
         ds = expand(s_next) - expand(s)
         euler = pin(state + ds * v)
         if method == "heun":
+
             def heun():
                 v_next, _ = evaluate(euler, s_next, inp)
                 corrected = state + ds * 0.5 * (v + v_next)
                 return pin(jnp.where(expand(s_next) > 0.0, corrected, euler))
+
             new = jax.lax.cond(jnp.all(s_next == 0.0), lambda: euler, heun)
         else:
             new = euler

@@ -16,8 +16,15 @@ from jaxdrive.flow.tpd import tpd_frame_sigmas
 from jaxdrive.validate import check_ndim, check_range, check_shape
 
 
-def frame_sigmas(sigma, cond_mask, *, anchor_mask=None, tpd: bool = False,
-                 omega: float = math.pi / 2, anchor_slope: float = DEFAULT_ANCHOR_SLOPE):
+def frame_sigmas(
+    sigma,
+    cond_mask,
+    *,
+    anchor_mask=None,
+    tpd: bool = False,
+    omega: float = math.pi / 2,
+    anchor_slope: float = DEFAULT_ANCHOR_SLOPE,
+):
     """Per-frame levels ``[B, F]`` from base levels ``sigma [B]``.
 
     - condition frames (``cond_mask [B, F]`` True) are clean: 0;

@@ -20,8 +20,9 @@ from jaxdrive.validate import check_choice, check_positive_int, check_range
 DISTRIBUTIONS = ("uniform", "logit_normal")
 
 
-def sample_sigmas(key, shape, *, distribution: str = "logit_normal", loc: float = 0.0,
-                  scale: float = 1.0, shift: float = 1.0):
+def sample_sigmas(
+    key, shape, *, distribution: str = "logit_normal", loc: float = 0.0, scale: float = 1.0, shift: float = 1.0
+):
     """Draw training noise levels of ``shape`` (``(B,)`` or ``(B, F)``) in [0, 1].
 
     ``distribution``: ``"uniform"`` (U[0, 1]) or ``"logit_normal"`` (sigmoid of N(loc, scale^2),
@@ -53,9 +54,15 @@ def shift_sigmas(sigma, ratio):
     return ratio * sigma / (1.0 + (ratio - 1.0) * sigma)
 
 
-def resolution_shift(height: int, width: int, latent_frames: int, *,
-                     base_pixels: int = 512 * 512, base_latent_frames: int = 1,
-                     scale: float = 1.0) -> float:
+def resolution_shift(
+    height: int,
+    width: int,
+    latent_frames: int,
+    *,
+    base_pixels: int = 512 * 512,
+    base_latent_frames: int = 1,
+    scale: float = 1.0,
+) -> float:
     """The shift ratio of Open-Sora v1.2 for a clip of ``height x width`` pixels.
 
     ``r = sqrt(height * width / base_pixels) * sqrt(latent_frames / base_latent_frames) * scale``.
@@ -63,8 +70,13 @@ def resolution_shift(height: int, width: int, latent_frames: int, *,
     the latent frame count directly, so the rule holds for any VAE (CogVideoX: 1 + (F - 1) / 4).
     Images use ``latent_frames = 1``.
     """
-    for name, n in (("height", height), ("width", width), ("latent_frames", latent_frames),
-                    ("base_pixels", base_pixels), ("base_latent_frames", base_latent_frames)):
+    for name, n in (
+        ("height", height),
+        ("width", width),
+        ("latent_frames", latent_frames),
+        ("base_pixels", base_pixels),
+        ("base_latent_frames", base_latent_frames),
+    ):
         check_positive_int(name, n)
     check_range("scale", scale, 0.0, math.inf, lo_open=True)
     return math.sqrt(height * width / base_pixels) * math.sqrt(latent_frames / base_latent_frames) * scale

@@ -76,8 +76,10 @@ def tpd_frame_sigmas(sigma, cond_mask, omega=math.pi / 2):
     check_ndim("sigma", sigma, 1)
     check_ndim("cond_mask", cond_mask, 2)
     if jnp.shape(cond_mask)[0] != jnp.shape(sigma)[0]:
-        raise ValueError(f"cond_mask: expected shape [B, F] with B = {jnp.shape(sigma)[0]} (from sigma), "
-                         f"got {list(jnp.shape(cond_mask))}")
+        raise ValueError(
+            f"cond_mask: expected shape [B, F] with B = {jnp.shape(sigma)[0]} (from sigma), "
+            f"got {list(jnp.shape(cond_mask))}"
+        )
     noisy = ~jnp.asarray(cond_mask, bool)
     rank = jnp.cumsum(noisy, axis=1) - 1
     count = jnp.maximum(jnp.sum(noisy, axis=1, keepdims=True), 1)

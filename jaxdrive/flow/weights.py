@@ -48,8 +48,7 @@ def _clip_near(corners_cam, near):
     dz = jnp.where(crosses, zb - za, 1.0)  # non-zero whenever the edge crosses
     t = jnp.clip((near - za) / dz, 0.0, 1.0)
     hits = pa + t[..., None] * (pb - pa)
-    return (jnp.concatenate([corners_cam, hits], axis=-2),
-            jnp.concatenate([front, crosses], axis=-1))
+    return (jnp.concatenate([corners_cam, hits], axis=-2), jnp.concatenate([front, crosses], axis=-1))
 
 
 def _hull_mask(pts, valid, qu, qv):
@@ -67,28 +66,28 @@ def _hull_mask(pts, valid, qu, qv):
     """
     scale = jnp.max(jnp.where(valid[..., None], jnp.abs(pts), 0.0), axis=(-2, -1))
     tol = _HULL_RTOL * jnp.maximum(scale, 1.0)[..., None, None, None]
-    d = pts[..., None, :, :] - pts[..., :, None, :]                  # [..., i, j, 2] = p_j - p_i
+    d = pts[..., None, :, :] - pts[..., :, None, :]  # [..., i, j, 2] = p_j - p_i
     # cross[i, j, k] = (p_j - p_i) x (p_k - p_i): > 0 when p_k is left of the line i -> j.
-    cross = (d[..., :, :, None, 0] * d[..., :, None, :, 1]
-             - d[..., :, :, None, 1] * d[..., :, None, :, 0])        # [..., i, j, k]
-    length = jnp.sqrt(jnp.sum(d * d, axis=-1))[..., None]            # [..., i, j, 1]
+    cross = (
+        d[..., :, :, None, 0] * d[..., :, None, :, 1] - d[..., :, :, None, 1] * d[..., :, None, :, 0]
+    )  # [..., i, j, k]
+    length = jnp.sqrt(jnp.sum(d * d, axis=-1))[..., None]  # [..., i, j, 1]
     kv = valid[..., None, None, :]
     all_left = jnp.all(~kv | (cross >= -tol * length), axis=-1)
     some_left = jnp.any(kv & (cross > tol * length), axis=-1)
     pair_ok = valid[..., :, None] & valid[..., None, :]
-    is_edge = pair_ok & all_left & some_left                         # [..., i, j]
+    is_edge = pair_ok & all_left & some_left  # [..., i, j]
     best = jnp.argmax(jnp.where(is_edge, length[..., 0], -1.0), axis=-1)
-    direction = jnp.take_along_axis(d, best[..., None, None], axis=-2)[..., 0, :]   # [..., P, 2]
-    active = jnp.any(is_edge, axis=-1)                                              # [..., P]
+    direction = jnp.take_along_axis(d, best[..., None, None], axis=-2)[..., 0, :]  # [..., P, 2]
+    active = jnp.any(is_edge, axis=-1)  # [..., P]
     ou, ov = pts[..., 0, None, None], pts[..., 1, None, None]
     du, dv = direction[..., 0, None, None], direction[..., 1, None, None]
-    side = du * (qv[:, None] - ov) - dv * (qu[None, :] - ou)                        # [..., P, h, w]
+    side = du * (qv[:, None] - ov) - dv * (qu[None, :] - ou)  # [..., P, h, w]
     inside = jnp.all(~active[..., None, None] | (side >= 0), axis=-3)
     return inside & jnp.any(active, axis=-1)[..., None, None]  # no edge: degenerate, empty
 
 
-def foreground_weight_map(boxes, box_valid, intrinsics, cam_to_ego, *, map_hw, image_hw,
-                          k=1.0, c=0.5, near=0.1):
+def foreground_weight_map(boxes, box_valid, intrinsics, cam_to_ego, *, map_hw, image_hw, k=1.0, c=0.5, near=0.1):
     """STAGE's foreground-weighted loss map ``[B, V, F, h, w]`` (float32, mean 1 per image).
 
     Args:
@@ -137,9 +136,9 @@ def foreground_weight_map(boxes, box_valid, intrinsics, cam_to_ego, *, map_hw, i
 
     valid = jnp.asarray(box_valid)
     boxes = jnp.where(valid[..., None], jnp.asarray(boxes, jnp.float32), 0.0)  # no NaN leaks
-    corners = box_corners(boxes)                                                # [B, F, N, 8, 3]
+    corners = box_corners(boxes)  # [B, F, N, 8, 3]
     cams = ego_to_camera(corners[:, None], jnp.asarray(cam_to_ego)[:, :, None, None])
-    verts, vmask = _clip_near(cams, jnp.float32(near))                     # [B, V, F, N, 20, .]
+    verts, vmask = _clip_near(cams, jnp.float32(near))  # [B, V, F, N, 20, .]
     pix, _ = project_to_image(verts, jnp.asarray(intrinsics)[:, :, None, None])
     vmask = vmask & valid[:, None, :, :, None]
     # Centre coordinates on the image so their magnitude (hence rounding) stays small.
@@ -147,13 +146,12 @@ def foreground_weight_map(boxes, box_valid, intrinsics, cam_to_ego, *, map_hw, i
     # Map pixel centres, in the same centred image pixels.
     qu = (jnp.arange(w, dtype=jnp.float32) + 0.5) * (img_w / w) - img_w / 2
     qv = (jnp.arange(h, dtype=jnp.float32) + 0.5) * (img_h / h) - img_h / 2
-    inside = _hull_mask(pix - centre, vmask, qu, qv)                           # [B, V, F, N, h, w]
+    inside = _hull_mask(pix - centre, vmask, qu, qv)  # [B, V, F, N, h, w]
 
     # Log-weights relative to the background (1 / (h w)^c -> 0): k (h w / p)^c inside.
-    area = jnp.sum(inside, axis=(-2, -1)).astype(jnp.float32)                  # [B, V, F, N]
+    area = jnp.sum(inside, axis=(-2, -1)).astype(jnp.float32)  # [B, V, F, N]
     c = jnp.asarray(c, jnp.float32)
-    log_fg = (jnp.log(jnp.asarray(k, jnp.float32))
-              + c * (math.log(h * w) - jnp.log(jnp.maximum(area, 1.0))))
+    log_fg = jnp.log(jnp.asarray(k, jnp.float32)) + c * (math.log(h * w) - jnp.log(jnp.maximum(area, 1.0)))
     log_fg = jnp.where(inside, log_fg[..., None, None], -jnp.inf)
     log_w = jnp.where(jnp.any(inside, axis=-3), jnp.max(log_fg, axis=-3), 0.0)  # [B, V, F, h, w]
     # Normalise in log space first (subtract the max) so large c or k cannot overflow.

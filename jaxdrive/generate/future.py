@@ -65,9 +65,19 @@ def _fit_tracks(tracks: dict, n: int) -> tuple[dict, np.ndarray]:
     return out, order
 
 
-def future_controls(sample: dict, clip: dict, *, frames: int, keep: int, predictor: FuturePredictor | None = None,
-                    route=None, bev_range=DEFAULT_RANGE, where: str = "clip", allow_off_road: bool = False,
-                    warned: set | None = None) -> dict:
+def future_controls(
+    sample: dict,
+    clip: dict,
+    *,
+    frames: int,
+    keep: int,
+    predictor: FuturePredictor | None = None,
+    route=None,
+    bev_range=DEFAULT_RANGE,
+    where: str = "clip",
+    allow_off_road: bool = False,
+    warned: set | None = None,
+) -> dict:
     """``sample`` (:func:`jaxdrive.data.pipeline.sample_clip` of the first frames of ``clip``, at
     the clip's rate over its stride) with controls for ``frames`` frames: frames before ``keep``
     keep their recorded controls, later ones come from ``predictor``; with a ``route``
@@ -81,49 +91,69 @@ def future_controls(sample: dict, clip: dict, *, frames: int, keep: int, predict
     if not 1 <= keep <= have:
         raise ValueError(f"keep: expected 1..{have} recorded frames to keep, got {keep}")
     if frames > keep and predictor is None and (route is None or frames > have):
-        raise ValueError(f"frames: expected at most {have} frames (the recorded controls of {where}), got {frames}; "
-                         f"pass --predictor RUN to predict the controls beyond them")
+        raise ValueError(
+            f"frames: expected at most {have} frames (the recorded controls of {where}), got {frames}; "
+            f"pass --predictor RUN to predict the controls beyond them"
+        )
     scene = SceneMap.from_clip(clip["bev_map"], clip["ego_to_world"], bev_range)
     on_device = scene.device()
     times = np.asarray(sample["frame_times"], np.float64)
-    times = np.concatenate([times, times[-1] + (np.arange(1, frames - have + 1) / fps)]) if frames > have \
+    times = (
+        np.concatenate([times, times[-1] + (np.arange(1, frames - have + 1) / fps)])
+        if frames > have
         else times[:frames]
+    )
     recorded = {k: np.asarray(sample[k])[:have] for k in ("ego_to_world", *BOX_FIELDS)}
     tracks = clip_tracks(recorded, ref=keep - 1)
-    ego = np.concatenate([planar(recorded["ego_to_world"])[:min(have, frames)],
-                          np.zeros((max(frames - have, 0), 3))])
+    ego = np.concatenate([planar(recorded["ego_to_world"])[: min(have, frames)], np.zeros((max(frames - have, 0), 3))])
     drive = None
     if route is not None:
         from jaxdrive.generate.route import drive_on_map
+
         start = np.asarray(sample["ego_to_world"][0], np.float64)
         route, drive = drive_on_map(route, start, scene, frames, fps, allow_off_road=allow_off_road, warned=warned)
         ego = planar(start @ route.poses(frames, fps))
     n = tracks["agents"].shape[1]
-    agents = np.concatenate([tracks["agents"][:min(have, frames)], np.zeros((max(frames - have, 0), n, 3))])
-    seen = np.concatenate([tracks["seen"][:min(have, frames)], np.zeros((max(frames - have, 0), n), bool)])
+    agents = np.concatenate([tracks["agents"][: min(have, frames)], np.zeros((max(frames - have, 0), n, 3))])
+    seen = np.concatenate([tracks["seen"][: min(have, frames)], np.zeros((max(frames - have, 0), n), bool)])
     if predictor is not None and frames > keep:
-        ego_pred, agents_pred, present = _predict(predictor, tracks, times, keep, frames, on_device, sample,
-                                                  ego if route is not None else None)
+        ego_pred, agents_pred, present = _predict(
+            predictor, tracks, times, keep, frames, on_device, sample, ego if route is not None else None
+        )
         ego[keep:], agents[keep:] = ego_pred, agents_pred
         seen[keep:] = present
     out = dict(sample)
-    rebuilt = clip_fields(ego, agents, size=tracks["size"], z=tracks["z"], classes=tracks["classes"],
-                          ids=tracks["ids"], valid=seen, ego_z=float(recorded["ego_to_world"][keep - 1, 2, 3]))
-    first = 0 if route is not None else keep          # recorded frames stay exactly as recorded
+    rebuilt = clip_fields(
+        ego,
+        agents,
+        size=tracks["size"],
+        z=tracks["z"],
+        classes=tracks["classes"],
+        ids=tracks["ids"],
+        valid=seen,
+        ego_z=float(recorded["ego_to_world"][keep - 1, 2, 3]),
+    )
+    first = 0 if route is not None else keep  # recorded frames stay exactly as recorded
     for k in ("ego_to_world", *BOX_FIELDS):
-        cur = np.asarray(sample[k])[:min(first, frames)]
+        cur = np.asarray(sample[k])[: min(first, frames)]
         new = rebuilt[k][first:].astype(cur.dtype)
-        if k in BOX_FIELDS and new.shape[1] != cur.shape[1]:      # slots: the recorded count
+        if k in BOX_FIELDS and new.shape[1] != cur.shape[1]:  # slots: the recorded count
             width = cur.shape[1]
-            new = new[:, :width] if new.shape[1] > width else np.pad(
-                new, [(0, 0), (0, width - new.shape[1])] + [(0, 0)] * (new.ndim - 2),
-                constant_values=-1 if k in ("box_classes", "box_ids") else 0)
+            new = (
+                new[:, :width]
+                if new.shape[1] > width
+                else np.pad(
+                    new,
+                    [(0, 0), (0, width - new.shape[1])] + [(0, 0)] * (new.ndim - 2),
+                    constant_values=-1 if k in ("box_classes", "box_ids") else 0,
+                )
+            )
         out[k] = np.concatenate([cur, new])
     e2w = out["ego_to_world"].astype(np.float64)
     out["waypoints"] = (np.linalg.inv(e2w[0]) @ e2w)[:, :2, 3].astype(np.float32)
     fallback = jnp.asarray(np.asarray(sample["bev_map"])[min(keep, have) - 1])
     cut_maps = np.asarray(_cut_all(on_device, jnp.asarray(ego[first:], jnp.float32), fallback))
-    out["bev_map"] = np.concatenate([np.asarray(sample["bev_map"])[:min(first, frames)], cut_maps])
+    out["bev_map"] = np.concatenate([np.asarray(sample["bev_map"])[: min(first, frames)], cut_maps])
     out["frame_times"] = times.astype(np.float32)
     out["predicted_from"] = keep if predictor is not None and frames > keep else frames
     if drive is not None:
@@ -131,8 +161,9 @@ def future_controls(sample: dict, clip: dict, *, frames: int, keep: int, predict
     return out
 
 
-def _predict(predictor: FuturePredictor, tracks: dict, times, keep: int, frames: int, scene: SceneMap, sample,
-             ego_path=None):
+def _predict(
+    predictor: FuturePredictor, tracks: dict, times, keep: int, frames: int, scene: SceneMap, sample, ego_path=None
+):
     """Ego and agent poses at ``times[keep:]`` rolled out from the history ending at frame ``keep - 1``."""
     cfg, dt = predictor.config, predictor.step_seconds
     t_now = times[keep - 1]
@@ -140,17 +171,21 @@ def _predict(predictor: FuturePredictor, tracks: dict, times, keep: int, frames:
     rec_t = times[:keep]
     fit, order = _fit_tracks(tracks, cfg.max_agents)
 
-    def at(values, t):                                # the recorded history, held before its start
+    def at(values, t):  # the recorded history, held before its start
         if len(rec_t) == 1:
             return np.repeat(values[:1], len(t), 0)
         return interpolate(rec_t, values[:keep], np.maximum(t, rec_t[0]))
+
     past_seen = fit["seen"][np.clip(np.searchsorted(rec_t, hist_t, side="right") - 1, 0, keep - 1)]
-    traffic = Traffic(ego=jnp.asarray(at(fit["ego"], hist_t), jnp.float32)[None],
-                      agents=jnp.asarray(at(fit["agents"], hist_t), jnp.float32)[None],
-                      seen=jnp.asarray(past_seen & fit["valid"])[None],
-                      size=jnp.asarray(fit["size"], jnp.float32)[None], z=jnp.asarray(fit["z"], jnp.float32)[None],
-                      classes=jnp.asarray(np.maximum(fit["classes"], 0), jnp.int32)[None],
-                      ids=jnp.asarray(fit["ids"], jnp.int32)[None])
+    traffic = Traffic(
+        ego=jnp.asarray(at(fit["ego"], hist_t), jnp.float32)[None],
+        agents=jnp.asarray(at(fit["agents"], hist_t), jnp.float32)[None],
+        seen=jnp.asarray(past_seen & fit["valid"])[None],
+        size=jnp.asarray(fit["size"], jnp.float32)[None],
+        z=jnp.asarray(fit["z"], jnp.float32)[None],
+        classes=jnp.asarray(np.maximum(fit["classes"], 0), jnp.int32)[None],
+        ids=jnp.asarray(fit["ids"], jnp.int32)[None],
+    )
     steps = max(1, math.ceil((times[frames - 1] - t_now) / dt - 1e-6))
     step_t = t_now + dt * np.arange(1, steps + 1)
     path = None
@@ -163,11 +198,11 @@ def _predict(predictor: FuturePredictor, tracks: dict, times, keep: int, frames:
     agents = np.concatenate([np.asarray(traffic.agents[0, -1:]), np.asarray(agents[0])])
     want = times[keep:frames]
     ego_f = interpolate(all_t, ego, want)
-    agents_f = interpolate(all_t, agents, want)                                    # [F', max_agents, 3]
+    agents_f = interpolate(all_t, agents, want)  # [F', max_agents, 3]
     n = tracks["agents"].shape[1]
     out = np.zeros((len(want), n, 3))
-    kept = order[:min(len(order), cfg.max_agents)]
-    out[:, kept] = agents_f[:, :len(kept)]
+    kept = order[: min(len(order), cfg.max_agents)]
+    out[:, kept] = agents_f[:, : len(kept)]
     present = np.zeros(n, bool)
-    present[kept] = tracks["valid"][kept]                 # slots past max_agents are not predicted
+    present[kept] = tracks["valid"][kept]  # slots past max_agents are not predicted
     return ego_f, out, present

@@ -40,9 +40,13 @@ def check_scale(name: str, value) -> float:
     return float(value)
 
 
-def check_controls(model, drop_prob: float, scales: Mapping[str, float | None], *,
-                   option: Callable[[str], str] = lambda c: f"control_guidance[{c!r}]"
-                   ) -> tuple[tuple[str, float], ...]:
+def check_controls(
+    model,
+    drop_prob: float,
+    scales: Mapping[str, float | None],
+    *,
+    option: Callable[[str], str] = lambda c: f"control_guidance[{c!r}]",
+) -> tuple[tuple[str, float], ...]:
     """The per-control scales ``scales`` (control name -> scale; None: not guided on its own)
     checked against a model (its :class:`jaxdrive.models.dit.config.DiTConfig` ``model`` and the
     ``data.drop_prob`` it trained with); returns ``((control, scale), ...)`` in :data:`CONTROLS`
@@ -58,13 +62,17 @@ def check_controls(model, drop_prob: float, scales: Mapping[str, float | None], 
             continue
         scale = check_scale(option(control), scales[control])
         if not on & set(conditions):
-            raise ValueError(f"{option(control)}: expected a model trained with the {control} control (one of "
-                             f"model.controls.{', '.join(conditions)}), got a model without it (its controls: "
-                             f"{', '.join(sorted(on)) or 'none'})")
+            raise ValueError(
+                f"{option(control)}: expected a model trained with the {control} control (one of "
+                f"model.controls.{', '.join(conditions)}), got a model without it (its controls: "
+                f"{', '.join(sorted(on)) or 'none'})"
+            )
         if drop_prob <= 0:
-            raise ValueError(f"{option(control)}: expected a model trained with condition drops (data.drop_prob > "
-                             f"0), whose learned null the {control} control is guided against; got "
-                             f"data.drop_prob = {drop_prob}")
+            raise ValueError(
+                f"{option(control)}: expected a model trained with condition drops (data.drop_prob > "
+                f"0), whose learned null the {control} control is guided against; got "
+                f"data.drop_prob = {drop_prob}"
+            )
         out.append((control, scale))
     return tuple(out)
 
@@ -86,8 +94,10 @@ def sampler_guidance(cond, names, batch: int, scale: float, controls=()) -> dict
         for control, s in controls:
             off = [n for n in names if n in CONTROLS[control]]
             if not off:
-                raise ValueError(f"control_guidance: expected conditions of the {control} control among the "
-                                 f"ones with a null ({names}), got none")
+                raise ValueError(
+                    f"control_guidance: expected conditions of the {control} control among the "
+                    f"ones with a null ({names}), got none"
+                )
             per[control] = (s, on.replace(drop={n: jnp.full((batch,), n in off, bool) for n in names}))
         out["control_guidance"] = per
     return out

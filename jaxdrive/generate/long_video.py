@@ -46,9 +46,24 @@ GRID_FRAMES = 6
 
 
 @deprecated_log
-def sample_long(strategy: str, models: Models, codec, controls: Conditions, first, length: int, out, *, key,
-                mesh=None, fps: float = 12.0, recorded=None, route: str | None = None,
-                control_source: dict | None = None, scene: dict | None = None, **options) -> dict:
+def sample_long(
+    strategy: str,
+    models: Models,
+    codec,
+    controls: Conditions,
+    first,
+    length: int,
+    out,
+    *,
+    key,
+    mesh=None,
+    fps: float = 12.0,
+    recorded=None,
+    route: str | None = None,
+    control_source: dict | None = None,
+    scene: dict | None = None,
+    **options,
+) -> dict:
     """Run ``strategy`` for ``length`` latent frames and write the files of the module docstring;
     returns the report (a dict). ``recorded``: the dataset's own pixel frames ``[V, F, H, W, 3]``
     of the first clip (for the frame grid), when it covers the horizon; ``options`` go to the
@@ -70,20 +85,22 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
     scores = None
     if recorded is not None and np.shape(recorded)[1] >= frames:
         from jaxdrive.generate.quality import FrameScores
+
         given = codec.pixel_frames(np.shape(first)[2])
         scores = FrameScores(np.asarray(recorded)[:, :frames], cond_frames=given)
     writer = None
     if jax.process_index() == 0:
         from jaxdrive.media import Mp4Writer
+
         writer = Mp4Writer(out / "sample.mp4", fps=fps)
 
     def emit(video):
         nonlocal written
         if video is None or not video.shape[2]:
             return
-        clip = np.asarray(video[0])                           # [V, n, H, W, 3]
+        clip = np.asarray(video[0])  # [V, n, H, W, 3]
         for p in picks[(picks >= written) & (picks < written + clip.shape[1])]:
-            grid[int(p)] = np.array(clip[:, p - written])     # a copy, not a view of the part
+            grid[int(p)] = np.array(clip[:, p - written])  # a copy, not a view of the part
         if scores is not None:
             scores.add(clip)
         if writer is not None:
@@ -101,23 +118,33 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
             writer.close()
     seconds = time.perf_counter() - start
     latents = np.concatenate(latents, axis=2)
-    report = {"strategy": strategy, "frames": int(frames), "latent_frames": int(length),
-              "views": int(latents.shape[1]), "clips": int(latents.shape[0]),
-              "sequential_sampler_calls": tracker.calls, "seconds": round(seconds, 3),
-              "peak_device_bytes": int(tracker.peak_bytes), "fps": fps,
-              "given_latent_frames": int(np.shape(first)[2]),
-              "windows": {"main": models.main.window, **({"fine": models.fine.window} if models.fine else {})},
-              "options": {k: v for k, v in options.items() if v is not None and k != "warp"},
-              "compiled_programs": tracker.programs,
-              "guidance": {k: describe(m.guidance, m.control_guidance) for k, m in
-                           (("main", models.main), ("fine", models.fine)) if m is not None},
-              **tracker.notes}
-    if options.get("warp") is not None:          # LongDWM's warped frames: the plane depth they used
+    report = {
+        "strategy": strategy,
+        "frames": int(frames),
+        "latent_frames": int(length),
+        "views": int(latents.shape[1]),
+        "clips": int(latents.shape[0]),
+        "sequential_sampler_calls": tracker.calls,
+        "seconds": round(seconds, 3),
+        "peak_device_bytes": int(tracker.peak_bytes),
+        "fps": fps,
+        "given_latent_frames": int(np.shape(first)[2]),
+        "windows": {"main": models.main.window, **({"fine": models.fine.window} if models.fine else {})},
+        "options": {k: v for k, v in options.items() if v is not None and k != "warp"},
+        "compiled_programs": tracker.programs,
+        "guidance": {
+            k: describe(m.guidance, m.control_guidance)
+            for k, m in (("main", models.main), ("fine", models.fine))
+            if m is not None
+        },
+        **tracker.notes,
+    }
+    if options.get("warp") is not None:  # LongDWM's warped frames: the plane depth they used
         report["warp"] = {"depth": options["warp"].depth}
     if route is not None:
         report["route"] = route
     if scene is not None and scene.get("route_drive") is not None:
-        report["route_drive"] = scene["route_drive"]     # where the manoeuvre began, whether it left the road
+        report["route_drive"] = scene["route_drive"]  # where the manoeuvre began, whether it left the road
     if control_source is not None:
         report["controls"] = control_source
     quality = None
@@ -127,9 +154,10 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
         report["quality"] = {k: v for k, v in quality.items() if k != "per_frame"}
     if jax.process_index() == 0:
         from jaxdrive.media import write_frame_grid
+
         out.mkdir(parents=True, exist_ok=True)
         np.save(out / "latents.npy", latents)
-        video = np.stack([grid[int(p)] for p in picks], axis=1)                  # [V, picks, H, W, 3]
+        video = np.stack([grid[int(p)] for p in picks], axis=1)  # [V, picks, H, W, 3]
         reference = None
         if recorded is not None and np.shape(recorded)[1] >= frames:
             reference = np.asarray(recorded)[:, picks]
@@ -138,12 +166,26 @@ def sample_long(strategy: str, models: Models, codec, controls: Conditions, firs
         (out / "report.json").write_text(json.dumps(report, indent=1))
         if quality is not None:
             (out / "quality.json").write_text(json.dumps(quality, indent=1))
-        logger.info("%s: %d frames x %d views in %.1f s, %d sequential sampler calls, peak device memory %.1f MiB: %s",
-                    strategy, frames, report["views"], seconds, tracker.calls, tracker.peak_bytes / 2**20, out)
+        logger.info(
+            "%s: %d frames x %d views in %.1f s, %d sequential sampler calls, peak device memory %.1f MiB: %s",
+            strategy,
+            frames,
+            report["views"],
+            seconds,
+            tracker.calls,
+            tracker.peak_bytes / 2**20,
+            out,
+        )
         if quality is not None:
             a = quality["all_generated"]
-            logger.info("all generated frames against the recorded clip: PSNR %.2f dB, SSIM %.3f (repeat the last "
-                        "given frame: %.2f dB, %.3f)", a["psnr"], a["ssim"], a["repeat_psnr"], a["repeat_ssim"])
+            logger.info(
+                "all generated frames against the recorded clip: PSNR %.2f dB, SSIM %.3f (repeat the last "
+                "given frame: %.2f dB, %.3f)",
+                a["psnr"],
+                a["ssim"],
+                a["repeat_psnr"],
+                a["repeat_ssim"],
+            )
     return report
 
 
@@ -151,14 +193,16 @@ def _bev_panels(scene: dict, picks, routed: bool) -> np.ndarray:
     """One BEV panel per picked frame: its map, the agents, the ego's whole path in its ego frame
     (red where driven by a route or predicted, blue where recorded)."""
     from jaxdrive.media import bev_image
+
     e2w = np.asarray(scene["ego_to_world"], np.float64)
     bev = np.asarray(scene["bev_map"])
-    cell = scene.get("cell", tuple(100.0 / n for n in bev.shape[1:3]))     # default: a 100 m square
+    cell = scene.get("cell", tuple(100.0 / n for n in bev.shape[1:3]))  # default: a 100 m square
     split = 1 if routed else int(scene.get("predicted_from", len(e2w)))
     panels = []
     for p in picks:
         p = min(int(p), len(e2w) - 1)
         path = (np.linalg.inv(e2w[p]) @ e2w)[:, :2, 3]
-        panels.append(bev_image(bev[p], cell=cell, path=path, split=split, boxes=scene["boxes"][p],
-                                valid=scene["box_valid"][p]))
+        panels.append(
+            bev_image(bev[p], cell=cell, path=path, split=split, boxes=scene["boxes"][p], valid=scene["box_valid"][p])
+        )
     return np.stack(panels)

@@ -60,7 +60,7 @@ def _per_frame(a, b) -> tuple[np.ndarray, np.ndarray]:
     """PSNR and SSIM ``[F]`` of videos ``[V, F, H, W, 3]``, each the mean over views."""
     p = np.asarray(psnr(a, b), np.float64)
     s = np.asarray(ssim(a, b), np.float64)
-    return np.minimum(p, 100.0).mean(axis=0), s.mean(axis=0)     # identical frames: 100 dB, not inf
+    return np.minimum(p, 100.0).mean(axis=0), s.mean(axis=0)  # identical frames: 100 dB, not inf
 
 
 def noise_like(recorded, seed: int = 0) -> np.ndarray:
@@ -104,14 +104,19 @@ class FrameScores:
         lo, r = len(self.rows), self.recorded
         hi = lo + (g.shape[1] if g.ndim == 5 else 0)
         if g.ndim != 5 or g.shape[0] != r.shape[0] or g.shape[2:] != r.shape[2:] or hi > r.shape[1]:
-            raise ValueError(f"generated: expected the next frames [V, n, H, W, 3] of a clip shaped "
-                             f"{list(r.shape)} (frames {lo}..{r.shape[1] - 1} left), got shape {list(g.shape)}")
+            raise ValueError(
+                f"generated: expected the next frames [V, n, H, W, 3] of a clip shaped "
+                f"{list(r.shape)} (frames {lo}..{r.shape[1] - 1} left), got shape {list(g.shape)}"
+            )
         if self._noise is None:
             self._noise = noise_like(r, self.seed)
         truth = r[:, lo:hi]
-        held = np.minimum(np.arange(lo, hi), self.cond_frames - 1)       # the last given frame, held
-        scores = {"": _per_frame(g, truth), "repeat_": _per_frame(r[:, held], truth),
-                  "noise_": _per_frame(self._noise[:, lo:hi], truth)}
+        held = np.minimum(np.arange(lo, hi), self.cond_frames - 1)  # the last given frame, held
+        scores = {
+            "": _per_frame(g, truth),
+            "repeat_": _per_frame(r[:, held], truth),
+            "noise_": _per_frame(self._noise[:, lo:hi], truth),
+        }
         for i, f in enumerate(range(lo, hi)):
             row = {"frame": f, "kind": "condition" if f < self.cond_frames else "generated"}
             for prefix, (p, s) in scores.items():
@@ -129,9 +134,14 @@ class FrameScores:
         window = nf if window is None else min(check_positive_int("window", window), nf)
         if window <= k:
             raise ValueError(f"window: expected more than cond_frames = {k} frames, got {window}")
-        out = {"views": int(self.recorded.shape[0]), "cond_frames": int(k), "window": int(window),
-               "per_frame": self.rows, "first_window": _summary(self.rows, list(range(k, window))),
-               "all_generated": _summary(self.rows, list(range(k, nf)))}
+        out = {
+            "views": int(self.recorded.shape[0]),
+            "cond_frames": int(k),
+            "window": int(window),
+            "per_frame": self.rows,
+            "first_window": _summary(self.rows, list(range(k, window))),
+            "all_generated": _summary(self.rows, list(range(k, nf))),
+        }
         if every is not None:
             every = check_positive_int("every", every)
             out["horizon"] = [_summary(self.rows, list(range(a, min(a + every, nf)))) for a in range(k, nf, every)]

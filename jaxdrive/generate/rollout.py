@@ -24,10 +24,27 @@ from jaxdrive.models.dit.model import DiT
 from jaxdrive.validate import check_positive_int
 
 
-def rollout(dit: DiT, codec, params, codec_params, inputs: dict, *, total_frames: int, window: int,
-            overlap: int, cond_frames: int, steps: int, guidance: float, key, shift: float = 1.0,
-            tpd: bool = False, tpd_omega: float = np.pi / 2, progress: bool = False, mesh=None,
-            control_guidance: tuple[tuple[str, float], ...] = ()):
+def rollout(
+    dit: DiT,
+    codec,
+    params,
+    codec_params,
+    inputs: dict,
+    *,
+    total_frames: int,
+    window: int,
+    overlap: int,
+    cond_frames: int,
+    steps: int,
+    guidance: float,
+    key,
+    shift: float = 1.0,
+    tpd: bool = False,
+    tpd_omega: float = np.pi / 2,
+    progress: bool = False,
+    mesh=None,
+    control_guidance: tuple[tuple[str, float], ...] = (),
+):
     """Latents ``[B, V, total_frames, h, w, C]`` (NumPy) generated window by window (module
     docstring): the ``rollout`` strategy of :mod:`jaxdrive.generate.strategies` on a dataset
     batch; ``progress``: a progress bar over the windows (on process 0); ``mesh``: where the
@@ -41,6 +58,7 @@ def rollout(dit: DiT, codec, params, codec_params, inputs: dict, *, total_frames
     ``control_guidance``: as :class:`jaxdrive.generate.windows.WindowModel` takes them."""
     from jaxdrive.generate.strategies import Models
     from jaxdrive.generate.strategies import rollout as rollout_strategy
+
     check_positive_int("total_frames", total_frames)
     check_positive_int("window", window)
     check_positive_int("overlap", overlap)
@@ -50,17 +68,32 @@ def rollout(dit: DiT, codec, params, codec_params, inputs: dict, *, total_frames
         raise ValueError(f"cond_frames: expected in [0, {min(window, total_frames)}), got {cond_frames}")
     window = min(window, total_frames)
     controls = jax.tree_util.tree_map(np.asarray, inputs["cond"])
-    if "latents" in inputs:                                            # stored (latents.precomputed)
+    if "latents" in inputs:  # stored (latents.precomputed)
         first = np.asarray(inputs["latents"])[:, :, :cond_frames]
-    else:                       # encoded as a whole window, as training encodes its clips
-        video = jnp.asarray(inputs["video"])[:, :, :codec.pixel_frames(window)]
+    else:  # encoded as a whole window, as training encodes its clips
+        video = jnp.asarray(inputs["video"])[:, :, : codec.pixel_frames(window)]
         first = np.asarray(codec.encode(codec_params, video))[:, :, :cond_frames]
-    model = WindowModel(dit, params, window=window, cond_frames=cond_frames, steps=steps, guidance=guidance,
-                        control_guidance=tuple(control_guidance), shift=shift, tpd=tpd, tpd_omega=tpd_omega,
-                        temporal=codec.temporal, value_range=codec.value_range)
+    model = WindowModel(
+        dit,
+        params,
+        window=window,
+        cond_frames=cond_frames,
+        steps=steps,
+        guidance=guidance,
+        control_guidance=tuple(control_guidance),
+        shift=shift,
+        tpd=tpd,
+        tpd_omega=tpd_omega,
+        temporal=codec.temporal,
+        value_range=codec.value_range,
+    )
     parts = rollout_strategy(Models(model), controls, first, total_frames, key=key, mesh=mesh, overlap=overlap)
-    bar = tqdm(parts, total=len(window_starts(total_frames, window, overlap)), unit="window",
-               disable=not progress or jax.process_index() != 0)
+    bar = tqdm(
+        parts,
+        total=len(window_starts(total_frames, window, overlap)),
+        unit="window",
+        disable=not progress or jax.process_index() != 0,
+    )
     return np.concatenate([first[:, :, :0]] + list(bar), axis=2)
 
 

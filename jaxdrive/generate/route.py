@@ -37,16 +37,16 @@ from pathlib import Path
 
 import numpy as np
 
-TURN_RADIUS = 15.0        # metres: a quarter circle at an urban intersection
-BRAKING = 3.0             # m/s^2: a firm, comfortable stop
+TURN_RADIUS = 15.0  # metres: a quarter circle at an urban intersection
+BRAKING = 3.0  # m/s^2: a firm, comfortable stop
 DEFAULT_SPEED = {"straight": 10.0, "left turn": 8.0, "right turn": 8.0, "stop": 10.0}
 TURNS = ("left turn", "right turn")
 # a route file may leave the road for this much of its path in one stretch (a wide corner, a lane
 # edge on the map's cells) before it is refused; jaxdrive sample --allow-off-road drives it anyway
 OFF_ROAD_METRES = 3.0
-TURN_MARGIN = 1.0         # metres either side of a turn's path that must be road too: half a car
-TURN_EXIT = 5.0           # metres after the arc that must be road: the turn ends on a street
-SEARCH_STEP = 0.5         # metres between the turn starts tried
+TURN_MARGIN = 1.0  # metres either side of a turn's path that must be road too: half a car
+TURN_EXIT = 5.0  # metres after the arc that must be road: the turn ends on a street
+SEARCH_STEP = 0.5  # metres between the turn starts tried
 _MANOEUVRE = re.compile(r"^\s*(straight|left turn|right turn|stop)\s*(?:([0-9]*\.?[0-9]+)\s*m/s)?\s*$", re.I)
 
 
@@ -59,10 +59,10 @@ class Route:
     points: np.ndarray
     times: np.ndarray | None = None
     source: str = "route"
-    first_row: int | None = None          # the file row of the first point (None: a manoeuvre)
-    manoeuvre: str | None = None          # the named manoeuvre, its speed (m/s) and the metres it
-    speed: float | None = None            # drives straight on before it begins (a turn placed at
-    lead: float = 0.0                     # an intersection ahead)
+    first_row: int | None = None  # the file row of the first point (None: a manoeuvre)
+    manoeuvre: str | None = None  # the named manoeuvre, its speed (m/s) and the metres it
+    speed: float | None = None  # drives straight on before it begins (a turn placed at
+    lead: float = 0.0  # an intersection ahead)
 
     def frame_times(self, frames: int, fps: float) -> np.ndarray:
         """The frame (a float) at which each point is passed in a clip of ``frames`` at ``fps``."""
@@ -73,6 +73,7 @@ class Route:
     def poses(self, frames: int, fps: float) -> np.ndarray:
         """Ego poses ``[frames, 4, 4]`` along the route (frames after its last point stay there)."""
         from jaxdrive.warp import trajectory_poses
+
         if not fps > 0:
             raise ValueError(f"fps: expected a positive frame rate, got {fps}")
         return trajectory_poses(self.points, frames, times=self.frame_times(frames, fps))
@@ -99,18 +100,24 @@ def manoeuvre(name: str, speed: float | None, duration: float, step: float = 0.1
     if not (np.isfinite(lead) and lead >= 0):
         raise ValueError(f"lead: expected metres >= 0 driven before the manoeuvre, got {lead}")
     duration = max(float(duration), step)
-    t = np.linspace(0.0, duration, max(2, int(np.ceil(duration / step)) + 1))      # up to the clip's end
-    s = v * t                                                   # distance along the path
+    t = np.linspace(0.0, duration, max(2, int(np.ceil(duration / step)) + 1))  # up to the clip's end
+    s = v * t  # distance along the path
     if name == "straight":
         xy = np.stack([s, np.zeros_like(s)], axis=1)
     elif name == "stop":
         t_stop = v / BRAKING
         tt = np.minimum(t, t_stop)
-        xy = np.stack([v * tt - 0.5 * BRAKING * tt ** 2, np.zeros_like(tt)], axis=1)
+        xy = np.stack([v * tt - 0.5 * BRAKING * tt**2, np.zeros_like(tt)], axis=1)
     else:
         xy = _turn_path(name, s, lead if name in TURNS else 0.0)[0]
-    return Route(xy.astype(np.float32), t, source=f"manoeuvre {name!r}", manoeuvre=name, speed=v,
-                 lead=float(lead) if name in TURNS else 0.0)
+    return Route(
+        xy.astype(np.float32),
+        t,
+        source=f"manoeuvre {name!r}",
+        manoeuvre=name,
+        speed=v,
+        lead=float(lead) if name in TURNS else 0.0,
+    )
 
 
 def _rows_from_json(path: Path, data):
@@ -133,8 +140,9 @@ def _rows_from_json(path: Path, data):
             rows.append(r)
         width = len(rows[0]) if rows and isinstance(rows[0], list) else 2
     else:
-        raise ValueError(f"route {path}: expected a JSON object with 'points' or a list of points, "
-                         f"got {type(data).__name__}")
+        raise ValueError(
+            f"route {path}: expected a JSON object with 'points' or a list of points, got {type(data).__name__}"
+        )
     return rows, width
 
 
@@ -144,15 +152,16 @@ def _rows_from_csv(path: Path):
         header = [h.strip().lower() for h in next(reader, [])]
         if header[:2] != ["x", "y"] or header[2:] not in ([], ["t"]):
             raise ValueError(f"route {path} row 1: expected the header 'x,y' or 'x,y,t', got {','.join(header)!r}")
-        return [r for r in reader if any(c.strip() for c in r)], len(header), 2     # data rows start at row 2
+        return [r for r in reader if any(c.strip() for c in r)], len(header), 2  # data rows start at row 2
 
 
 def load_route_file(path) -> Route:
     """A route from a JSON or CSV file (module docstring)."""
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"route: expected a JSON or CSV file or a manoeuvre ({', '.join(DEFAULT_SPEED)}), "
-                         f"got {str(path)!r}")
+        raise ValueError(
+            f"route: expected a JSON or CSV file or a manoeuvre ({', '.join(DEFAULT_SPEED)}), got {str(path)!r}"
+        )
     first_row = 1
     if path.suffix.lower() == ".csv":
         rows, width, first_row = _rows_from_csv(path)
@@ -163,14 +172,16 @@ def load_route_file(path) -> Route:
             raise ValueError(f"route {path}: expected JSON or a .csv file, got a parse error: {e}") from None
         rows, width = _rows_from_json(path, data)
     if width not in (2, 3):
-        raise ValueError(f"route {path} row {first_row}: expected 2 or 3 values (x, y and optionally t), "
-                         f"got {rows[0]!r}")
+        raise ValueError(
+            f"route {path} row {first_row}: expected 2 or 3 values (x, y and optionally t), got {rows[0]!r}"
+        )
     values = []
     for i, r in enumerate(rows):
         row = i + first_row
         if not isinstance(r, (list, tuple)) or len(r) != width:
-            raise ValueError(f"route {path} row {row}: expected {width} values (x, y{', t' if width == 3 else ''}), "
-                             f"got {r!r}")
+            raise ValueError(
+                f"route {path} row {row}: expected {width} values (x, y{', t' if width == 3 else ''}), got {r!r}"
+            )
         try:
             v = [float(c) for c in r]
         except (TypeError, ValueError):
@@ -182,16 +193,20 @@ def load_route_file(path) -> Route:
         raise ValueError(f"route {path}: expected at least 2 points, got {len(values)}")
     arr = np.asarray(values, np.float64)
     if np.abs(arr[0, :2]).max() > 1e-3 or (width == 3 and abs(arr[0, 2]) > 1e-6):
-        raise ValueError(f"route {path} row {first_row}: expected the ego's start (x, y) = (0, 0)"
-                         f"{' at t = 0' if width == 3 else ''} (points are in the first frame's ego frame), "
-                         f"got {values[0]}")
+        raise ValueError(
+            f"route {path} row {first_row}: expected the ego's start (x, y) = (0, 0)"
+            f"{' at t = 0' if width == 3 else ''} (points are in the first frame's ego frame), "
+            f"got {values[0]}"
+        )
     times = None
     if width == 3:
         times = arr[:, 2]
         bad = np.nonzero(np.diff(times) <= 0)[0]
         if len(bad):
-            raise ValueError(f"route {path} row {bad[0] + 1 + first_row}: expected times increasing, got "
-                             f"{times[bad[0] + 1]} after {times[bad[0]]}")
+            raise ValueError(
+                f"route {path} row {bad[0] + 1 + first_row}: expected times increasing, got "
+                f"{times[bad[0] + 1]} after {times[bad[0]]}"
+            )
     return Route(arr[:, :2].astype(np.float32), times, source=str(path), first_row=first_row)
 
 
@@ -216,7 +231,7 @@ def _first_off_map(route: Route, start, scene, frames: int, fps: float) -> tuple
     frame = int(np.argmax(off_frames)) if off_frames.any() else None
     if off_rows.any():
         k = int(np.argmax(off_rows))
-    else:                              # between rows: name the row the path was heading to
+    else:  # between rows: name the row the path was heading to
         k = int(min(np.searchsorted(at_rows, frame), len(route.points) - 1))
     if frame is None:
         frame = int(min(np.ceil(at_rows[k]), frames - 1))
@@ -233,11 +248,16 @@ def check_on_map(route: Route, start, scene, frames: int, fps: float) -> None:
         return
     k = first[0]
     x, y = route.points[k]
-    where = (f"row {k + route.first_row}" if route.first_row is not None else
-             f"at t = {route.frame_times(frames, fps)[k] / fps:.1f} s")
-    raise ValueError(f"route {route.source} {where}: expected a point on the scene's map (the BEV maps the clip "
-                     f"recorded, about {scene.cell[0] * scene.size[0] / 2:.0f} m around its path), got ({x:.1f}, "
-                     f"{y:.1f}) m beyond it: shorten the route or use a longer clip")
+    where = (
+        f"row {k + route.first_row}"
+        if route.first_row is not None
+        else f"at t = {route.frame_times(frames, fps)[k] / fps:.1f} s"
+    )
+    raise ValueError(
+        f"route {route.source} {where}: expected a point on the scene's map (the BEV maps the clip "
+        f"recorded, about {scene.cell[0] * scene.size[0] / 2:.0f} m around its path), got ({x:.1f}, "
+        f"{y:.1f}) m beyond it: shorten the route or use a longer clip"
+    )
 
 
 class RouteWarning(UserWarning):
@@ -260,13 +280,13 @@ def _turn_lead(route: Route, start, scene, reach: float) -> float | None:
     sides = np.array([-TURN_MARGIN, 0.0, TURN_MARGIN])
     shape = (xy + sides[:, None, None] * normal)[None] + np.stack([leads, 0 * leads], -1)[:, None, None]  # [L, 3, N, 2]
     turn_ok = scene.on_road(_to_world(start, shape)).all((1, 2))
-    straight = np.stack(np.broadcast_arrays(leads[None], sides[:, None]), -1)                        # [3, L, 2]
-    straight_ok = np.logical_and.accumulate(scene.on_road(_to_world(start, straight)).all(0))        # road so far
+    straight = np.stack(np.broadcast_arrays(leads[None], sides[:, None]), -1)  # [3, L, 2]
+    straight_ok = np.logical_and.accumulate(scene.on_road(_to_world(start, straight)).all(0))  # road so far
     fits = np.nonzero(turn_ok & straight_ok)[0]
     if not len(fits):
         return None
     gaps = np.nonzero(np.diff(fits) > 1)[0]
-    run = fits[:gaps[0] + 1] if len(gaps) else fits          # the first intersection, not a later one
+    run = fits[: gaps[0] + 1] if len(gaps) else fits  # the first intersection, not a later one
     return float(leads[(run[0] + run[-1]) // 2])
 
 
@@ -276,7 +296,7 @@ def _off_road(route: Route, start, scene, frames: int, fps: float, sub: int = 4)
     sampled ``sub`` times a frame; an off-road sample counts half of each step beside it."""
     xy = route.poses(sub * (frames - 1) + 1, sub * fps)[:, :2, 3]
     world = _to_world(start, xy)
-    off = ~scene.on_road(world) & scene.covers(world)      # beyond the seen map is unknown, not off road
+    off = ~scene.on_road(world) & scene.covers(world)  # beyond the seen map is unknown, not off road
     step = np.linalg.norm(np.diff(xy, axis=0), axis=-1)
     weight = 0.5 * (off[1:].astype(float) + off[:-1])
     stretches, i = [], 0
@@ -287,19 +307,32 @@ def _off_road(route: Route, start, scene, frames: int, fps: float, sub: int = 4)
         j = i
         while j + 1 < len(off) and off[j + 1]:
             j += 1
-        metres = float((step * weight)[max(i - 1, 0):j + 1].sum())
+        metres = float((step * weight)[max(i - 1, 0) : j + 1].sum())
         stretches.append((metres, i / sub, tuple(float(v) for v in xy[i])))
         i = j + 1
     return stretches
 
 
 def _at(frame: float, fps: float, xy) -> dict:
-    return {"frame": int(np.floor(frame + 1e-6)), "time": round(frame / fps, 3),
-            "x": round(float(xy[0]), 2), "y": round(float(xy[1]), 2)}
+    return {
+        "frame": int(np.floor(frame + 1e-6)),
+        "time": round(frame / fps, 3),
+        "x": round(float(xy[0]), 2),
+        "y": round(float(xy[1]), 2),
+    }
 
 
-def drive_on_map(route: Route, start, scene, frames: int, fps: float, *, allow_off_road: bool = False,
-                 max_off_road: float = OFF_ROAD_METRES, warned: set | None = None) -> tuple[Route, dict]:
+def drive_on_map(
+    route: Route,
+    start,
+    scene,
+    frames: int,
+    fps: float,
+    *,
+    allow_off_road: bool = False,
+    max_off_road: float = OFF_ROAD_METRES,
+    warned: set | None = None,
+) -> tuple[Route, dict]:
     """``route`` driven from the ego pose ``start [4, 4]`` on ``scene`` (a
     :class:`jaxdrive.data.scene_map.SceneMap`) for ``frames`` at ``fps`` (module docstring):
     ``(route, drive)``, the route placed on the map (a turn: at the next intersection) and what
@@ -327,51 +360,78 @@ def drive_on_map(route: Route, start, scene, frames: int, fps: float, *, allow_o
         if kind not in warned:
             warned.add(kind)
             warnings.warn(message, RouteWarning, stacklevel=3)
+
     checked = scene.has_road()
     start_at = "clip"
     if checked and route.manoeuvre in TURNS and route.speed:
         reach = route.speed * (frames - 1) / fps
         lead = _turn_lead(route, start, scene, reach)
         if lead is not None:
-            route, start_at = manoeuvre(route.manoeuvre, route.speed, float(route.times[-1]), lead=lead), \
-                "intersection"
+            route, start_at = manoeuvre(route.manoeuvre, route.speed, float(route.times[-1]), lead=lead), "intersection"
     beyond = None
     if route.manoeuvre is None and not allow_off_road:
         check_on_map(route, start, scene, frames, fps)
-    else:                              # a manoeuvre always runs: past the seen map its BEV maps are blank
+    else:  # a manoeuvre always runs: past the seen map its BEV maps are blank
         off_map = _first_off_map(route, start, scene, frames, fps)
         if off_map is not None:
             frame = off_map[1]
             beyond = _at(frame, fps, route.poses(frames, fps)[frame, :2, 3])
-            warn("beyond map", f"route {route.source}: it drives beyond the scene's map (the BEV maps the clip "
-                               f"recorded) from frame {beyond['frame']} (t = {beyond['time']:.2f} s) at "
-                               f"({beyond['x']:.1f}, {beyond['y']:.1f}) m: the map controls are blank from there "
-                               f"and nothing says whether it stays on the road")
+            warn(
+                "beyond map",
+                f"route {route.source}: it drives beyond the scene's map (the BEV maps the clip "
+                f"recorded) from frame {beyond['frame']} (t = {beyond['time']:.2f} s) at "
+                f"({beyond['x']:.1f}, {beyond['y']:.1f}) m: the map controls are blank from there "
+                f"and nothing says whether it stays on the road",
+            )
     begin = route.lead / route.speed * fps if route.lead else 0.0
-    drive = {"start": _at(begin, fps, (route.lead, 0.0)), "start_at": start_at, "map_checked": checked,
-             "off_road": False, "off_road_metres": 0.0, "off_road_from": None, "beyond_map_from": beyond}
+    drive = {
+        "start": _at(begin, fps, (route.lead, 0.0)),
+        "start_at": start_at,
+        "map_checked": checked,
+        "off_road": False,
+        "off_road_metres": 0.0,
+        "off_road_from": None,
+        "beyond_map_from": beyond,
+    }
     if not checked:
-        warn("unchecked", f"route {route.source}: unchecked: the scene's map has no road (nuScenes without its map "
-                          f"expansion?), so nothing says whether the route stays on the road")
+        warn(
+            "unchecked",
+            f"route {route.source}: unchecked: the scene's map has no road (nuScenes without its map "
+            f"expansion?), so nothing says whether the route stays on the road",
+        )
         return route, drive
     stretches = _off_road(route, start, scene, frames, fps)
     if stretches:
-        drive.update(off_road=True, off_road_metres=round(max(m for m, _, _ in stretches), 2),
-                     off_road_from=_at(stretches[0][1], fps, stretches[0][2]))
+        drive.update(
+            off_road=True,
+            off_road_metres=round(max(m for m, _, _ in stretches), 2),
+            off_road_from=_at(stretches[0][1], fps, stretches[0][2]),
+        )
     too_far = [st for st in stretches if st[0] > max_off_road]
     if too_far and route.manoeuvre is None and not allow_off_road:
         metres, frame, (x, y) = too_far[0]
-        raise ValueError(f"route {route.source}: expected a path on the road of the scene's map (at most "
-                         f"{max_off_road:g} m off it in one stretch), got {metres:.1f} m off the road from frame "
-                         f"{int(frame)} (t = {frame / fps:.2f} s) at ({x:.1f}, {y:.1f}) m; pass --allow-off-road to "
-                         f"drive it anyway")
-    where = "" if not stretches else (f": it leaves the road at frame {drive['off_road_from']['frame']} "
-                                      f"({drive['off_road_from']['x']:.1f}, {drive['off_road_from']['y']:.1f}) m, "
-                                      f"{drive['off_road_metres']:.1f} m off it")
+        raise ValueError(
+            f"route {route.source}: expected a path on the road of the scene's map (at most "
+            f"{max_off_road:g} m off it in one stretch), got {metres:.1f} m off the road from frame "
+            f"{int(frame)} (t = {frame / fps:.2f} s) at ({x:.1f}, {y:.1f}) m; pass --allow-off-road to "
+            f"drive it anyway"
+        )
+    where = (
+        ""
+        if not stretches
+        else (
+            f": it leaves the road at frame {drive['off_road_from']['frame']} "
+            f"({drive['off_road_from']['x']:.1f}, {drive['off_road_from']['y']:.1f}) m, "
+            f"{drive['off_road_metres']:.1f} m off it"
+        )
+    )
     if route.manoeuvre in TURNS and start_at == "clip":
-        warn("no intersection", f"route {route.source}: no intersection within the "
-                                f"{(route.speed or 0) * (frames - 1) / fps:.0f} m the ego drives ahead on the scene's "
-                                f"map, so the turn starts where the clip is{where or ' (on the road so far)'}")
-    elif too_far:                     # a named manoeuvre, or a file with allow_off_road
+        warn(
+            "no intersection",
+            f"route {route.source}: no intersection within the "
+            f"{(route.speed or 0) * (frames - 1) / fps:.0f} m the ego drives ahead on the scene's "
+            f"map, so the turn starts where the clip is{where or ' (on the road so far)'}",
+        )
+    elif too_far:  # a named manoeuvre, or a file with allow_off_road
         warn("off road", f"route {route.source}: driven off the road{where}")
     return route, drive

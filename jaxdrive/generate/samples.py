@@ -65,9 +65,21 @@ class Sampling:
         return self.data.stride if self.stride is None else self.stride
 
 
-def dataset_inputs(spec: Sampling, *, frames: int, views=None, clips: int = 1, split: str | None = None,
-                   seed: int = 0, controls=None, scene: bool = False, masks: bool = False,
-                   shuffle_boxes: bool = False, indices=None, poses: bool = False):
+def dataset_inputs(
+    spec: Sampling,
+    *,
+    frames: int,
+    views=None,
+    clips: int = 1,
+    split: str | None = None,
+    seed: int = 0,
+    controls=None,
+    scene: bool = False,
+    masks: bool = False,
+    shuffle_boxes: bool = False,
+    indices=None,
+    poses: bool = False,
+):
     """Model inputs of ``clips`` dataset clips of ``frames`` pixel frames (no condition dropped):
     the first frames give the condition latents, every frame its controls. A precomputed dataset
     (``latents.precomputed``) gives its stored windows: ``frames`` at most the window's frame count
@@ -89,25 +101,30 @@ def dataset_inputs(spec: Sampling, *, frames: int, views=None, clips: int = 1, s
     from jaxdrive.data.batches import model_inputs
     from jaxdrive.data.pipeline import CONDITIONS, collate, sample_clip
     from jaxdrive.data.tfds_io import open_source
+
     d = spec.data
     source = None
-    for name in ([split] if split else ["validation", d.split]):
+    for name in [split] if split else ["validation", d.split]:
         try:
             source = open_source(d.path, name)
             break
         except ValueError:
-            if split or name == d.split:      # the last one tried: say why it failed
+            if split or name == d.split:  # the last one tried: say why it failed
                 raise
     views = list(range(d.views)) if views is None else views
     rng = np.random.default_rng(seed)
     samples = []
     if controls is not None and spec.precomputed:
-        raise ValueError("controls: predicted or routed controls need clips, not the precomputed latent windows "
-                         "of latents.precomputed")
+        raise ValueError(
+            "controls: predicted or routed controls need clips, not the precomputed latent windows "
+            "of latents.precomputed"
+        )
     if (masks or shuffle_boxes) and spec.precomputed:
-        raise ValueError("masks: class masks need clips with their instance ids, not the precomputed latent windows "
-                         "of latents.precomputed")
-    for i in (range(clips) if indices is None else indices):
+        raise ValueError(
+            "masks: class masks need clips with their instance ids, not the precomputed latent windows "
+            "of latents.precomputed"
+        )
+    for i in range(clips) if indices is None else indices:
         clip = source[i % len(source)]
         where = f"{source.split} clip {i}"
         if spec.precomputed:
@@ -117,22 +134,35 @@ def dataset_inputs(spec: Sampling, *, frames: int, views=None, clips: int = 1, s
         stride = spec.frame_stride
         recorded = 1 + (have - 1) // stride
         if frames > recorded and controls is None:
-            raise ValueError(f"frames: expected at most {recorded} frames (the dataset's clips have "
-                             f"{have} at stride {stride}), got {frames}")
-        sample = sample_clip(clip, size=(d.height, d.width), frames=min(frames, recorded), stride=stride,
-                             views=views, rng=rng, where=where, instances=masks or shuffle_boxes)
+            raise ValueError(
+                f"frames: expected at most {recorded} frames (the dataset's clips have "
+                f"{have} at stride {stride}), got {frames}"
+            )
+        sample = sample_clip(
+            clip,
+            size=(d.height, d.width),
+            frames=min(frames, recorded),
+            stride=stride,
+            views=views,
+            rng=rng,
+            where=where,
+            instances=masks or shuffle_boxes,
+        )
         samples.append(sample if controls is None else controls(sample, clip, where))
     extra = {}
     if masks or shuffle_boxes:
         from jaxdrive.data.class_masks import class_masks_of
+
         own = [class_masks_of(s) for s in samples]
         for s in samples:
-            del s["instance_ids"]                 # not a model input
+            del s["instance_ids"]  # not a model input
         extra["class_masks"] = np.stack(own)
         if shuffle_boxes:
             if len(samples) < 2 or len(source) < 2:
-                raise ValueError(f"shuffle_boxes: expected at least 2 clips from a split of at least 2 clips to "
-                                 f"shuffle boxes between, got {len(samples)} from a split of {len(source)}")
+                raise ValueError(
+                    f"shuffle_boxes: expected at least 2 clips from a split of at least 2 clips to "
+                    f"shuffle boxes between, got {len(samples)} from a split of {len(source)}"
+                )
             fields = ("boxes", "box_classes", "box_ids", "box_valid")
             given = [{k: s[k] for k in fields} for s in samples]
             for i, s in enumerate(samples):
@@ -146,7 +176,7 @@ def dataset_inputs(spec: Sampling, *, frames: int, views=None, clips: int = 1, s
         kept = {k: np.asarray(batch[k][0]) for k in ("bev_map", "ego_to_world", "boxes", "box_valid")}
         kept["predicted_from"] = int(samples[0].get("predicted_from", frames))
     batch.pop("predicted_from", None)
-    batch["drop"] = {n: np.zeros((clips,), bool) for n in CONDITIONS}   # nothing dropped; CFG adds the nulls
+    batch["drop"] = {n: np.zeros((clips,), bool) for n in CONDITIONS}  # nothing dropped; CFG adds the nulls
     inputs = model_inputs(batch, spec.model, spec.text_embeddings)
     if kept is not None:
         inputs["scene"] = kept
@@ -160,23 +190,31 @@ def _window_prefix(spec: Sampling, record, frames: int, views, where: str) -> di
     ``(K - 1)``-th frame of the dense windows it was trained on (frame-wise latents)."""
     from jaxdrive.data.pipeline import take_window
     from jaxdrive.data.schema import WINDOW_FIELDS
+
     codec = spec.codec
     step, rest = divmod(spec.frame_stride, spec.data.stride)
     if rest or (step > 1 and codec.temporal != 1):
-        raise ValueError(f"stride: expected a multiple of the windows' stride {spec.data.stride} (and frame-wise "
-                         f"latents to skip frames), got {spec.frame_stride} with temporal compression "
-                         f"{codec.temporal}")
+        raise ValueError(
+            f"stride: expected a multiple of the windows' stride {spec.data.stride} (and frame-wise "
+            f"latents to skip frames), got {spec.frame_stride} with temporal compression "
+            f"{codec.temporal}"
+        )
     have, temporal = int(np.shape(record["ego_to_world"])[0]), codec.temporal
     recorded = 1 + (have - 1) // step
     if frames > recorded or (frames - 1) % temporal:
         form = f"1 + {temporal}k frames, " if temporal > 1 else ""
-        raise ValueError(f"frames: expected {form}at most the {recorded} frames of the dataset's latent windows "
-                         f"(latents.precomputed fixes the length), got {frames}")
+        raise ValueError(
+            f"frames: expected {form}at most the {recorded} frames of the dataset's latent windows "
+            f"(latents.precomputed fixes the length), got {frames}"
+        )
     s = take_window(record, frames=have, views=views, where=where)
     picked = slice(0, step * (frames - 1) + 1, step)
-    s.update({k: s[k][picked] for k, (_, spec_) in WINDOW_FIELDS.items() if spec_[0] == "F"},
-             latents=s["latents"][:, :codec.latent_frames(step * (frames - 1) + 1)][:, ::step],
-             frame_times=s["frame_times"][picked], fps=np.float32(s["fps"] / step))
+    s.update(
+        {k: s[k][picked] for k, (_, spec_) in WINDOW_FIELDS.items() if spec_[0] == "F"},
+        latents=s["latents"][:, : codec.latent_frames(step * (frames - 1) + 1)][:, ::step],
+        frame_times=s["frame_times"][picked],
+        fps=np.float32(s["fps"] / step),
+    )
     return s
 
 
@@ -196,10 +234,21 @@ class Generated:
     guidance: dict = dataclasses.field(default_factory=dict)
 
 
-def generate(spec: Sampling, params, *, frames: int | None = None, views=None, steps: int | None = None,
-             guidance: float | None = None, control_guidance=None, cond_frames: int | None = None,
-             overlap: int | None = None, clips: int | None = None, seed: int = 0,
-             progress: bool = False) -> Generated:
+def generate(
+    spec: Sampling,
+    params,
+    *,
+    frames: int | None = None,
+    views=None,
+    steps: int | None = None,
+    guidance: float | None = None,
+    control_guidance=None,
+    cond_frames: int | None = None,
+    overlap: int | None = None,
+    clips: int | None = None,
+    seed: int = 0,
+    progress: bool = False,
+) -> Generated:
     """Generate ``clips`` clips conditioned on dataset clips (see :class:`Generated`). ``guidance``
     None: the run's (``spec.guidance``); ``control_guidance``: control -> its own scale
     (:mod:`jaxdrive.generate.guidance`). ``frames``
@@ -230,17 +279,41 @@ def generate(spec: Sampling, params, *, frames: int | None = None, views=None, s
     inputs = jax.tree_util.tree_map(lambda x: jax.device_put(np.asarray(x), batch_sharding), inputs)
     cond = min(cond, window - 1)
     with jax.set_mesh(mesh):
-        latents = rollout(DiT(spec.model), codec, params, codec.params, inputs, total_frames=total, window=window,
-                          overlap=overlap, cond_frames=cond, steps=steps, guidance=guidance,
-                          control_guidance=controls,
-                          key=jax.random.key(seed), shift=shift, tpd=f.tpd, tpd_omega=f.tpd_omega,
-                          progress=progress, mesh=mesh)
+        latents = rollout(
+            DiT(spec.model),
+            codec,
+            params,
+            codec.params,
+            inputs,
+            total_frames=total,
+            window=window,
+            overlap=overlap,
+            cond_frames=cond,
+            steps=steps,
+            guidance=guidance,
+            control_guidance=controls,
+            key=jax.random.key(seed),
+            shift=shift,
+            tpd=f.tpd,
+            tpd_omega=f.tpd_omega,
+            progress=progress,
+            mesh=mesh,
+        )
         video = to_numpy_video(codec, codec.params, latents)
-        recorded = (np.asarray(inputs["video"]) if "video" in inputs else
-                    to_numpy_video(codec, codec.params, inputs["latents"][:, :, :total]))
+        recorded = (
+            np.asarray(inputs["video"])
+            if "video" in inputs
+            else to_numpy_video(codec, codec.params, inputs["latents"][:, :, :total])
+        )
     pixel = lambda n: codec.pixel_frames(n) if n else 0
-    return Generated(video, np.asarray(latents), recorded, pixel(cond), min(pixel(window), video.shape[2]),
-                     guidance=describe(guidance, controls))
+    return Generated(
+        video,
+        np.asarray(latents),
+        recorded,
+        pixel(cond),
+        min(pixel(window), video.shape[2]),
+        guidance=describe(guidance, controls),
+    )
 
 
 def write_samples(spec: Sampling, state_or_params, outdir, *, fps: float | None = None, **kwargs) -> dict:
@@ -253,6 +326,7 @@ def write_samples(spec: Sampling, state_or_params, outdir, *, fps: float | None 
     the state keeps them."""
     from jaxdrive.generate.quality import clip_quality
     from jaxdrive.media import write_frame_grid, write_mp4
+
     params = state_or_params
     if hasattr(state_or_params, "params"):
         params = state_or_params.ema if state_or_params.ema is not None else state_or_params.params
@@ -264,13 +338,16 @@ def write_samples(spec: Sampling, state_or_params, outdir, *, fps: float | None 
         outdir.mkdir(parents=True, exist_ok=True)
         rate = fps or 12.0
         out["video"] = write_mp4(outdir / "sample.mp4", video[0], fps=rate)
-        out["grid"] = write_frame_grid(outdir / "frames.png", video[0], num_frames=min(6, video.shape[2]),
-                                       reference=g.recorded[0])
+        out["grid"] = write_frame_grid(
+            outdir / "frames.png", video[0], num_frames=min(6, video.shape[2]), reference=g.recorded[0]
+        )
         np.save(outdir / "latents.npy", g.latents)
         out["latents"] = outdir / "latents.npy"
-        if g.cond_frames:           # quality is measured against what the given frames continue
-            q = {**clip_quality(video[0], g.recorded[0], cond_frames=g.cond_frames, window=g.window),
-                 "guidance": g.guidance}
+        if g.cond_frames:  # quality is measured against what the given frames continue
+            q = {
+                **clip_quality(video[0], g.recorded[0], cond_frames=g.cond_frames, window=g.window),
+                "guidance": g.guidance,
+            }
             out["quality"] = q
             out["quality_json"] = outdir / "quality.json"
             out["quality_json"].write_text(json.dumps(q, indent=1))

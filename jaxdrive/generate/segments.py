@@ -49,13 +49,25 @@ def check_segment_batch(segment_batch):
     if isinstance(segment_batch, str) and segment_batch.strip().isdigit():
         segment_batch = int(segment_batch)
     if isinstance(segment_batch, bool) or not isinstance(segment_batch, (int, np.integer)) or segment_batch < 1:
-        raise ValueError(f"segment_batch: expected 'auto' or a positive number of segments per fine call, "
-                         f"got {segment_batch!r}")
+        raise ValueError(
+            f"segment_batch: expected 'auto' or a positive number of segments per fine call, got {segment_batch!r}"
+        )
     return int(segment_batch)
 
 
-def choose_segment_batch(fine: WindowModel, horizon: Horizon, controls: Conditions, segments: int, *, given: int,
-                         key, tracker, mesh=None, warp=None, device_memory=None) -> dict:
+def choose_segment_batch(
+    fine: WindowModel,
+    horizon: Horizon,
+    controls: Conditions,
+    segments: int,
+    *,
+    given: int,
+    key,
+    tracker,
+    mesh=None,
+    warp=None,
+    device_memory=None,
+) -> dict:
     """The largest number of segments per fine call whose compiled call fits the per-device
     budget (``device_memory``, else :func:`device_budget`'s default), and what decided it:
     ``segment_batch``, ``segments``, ``budget_bytes``, ``budget_source``, ``footprint_bytes`` (of
@@ -68,11 +80,13 @@ def choose_segment_batch(fine: WindowModel, horizon: Horizon, controls: Conditio
     check_positive_int("segments", segments)
     b = horizon.latents.shape[0]
     shards = batch_shards(mesh)
-    unit = shards // math.gcd(shards, b)              # segments whose clips fill every batch shard
+    unit = shards // math.gcd(shards, b)  # segments whose clips fill every batch shard
     groups = sorted(set(range(unit, segments + 1, unit)) | {segments})
     # the fine params already on a device are arguments of the call: free memory counts them once
-    params_bytes = sum(x.addressable_shards[0].data.nbytes if isinstance(x, jax.Array) else np.asarray(x).nbytes
-                       for x in jax.tree_util.tree_leaves(fine.params))
+    params_bytes = sum(
+        x.addressable_shards[0].data.nbytes if isinstance(x, jax.Array) else np.asarray(x).nbytes
+        for x in jax.tree_util.tree_leaves(fine.params)
+    )
     budget, source, strict = device_budget(device_memory, counted_bytes=params_bytes)
     _, one = fine_group(fine, horizon, [0], controls, given=given, warp=warp)
     probed: dict[int, int] = {}
@@ -80,19 +94,21 @@ def choose_segment_batch(fine: WindowModel, horizon: Horizon, controls: Conditio
     def footprint(n: int) -> int:
         if n not in probed:
             args = (abstract_on_mesh(fine.params, mesh), *abstract_on_mesh(one, mesh, batch=n))
-            compiled = tracker.compiled(fine, *args, key, probe=True)      # as the run's call: to_mesh(...)
-            probed[n] = footprint_bytes(compiled) or 0       # no analysis: nothing to bound by
+            compiled = tracker.compiled(fine, *args, key, probe=True)  # as the run's call: to_mesh(...)
+            probed[n] = footprint_bytes(compiled) or 0  # no analysis: nothing to bound by
         return probed[n]
 
     lo, hi = groups[0], groups[-1]
-    if not strict:             # a CPU: a batched call runs no faster there than its segments one by one
+    if not strict:  # a CPU: a batched call runs no faster there than its segments one by one
         best = lo
     elif footprint(lo) > budget:
-        raise ValueError(f"device_memory: expected a budget that holds one fine call of {lo} segment(s) "
-                         f"({footprint(lo)} bytes per device), got {budget} bytes ({source})")
+        raise ValueError(
+            f"device_memory: expected a budget that holds one fine call of {lo} segment(s) "
+            f"({footprint(lo)} bytes per device), got {budget} bytes ({source})"
+        )
     elif footprint(hi) <= budget:
         best = hi
-    else:                                               # memory is about linear in the group
+    else:  # memory is about linear in the group
         slope = (footprint(hi) - footprint(lo)) / (hi - lo)
         guess = lo + (budget - footprint(lo)) / max(slope, 1)
         i = max(j for j, g in enumerate(groups) if g <= max(guess, lo))
@@ -101,5 +117,11 @@ def choose_segment_batch(fine: WindowModel, horizon: Horizon, controls: Conditio
         while i + 1 < len(groups) and footprint(groups[i + 1]) <= budget:
             i += 1
         best = groups[i]
-    return {"segment_batch": best, "segments": segments, "budget_bytes": int(budget), "budget_source": source,
-            "footprint_bytes": footprint(best), "probed": {str(k): v for k, v in sorted(probed.items())}}
+    return {
+        "segment_batch": best,
+        "segments": segments,
+        "budget_bytes": int(budget),
+        "budget_source": source,
+        "footprint_bytes": footprint(best),
+        "probed": {str(k): v for k, v in sorted(probed.items())},
+    }

@@ -40,7 +40,7 @@ from jaxdrive.models.htft import buffer_init, buffer_push, buffer_select
 from jaxdrive.models.htft import check_taps as check_offsets
 from jaxdrive.parallel.rules import constrain, reshard_like
 
-NEW = 2                           # the new frame's slot
+NEW = 2  # the new frame's slot
 COND_MASK = (True, True, False)
 
 
@@ -54,6 +54,7 @@ def window_frames(j, temporal: int):
 
     def latent(frame):
         return jnp.where(frame >= 1, temporal * (frame - 1) + 1 + jnp.arange(temporal), 0)
+
     return jnp.concatenate([jnp.zeros_like(j), latent(j - 1), latent(j)], axis=-1)
 
 
@@ -67,9 +68,12 @@ def window_controls(controls: Conditions, j, temporal: int) -> Conditions:
         def take(name, v):
             v = np.asarray(v)
             if v.shape[1] <= pos.max():
-                raise ValueError(f"controls.{name}: expected at least {pos.max() + 1} frames for frame "
-                                 f"{int(np.max(j))}, got {v.shape[1]}")
+                raise ValueError(
+                    f"controls.{name}: expected at least {pos.max() + 1} frames for frame "
+                    f"{int(np.max(j))}, got {v.shape[1]}"
+                )
             return v[:, pos]
+
         return controls.per_frame(take)
 
     return controls.per_frame(lambda name, v: gather_frames(v, idx, 1))
@@ -117,6 +121,7 @@ def window_velocity(dit, params):
         out, feats = dit.forward(params, x, sigma, c, return_features=True)
         v = flow.velocity_from_output(out, x, sigma, m.prediction, m.prediction_min_sigma)
         return v, {k: f[:, NEW] for k, f in feats.items()}
+
     return velocity
 
 
@@ -128,8 +133,9 @@ def _per_step(buffer, taps):
     return {"features": past, "mask": jnp.broadcast_to(mask, (steps,) + mask.shape)}
 
 
-def stream_frame(model: WindowModel, taps: tuple[int, ...], params, anchor, prev, controls: Conditions, key,
-                 buffer=None):
+def stream_frame(
+    model: WindowModel, taps: tuple[int, ...], params, anchor, prev, controls: Conditions, key, buffer=None
+):
     """One new latent frame ``[B, V, 1, h, w, C]`` after ``anchor`` and ``prev`` (``[B, V, 1, h,
     w, C]`` each) under the window's ``controls`` (:func:`window_controls`), and the buffer with its
     features pushed (``buffer`` None or no ``taps``: HTFT off, returns None); the frame is clipped to
@@ -143,16 +149,37 @@ def stream_frame(model: WindowModel, taps: tuple[int, ...], params, anchor, prev
     noise = noise_like(key, x_cond)
     x0 = jnp.where(mask[:, None, :, None, None, None], x_cond, noise)
     if buffer is None or not taps or not m.htft_layers:
-        out = flow.sample(lambda x, s, c: window_velocity(model.dit, params)(x, s, c, None)[0], x0, schedule,
-                          cond_mask=mask, **guidance)
+        out = flow.sample(
+            lambda x, s, c: window_velocity(model.dit, params)(x, s, c, None)[0],
+            x0,
+            schedule,
+            cond_mask=mask,
+            **guidance,
+        )
         return model.in_range(out[:, :, NEW:]), None
-    out, feats = flow.sample(window_velocity(model.dit, params), x0, schedule, cond_mask=mask,
-                             step_inputs=_per_step(buffer, taps), **guidance)
+    out, feats = flow.sample(
+        window_velocity(model.dit, params),
+        x0,
+        schedule,
+        cond_mask=mask,
+        step_inputs=_per_step(buffer, taps),
+        **guidance,
+    )
     return model.in_range(out[:, :, NEW:]), buffer_push(buffer, feats)
 
 
-def observe_frame(model: WindowModel, taps: tuple[int, ...], params, anchor, prev, frame, controls: Conditions,
-                  key, buffer, sigmas=None):
+def observe_frame(
+    model: WindowModel,
+    taps: tuple[int, ...],
+    params,
+    anchor,
+    prev,
+    frame,
+    controls: Conditions,
+    key,
+    buffer,
+    sigmas=None,
+):
     """A known ``frame``'s features pushed into ``buffer``: at each level of ``sigmas`` (default
     the sampling schedule's levels before the last) the window ``[anchor, prev, frame noised to
     that level]`` through the model, fusing the buffer's taps as a generated frame would."""
@@ -167,6 +194,7 @@ def observe_frame(model: WindowModel, taps: tuple[int, ...], params, anchor, pre
         x = x_cond.at[:, :, NEW:].set(flow.add_noise(frame, noise, jnp.broadcast_to(s, (frame.shape[0],))))
         levels = jnp.where(mask, 0.0, s)
         return None, velocity(x, levels, cond, past)[1]
+
     sigmas = jnp.asarray(sigmas, jnp.float32)
     _, new = jax.lax.scan(step, None, (sigmas, _per_step(buffer, taps)))
     return buffer_push(buffer, new)
@@ -176,7 +204,7 @@ _STREAM = jax.jit(stream_frame, static_argnums=(0, 1), donate_argnums=(7,))
 _OBSERVE = jax.jit(observe_frame, static_argnums=(0, 1), donate_argnums=(8,))
 
 
-BUFFER_AXES = (None, "batch", None, "tokens", "views", "embed")      # [steps, B, slots, S, V, D]
+BUFFER_AXES = (None, "batch", None, "tokens", "views", "embed")  # [steps, B, slots, S, V, D]
 
 
 def new_buffer(model: WindowModel, batch: int, views: int, latent_hw: tuple[int, int]):
@@ -184,8 +212,7 @@ def new_buffer(model: WindowModel, batch: int, views: int, latent_hw: tuple[int,
     layer, for windows of ``views`` views of ``latent_hw`` latents."""
     m = model.dit.config
     s = (latent_hw[0] // m.patch[1]) * (latent_hw[1] // m.patch[2])
-    buf = buffer_init({i: (batch, s, views, m.width) for i in m.htft_layers}, model.stream_buffer,
-                      steps=model.steps)
+    buf = buffer_init({i: (batch, s, views, m.width) for i in m.htft_layers}, model.stream_buffer, steps=model.steps)
     # sharded like the features it stores: zeros alone come replicated, and under a mesh the ring of
     # the whole batch (STAGE's stage-3 step at paper size: 126 GiB) sat on every device
     buf["data"] = {i: constrain(a, BUFFER_AXES) for i, a in buf["data"].items()}
@@ -207,13 +234,16 @@ def check_taps(models, taps) -> tuple[int, ...]:
         return main.stream_taps
     taps = check_offsets(taps, main.stream_buffer, "taps")
     if taps and not main.dit.config.htft_layers:
-        raise ValueError(f"taps: HTFT streaming needs a model with HTFT layers (model.htft_layers, STAGE stage 2), "
-                         f"got taps {list(taps)} for a model without them")
+        raise ValueError(
+            f"taps: HTFT streaming needs a model with HTFT layers (model.htft_layers, STAGE stage 2), "
+            f"got taps {list(taps)} for a model without them"
+        )
     return taps
 
 
-def streaming(models, controls: Conditions, first, length: int, *, key, tracker: Tracker | None = None, mesh=None,
-              taps=None) -> Iterator[np.ndarray]:
+def streaming(
+    models, controls: Conditions, first, length: int, *, key, tracker: Tracker | None = None, mesh=None, taps=None
+) -> Iterator[np.ndarray]:
     """STAGE's streaming strategy (module docstring): the given frames ``first [B, V, k, h, w, C]``
     (the first is the anchor) are observed into the buffer, then each next latent frame is
     sampled from the anchor and the frame before it and yielded at once. ``taps`` default to the
@@ -225,23 +255,37 @@ def streaming(models, controls: Conditions, first, length: int, *, key, tracker:
     b, v, given, h, w, _ = first.shape
     htft = bool(taps)
     buffer = new_buffer(model, b, v, (h, w)) if htft else None
-    tracker.notes["stream"] = {"buffer_frames": model.stream_buffer if htft else 0, "taps": list(taps),
-                               "buffer_bytes": buffer_bytes(model, b, v, (h, w)) if htft else 0}
+    tracker.notes["stream"] = {
+        "buffer_frames": model.stream_buffer if htft else 0,
+        "taps": list(taps),
+        "buffer_bytes": buffer_bytes(model, b, v, (h, w)) if htft else 0,
+    }
     anchor = to_mesh(first[:, :, :1], mesh)
     yield first
     prev = first[:, :, :1]
     for j in range(1, length):
         ctrl = to_mesh(window_controls(controls, j, model.temporal), mesh)
         k = jax.random.fold_in(key, j)
-        if j < given:                                # a given frame: only its features are needed
-            frame = first[:, :, j:j + 1]
+        if j < given:  # a given frame: only its features are needed
+            frame = first[:, :, j : j + 1]
             if htft:
-                buffer = tracker.call(model, model.params, anchor, to_mesh(prev, mesh), to_mesh(frame, mesh),
-                                      ctrl, k, buffer, fn=_OBSERVE, static=(taps,))
+                buffer = tracker.call(
+                    model,
+                    model.params,
+                    anchor,
+                    to_mesh(prev, mesh),
+                    to_mesh(frame, mesh),
+                    ctrl,
+                    k,
+                    buffer,
+                    fn=_OBSERVE,
+                    static=(taps,),
+                )
         else:
-            out, buffer = tracker.call(model, model.params, anchor, to_mesh(prev, mesh), ctrl, k, buffer,
-                                       fn=_STREAM, static=(taps,))
-            frame = np.array(out)          # a copy: on a CPU asarray would keep the device buffer alive
+            out, buffer = tracker.call(
+                model, model.params, anchor, to_mesh(prev, mesh), ctrl, k, buffer, fn=_STREAM, static=(taps,)
+            )
+            frame = np.array(out)  # a copy: on a CPU asarray would keep the device buffer alive
             del out
             yield frame
         prev = frame

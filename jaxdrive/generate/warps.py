@@ -43,23 +43,36 @@ class WarpGuide:
         """From :func:`jaxdrive.data.batches.model_inputs` of a model with ``controls.warp`` (its
         ``warp`` entry: the clips' poses and cameras)."""
         w = inputs["warp"]
-        return cls(codec, codec.params, np.asarray(w["poses"], np.float32), np.asarray(w["intrinsics"], np.float32),
-                   np.asarray(w["cam_to_ego"], np.float32), float(depth))
+        return cls(
+            codec,
+            codec.params,
+            np.asarray(w["poses"], np.float32),
+            np.asarray(w["intrinsics"], np.float32),
+            np.asarray(w["cam_to_ego"], np.float32),
+            float(depth),
+        )
 
     def window(self, first, pixel_frames) -> np.ndarray:
         """The ``warp`` latents ``[B, V, F', h, w, C]`` of a window whose first latent frame is
         ``first [B, V, 1, h, w, C]`` and whose pixel frames are ``pixel_frames`` (output pixel
         frames, the first one the window's first)."""
         from jaxdrive.warp import warp_views
+
         frames = np.asarray(pixel_frames)
         if int(frames.max()) >= self.poses.shape[1]:
-            raise ValueError(f"poses: expected a pose for pixel frame {int(frames.max())} of the horizon, got "
-                             f"{self.poses.shape[1]} poses")
-        pixels = np.asarray(_DECODE(self.codec, self.codec_params, first))[:, :, 0]          # [B, V, H, W, 3]
+            raise ValueError(
+                f"poses: expected a pose for pixel frame {int(frames.max())} of the horizon, got "
+                f"{self.poses.shape[1]} poses"
+            )
+        pixels = np.asarray(_DECODE(self.codec, self.codec_params, first))[:, :, 0]  # [B, V, H, W, 3]
         p = self.poses[:, frames].astype(np.float64)
-        rel = (np.linalg.inv(p[:, :1]) @ p).astype(np.float32)                                # [B, n, 4, 4]
-        video = np.stack([warp_views(pixels[b], self.intrinsics[b], self.cam_to_ego[b], rel[b], self.depth)
-                          for b in range(pixels.shape[0])])
+        rel = (np.linalg.inv(p[:, :1]) @ p).astype(np.float32)  # [B, n, 4, 4]
+        video = np.stack(
+            [
+                warp_views(pixels[b], self.intrinsics[b], self.cam_to_ego[b], rel[b], self.depth)
+                for b in range(pixels.shape[0])
+            ]
+        )
         return np.asarray(_ENCODE(self.codec, self.codec_params, video))
 
 

@@ -79,13 +79,21 @@ class WindowModel:
             check_scale(f"control_guidance[{control!r}]", scale)
 
     @classmethod
-    def from_sampling(cls, spec, params, *, steps: int | None = None, guidance: float | None = None,
-                      control_guidance: Mapping[str, float | None] | None = None) -> WindowModel:
+    def from_sampling(
+        cls,
+        spec,
+        params,
+        *,
+        steps: int | None = None,
+        guidance: float | None = None,
+        control_guidance: Mapping[str, float | None] | None = None,
+    ) -> WindowModel:
         """From a run's :class:`jaxdrive.generate.samples.Sampling` and its parameters; ``lengths``:
         the latent frame counts it trained on (several with ``data.buckets`` of several lengths).
         ``guidance`` None: the run's (``sample.cfg``); ``control_guidance``: control -> scale,
         checked against the model (:func:`jaxdrive.generate.guidance.check_controls`)."""
         from jaxdrive.data.buckets import parse_bucket_specs
+
         guidance = spec.guidance if guidance is None else guidance
         controls = check_controls(spec.model, spec.data.drop_prob, control_guidance or {})
         d, f = spec.data, spec.flow
@@ -94,18 +102,35 @@ class WindowModel:
             lengths = {spec.codec.latent_frames(k[2]) for k in parse_bucket_specs(d.buckets)}
         # the resolution rule counts the frames one sampler call denoises: a streaming model's
         # window is [anchor, condition, new] (as its training step counts it), not data.frames
-        shift = f.shift if f.shift > 0 else flow.resolution_shift(
-            d.height, d.width, STREAM_WINDOW if spec.stream.enabled else spec.latent_window)
-        return cls(DiT(spec.model), params, window=spec.latent_window, cond_frames=max(1, f.cond_frames),
-                   steps=spec.steps if steps is None else check_positive_int("steps", steps), guidance=guidance,
-                   control_guidance=controls,
-                   shift=shift, tpd=f.tpd, tpd_omega=f.tpd_omega, jdc_slope=f.jdc_slope, jdc_alpha1=f.jdc_alpha1,
-                   patterns=tuple(f.patterns), anchor_every=f.anchor_every,
-                   jdc_anchor_rate=f.jdc_anchor_rate, stride=spec.frame_stride, temporal=spec.codec.temporal,
-                   lengths=tuple(sorted(lengths)), streaming=spec.stream.enabled,
-                   stream_buffer=spec.stream.buffer,
-                   stream_taps=tuple(spec.stream.taps) if spec.model.htft_layers else (),
-                   value_range=spec.codec.value_range)
+        shift = (
+            f.shift
+            if f.shift > 0
+            else flow.resolution_shift(d.height, d.width, STREAM_WINDOW if spec.stream.enabled else spec.latent_window)
+        )
+        return cls(
+            DiT(spec.model),
+            params,
+            window=spec.latent_window,
+            cond_frames=max(1, f.cond_frames),
+            steps=spec.steps if steps is None else check_positive_int("steps", steps),
+            guidance=guidance,
+            control_guidance=controls,
+            shift=shift,
+            tpd=f.tpd,
+            tpd_omega=f.tpd_omega,
+            jdc_slope=f.jdc_slope,
+            jdc_alpha1=f.jdc_alpha1,
+            patterns=tuple(f.patterns),
+            anchor_every=f.anchor_every,
+            jdc_anchor_rate=f.jdc_anchor_rate,
+            stride=spec.frame_stride,
+            temporal=spec.codec.temporal,
+            lengths=tuple(sorted(lengths)),
+            streaming=spec.stream.enabled,
+            stream_buffer=spec.stream.buffer,
+            stream_taps=tuple(spec.stream.taps) if spec.model.htft_layers else (),
+            value_range=spec.codec.value_range,
+        )
 
     def in_range(self, latents):
         """``latents`` clipped to :attr:`value_range` (unchanged when None). Every sampled frame
@@ -124,7 +149,7 @@ class WindowModel:
 
 
 KEEP_PROGRAMS = 16
-_PROGRAMS: dict = {}          # compiled sampler programs of this process, least recently used first
+_PROGRAMS: dict = {}  # compiled sampler programs of this process, least recently used first
 
 
 class Tracker:
@@ -152,12 +177,11 @@ class Tracker:
         programs the run used."""
         fn = jitted_sample_window if fn is None else fn
         leaves, tree = jax.tree_util.tree_flatten(args)
-        key = (fn, model, static, tree) + tuple((x.shape, str(x.dtype), getattr(x, "sharding", None))
-                                                 for x in leaves)
+        key = (fn, model, static, tree) + tuple((x.shape, str(x.dtype), getattr(x, "sharding", None)) for x in leaves)
         if not probe:
             self._used.add(key)
         if key in _PROGRAMS:
-            _PROGRAMS[key] = _PROGRAMS.pop(key)                     # most recently used last
+            _PROGRAMS[key] = _PROGRAMS.pop(key)  # most recently used last
         else:
             _PROGRAMS[key] = fn.lower(model, *static, *args).compile()
             while len(_PROGRAMS) > KEEP_PROGRAMS:
@@ -206,6 +230,7 @@ def to_mesh(tree, mesh):
     def put(x):
         x = np.asarray(x)
         return jax.device_put(x, _placement(mesh, x.shape))
+
     return jax.tree_util.tree_map(put, tree)
 
 
@@ -213,10 +238,12 @@ def abstract_on_mesh(tree, mesh, *, batch: int = 1):
     """What :func:`to_mesh` would make of ``tree`` with every array's batch axis ``batch`` times
     as long, as shapes only (``jax.ShapeDtypeStruct``, same dtype and placement): to compile a
     call for a batch without building it."""
+
     def abstract(x):
         x = np.asarray(x)
         shape = (x.shape[0] * batch,) + x.shape[1:] if x.ndim else ()
         return jax.ShapeDtypeStruct(shape, jax.dtypes.canonicalize_dtype(x.dtype), sharding=_placement(mesh, shape))
+
     return jax.tree_util.tree_map(abstract, tree)
 
 
@@ -228,8 +255,10 @@ def pixel_frames(positions, temporal: int) -> np.ndarray:
     if temporal == 1:
         return pos
     if not bool(np.all(np.diff(pos) == 1)):
-        raise ValueError(f"positions: a pass over spaced frames needs a frame-wise codec (temporal compression 1), "
-                         f"got temporal compression {temporal}")
+        raise ValueError(
+            f"positions: a pass over spaced frames needs a frame-wise codec (temporal compression 1), "
+            f"got temporal compression {temporal}"
+        )
     lo = int(pos[0]) * temporal
     return np.arange(lo, lo + 1 + temporal * (len(pos) - 1))
 
@@ -244,19 +273,23 @@ def controls_at(controls: Conditions, positions, temporal: int, *, fps_scale: fl
     def take(name, value):
         value = np.asarray(value)
         if temporal > 1:
-            return value[:, frames[0]:frames[-1] + 1]
+            return value[:, frames[0] : frames[-1] + 1]
         if value.shape[1] <= int(frames.max()):
-            raise ValueError(f"controls.{name}: expected at least {int(frames.max()) + 1} frames for the "
-                             f"positions sampled, got {value.shape[1]}")
+            raise ValueError(
+                f"controls.{name}: expected at least {int(frames.max()) + 1} frames for the "
+                f"positions sampled, got {value.shape[1]}"
+            )
         return value[:, frames]
+
     out = controls.per_frame(take)
     if fps_scale != 1.0 and out.fps is not None:
         out = out.replace(fps=np.asarray(out.fps, np.float32) / fps_scale)
     return out
 
 
-def window_controls(model: WindowModel, horizon: Horizon, idx, controls: Conditions, *, fps_scale: float = 1.0,
-                    warp=None) -> Conditions:
+def window_controls(
+    model: WindowModel, horizon: Horizon, idx, controls: Conditions, *, fps_scale: float = 1.0, warp=None
+) -> Conditions:
     """The conditions of ``model``'s window at horizon positions ``idx``: the per-frame controls
     there and, for a model trained with warps (LongDWM, ``controls.warp``), the window's first
     frame warped along its frames' poses (``warp``: a :class:`jaxdrive.generate.warps.WarpGuide`)."""
@@ -271,7 +304,7 @@ def window_starts(total_frames: int, window: int, overlap: int) -> list[int]:
     last ``overlap`` generated frames, and the last one ends at ``total_frames``."""
     for name, value in (("total_frames", total_frames), ("window", window), ("overlap", overlap)):
         check_positive_int(name, value)
-    if total_frames > window and overlap >= window:       # the windows would not advance
+    if total_frames > window and overlap >= window:  # the windows would not advance
         raise ValueError(f"overlap: expected fewer than window = {window} frames, got {overlap}")
     starts, done = [0], window
     while done < total_frames:
@@ -294,9 +327,9 @@ class Horizon:
         first = np.asarray(first, np.float32)
         shape = first.shape[:2] + (length,) + first.shape[3:]
         latents = np.zeros(shape, np.float32)
-        latents[:, :, :first.shape[2]] = first
+        latents[:, :, : first.shape[2]] = first
         known = np.zeros(length, bool)
-        known[:first.shape[2]] = True
+        known[: first.shape[2]] = True
         return cls(latents, known)
 
     def put(self, positions, values) -> None:
@@ -322,9 +355,14 @@ def sample_window(model: WindowModel, params, x_cond, cond_mask, controls: Condi
     if m.controls.cond_frames is not None:
         cond = cond.replace(cond_latents=x_cond, cond_mask=cond_mask)
     guidance = sampler_guidance(cond, names, x_cond.shape[0], model.guidance, model.control_guidance)
-    schedule = flow.frame_schedule(flow.sampling_sigmas(model.steps, shift=model.shift), cond_mask,
-                                   anchor_mask=anchor_mask, tpd=model.tpd, omega=model.tpd_omega,
-                                   anchor_slope=model.jdc_slope)
+    schedule = flow.frame_schedule(
+        flow.sampling_sigmas(model.steps, shift=model.shift),
+        cond_mask,
+        anchor_mask=anchor_mask,
+        tpd=model.tpd,
+        omega=model.tpd_omega,
+        anchor_slope=model.jdc_slope,
+    )
     # the noise comes from ``key`` itself, as it always has (a strategy without anchors draws the
     # same windows as before anchors existed); the anchors' JDC noise from a key folded off it
     noise = jax.random.normal(key, x_cond.shape, jnp.float32)
@@ -333,12 +371,13 @@ def sample_window(model: WindowModel, params, x_cond, cond_mask, controls: Condi
     x0 = jnp.where(keep, x_cond, noise)
     if anchor_mask is not None:
         anchors = anchor_mask[:, None, :, None, None, None]
-        g0 = jnp.where(anchor_mask, schedule[0], 1.0)          # other frames: any legal level, unused
+        g0 = jnp.where(anchor_mask, schedule[0], 1.0)  # other frames: any legal level, unused
         x0 = jnp.where(anchors, flow.jdc_renoise(k_anchor, x_cond, g0, model.jdc_alpha1), x0)
 
     def velocity(x, sigma, c):
         out = model.dit.forward(params, x, sigma, c)
         return flow.velocity_from_output(out, x, sigma, m.prediction, m.prediction_min_sigma)
+
     out = flow.sample(velocity, x0, schedule, cond_mask=cond_mask, **guidance)
     return jnp.where(keep, out, model.in_range(out))
 

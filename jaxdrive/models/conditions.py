@@ -6,8 +6,11 @@ import warnings
 from jaxdrive.models.dit import conditions as _new
 from jaxdrive.models.dit.conditions import *  # noqa: F403
 
-warnings.warn("jaxdrive.models.conditions moved to jaxdrive.models.dit.conditions"
-              " (the old path goes in the next release)", DeprecationWarning, stacklevel=2)
+warnings.warn(
+    "jaxdrive.models.conditions moved to jaxdrive.models.dit.conditions (the old path goes in the next release)",
+    DeprecationWarning,
+    stacklevel=2,
+)
 
 
 def __getattr__(name: str):

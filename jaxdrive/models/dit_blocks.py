@@ -6,8 +6,11 @@ import warnings
 from jaxdrive.models.dit import blocks as _new
 from jaxdrive.models.dit.blocks import *  # noqa: F403
 
-warnings.warn("jaxdrive.models.dit_blocks moved to jaxdrive.models.dit.blocks"
-              " (the old path goes in the next release)", DeprecationWarning, stacklevel=2)
+warnings.warn(
+    "jaxdrive.models.dit_blocks moved to jaxdrive.models.dit.blocks (the old path goes in the next release)",
+    DeprecationWarning,
+    stacklevel=2,
+)
 
 
 def __getattr__(name: str):

@@ -6,8 +6,11 @@ import warnings
 from jaxdrive.models.dit import controls as _new
 from jaxdrive.models.dit.controls import *  # noqa: F403
 
-warnings.warn("jaxdrive.models.dit_controls moved to jaxdrive.models.dit.controls"
-              " (the old path goes in the next release)", DeprecationWarning, stacklevel=2)
+warnings.warn(
+    "jaxdrive.models.dit_controls moved to jaxdrive.models.dit.controls (the old path goes in the next release)",
+    DeprecationWarning,
+    stacklevel=2,
+)
 
 
 def __getattr__(name: str):

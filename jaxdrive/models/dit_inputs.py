@@ -6,8 +6,11 @@ import warnings
 from jaxdrive.models.dit import inputs as _new
 from jaxdrive.models.dit.inputs import *  # noqa: F403
 
-warnings.warn("jaxdrive.models.dit_inputs moved to jaxdrive.models.dit.inputs"
-              " (the old path goes in the next release)", DeprecationWarning, stacklevel=2)
+warnings.warn(
+    "jaxdrive.models.dit_inputs moved to jaxdrive.models.dit.inputs (the old path goes in the next release)",
+    DeprecationWarning,
+    stacklevel=2,
+)
 
 
 def __getattr__(name: str):

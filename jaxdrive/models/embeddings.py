@@ -12,8 +12,7 @@ import numpy as np
 from jaxdrive.models.tokens import reshape
 
 
-def timestep_embedding(t, dim: int, *, flip_sin_to_cos: bool = True, shift: float = 0.0,
-                       max_period: float = 10000.0):
+def timestep_embedding(t, dim: int, *, flip_sin_to_cos: bool = True, shift: float = 0.0, max_period: float = 10000.0):
     """Sinusoidal embedding of (float) timesteps ``t [...]`` -> ``[..., dim]`` (float32).
 
     Transformer positional encoding as used for diffusion timesteps: frequencies
@@ -49,17 +48,22 @@ def sincos_2d(height: int, width: int, dim: int, scale: float = 1.0) -> np.ndarr
     return np.concatenate([sincos_1d(cols, dim // 2), sincos_1d(rows, dim // 2)], axis=1)
 
 
-def sincos_3d(frames: int, height: int, width: int, dim: int, spatial_scale: float = 1.0,
-              temporal_scale: float = 1.0) -> np.ndarray:
+def sincos_3d(
+    frames: int, height: int, width: int, dim: int, spatial_scale: float = 1.0, temporal_scale: float = 1.0
+) -> np.ndarray:
     """3D sin-cos positions ``[frames, height * width, dim]`` of CogVideoX (Yang et al. 2024,
     sec. 2.2): ``dim / 4`` features for time, ``3 dim / 4`` for the 2D spatial grid."""
     if dim % 16:
         raise ValueError(f"width: 3D sin-cos positions need a width divisible by 16, got {dim}")
     spatial = sincos_2d(height, width, 3 * dim // 4, spatial_scale)
     temporal = sincos_1d(np.arange(frames) / temporal_scale, dim // 4)
-    return np.concatenate([np.broadcast_to(temporal[:, None], (frames, height * width, dim // 4)),
-                           np.broadcast_to(spatial[None], (frames, height * width, 3 * dim // 4))],
-                          axis=-1)
+    return np.concatenate(
+        [
+            np.broadcast_to(temporal[:, None], (frames, height * width, dim // 4)),
+            np.broadcast_to(spatial[None], (frames, height * width, 3 * dim // 4)),
+        ],
+        axis=-1,
+    )
 
 
 def rope_1d(pos, dim: int, theta: float = 10000.0) -> tuple[np.ndarray, np.ndarray]:
@@ -72,8 +76,9 @@ def rope_1d(pos, dim: int, theta: float = 10000.0) -> tuple[np.ndarray, np.ndarr
     return np.repeat(np.cos(ang), 2, axis=1), np.repeat(np.sin(ang), 2, axis=1)
 
 
-def rope_3d(frames: int, height: int, width: int, dim: int, *, theta: float = 10000.0,
-            base: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+def rope_3d(
+    frames: int, height: int, width: int, dim: int, *, theta: float = 10000.0, base: tuple[int, int] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """3D rotary tables ``(cos, sin) [frames, height * width, dim]`` (CogVideoX): ``dim / 4``
     features rotate with the frame index, ``3 dim / 8`` each with the row and the column.
 
@@ -92,11 +97,15 @@ def rope_3d(frames: int, height: int, width: int, dim: int, *, theta: float = 10
     tables = [rope_1d(np.arange(frames), dt, theta), rope_1d(rows, ds, theta), rope_1d(cols, ds, theta)]
 
     def grid(i):
-        t, h, w = (np.broadcast_to(x[idx], (frames, height, width, x.shape[-1]))
-                   for x, idx in zip((tables[0][i], tables[1][i], tables[2][i]),
-                                     ((slice(None), None, None), (None, slice(None), None),
-                                      (None, None, slice(None)))))
+        t, h, w = (
+            np.broadcast_to(x[idx], (frames, height, width, x.shape[-1]))
+            for x, idx in zip(
+                (tables[0][i], tables[1][i], tables[2][i]),
+                ((slice(None), None, None), (None, slice(None), None), (None, None, slice(None))),
+            )
+        )
         return np.concatenate([t, h, w], axis=-1).reshape(frames, height * width, dim)
+
     return grid(0), grid(1)
 
 
@@ -125,9 +134,8 @@ def fourier_features(x, num_freqs: int, temperature: float = 100.0, include_inpu
     ``FFT(c)``). ``include_input`` keeps ``x`` itself first."""
     x = jnp.asarray(x, jnp.float32)
     freqs = jnp.asarray(temperature ** (np.arange(num_freqs) / num_freqs), jnp.float32)
-    ang = x[..., None] * freqs                                   # [..., k, n]
+    ang = x[..., None] * freqs  # [..., k, n]
     # one reshape that keeps x's leading shardings (two merges lost the batch sharding of a
     # size-1 batch under an Explicit mesh, and the concatenation below then refused the operands)
     feats = reshape(jnp.stack([jnp.sin(ang), jnp.cos(ang)], axis=-1), (*x.shape[:-1], x.shape[-1] * num_freqs * 2))
     return jnp.concatenate([x, feats], axis=-1) if include_input else feats
-

@@ -40,7 +40,7 @@ from jaxdrive.validate import check_positive_int, check_shape
 
 BUFFER_SIZE = 10
 SELECT = (-1, -5, -10)
-_SFV = (2, 1, 3)   # merged sequences: spatial patches (the sharded axis) major
+_SFV = (2, 1, 3)  # merged sequences: spatial patches (the sharded axis) major
 
 
 class HTFT(nn.Module):
@@ -63,7 +63,8 @@ class HTFT(nn.Module):
     def __call__(self, f, past, past_mask=None, deterministic: bool = True):
         check_shape("past", past, [f.shape[0], None, *f.shape[2:]])
         g = Dense(self.width, ("embed", None), dtype=self.dtype, name="linear_in")(
-            GroupNorm(self.groups, keep=2, name_="embed", name="norm")(f))
+            GroupNorm(self.groups, keep=2, name_="embed", name="norm")(f)
+        )
         proj = AttnProj(self.heads, self.head_dim, self.width, dtype=self.dtype, name="attn")
         q, (k, v) = proj.q(g), proj.kv(past)
         mask = None
@@ -72,12 +73,11 @@ class HTFT(nn.Module):
             b, kk, s, nv = past.shape[:4]
             m = jnp.broadcast_to(jnp.asarray(past_mask, bool)[:, None, :, None], (b, s, kk, nv))
             mask = merge(merge(m, 1), 1)
-        o = attention(to_sequence(q, _SFV), to_sequence(k, _SFV), to_sequence(v, _SFV), impl=self.impl,
-                      kv_mask=mask)
-        h = proj.out(constrain(from_sequence(o, q.shape, _SFV),
-                               ("batch", "frames", "tokens", "views", "heads", "head_dim")))
-        out = Dense(self.width, ("embed", None), dtype=self.dtype, kernel_init=ZEROS,
-                    name="linear_out")(h)
+        o = attention(to_sequence(q, _SFV), to_sequence(k, _SFV), to_sequence(v, _SFV), impl=self.impl, kv_mask=mask)
+        h = proj.out(
+            constrain(from_sequence(o, q.shape, _SFV), ("batch", "frames", "tokens", "views", "heads", "head_dim"))
+        )
+        out = Dense(self.width, ("embed", None), dtype=self.dtype, kernel_init=ZEROS, name="linear_out")(h)
         return nn.Dropout(self.dropout)(f, deterministic=deterministic) + out
 
 
@@ -112,8 +112,8 @@ def buffer_init(frame_shapes, size: int = BUFFER_SIZE, *, steps: int = 1, dtype=
     def empty(shape):
         b, *rest = shape
         return jnp.zeros((steps, b, size, *rest), dtype)
-    data = ({k: empty(v) for k, v in frame_shapes.items()} if isinstance(frame_shapes, Mapping)
-            else empty(frame_shapes))
+
+    data = {k: empty(v) for k, v in frame_shapes.items()} if isinstance(frame_shapes, Mapping) else empty(frame_shapes)
     return {"data": data, "head": jnp.zeros((), jnp.int32), "count": jnp.zeros((), jnp.int32)}
 
 
@@ -125,8 +125,12 @@ def buffer_push(buf: dict, frame) -> dict:
     def write(data, f):
         check_shape("frame", f, [data.shape[0], data.shape[1], *data.shape[3:]])
         return write_slot(data, f, buf["head"], 2)
-    return {"data": jax.tree_util.tree_map(write, buf["data"], frame), "head": (buf["head"] + 1) % size,
-            "count": jnp.minimum(buf["count"] + 1, size)}
+
+    return {
+        "data": jax.tree_util.tree_map(write, buf["data"], frame),
+        "head": (buf["head"] + 1) % size,
+        "count": jnp.minimum(buf["count"] + 1, size),
+    }
 
 
 def buffer_select(buf: dict, offsets: Sequence[int] = SELECT):

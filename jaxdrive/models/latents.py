@@ -33,7 +33,7 @@ def space_to_depth(video, factor: int):
     if h % factor or w % factor:
         raise ValueError(f"video: expected height and width divisible by {factor}, got {h} x {w}")
     x = reshape(video, (*lead, f, h // factor, factor, w // factor, factor, c))
-    x = jnp.moveaxis(x, -4, -3)                       # [..., F, h, w, fy, fx, C]
+    x = jnp.moveaxis(x, -4, -3)  # [..., F, h, w, fy, fx, C]
     return reshape(x, (*lead, f, h // factor, w // factor, factor * factor * c))
 
 
@@ -41,7 +41,7 @@ def depth_to_space(latents, factor: int, channels: int = 3):
     """Inverse of :func:`space_to_depth`."""
     *lead, f, h, w, _ = latents.shape
     x = reshape(latents, (*lead, f, h, w, factor, factor, channels))
-    x = jnp.moveaxis(x, -3, -4)                       # [..., F, h, fy, w, fx, C]
+    x = jnp.moveaxis(x, -3, -4)  # [..., F, h, fy, w, fx, C]
     return reshape(x, (*lead, f, h * factor, w * factor, channels))
 
 
@@ -52,7 +52,7 @@ class LatentCodec:
     source: str = "space_to_depth"
     factor: int = 4
     scale: float = 1.0
-    vae: CausalVAE | None = None      # a CausalVAE when source == "vae"
+    vae: CausalVAE | None = None  # a CausalVAE when source == "vae"
     params: object = dataclasses.field(default=None, compare=False, hash=False)
 
     @classmethod
@@ -63,18 +63,25 @@ class LatentCodec:
             validate.check_positive_int("latents.factor", config.factor)
             return cls("space_to_depth", config.factor, config.scale)
         if not config.vae_path:
-            raise ValueError("latents.vae_path: expected a saved jaxdrive VAE (jaxdrive convert vae) "
-                             "when latents.source is 'vae', got ''")
+            raise ValueError(
+                "latents.vae_path: expected a saved jaxdrive VAE (jaxdrive convert vae) "
+                "when latents.source is 'vae', got ''"
+            )
         from jaxdrive.models.pretrained import load_pretrained
-        vae, params = load_pretrained(config.vae_path, shardings=shardings, mode=config.vae_mode,
-                                      frame_wise_batch=config.vae_frame_batch,
-                                      clip_batch=config.vae_clip_batch)
+
+        vae, params = load_pretrained(
+            config.vae_path,
+            shardings=shardings,
+            mode=config.vae_mode,
+            frame_wise_batch=config.vae_frame_batch,
+            clip_batch=config.vae_clip_batch,
+        )
         return cls("vae", 1, 1.0, vae, params)
 
     # the DiT's view of the codec: latent channels, spatial and temporal compression
     @property
     def channels(self) -> int:
-        return 3 * self.factor ** 2 if self.vae is None else self.vae.config.latent_channels
+        return 3 * self.factor**2 if self.vae is None else self.vae.config.latent_channels
 
     @property
     def spatial(self) -> int:
@@ -116,12 +123,15 @@ class LatentCodec:
         latent frames: ``push(part)`` returns the frames that are final, ``flush()`` the rest, and
         together they equal :meth:`decode` of the whole clip (the VAE's ``"whole"`` mode is rejected)."""
         from jaxdrive.models.vae.stream import StreamDecoder
+
         return StreamDecoder(self, total_latent_frames)
 
     def check_model(self, dit_config) -> None:
         """The DiT must read these latents: channels and the compressions its conditions assume."""
-        for name, want, got in (("model.in_channels", self.channels, dit_config.in_channels),
-                                ("model.vae_spatial", self.spatial, dit_config.vae_spatial),
-                                ("model.vae_temporal", self.temporal, dit_config.vae_temporal)):
+        for name, want, got in (
+            ("model.in_channels", self.channels, dit_config.in_channels),
+            ("model.vae_spatial", self.spatial, dit_config.vae_spatial),
+            ("model.vae_temporal", self.temporal, dit_config.vae_temporal),
+        ):
             if want != got:
                 raise ValueError(f"{name}: expected {want} to match the latents ({self.source}), got {got}")

@@ -38,7 +38,7 @@ def add_bias(y, b, spec=None):
 
 
 def _add_bias_fwd(y, b, spec):
-    return y + b, jnp.zeros((0,) * b.ndim, b.dtype)       # carries b's rank and dtype, no data
+    return y + b, jnp.zeros((0,) * b.ndim, b.dtype)  # carries b's rank and dtype, no data
 
 
 def _add_bias_bwd(spec, like, g):
@@ -73,16 +73,15 @@ class Dense(nn.Module):
         feats = (self.features,) if isinstance(self.features, int) else tuple(self.features)
         n_in = len(self.names) - len(feats)
         if n_in < 1:
-            raise ValueError(f"names: expected input and output names for features {feats}, "
-                             f"got {self.names}")
-        in_shape = x.shape[x.ndim - n_in:]
+            raise ValueError(f"names: expected input and output names for features {feats}, got {self.names}")
+        in_shape = x.shape[x.ndim - n_in :]
         init = self.kernel_init or Init("xavier", fan_in_axes=n_in)
         kernel = param(self, "kernel", init, tuple(in_shape) + feats, self.names).astype(self.dtype)
-        lead_shape = x.shape[:x.ndim - n_in]
+        lead_shape = x.shape[: x.ndim - n_in]
         lead_spec, out_spec = (None,) * len(lead_shape), (None,) * len(feats)
         mesh = explicit_mesh()
         if mesh is not None:
-            lead_spec = spec_of(x)[:x.ndim - n_in]
+            lead_spec = spec_of(x)[: x.ndim - n_in]
             used = {a for e in lead_spec for a in entry_axes(e)}
             out_spec = logical_to_spec(self.names[n_in:], shape=feats, mesh=mesh)
             out_spec = tuple(None if set(entry_axes(e)) & used else e for e in out_spec)
@@ -91,23 +90,32 @@ class Dense(nn.Module):
         # 5D video layout, and the kernel gradient's transposes are plain 2D ones.
         flat = len(lead_shape) > 1 and all(math.prod(map(mesh_axis_size, entry_axes(e))) == 1 for e in lead_spec[1:])
         if flat:
-            merged = (math.prod(lead_shape), *x.shape[len(lead_shape):])   # major axis sharded: contiguous blocks
-            x = x.reshape(merged) if mesh is None else jax.lax.reshape(
-                x, merged, out_sharding=PartitionSpec(lead_spec[0], *spec_of(x)[len(lead_shape):]))
+            merged = (math.prod(lead_shape), *x.shape[len(lead_shape) :])  # major axis sharded: contiguous blocks
+            x = (
+                x.reshape(merged)
+                if mesh is None
+                else jax.lax.reshape(
+                    x, merged, out_sharding=PartitionSpec(lead_spec[0], *spec_of(x)[len(lead_shape) :])
+                )
+            )
         lead = "".join(chr(ord("a") + i) for i in range(1 if flat else len(lead_shape)))
         cin = "".join(chr(ord("n") + i) for i in range(n_in))
         cout = "".join(chr(ord("u") + i) for i in range(len(feats)))
         out_sharding = None
         if mesh is not None:
             out_sharding = PartitionSpec(*(lead_spec[:1] if flat else lead_spec), *out_spec)
-        y = jnp.einsum(f"{lead}{cin},{cin}{cout}->{lead}{cout}", x.astype(self.dtype), kernel,
-                       out_sharding=out_sharding)
+        y = jnp.einsum(
+            f"{lead}{cin},{cin}{cout}->{lead}{cout}", x.astype(self.dtype), kernel, out_sharding=out_sharding
+        )
         if self.use_bias:
             bias = param(self, "bias", self.bias_init, feats, self.names[n_in:]).astype(self.dtype)
             y = add_bias(y, bias, None if mesh is None else PartitionSpec(*out_spec))
         if flat:
-            y = (y.reshape(*lead_shape, *feats) if mesh is None else
-                 jax.lax.reshape(y, (*lead_shape, *feats), out_sharding=PartitionSpec(*lead_spec, *out_spec)))
+            y = (
+                y.reshape(*lead_shape, *feats)
+                if mesh is None
+                else jax.lax.reshape(y, (*lead_shape, *feats), out_sharding=PartitionSpec(*lead_spec, *out_spec))
+            )
         return y
 
 
@@ -127,8 +135,9 @@ class LayerNorm(nn.Module):
         y = (x - mean) * jax.lax.rsqrt(var + self.eps)
         if self.affine:
             names = (self.name_,)
-            y = y * param(self, "scale", ONES, (x.shape[-1],), names) + param(self, "bias", ZEROS,
-                                                                               (x.shape[-1],), names)
+            y = y * param(self, "scale", ONES, (x.shape[-1],), names) + param(
+                self, "bias", ZEROS, (x.shape[-1],), names
+            )
         return y.astype(dtype)
 
 
@@ -193,9 +202,11 @@ class MLP(nn.Module):
 
 
 def activation(name: str):
-    return {"gelu_tanh": lambda x: jax.nn.gelu(x, approximate=True),
-            "gelu": lambda x: jax.nn.gelu(x, approximate=False),
-            "silu": jax.nn.silu}[name]
+    return {
+        "gelu_tanh": lambda x: jax.nn.gelu(x, approximate=True),
+        "gelu": lambda x: jax.nn.gelu(x, approximate=False),
+        "silu": jax.nn.silu,
+    }[name]
 
 
 def lookup(table, ids):
@@ -233,8 +244,7 @@ class AttnProj(nn.Module):
         self.to_k = Dense(hd, names(self.context_name), self.qkv_bias, self.dtype)
         self.to_v = Dense(hd, names(self.context_name), self.qkv_bias, self.dtype)
         init = ZEROS if self.zero_out else None
-        self.to_out = Dense(self.width, ("heads", "head_dim", "embed"), self.out_bias, self.dtype,
-                            kernel_init=init)
+        self.to_out = Dense(self.width, ("heads", "head_dim", "embed"), self.out_bias, self.dtype, kernel_init=init)
         if self.qk_norm == "rms":
             self.norm_q, self.norm_k = RMSNorm(self.eps), RMSNorm(self.eps)
         elif self.qk_norm == "layer":
@@ -253,4 +263,3 @@ class AttnProj(nn.Module):
 
     def out(self, o):
         return self.to_out(o.astype(self.dtype))
-

@@ -6,8 +6,11 @@ import warnings
 from jaxdrive.models.dit import layout as _new
 from jaxdrive.models.dit.layout import *  # noqa: F403
 
-warnings.warn("jaxdrive.models.layout moved to jaxdrive.models.dit.layout"
-              " (the old path goes in the next release)", DeprecationWarning, stacklevel=2)
+warnings.warn(
+    "jaxdrive.models.layout moved to jaxdrive.models.dit.layout (the old path goes in the next release)",
+    DeprecationWarning,
+    stacklevel=2,
+)
 
 
 def __getattr__(name: str):

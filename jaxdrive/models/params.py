@@ -41,7 +41,7 @@ class Init:
     fan_in_axes: int = 1
 
     def _fans(self, shape):
-        return int(np.prod(shape[:self.fan_in_axes])), int(np.prod(shape[self.fan_in_axes:]))
+        return int(np.prod(shape[: self.fan_in_axes])), int(np.prod(shape[self.fan_in_axes :]))
 
     def __call__(self, key, shape, dtype=jnp.float32):
         shape = tuple(shape)
@@ -53,11 +53,11 @@ class Init:
         if self.kind == "xavier":
             lim = math.sqrt(6.0 / (fan_in + fan_out))
             return jax.random.uniform(key, shape, dtype, -lim, lim)
-        if self.kind == "lecun_truncated":   # flax's lecun_normal itself, fans as declared here
+        if self.kind == "lecun_truncated":  # flax's lecun_normal itself, fans as declared here
             axes = tuple(range(len(shape)))
             return jax.nn.initializers.variance_scaling(
-                1.0, "fan_in", "truncated_normal", in_axis=axes[:self.fan_in_axes],
-                out_axis=axes[self.fan_in_axes:])(key, shape, dtype)
+                1.0, "fan_in", "truncated_normal", in_axis=axes[: self.fan_in_axes], out_axis=axes[self.fan_in_axes :]
+            )(key, shape, dtype)
         std = self.std if self.kind == "normal" else 1.0 / math.sqrt(fan_in)
         return std * jax.random.normal(key, shape, dtype)
 
@@ -69,14 +69,14 @@ class Init:
             return np.zeros(shape, np.float32)
         if self.kind == "ones":
             return np.ones(shape, np.float32)
-        fan_in, fan_out = self._fans(shape[len(shape) - rank:])
+        fan_in, fan_out = self._fans(shape[len(shape) - rank :])
         if self.kind == "xavier":
             lim = math.sqrt(6.0 / (fan_in + fan_out))
             return rng.uniform(-lim, lim, shape).astype(np.float32)
         if self.kind == "lecun_truncated":
             z = rng.standard_normal(shape)
             tails = np.abs(z) > 2.0
-            while tails.any():   # redrawn until none is left: a normal truncated at +-2
+            while tails.any():  # redrawn until none is left: a normal truncated at +-2
                 z[tails] = rng.standard_normal(int(tails.sum()))
                 tails = np.abs(z) > 2.0
             return (z * (1.0 / math.sqrt(fan_in) / TRUNCATED_STD)).astype(np.float32)
@@ -86,7 +86,7 @@ class Init:
 
 ZEROS, ONES = Init("zeros"), Init("ones")
 # Standard deviation of a standard normal truncated to (-2, 2) (flax's constant).
-TRUNCATED_STD = .87962566103423978
+TRUNCATED_STD = 0.87962566103423978
 
 
 def normal(std: float) -> Init:
@@ -110,10 +110,11 @@ def record_inits():
 def param(module: nn.Module, name: str, init: Init, shape, names):
     """``module.param`` boxed with logical ``names`` (float32), gathered for use (:func:`constrain`)."""
     # unbox=True (flax's default) spelled out: the stub's overload for it types the unboxed value
-    value: jax.Array = module.param(name, nn.with_logical_partitioning(init, tuple(names)), tuple(shape),
-                                    jnp.float32, unbox=True)
+    value: jax.Array = module.param(
+        name, nn.with_logical_partitioning(init, tuple(names)), tuple(shape), jnp.float32, unbox=True
+    )
     if _RECORDER is not None:
-        assert module.scope is not None      # bound: module.param above raises on an unbound module
+        assert module.scope is not None  # bound: module.param above raises on an unbound module
         _RECORDER[tuple(module.scope.path) + (name,)] = (init, len(shape))
     return constrain(value, tuple(names))
 
@@ -136,7 +137,8 @@ def host_params(abstract, recorded: dict, seed=0, *, boxed: bool = False):
     :func:`record_inits`) with NumPy values drawn per each parameter's :class:`Init`, in path
     order, from ``np.random.default_rng(seed)``."""
     from flax.traverse_util import flatten_dict, unflatten_dict
-    rng = np.random.default_rng(seed)   # a Generator passes through: parts can share one stream
+
+    rng = np.random.default_rng(seed)  # a Generator passes through: parts can share one stream
     out = {}
     for path, leaf in sorted(flatten_dict(abstract).items()):
         key = path[1:] if path[0] == "params" else path
@@ -160,6 +162,7 @@ def host_params_for_key(key, parts: dict, *, boxed: bool = False) -> dict:
     :func:`host_params` does from one NumPy stream seeded by the data of the JAX ``key`` (the
     parts one after the other). The draw runs in a ``jax.pure_callback``, so the values are the
     same eagerly and under ``jax.jit``, and ``jax.eval_shape`` gives their shapes."""
+
     def draw(data):
         rng = np.random.default_rng(np.asarray(data, np.uint32).reshape(-1))
         return {name: host_params(abstract, recorded, rng) for name, (abstract, recorded) in parts.items()}
@@ -169,8 +172,10 @@ def host_params_for_key(key, parts: dict, *, boxed: bool = False) -> dict:
     if not boxed:
         return values
     is_box = lambda x: isinstance(x, nn.LogicallyPartitioned)
-    return {name: jax.tree_util.tree_map(lambda box, v: box.replace_boxed(v), parts[name][0], values[name],
-                                         is_leaf=is_box) for name in parts}
+    return {
+        name: jax.tree_util.tree_map(lambda box, v: box.replace_boxed(v), parts[name][0], values[name], is_leaf=is_box)
+        for name in parts
+    }
 
 
 def _key_data(key):

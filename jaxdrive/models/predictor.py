@@ -29,9 +29,9 @@ import jax.numpy as jnp
 from jaxdrive.classes import BEV_CLASSES, OBJECT_CLASSES
 from jaxdrive.geometry import wrap
 
-POSITION_SCALE = 10.0      # metres of one unit of a position feature
-STEP_SCALE = 0.5           # metres of one unit of a predicted position correction
-YAW_SCALE = 0.1            # radians of one unit of a predicted heading correction
+POSITION_SCALE = 10.0  # metres of one unit of a position feature
+STEP_SCALE = 0.5  # metres of one unit of a predicted position correction
+YAW_SCALE = 0.1  # radians of one unit of a predicted heading correction
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,8 +47,8 @@ class PredictorConfig:
     width: int = 64
     depth: int = 2
     heads: int = 4
-    map_patch: int = 8                 # BEV cells per side of one map token
-    max_agents: int = 20               # agent slots (a clip's box slots, padded or cut)
+    map_patch: int = 8  # BEV cells per side of one map token
+    max_agents: int = 20  # agent slots (a clip's box slots, padded or cut)
 
 
 @flax.struct.dataclass
@@ -68,18 +68,26 @@ class Traffic:
     def advance(self, ego_next, agents_next) -> Traffic:
         """The history one step on: ``ego_next [B, 3]``, ``agents_next [B, N, 3]`` appended."""
         # flax.struct.dataclass adds .replace at runtime; its stub does not declare it
-        return self.replace(ego=jnp.concatenate([self.ego[:, 1:], ego_next[:, None]], 1),  # type: ignore[attr-defined]
-                            agents=jnp.concatenate([self.agents[:, 1:], agents_next[:, None]], 1),
-                            seen=jnp.concatenate([self.seen[:, 1:], self.seen[:, -1:]], 1))
+        return self.replace(
+            ego=jnp.concatenate([self.ego[:, 1:], ego_next[:, None]], 1),  # type: ignore[attr-defined]
+            agents=jnp.concatenate([self.agents[:, 1:], agents_next[:, None]], 1),
+            seen=jnp.concatenate([self.seen[:, 1:], self.seen[:, -1:]], 1),
+        )
 
 
 def to_traffic(w: dict, history: int) -> Traffic:
     """The history part of stacked NumPy windows (leading batch axis;
     :func:`jaxdrive.data.traffic.window_traffic`) as a device :class:`Traffic`."""
     f32 = lambda x: jnp.asarray(x, jnp.float32)
-    return Traffic(ego=f32(w["ego"][:, :history]), agents=f32(w["agents"][:, :history]),
-                   seen=jnp.asarray(w["seen"][:, :history]), size=f32(w["size"]), z=f32(w["z"]),
-                   classes=jnp.asarray(w["classes"], jnp.int32), ids=jnp.asarray(w["ids"], jnp.int32))
+    return Traffic(
+        ego=f32(w["ego"][:, :history]),
+        agents=f32(w["agents"][:, :history]),
+        seen=jnp.asarray(w["seen"][:, :history]),
+        size=f32(w["size"]),
+        z=f32(w["z"]),
+        classes=jnp.asarray(w["classes"], jnp.int32),
+        ids=jnp.asarray(w["ids"], jnp.int32),
+    )
 
 
 def to_frame(poses, frame):
@@ -123,24 +131,28 @@ class Predictor(nn.Module):
         b, t, n = traffic.seen.shape
         now = traffic.ego[:, -1]
         ego = _features(to_frame(traffic.ego, now[:, None]), 1).reshape(b, -1)
-        agents = _features(to_frame(traffic.agents, now[:, None, None]), 1)          # [B, T, N, 7]
+        agents = _features(to_frame(traffic.agents, now[:, None, None]), 1)  # [B, T, N, 7]
         seen = traffic.seen.astype(jnp.float32)
-        both = seen * jnp.concatenate([seen[:, :1], seen[:, :-1]], 1)                # a step needs both ends
+        both = seen * jnp.concatenate([seen[:, :1], seen[:, :-1]], 1)  # a step needs both ends
         agents = jnp.concatenate([agents[..., :4] * seen[..., None], agents[..., 4:] * both[..., None]], -1)
         agents = agents.transpose(0, 2, 1, 3).reshape(b, n, -1)
-        agents = jnp.concatenate([agents, seen.transpose(0, 2, 1), traffic.size / 5.0,
-                                  jax.nn.one_hot(traffic.classes, len(OBJECT_CLASSES))], -1)
+        agents = jnp.concatenate(
+            [agents, seen.transpose(0, 2, 1), traffic.size / 5.0, jax.nn.one_hot(traffic.classes, len(OBJECT_CLASSES))],
+            -1,
+        )
         embed = lambda x, name: nn.Dense(cfg.width, name=f"{name}_out")(
-            nn.gelu(nn.Dense(cfg.width, name=f"{name}_in")(x)))
+            nn.gelu(nn.Dense(cfg.width, name=f"{name}_in")(x))
+        )
         p = cfg.map_patch
         hm, wm = bev.shape[1] // p, bev.shape[2] // p
-        cells = bev[:, :hm * p, :wm * p].reshape(b, hm, p, wm, p, len(BEV_CLASSES))
+        cells = bev[:, : hm * p, : wm * p].reshape(b, hm, p, wm, p, len(BEV_CLASSES))
         cells = cells.transpose(0, 1, 3, 2, 4, 5).reshape(b, hm * wm, -1)
         map_tokens = nn.Dense(cfg.width, name="map_in")(cells)
         map_tokens = map_tokens + self.param("map_position", nn.initializers.normal(0.02), (hm * wm, cfg.width))
         kinds = self.param("kind", nn.initializers.normal(0.02), (3, cfg.width))
-        x = jnp.concatenate([embed(ego, "ego")[:, None] + kinds[0], embed(agents, "agent") + kinds[1],
-                             map_tokens + kinds[2]], 1)
+        x = jnp.concatenate(
+            [embed(ego, "ego")[:, None] + kinds[0], embed(agents, "agent") + kinds[1], map_tokens + kinds[2]], 1
+        )
         present = traffic.seen[:, -1]
         keys = jnp.concatenate([jnp.ones((b, 1), bool), present, jnp.ones((b, hm * wm), bool)], 1)
         mask = jnp.broadcast_to(keys[:, None, None, :], (b, 1, x.shape[1], x.shape[1]))
@@ -148,7 +160,7 @@ class Predictor(nn.Module):
             x = _Block(cfg.width, cfg.heads, name=f"block_{i}")(x, mask)
         x = nn.LayerNorm()(x)
         head = nn.Dense(3, kernel_init=nn.initializers.zeros, name="head")
-        return head(x[:, 0]), head(x[:, 1:1 + n]) * present[..., None]
+        return head(x[:, 0]), head(x[:, 1 : 1 + n]) * present[..., None]
 
 
 def constant_velocity(traffic: Traffic):
@@ -169,11 +181,18 @@ def predict_step(model: Predictor, params, traffic: Traffic, bev):
     now = traffic.ego[:, -1]
     c, s = jnp.cos(now[:, 2]), jnp.sin(now[:, 2])
 
-    def moved(pose, d):                     # d in the ego frame, broadcast over agents
+    def moved(pose, d):  # d in the ego frame, broadcast over agents
         cc, ss = (c, s) if d.ndim == 2 else (c[:, None], s[:, None])
         dx, dy = STEP_SCALE * d[..., 0], STEP_SCALE * d[..., 1]
-        return jnp.stack([pose[..., 0] + cc * dx - ss * dy, pose[..., 1] + ss * dx + cc * dy,
-                          wrap(pose[..., 2] + YAW_SCALE * d[..., 2])], -1)
+        return jnp.stack(
+            [
+                pose[..., 0] + cc * dx - ss * dy,
+                pose[..., 1] + ss * dx + cc * dy,
+                wrap(pose[..., 2] + YAW_SCALE * d[..., 2]),
+            ],
+            -1,
+        )
+
     agents = jnp.where(traffic.seen[:, -1, :, None], moved(cv_agents, d_agents), traffic.agents[:, -1])
     return moved(cv_ego, d_ego), agents
 
@@ -198,15 +217,18 @@ def rollout(model: Predictor, params, traffic: Traffic, steps: int, *, bev=None,
         if ego_path is not None:
             ego = ego_path[:, k]
         return traffic.advance(ego, agents), (ego, agents)
+
     traffic, (ego, agents) = jax.lax.scan(step, traffic, jnp.arange(steps))
     return ego.swapaxes(0, 1), agents.swapaxes(0, 1), traffic
 
 
 def constant_velocity_rollout(traffic: Traffic, steps: int):
     """The constant-velocity baseline rolled ``steps`` steps -> ``(ego [B, S, 3], agents [B, S, N, 3])``."""
+
     def step(tr, _):
         ego, agents = constant_velocity(tr)
         return tr.advance(ego, agents), (ego, agents)
+
     _, (ego, agents) = jax.lax.scan(step, traffic, None, length=steps)
     return ego.swapaxes(0, 1), agents.swapaxes(0, 1)
 
@@ -220,13 +242,20 @@ def rollout_program(config: PredictorConfig):
     @functools.partial(jax.jit, static_argnums=(2,))
     def run(params, traffic, steps, bev, scene, ego_path):
         return rollout(model, params, traffic, steps, bev=bev, scene=scene, ego_path=ego_path)[:2]
+
     return run
 
 
 def init_params(config: PredictorConfig, key, *, bev_size=(64, 64)):
     """Fresh parameters for ``bev_size`` maps (the dataset's BEV grid)."""
     t, n = config.history, config.max_agents
-    traffic = Traffic(ego=jnp.zeros((1, t, 3)), agents=jnp.zeros((1, t, n, 3)), seen=jnp.ones((1, t, n), bool),
-                      size=jnp.ones((1, n, 3)), z=jnp.zeros((1, n)), classes=jnp.zeros((1, n), jnp.int32),
-                      ids=jnp.zeros((1, n), jnp.int32))
+    traffic = Traffic(
+        ego=jnp.zeros((1, t, 3)),
+        agents=jnp.zeros((1, t, n, 3)),
+        seen=jnp.ones((1, t, n), bool),
+        size=jnp.ones((1, n, 3)),
+        z=jnp.zeros((1, n)),
+        classes=jnp.zeros((1, n), jnp.int32),
+        ids=jnp.zeros((1, n), jnp.int32),
+    )
     return Predictor(config).init(key, traffic, jnp.zeros((1, *bev_size, len(BEV_CLASSES))))["params"]

@@ -31,6 +31,7 @@ FORMAT_VERSION = 1
 
 def _kinds() -> dict:
     from jaxdrive.models.vae.model import CausalVAE, VAEConfig
+
     return {"vae": (CausalVAE, VAEConfig)}
 
 
@@ -38,13 +39,13 @@ def _kind_of(model) -> str:
     for kind, (cls, _) in _kinds().items():
         if isinstance(model, cls):
             return kind
-    raise ValueError(f"model: expected one of {[c.__name__ for c, _ in _kinds().values()]}, "
-                     f"got {type(model).__name__}")
+    raise ValueError(f"model: expected one of {[c.__name__ for c, _ in _kinds().values()]}, got {type(model).__name__}")
 
 
 def _config_json(config) -> dict:
-    return {f.name: list(v) if isinstance(v := getattr(config, f.name), tuple) else v
-            for f in dataclasses.fields(config)}
+    return {
+        f.name: list(v) if isinstance(v := getattr(config, f.name), tuple) else v for f in dataclasses.fields(config)
+    }
 
 
 def save_pretrained(path, model, params, *, overwrite: bool = False) -> Path:
@@ -99,8 +100,9 @@ def load_pretrained(path, *, shardings=None, **config_overrides):
     model = load_pretrained_model(path, **config_overrides)
     abstract = jax.eval_shape(model.init, jax.random.PRNGKey(0))
     if shardings is not None:
-        abstract = jax.tree_util.tree_map(lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s),
-                                          abstract, shardings)
+        abstract = jax.tree_util.tree_map(
+            lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s), abstract, shardings
+        )
     try:
         params = ocp.StandardCheckpointer().restore(path / PARAMS_DIR, abstract)
     except Exception as e:  # orbax raises many types for a damaged directory

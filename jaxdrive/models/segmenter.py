@@ -32,8 +32,8 @@ class SegmenterConfig:
     ``OBJECT_CLASSES``); its run: :class:`jaxdrive.config.SegmenterRunConfig`, which re-exports
     this class."""
 
-    width: int = 32                    # channels at full resolution, doubled at every level
-    levels: int = 2                    # stride-2 downsamplings (frame sides divisible by 2**levels)
+    width: int = 32  # channels at full resolution, doubled at every level
+    levels: int = 2  # stride-2 downsamplings (frame sides divisible by 2**levels)
 
 
 class _ConvBlock(nn.Module):
@@ -60,15 +60,15 @@ class Segmenter(nn.Module):
         x = frames.reshape(-1, *frames.shape[-3:])
         skips = []
         for level in range(c.levels + 1):
-            width = c.width * 2 ** level
+            width = c.width * 2**level
             x = _ConvBlock(width, stride=1 if level == 0 else 2)(x)
             x = _ConvBlock(width)(x)
             skips.append(x)
         for level in reversed(range(c.levels)):
             skip = skips[level]
             x = jax.image.resize(x, (x.shape[0], *skip.shape[1:3], x.shape[-1]), "bilinear")
-            x = _ConvBlock(c.width * 2 ** level)(jnp.concatenate([x, skip], -1))
-            x = _ConvBlock(c.width * 2 ** level)(x)
+            x = _ConvBlock(c.width * 2**level)(jnp.concatenate([x, skip], -1))
+            x = _ConvBlock(c.width * 2**level)(x)
         logits = nn.Conv(NUM_CLASSES, (1, 1))(x)
         return logits.reshape(*lead, *logits.shape[1:])
 
@@ -93,7 +93,7 @@ def predict(config: SegmenterConfig, params, frames, *, batch_size: int = 256, m
     flat = frames.reshape(-1, *frames.shape[-3:])
     if not len(flat):
         return np.zeros((*lead, *hw), np.int32)
-    params = jax.device_get(params)          # host arrays: replicated onto whatever mesh the call runs on
+    params = jax.device_get(params)  # host arrays: replicated onto whatever mesh the call runs on
     out = extract(lambda p, x: _classes(config, p, x), params, flat, batch_size=batch_size, mesh=mesh)
     return out.reshape(*lead, *hw)
 
@@ -118,6 +118,8 @@ def summary(counts: np.ndarray) -> dict:
     union = counts.sum(0) + counts.sum(1) - inter
     iou = np.where(union > 0, inter / np.maximum(union, 1), np.nan)
     objects = iou[1:][union[1:] > 0]
-    return {"miou": float(objects.mean()) if objects.size else None,
-            "per_class": {name: (None if np.isnan(v) else round(float(v), 4)) for name, v in zip(CLASSES, iou)},
-            "pixel_accuracy": float(inter.sum() / max(counts.sum(), 1))}
+    return {
+        "miou": float(objects.mean()) if objects.size else None,
+        "per_class": {name: (None if np.isnan(v) else round(float(v), 4)) for name, v in zip(CLASSES, iou)},
+        "pixel_accuracy": float(inter.sum() / max(counts.sum(), 1)),
+    }

@@ -26,13 +26,13 @@ def merge(x, axis: int):
     """Merge ``axis`` and ``axis + 1`` into one. One merge at a time: under Explicit sharding a
     merge whose major axis is sharded (and minor axis not) keeps a block-contiguous sharding."""
     s = x.shape
-    return x.reshape(*s[:axis], s[axis] * s[axis + 1], *s[axis + 2:])
+    return x.reshape(*s[:axis], s[axis] * s[axis + 1], *s[axis + 2 :])
 
 
 def split(x, axis: int, major: int):
     """Split ``axis`` into ``(major, rest)`` (inverse of :func:`merge`)."""
     s = x.shape
-    return x.reshape(*s[:axis], major, s[axis] // major, *s[axis + 1:])
+    return x.reshape(*s[:axis], major, s[axis] // major, *s[axis + 1 :])
 
 
 def reshape(x, shape: Sequence[int]):

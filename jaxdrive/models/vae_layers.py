@@ -6,8 +6,11 @@ import warnings
 from jaxdrive.models.vae import layers as _new
 from jaxdrive.models.vae.layers import *  # noqa: F403
 
-warnings.warn("jaxdrive.models.vae_layers moved to jaxdrive.models.vae.layers"
-              " (the old path goes in the next release)", DeprecationWarning, stacklevel=2)
+warnings.warn(
+    "jaxdrive.models.vae_layers moved to jaxdrive.models.vae.layers (the old path goes in the next release)",
+    DeprecationWarning,
+    stacklevel=2,
+)
 
 
 def __getattr__(name: str):

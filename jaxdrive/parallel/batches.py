@@ -29,7 +29,7 @@ def extract(fn, params, items, *, batch_size: int = 16, mesh=None) -> np.ndarray
     step = -(-batch_size // shards) * shards
     out = []
     for lo in range(0, len(items), step):
-        batch = items[lo:lo + step]
+        batch = items[lo : lo + step]
         n = len(batch)
         if n % shards:
             batch = np.concatenate([batch, np.repeat(batch[-1:], shards - n % shards, 0)])

@@ -39,15 +39,18 @@ from .rules import ACTIVATION_RULES, Axes, logical_to_spec
 
 def _is_spec_leaf(x) -> bool:
     return isinstance(x, PartitionSpec) or (
-        isinstance(x, (tuple, list)) and all(n is None or isinstance(n, str) for n in x))
+        isinstance(x, (tuple, list)) and all(n is None or isinstance(n, str) for n in x)
+    )
 
 
 def _shardings(tree, mesh, spec_or_names, rules):
     """One NamedSharding per leaf: a spec / names for every leaf, or a tree of them."""
+
     def one(spec):
         if not isinstance(spec, PartitionSpec):
             spec = logical_to_spec(spec, rules, mesh=mesh)
         return NamedSharding(mesh, spec)
+
     if _is_spec_leaf(spec_or_names):
         s = one(spec_or_names)
         return jax.tree_util.tree_map(lambda _: s, tree)
@@ -55,8 +58,7 @@ def _shardings(tree, mesh, spec_or_names, rules):
     return jax.tree_util.tree_map(lambda _, s: s, tree, specs)
 
 
-def host_local_to_global(batch_tree, mesh, spec_or_names=("batch",),
-                         rules: Mapping[str, Axes] = ACTIVATION_RULES):
+def host_local_to_global(batch_tree, mesh, spec_or_names=("batch",), rules: Mapping[str, Axes] = ACTIVATION_RULES):
     """Global arrays from each process's slice along axis 0 of every leaf.
 
     ``spec_or_names``: a ``PartitionSpec``, a tuple of logical names (mapped through ``rules``;
@@ -71,6 +73,7 @@ def host_local_to_global(batch_tree, mesh, spec_or_names=("batch",),
         if x.ndim == 0:
             raise ValueError("batch_tree: expected arrays with a leading batch axis, got a scalar")
         return jax.make_array_from_process_local_data(sharding, x)
+
     return jax.tree_util.tree_map(one, batch_tree, shardings)
 
 
@@ -84,8 +87,7 @@ def _local_block(x: jax.Array) -> np.ndarray:
     # Per dimension: the distinct intervals this process holds, in order, placed end to end.
     starts = []
     for d, n in enumerate(x.shape):
-        iv = sorted({(s.index[d].start or 0, n if s.index[d].stop is None else s.index[d].stop)
-                     for s in shards})
+        iv = sorted({(s.index[d].start or 0, n if s.index[d].stop is None else s.index[d].stop) for s in shards})
         offs, pos = {}, 0
         for lo, hi in iv:
             offs[lo] = pos
@@ -93,8 +95,10 @@ def _local_block(x: jax.Array) -> np.ndarray:
         starts.append((offs, pos))
     out = np.empty(tuple(p for _, p in starts), dtype=x.dtype)
     for s in shards:
-        idx = tuple(slice(offs[sl.start or 0], offs[sl.start or 0] + s.data.shape[d])
-                    for d, (sl, (offs, _)) in enumerate(zip(s.index, starts)))
+        idx = tuple(
+            slice(offs[sl.start or 0], offs[sl.start or 0] + s.data.shape[d])
+            for d, (sl, (offs, _)) in enumerate(zip(s.index, starts))
+        )
         out[idx] = np.asarray(s.data)
     return out
 
@@ -119,6 +123,7 @@ class Processes:
     def gather(self, value: int) -> list[int]:
         """Every process's ``value`` (an int32), in process order; returns when all have called it."""
         from jax.experimental import multihost_utils
+
         if self.count == 1:
             return [int(value)]
         return [int(v) for v in multihost_utils.process_allgather(np.int32(value))]
@@ -143,39 +148,50 @@ def _resolve(coordinator_address, num_processes, process_id, env: Mapping[str, s
     """(source, kwargs for jax.distributed.initialize or None)."""
     if coordinator_address is not None:
         if num_processes is None or process_id is None:
-            raise ValueError("num_processes, process_id: expected both with coordinator_address, "
-                             f"got num_processes={num_processes!r}, process_id={process_id!r}")
-        return "explicit", dict(coordinator_address=coordinator_address,
-                                num_processes=int(num_processes), process_id=int(process_id))
+            raise ValueError(
+                "num_processes, process_id: expected both with coordinator_address, "
+                f"got num_processes={num_processes!r}, process_id={process_id!r}"
+            )
+        return "explicit", dict(
+            coordinator_address=coordinator_address, num_processes=int(num_processes), process_id=int(process_id)
+        )
     keys = ("JAXDRIVE_COORDINATOR", "JAXDRIVE_NUM_PROCESSES", "JAXDRIVE_PROCESS_ID")
     present = [k for k in keys if env.get(k)]
     if present:
         if len(present) != len(keys):
             missing = [k for k in keys if k not in present]
             raise ValueError(f"{', '.join(missing)}: expected with {', '.join(present)}, got unset")
-        return "env", dict(coordinator_address=env["JAXDRIVE_COORDINATOR"],
-                           num_processes=_int_env(env, keys[1]), process_id=_int_env(env, keys[2]))
+        return "env", dict(
+            coordinator_address=env["JAXDRIVE_COORDINATOR"],
+            num_processes=_int_env(env, keys[1]),
+            process_id=_int_env(env, keys[2]),
+        )
     if env.get("SLURM_NTASKS") and _int_env(env, "SLURM_NTASKS") > 1:
         nodelist = env.get("SLURM_STEP_NODELIST") or env.get("SLURM_JOB_NODELIST")
         if not nodelist or "SLURM_PROCID" not in env:
-            raise ValueError("SLURM_STEP_NODELIST, SLURM_PROCID: expected with SLURM_NTASKS > 1 "
-                             "(run under srun), got unset")
+            raise ValueError(
+                "SLURM_STEP_NODELIST, SLURM_PROCID: expected with SLURM_NTASKS > 1 (run under srun), got unset"
+            )
         if env.get("JAXDRIVE_COORDINATOR_PORT"):
             port = _int_env(env, "JAXDRIVE_COORDINATOR_PORT")
         else:
-            port = _int_env(env, "SLURM_JOB_ID") % 2**12 + (65536 - 2**12) if env.get(
-                "SLURM_JOB_ID") else 12355
-        return "slurm", dict(coordinator_address=f"{_first_host(nodelist)}:{port}",
-                             num_processes=_int_env(env, "SLURM_NTASKS"),
-                             process_id=_int_env(env, "SLURM_PROCID"))
+            port = _int_env(env, "SLURM_JOB_ID") % 2**12 + (65536 - 2**12) if env.get("SLURM_JOB_ID") else 12355
+        return "slurm", dict(
+            coordinator_address=f"{_first_host(nodelist)}:{port}",
+            num_processes=_int_env(env, "SLURM_NTASKS"),
+            process_id=_int_env(env, "SLURM_PROCID"),
+        )
     if "," in env.get("TPU_WORKER_HOSTNAMES", "") or env.get("MEGASCALE_COORDINATOR_ADDRESS"):
         return "tpu", {}
     return "single", None
 
 
-def initialize_distributed(coordinator_address: str | None = None,
-                           num_processes: int | None = None, process_id: int | None = None,
-                           local_device_ids: Sequence[int] | None = None) -> str:
+def initialize_distributed(
+    coordinator_address: str | None = None,
+    num_processes: int | None = None,
+    process_id: int | None = None,
+    local_device_ids: Sequence[int] | None = None,
+) -> str:
     """Start JAX's multi-process runtime if this is a multi-process job; see the module docstring.
 
     Call it before any other JAX call. Returns the source of the settings used.
@@ -197,6 +213,7 @@ def wait_for_all_processes(name: str, *, timeout_s: float = 3600.0) -> None:
     as a collective, so it waits as long as ``timeout_s`` whereas a CPU collective's first call
     gives up when its peers are 30 s late (gloo's fixed connect timeout)."""
     from jax._src import distributed
+
     client = distributed.global_state.client
     if jax.process_count() == 1 or client is None:
         return

@@ -20,8 +20,18 @@ import jax
 
 CPU_HOST_FRACTION = 0.25
 DEVICE_FRACTION = 0.9
-UNITS = {"": 1, "b": 1, "kb": 10 ** 3, "mb": 10 ** 6, "gb": 10 ** 9, "tb": 10 ** 12,
-         "kib": 2 ** 10, "mib": 2 ** 20, "gib": 2 ** 30, "tib": 2 ** 40}
+UNITS = {
+    "": 1,
+    "b": 1,
+    "kb": 10**3,
+    "mb": 10**6,
+    "gb": 10**9,
+    "tb": 10**12,
+    "kib": 2**10,
+    "mib": 2**20,
+    "gib": 2**30,
+    "tib": 2**40,
+}
 
 
 def footprint_bytes(compiled) -> int | None:
@@ -31,19 +41,23 @@ def footprint_bytes(compiled) -> int | None:
     a = compiled.memory_analysis()
     if a is None:
         return None
-    return int(a.argument_size_in_bytes + a.output_size_in_bytes + a.temp_size_in_bytes
-               - a.alias_size_in_bytes)
+    return int(a.argument_size_in_bytes + a.output_size_in_bytes + a.temp_size_in_bytes - a.alias_size_in_bytes)
 
 
 def parse_bytes(text, name: str = "device_memory") -> int:
     """``"80GiB"``, ``"16GB"``, ``"512MiB"``, ``"1e9"`` (or a number of bytes) -> bytes, a positive
     int; ``ValueError`` naming ``name`` otherwise."""
-    m = None if isinstance(text, bool) else re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:e[0-9]+)?)\s*([a-z]*)\s*",
-                                                          str(text), re.IGNORECASE)
+    m = (
+        None
+        if isinstance(text, bool)
+        else re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:e[0-9]+)?)\s*([a-z]*)\s*", str(text), re.IGNORECASE)
+    )
     unit = m and m.group(2).lower()
     if not m or unit not in UNITS or float(m.group(1)) * UNITS[unit] < 1:
-        raise ValueError(f"{name}: expected a positive size like 80GiB, 16GB or 512MiB (units "
-                         f"{', '.join(u for u in UNITS if u)}), got {text!r}")
+        raise ValueError(
+            f"{name}: expected a positive size like 80GiB, 16GB or 512MiB (units "
+            f"{', '.join(u for u in UNITS if u)}), got {text!r}"
+        )
     return int(float(m.group(1)) * UNITS[unit])
 
 

@@ -46,12 +46,12 @@ def _resolve_sizes(sizes: Mapping[str, int], total: int, what: str) -> tuple[int
         if total % known:
             raise ValueError(
                 f"{rest[0]}: expected the other axes' product {known} to divide {total} "
-                f"devices, got a remainder of {total % known}")
+                f"devices, got a remainder of {total % known}"
+            )
         out[MESH_AXES.index(rest[0])] = total // known
     elif known != total:
         shape = dict(zip(MESH_AXES, out))
-        raise ValueError(f"{what}: expected axis sizes whose product is {total}, got {shape} "
-                         f"(product {known})")
+        raise ValueError(f"{what}: expected axis sizes whose product is {total}, got {shape} (product {known})")
     return tuple(out)
 
 
@@ -60,14 +60,19 @@ def _axis_types(axis_types) -> tuple[AxisType, ...]:
         return (axis_types,) * len(MESH_AXES)
     types = tuple(axis_types)
     if len(types) != len(MESH_AXES) or not all(isinstance(t, AxisType) for t in types):
-        raise ValueError(f"axis_types: expected one AxisType or {len(MESH_AXES)} of them, "
-                         f"got {axis_types!r}")
+        raise ValueError(f"axis_types: expected one AxisType or {len(MESH_AXES)} of them, got {axis_types!r}")
     return types
 
 
-def make_mesh(data: int = 1, fsdp: int = 1, seq: int = 1, tensor: int = 1,
-              devices: Sequence[jax.Device] | None = None, *,
-              axis_types: AxisType | Sequence[AxisType] = AxisType.Explicit) -> Mesh:
+def make_mesh(
+    data: int = 1,
+    fsdp: int = 1,
+    seq: int = 1,
+    tensor: int = 1,
+    devices: Sequence[jax.Device] | None = None,
+    *,
+    axis_types: AxisType | Sequence[AxisType] = AxisType.Explicit,
+) -> Mesh:
     """A mesh of shape ``(data, fsdp, seq, tensor)`` over ``devices`` (default ``jax.devices()``).
 
     The product of the sizes must equal ``len(devices)``; one size may be ``-1`` (the rest).
@@ -77,8 +82,7 @@ def make_mesh(data: int = 1, fsdp: int = 1, seq: int = 1, tensor: int = 1,
     devices = list(jax.devices() if devices is None else devices)
     if not devices:
         raise ValueError("devices: expected at least one device, got none")
-    shape = _resolve_sizes({"data": data, "fsdp": fsdp, "seq": seq, "tensor": tensor},
-                           len(devices), "make_mesh")
+    shape = _resolve_sizes({"data": data, "fsdp": fsdp, "seq": seq, "tensor": tensor}, len(devices), "make_mesh")
     return jax.make_mesh(shape, MESH_AXES, axis_types=types, devices=devices)
 
 
@@ -92,9 +96,13 @@ def _granules(devices: Sequence[jax.Device]) -> tuple[str, int]:
     return "process_index", len({d.process_index for d in devices})
 
 
-def make_hybrid_mesh(ici: Mapping[str, int] | None = None, dcn: Mapping[str, int] | None = None,
-                     devices: Sequence[jax.Device] | None = None, *,
-                     axis_types: AxisType | Sequence[AxisType] = AxisType.Explicit) -> Mesh:
+def make_hybrid_mesh(
+    ici: Mapping[str, int] | None = None,
+    dcn: Mapping[str, int] | None = None,
+    devices: Sequence[jax.Device] | None = None,
+    *,
+    axis_types: AxisType | Sequence[AxisType] = AxisType.Explicit,
+) -> Mesh:
     """A multi-host mesh: axis ``a`` has size ``ici[a] * dcn[a]`` (missing entries are 1).
 
     ``dcn`` splits axes across granules (TPU slices, or processes on GPU / CPU): the product of
@@ -108,12 +116,15 @@ def make_hybrid_mesh(ici: Mapping[str, int] | None = None, dcn: Mapping[str, int
         raise ValueError("devices: expected at least one device, got none")
     attr, n_granules = _granules(devices)
     if len(devices) % n_granules:
-        raise ValueError(f"devices: expected the same number of devices in each of "
-                         f"{n_granules} granules ({attr}), got {len(devices)} devices")
+        raise ValueError(
+            f"devices: expected the same number of devices in each of "
+            f"{n_granules} granules ({attr}), got {len(devices)} devices"
+        )
     dcn_shape = _resolve_sizes(dict(dcn or {}), n_granules, "dcn")
     ici_shape = _resolve_sizes(dict(ici or {}), len(devices) // n_granules, "ici")
     grid = mesh_utils.create_hybrid_device_mesh(
-        ici_shape, dcn_shape, devices, process_is_granule=(attr == "process_index"))
+        ici_shape, dcn_shape, devices, process_is_granule=(attr == "process_index")
+    )
     return Mesh(np.asarray(grid), MESH_AXES, axis_types=_axis_types(axis_types))
 
 
@@ -128,8 +139,7 @@ def parse_mesh_spec(spec: str) -> dict[str, int]:
     for item in filter(None, (s.strip() for s in spec.split(","))):
         name, sep, value = (s.strip() for s in item.partition("="))
         if not sep or name not in MESH_AXES:
-            raise ValueError(f"mesh spec: expected items 'axis=size' with axis in "
-                             f"{list(MESH_AXES)}, got {item!r}")
+            raise ValueError(f"mesh spec: expected items 'axis=size' with axis in {list(MESH_AXES)}, got {item!r}")
         if name in out:
             raise ValueError(f"mesh spec: expected each axis once, got {name!r} twice")
         try:
@@ -137,8 +147,7 @@ def parse_mesh_spec(spec: str) -> dict[str, int]:
         except ValueError:
             size = 0
         if size < 1 and size != -1:
-            raise ValueError(f"mesh spec: expected {name} to be a positive integer or -1, "
-                             f"got {value!r}")
+            raise ValueError(f"mesh spec: expected {name} to be a positive integer or -1, got {value!r}")
         out[name] = size
     return out
 
@@ -162,7 +171,7 @@ def explicit_mesh():
     return mesh
 
 
-BATCH_AXES = ("data", "fsdp")       # the mesh axes a batch of examples is split over (rules.py's "batch" rule)
+BATCH_AXES = ("data", "fsdp")  # the mesh axes a batch of examples is split over (rules.py's "batch" rule)
 
 
 def batch_axes(mesh) -> tuple[str, ...]:

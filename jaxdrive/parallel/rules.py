@@ -54,8 +54,12 @@ LOGICAL_AXIS_RULES: dict[str, tuple[Axes, Axes, str]] = {
     "batch": (BATCH_AXES, None, "examples; FSDP shards the batch like data parallelism"),
     "views": (None, None, "camera views V (cross-view attention needs all views local)"),
     "frames": (None, None, "latent or pixel frames F when not folded into tokens"),
-    "out_frames": ("seq", None, "frames of the DiT's per-frame output head (final layer, unpatchify, final "
-                                "convolutions): sequence parallel, so a long window's output stays split"),
+    "out_frames": (
+        "seq",
+        None,
+        "frames of the DiT's per-frame output head (final layer, unpatchify, final "
+        "convolutions): sequence parallel, so a long window's output stays split",
+    ),
     "height": (None, None, "latent / pixel rows"),
     "width": (None, None, "latent / pixel columns"),
     "tokens": ("seq", None, "the flattened video sequence (frames x patches): sequence parallel"),
@@ -87,8 +91,13 @@ def _mesh_sizes(mesh) -> dict[str, int]:
     return dict(zip(mesh.axis_names, mesh.axis_sizes))
 
 
-def logical_to_spec(names: Sequence[str | None], rules: Mapping[str, Axes] = ACTIVATION_RULES,
-                    *, shape: Sequence[int] | None = None, mesh=None) -> PartitionSpec:
+def logical_to_spec(
+    names: Sequence[str | None],
+    rules: Mapping[str, Axes] = ACTIVATION_RULES,
+    *,
+    shape: Sequence[int] | None = None,
+    mesh=None,
+) -> PartitionSpec:
     """``PartitionSpec`` for an array whose dimensions carry logical ``names`` (``None`` = any).
 
     ``rules`` defaults to ``ACTIVATION_RULES``; pass ``PARAM_RULES`` for parameters. With
@@ -97,8 +106,7 @@ def logical_to_spec(names: Sequence[str | None], rules: Mapping[str, Axes] = ACT
     """
     names = tuple(names)
     if shape is not None and len(shape) != len(names):
-        raise ValueError(f"names: expected {len(shape)} names for shape {list(shape)}, "
-                         f"got {len(names)}: {names}")
+        raise ValueError(f"names: expected {len(shape)} names for shape {list(shape)}, got {len(names)}: {names}")
     sizes = None if mesh is None else _mesh_sizes(mesh)
     used: dict[str, str] = {}
     entries: list[Axes] = []
@@ -108,13 +116,14 @@ def logical_to_spec(names: Sequence[str | None], rules: Mapping[str, Axes] = ACT
             entries.append(None)
             continue
         if name not in rules:
-            raise ValueError(f"names: expected logical axis names from {sorted(rules)}, "
-                             f"got {name!r}")
+            raise ValueError(f"names: expected logical axis names from {sorted(rules)}, got {name!r}")
         axes = entry_axes(rules[name])
         for ax in axes:
             if ax in used:
-                raise ValueError(f"names: expected each mesh axis once per array, got {ax!r} "
-                                 f"for both {used[ax]!r} and {name!r} in {names}")
+                raise ValueError(
+                    f"names: expected each mesh axis once per array, got {ax!r} "
+                    f"for both {used[ax]!r} and {name!r} in {names}"
+                )
             used[ax] = name
         if sizes is not None:
             axes = tuple(ax for ax in axes if ax in sizes)
@@ -130,14 +139,19 @@ def logical_to_spec(names: Sequence[str | None], rules: Mapping[str, Axes] = ACT
         key = (names, tuple(shape), tuple(sorted(sizes.items())))
         if key not in _warned:
             _warned.add(key)
-            _log.warning("sharding fallback for %s with shape %s on mesh %s: not divisible, "
-                         "unsharded over %s", names, list(shape), sizes,
-                         [(n, d, list(a)) for n, d, a in dropped])
+            _log.warning(
+                "sharding fallback for %s with shape %s on mesh %s: not divisible, unsharded over %s",
+                names,
+                list(shape),
+                sizes,
+                [(n, d, list(a)) for n, d, a in dropped],
+            )
     return PartitionSpec(*entries)
 
 
-def constrain(x: jax.Array, names: Sequence[str | None], mesh=None,
-              rules: Mapping[str, Axes] = ACTIVATION_RULES) -> jax.Array:
+def constrain(
+    x: jax.Array, names: Sequence[str | None], mesh=None, rules: Mapping[str, Axes] = ACTIVATION_RULES
+) -> jax.Array:
     """Shard activation ``x`` as its logical ``names`` say, inside or outside ``jax.jit``.
 
     Uses ``mesh`` or else the mesh set by ``jax.set_mesh``; a no-op when there is neither.
@@ -145,8 +159,9 @@ def constrain(x: jax.Array, names: Sequence[str | None], mesh=None,
     type), Auto axes through ``jax.lax.with_sharding_constraint``.
     """
     if len(names) != x.ndim:
-        raise ValueError(f"names: expected {x.ndim} names for x of shape {list(x.shape)}, "
-                         f"got {len(names)}: {tuple(names)}")
+        raise ValueError(
+            f"names: expected {x.ndim} names for x of shape {list(x.shape)}, got {len(names)}: {tuple(names)}"
+        )
     target = jax.sharding.get_abstract_mesh() if mesh is None else mesh
     if target is None or target.empty:
         return x
@@ -155,7 +170,8 @@ def constrain(x: jax.Array, names: Sequence[str | None], mesh=None,
     types = dict(zip(target.axis_names, target.axis_types))
     used = [ax for entry in spec for ax in entry_axes(entry)]
     if any(types[ax] == AxisType.Explicit for ax in used) or (
-            not used and all(t == AxisType.Explicit for t in types.values())):
+        not used and all(t == AxisType.Explicit for t in types.values())
+    ):
         return jax.sharding.reshard(x, sharding)
     return jax.lax.with_sharding_constraint(x, sharding)
 
@@ -183,15 +199,13 @@ def param_shardings(params, mesh, rules: Mapping[str, Axes] = PARAM_RULES):
     in ``nn.Partitioned`` use their names as mesh axes; unboxed leaves are replicated. The result
     has the structure of the *unboxed* tree (``nn.unbox(params)``), ready for ``in_shardings``.
     """
-    return jax.tree_util.tree_map(lambda leaf: _leaf_sharding(leaf, mesh, rules), params,
-                                  is_leaf=_is_box)
+    return jax.tree_util.tree_map(lambda leaf: _leaf_sharding(leaf, mesh, rules), params, is_leaf=_is_box)
 
 
 def shard_params(params, mesh, rules: Mapping[str, Axes] = PARAM_RULES):
     """``params`` unboxed and placed with :func:`param_shardings` (plain ``jax.Array`` leaves)."""
     shardings = param_shardings(params, mesh, rules)
-    values = jax.tree_util.tree_map(lambda x: x.value if _is_box(x) else x, params,
-                                    is_leaf=_is_box)
+    values = jax.tree_util.tree_map(lambda x: x.value if _is_box(x) else x, params, is_leaf=_is_box)
     return jax.device_put(values, shardings)
 
 

@@ -22,8 +22,7 @@ from jaxdrive.config import from_dict, to_dict
 logger = logging.getLogger(__name__)
 
 
-def fit(config, workdir, params, loss, batch, *, files=None, progress: bool = True,
-        on_step=None) -> dict:
+def fit(config, workdir, params, loss, batch, *, files=None, progress: bool = True, on_step=None) -> dict:
     """Train (or resume) ``params`` in ``workdir`` under ``config`` (``optim`` and ``train``
     sections): ``loss(params, batch) -> (scalar, {name: scalar})`` is jitted, ``batch(step)``
     gives the host batch of a step. ``files``: ``{name: json-able}`` written beside
@@ -37,6 +36,7 @@ def fit(config, workdir, params, loss, batch, *, files=None, progress: bool = Tr
     from jaxdrive.train.metrics import MetricsWriter
     from jaxdrive.train.optim import make_optimizer
     from jaxdrive.train.state import apply_gradients, create_state
+
     t, o = config.train, config.optim
     compile_cache.enable(t.compile_cache)
     workdir = Path(workdir)
@@ -63,7 +63,7 @@ def fit(config, workdir, params, loss, batch, *, files=None, progress: bool = Tr
     writer = MetricsWriter(workdir, total_steps=t.steps, start_step=start, progress=progress)
     meta = lambda step, status: {"step": step, "status": status, "config": to_dict(config)}
     step, row, status = start, {}, "done"
-    with Stop() as stop:                 # SIGTERM / SIGINT: save, then stop (the same command resumes)
+    with Stop() as stop:  # SIGTERM / SIGINT: save, then stop (the same command resumes)
         while step < t.steps:
             state, metrics = train_step(state, batch(step))
             step += 1
@@ -74,8 +74,13 @@ def fit(config, workdir, params, loss, batch, *, files=None, progress: bool = Tr
                 row = writer.write(step, {**jax.device_get(metrics), "bad_steps": bad})
             if bad >= t.max_bad_steps:
                 status = "diverged"
-                logger.warning("stopping: %d non-finite losses in a row at step %d (train.max_bad_steps = %d); "
-                               "the checkpoint holds the last good parameters", bad, step, t.max_bad_steps)
+                logger.warning(
+                    "stopping: %d non-finite losses in a row at step %d (train.max_bad_steps = %d); "
+                    "the checkpoint holds the last good parameters",
+                    bad,
+                    step,
+                    t.max_bad_steps,
+                )
                 break
             if stop.agreed() is not None:
                 status = "interrupted"
@@ -97,14 +102,16 @@ def load_trained(workdir, cls, section: str, init, *, option: str, what: str):
     from jaxdrive.train.checkpoint import Checkpoints
     from jaxdrive.train.optim import make_optimizer
     from jaxdrive.train.state import create_state
+
     path = Path(workdir) / "config.json"
     try:
         data = json.loads(path.read_text()) if path.is_file() else {}
     except ValueError:
         data = {}
     if not isinstance(data, dict) or section not in data:
-        raise ValueError(f"{option}: expected a {what} run directory (config.json with a {section!r} section), "
-                         f"got {str(workdir)!r}")
+        raise ValueError(
+            f"{option}: expected a {what} run directory (config.json with a {section!r} section), got {str(workdir)!r}"
+        )
     config = from_dict(cls, data)
     meta = Checkpoints(workdir, asynchronous=False, option=option)
     if not meta.steps():
@@ -116,7 +123,9 @@ def load_trained(workdir, cls, section: str, init, *, option: str, what: str):
     restored = meta.restore_latest(abstract)
     meta.close()
     if restored is None:
-        raise ValueError(f"{option}: expected checkpoints of this {what} ({getattr(config, section)}), got none "
-                         f"that load under {Path(workdir) / 'checkpoints'}: {meta.skipped[-1] if meta.skipped else ''}")
+        raise ValueError(
+            f"{option}: expected checkpoints of this {what} ({getattr(config, section)}), got none "
+            f"that load under {Path(workdir) / 'checkpoints'}: {meta.skipped[-1] if meta.skipped else ''}"
+        )
     state = restored[1]
     return config, (state.ema if state.ema is not None else state.params)

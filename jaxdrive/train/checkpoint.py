@@ -28,11 +28,9 @@ class Checkpoints:
     def __init__(self, workdir, *, keep: int = 3, asynchronous: bool = True, option: str = "workdir"):
         self.directory = Path(workdir).absolute() / "checkpoints"
         self.option = option
-        options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=True,
-                                               enable_async_checkpointing=asynchronous)
-        self.manager = ocp.CheckpointManager(self.directory, options=options,
-                                             item_names=("state", "data", "meta"))
-        self.skipped: list[str] = []     # why restore_latest's last call passed over each checkpoint it skipped
+        options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=True, enable_async_checkpointing=asynchronous)
+        self.manager = ocp.CheckpointManager(self.directory, options=options, item_names=("state", "data", "meta"))
+        self.skipped: list[str] = []  # why restore_latest's last call passed over each checkpoint it skipped
 
     def steps(self) -> list[int]:
         return sorted(self.manager.all_steps())
@@ -41,18 +39,27 @@ class Checkpoints:
         """Start saving (asynchronously); a step saved already is left as it is."""
         if step in self.manager.all_steps():
             return
-        self.manager.save(step, args=ocp.args.Composite(
-            state=ocp.args.StandardSave(state), data=ocp.args.JsonSave(data_state or {}),
-            meta=ocp.args.JsonSave(meta)), force=True)
+        self.manager.save(
+            step,
+            args=ocp.args.Composite(
+                state=ocp.args.StandardSave(state),
+                data=ocp.args.JsonSave(data_state or {}),
+                meta=ocp.args.JsonSave(meta),
+            ),
+            force=True,
+        )
 
     def wait(self) -> None:
         self.manager.wait_until_finished()
 
     def restore(self, step: int, abstract_state):
         """``(state, data_state, meta)`` of checkpoint ``step``, placed as ``abstract_state`` says."""
-        out = self.manager.restore(step, args=ocp.args.Composite(
-            state=ocp.args.StandardRestore(abstract_state), data=ocp.args.JsonRestore(),
-            meta=ocp.args.JsonRestore()))
+        out = self.manager.restore(
+            step,
+            args=ocp.args.Composite(
+                state=ocp.args.StandardRestore(abstract_state), data=ocp.args.JsonRestore(), meta=ocp.args.JsonRestore()
+            ),
+        )
         return out["state"], out["data"], out["meta"]
 
     def parameter_differences(self, step: int, params) -> list[str]:
@@ -64,11 +71,16 @@ class Checkpoints:
 
         tree = ocp.StandardCheckpointHandler().metadata(epath.Path(self.directory / str(step) / "state"))
         saved = getattr(tree, "tree", tree)["params"]
-        shapes = lambda t: {jax.tree_util.keystr(p, simple=True, separator="/"): tuple(x.shape)
-                            for p, x in jax.tree_util.tree_flatten_with_path(t)[0]}
+        shapes = lambda t: {
+            jax.tree_util.keystr(p, simple=True, separator="/"): tuple(x.shape)
+            for p, x in jax.tree_util.tree_flatten_with_path(t)[0]
+        }
         have, want = shapes(saved), shapes(params)
-        lines = [f"{k}: expected shape {list(want[k])}, got {list(have[k])}"
-                 for k in sorted(want.keys() & have.keys()) if want[k] != have[k]]
+        lines = [
+            f"{k}: expected shape {list(want[k])}, got {list(have[k])}"
+            for k in sorted(want.keys() & have.keys())
+            if want[k] != have[k]
+        ]
         lines += [f"{k}: expected in the checkpoint, missing" for k in sorted(want.keys() - have.keys())]
         lines += [f"{k}: in the checkpoint, not in this model" for k in sorted(have.keys() - want.keys())]
         return lines
@@ -88,10 +100,12 @@ class Checkpoints:
                 self._damaged(step, e)
                 continue
             if differences:
-                raise ValueError(f"{self.option}: expected checkpoints of this config's model in {self.directory}, got "
-                                 f"step {step} with other parameters ({len(differences)} differ: "
-                                 f"{'; '.join(differences[:4])}); use a new {self.option} or the config it was "
-                                 f"trained with")
+                raise ValueError(
+                    f"{self.option}: expected checkpoints of this config's model in {self.directory}, got "
+                    f"step {step} with other parameters ({len(differences)} differ: "
+                    f"{'; '.join(differences[:4])}); use a new {self.option} or the config it was "
+                    f"trained with"
+                )
             try:
                 return (step, *self.restore(step, abstract_state))
             except Exception as e:  # orbax raises many types for a damaged checkpoint
@@ -99,8 +113,10 @@ class Checkpoints:
         return None
 
     def _damaged(self, step: int, error: Exception) -> None:
-        self.skipped.append(f"checkpoint {self.directory / str(step)} is incomplete or damaged "
-                            f"({type(error).__name__}: {str(error)[:200]}); using the one before it")
+        self.skipped.append(
+            f"checkpoint {self.directory / str(step)} is incomplete or damaged "
+            f"({type(error).__name__}: {str(error)[:200]}); using the one before it"
+        )
         logger.warning("%s", self.skipped[-1])
 
     def close(self) -> None:

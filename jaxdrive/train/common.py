@@ -31,8 +31,9 @@ def mesh_from_config(config: Config, devices=None):
     sizes = {"data": m.data, "fsdp": m.fsdp, "seq": m.seq, "tensor": m.tensor}
     fixed = int(np.prod([s for s in sizes.values() if s != -1]))
     if -1 not in sizes.values() and fixed != len(devices):
-        raise ValueError(f"mesh: expected sizes whose product is the device count {len(devices)}, got "
-                         f"{sizes} (product {fixed})")
+        raise ValueError(
+            f"mesh: expected sizes whose product is the device count {len(devices)}, got {sizes} (product {fixed})"
+        )
     return make_mesh(**sizes, devices=devices)
 
 
@@ -42,17 +43,20 @@ def abstract_train_state(model, optim_config, total_steps: int, mesh, *, seed: i
     ``jax.eval_shape``: the target a checkpoint restores into, with no parameter allocated (at 1B+
     parameters a fresh state would double host and device memory)."""
     from jaxdrive.models.dit.model import DiT
+
     # parameter shapes do not depend on the input shapes (cross-view attention needs two views)
     boxed = DiT(model).abstract_params(views=2 if model.multiview == "cross_view" else 1)
-    params = jax.tree_util.tree_map(lambda x, sh: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sh),
-                                    nn.unbox(boxed), param_shardings(boxed, mesh))
+    params = jax.tree_util.tree_map(
+        lambda x, sh: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sh), nn.unbox(boxed), param_shardings(boxed, mesh)
+    )
     optimizer = make_optimizer(optim_config, total_steps, params)
     ema = optim_config.ema_decay > 0
     with jax.set_mesh(mesh):
         shapes = jax.eval_shape(jax.jit(lambda p: create_state(p, optimizer, seed, ema=ema)), params)
     # eval_shape gives abstract-mesh shardings (None for scalars): place them on this mesh
-    on_mesh = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=NamedSharding(
-        mesh, x.sharding.spec if x.sharding is not None else P()))
+    on_mesh = lambda x: jax.ShapeDtypeStruct(
+        x.shape, x.dtype, sharding=NamedSharding(mesh, x.sharding.spec if x.sharding is not None else P())
+    )
     return jax.tree_util.tree_map(on_mesh, shapes), optimizer
 
 
@@ -61,11 +65,12 @@ def load_run_config(workdir) -> Config:
     before ``model.box_range`` existed embedded its box corners in raw metres: it loads with
     ``box_range=None``, so its parameters keep meaning what they were trained for."""
     from jaxdrive.config import from_dict
+
     path = Path(workdir) / CONFIG_FILE
     if not path.is_file():
         raise ValueError(f"workdir: expected a training run directory with {CONFIG_FILE}, got {str(workdir)!r}")
     try:
-        data = json.loads(path.read_text())              # data, never executed
+        data = json.loads(path.read_text())  # data, never executed
     except json.JSONDecodeError as e:
         raise ValueError(f"workdir: expected JSON in {path}, got a file that is not ({e})") from None
     if not isinstance(data, dict):
@@ -73,7 +78,6 @@ def load_run_config(workdir) -> Config:
     if isinstance(data.get("model"), dict):
         data["model"].setdefault("box_range", None)
     return from_dict(Config, data)
-
 
 
 class Stop:
@@ -88,7 +92,7 @@ class Stop:
         for s in (signal.SIGTERM, signal.SIGINT):
             try:
                 self._old[s] = signal.signal(s, self._handle)
-            except ValueError:          # not the main thread: no handlers, nothing to restore
+            except ValueError:  # not the main thread: no handlers, nothing to restore
                 pass
         return self
 

@@ -37,8 +37,7 @@ def coarse_conditions(cond: Conditions, segment_len: int) -> Conditions:
 
 def coarse_fields(fields: dict, segment_len: int) -> dict:
     """Per-frame arrays of a dict (the W_aux loss's boxes) at the coarse frames; the rest as is."""
-    return {k: v[:, ::segment_len - 1] if k in ("boxes", "box_classes", "box_valid") else v
-            for k, v in fields.items()}
+    return {k: v[:, :: segment_len - 1] if k in ("boxes", "box_classes", "box_valid") else v for k, v in fields.items()}
 
 
 def relative_waypoints(poses):
@@ -58,8 +57,7 @@ def segment_conditions(cond: Conditions, poses, start, segment_len: int) -> Cond
     return out if cond.waypoints is None else out.replace(waypoints=relative_waypoints(cut(poses)))
 
 
-def teacher_coarse_estimate(teacher, params, x, x_t, levels, cond, inputs: dict, *, segment_len: int,
-                            boundary: str):
+def teacher_coarse_estimate(teacher, params, x, x_t, levels, cond, inputs: dict, *, segment_len: int, boundary: str):
     """The frozen fine model's data estimates at the coarse frames, ``[B, V, n + 1, h, w, C]``.
 
     ``teacher``: the fine :class:`jaxdrive.models.dit.model.DiT`; ``x``, ``x_t`` the clean and noisy
@@ -77,14 +75,15 @@ def teacher_coarse_estimate(teacher, params, x, x_t, levels, cond, inputs: dict,
         if teacher.config.controls.cond_frames is not None:
             seg_cond = seg_cond.replace(cond_latents=cut(x, axis), cond_mask=cut(cond, 1))
         c = teacher.config
-        v = flow.velocity_from_output(teacher.forward(params, xs, ls, seg_cond), xs, ls, c.prediction,
-                                      c.prediction_min_sigma)
+        v = flow.velocity_from_output(
+            teacher.forward(params, xs, ls, seg_cond), xs, ls, c.prediction, c.prediction_min_sigma
+        )
         d = unsharded_axis(flow.data_from_velocity(xs, v, ls), axis)
         return jnp.take(d, 0, axis=axis), jnp.take(d, segment_len - 1, axis=axis)
 
-    first, last = jax.lax.map(segment, jnp.arange(n))                 # [n, B, V, h, w, C] each
+    first, last = jax.lax.map(segment, jnp.arange(n))  # [n, B, V, h, w, C] each
     coarse = flow.coarse_from_ends(jnp.moveaxis(first, 0, 1), jnp.moveaxis(last, 0, 1), boundary=boundary)
-    return jax.lax.stop_gradient(jnp.moveaxis(coarse, 1, axis))        # [B, n+1, V, ...] -> frame axis
+    return jax.lax.stop_gradient(jnp.moveaxis(coarse, 1, axis))  # [B, n+1, V, ...] -> frame axis
 
 
 def unsharded_axis(x, axis: int):
@@ -100,5 +99,5 @@ def unsharded_axis(x, axis: int):
 def dense_levels(sigma, cond, frames: int, segment_len: int):
     """Dense levels and condition frames ``[B, F]`` from the coarse ones: every frame at the
     clip's level ``sigma [B]``, the coarse condition frames clean (eq. 7: one level per clip)."""
-    cond_dense = jnp.zeros((cond.shape[0], frames), bool).at[:, ::segment_len - 1].set(cond)
+    cond_dense = jnp.zeros((cond.shape[0], frames), bool).at[:, :: segment_len - 1].set(cond)
     return jnp.where(cond_dense, 0.0, sigma[:, None]), cond_dense

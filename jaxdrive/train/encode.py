@@ -67,13 +67,16 @@ def _window_count(source, data, every: int, clips) -> int | None:
 
 
 def _too_short(source, data, longest: int) -> ValueError:
-    return ValueError(f"data.frames: {data.frames} frames at stride {data.stride} need {_span(data)} source frames, "
-                      f"but the longest clip of split {source.split!r} of {source.path} has {longest}")
+    return ValueError(
+        f"data.frames: {data.frames} frames at stride {data.stride} need {_span(data)} source frames, "
+        f"but the longest clip of split {source.split!r} of {source.path} has {longest}"
+    )
 
 
 def _windows(source, data, every: int, clips):
     """``sample_clip`` of every window of the ``clips`` (indices) of ``source``, in order."""
     from jaxdrive.data.pipeline import sample_clip
+
     count = longest = 0
     for i in clips:
         clip = source[i]
@@ -81,10 +84,16 @@ def _windows(source, data, every: int, clips):
         longest = max(longest, have)
         for start in _starts(have, data, every):
             count += 1
-            window = sample_clip(clip, size=(data.height, data.width), frames=data.frames, stride=data.stride,
-                                 start=start, views=list(range(data.views)),
-                                 where=f"{source.path} split {source.split!r} clip {i}")
-            del window["frame_times"]           # uniform frames: take_window rebuilds them from the fps
+            window = sample_clip(
+                clip,
+                size=(data.height, data.width),
+                frames=data.frames,
+                stride=data.stride,
+                start=start,
+                views=list(range(data.views)),
+                where=f"{source.path} split {source.split!r} clip {i}",
+            )
+            del window["frame_times"]  # uniform frames: take_window rebuilds them from the fps
             yield window
     if count == 0 and len(clips) == len(source):
         raise _too_short(source, data, longest)
@@ -114,8 +123,17 @@ def _encoded(windows, codec: LatentCodec, batch: int, mesh, processes: Processes
         yield from pending
 
 
-def encode_dataset(config, out, *, splits=None, every: int | None = None, batch: int = 8,
-                   overwrite: bool = False, progress: bool = False, devices=None) -> Path:
+def encode_dataset(
+    config,
+    out,
+    *,
+    splits=None,
+    every: int | None = None,
+    batch: int = 8,
+    overwrite: bool = False,
+    progress: bool = False,
+    devices=None,
+) -> Path:
     """Write the latent windows of the clip dataset ``config.data.path`` to ``out`` (module
     docstring); returns the dataset path. ``splits``: the splits to encode (default: all of the
     dataset's); ``every``: source frames between window starts; ``batch``: windows per encoder call
@@ -128,6 +146,7 @@ def encode_dataset(config, out, *, splits=None, every: int | None = None, batch:
     dataset (:func:`jaxdrive.data.tfds_io.write_dataset` with ``processes``; ``out`` on a
     filesystem all of them see), which then reads exactly as the one-process output."""
     from jaxdrive.data.tfds_io import dataset_info, open_source, write_dataset
+
     check_sections(config)
     d = config.data
     every = _span(d) if every is None else check_positive_int("every", every)
@@ -135,8 +154,10 @@ def encode_dataset(config, out, *, splits=None, every: int | None = None, batch:
     mesh = mesh_from_config(config, devices)
     processes, shards = Processes(), batch_shards(mesh)
     if shards % processes.count:
-        raise ValueError(f"mesh: expected batch axes data x fsdp spread over the {processes.count} processes "
-                         f"(a multiple of the process count), got data x fsdp = {shards}")
+        raise ValueError(
+            f"mesh: expected batch axes data x fsdp spread over the {processes.count} processes "
+            f"(a multiple of the process count), got data x fsdp = {shards}"
+        )
     if batch % shards:
         raise ValueError(f"batch: expected a multiple of the mesh's batch axes data x fsdp ({shards}), got {batch}")
     info = dataset_info(d.path)
@@ -147,16 +168,18 @@ def encode_dataset(config, out, *, splits=None, every: int | None = None, batch:
         if split not in info["splits"]:
             raise ValueError(f"splits: expected splits of {d.path} ({sorted(info['splits'])}), got {split!r}")
     codec = LatentCodec.from_config(config.latents)
-    metadata = {METADATA_KEY: {
-        "source_path": str(Path(info["path"]).resolve()),
-        "latents": {k: getattr(config.latents, k) for k in _CODEC_FIELDS},
-        "data": {k: getattr(d, k) for k in _DATA_FIELDS},
-        "every": every,
-        "latent_channels": codec.channels,
-        "latent_frames": codec.latent_frames(d.frames),
-    }}
+    metadata = {
+        METADATA_KEY: {
+            "source_path": str(Path(info["path"]).resolve()),
+            "latents": {k: getattr(config.latents, k) for k in _CODEC_FIELDS},
+            "data": {k: getattr(d, k) for k in _DATA_FIELDS},
+            "every": every,
+            "latent_channels": codec.channels,
+            "latent_frames": codec.latent_frames(d.frames),
+        }
+    }
     sources = {s: open_source(d.path, s) for s in splits}
-    for src in sources.values():                # every process sees the same counts: all stop here together
+    for src in sources.values():  # every process sees the same counts: all stop here together
         if src.frame_counts is not None and _window_count(src, d, every, range(len(src))) == 0:
             raise _too_short(src, d, int(src.frame_counts.max(initial=0)))
     # this process's clips: a contiguous range of each split, so its windows are a contiguous run
@@ -165,12 +188,21 @@ def encode_dataset(config, out, *, splits=None, every: int | None = None, batch:
     total = None if None in counts else sum(counts)
     video_shape = (d.views, d.frames, d.height, d.width, 3)
     with tqdm(total=total, unit="window", desc="encode", disable=not progress) as bar:
-        path = write_dataset(out, {s: _encoded(_windows(src, d, every, mine[s]), codec, batch // processes.count,
-                                               mesh, processes, video_shape, bar)
-                                   for s, src in sources.items()},
-                             name="jaxdrive_latents", kind="windows", metadata=metadata, overwrite=overwrite,
-                             description=f"jaxdrive latent windows of {d.path} (jaxdrive data encode).",
-                             processes=processes)
+        path = write_dataset(
+            out,
+            {
+                s: _encoded(
+                    _windows(src, d, every, mine[s]), codec, batch // processes.count, mesh, processes, video_shape, bar
+                )
+                for s, src in sources.items()
+            },
+            name="jaxdrive_latents",
+            kind="windows",
+            metadata=metadata,
+            overwrite=overwrite,
+            description=f"jaxdrive latent windows of {d.path} (jaxdrive data encode).",
+            processes=processes,
+        )
     log.info("encoded %s -> %s", d.path, path)
     return path
 
@@ -181,27 +213,35 @@ def check_dataset(config, codec: LatentCodec) -> None:
     scale for space_to_depth, vae_mode for a VAE, which ignores the other two), latent channels,
     data height, width, frames, views and stride."""
     from jaxdrive.data.tfds_io import dataset_info
+
     d, lat = config.data, config.latents
     if not lat.precomputed and not Path(d.path).exists():
-        return                                  # the pipeline names a missing clip dataset when it opens it
+        return  # the pipeline names a missing clip dataset when it opens it
     info = dataset_info(d.path)
     if lat.precomputed and info["kind"] != "windows":
-        raise ValueError(f"data.path: expected latent windows written by 'jaxdrive data encode' (latents.precomputed "
-                         f"is true), got {d.path} holding {info['kind']}: encode it, or set latents.precomputed=false")
+        raise ValueError(
+            f"data.path: expected latent windows written by 'jaxdrive data encode' (latents.precomputed "
+            f"is true), got {d.path} holding {info['kind']}: encode it, or set latents.precomputed=false"
+        )
     if not lat.precomputed:
         if info["kind"] == "windows":
-            raise ValueError(f"latents.precomputed: expected true for {d.path} (latent windows written by "
-                             f"'jaxdrive data encode'), got false")
+            raise ValueError(
+                f"latents.precomputed: expected true for {d.path} (latent windows written by "
+                f"'jaxdrive data encode'), got false"
+            )
         return
     meta = info["metadata"].get(METADATA_KEY)
     if not isinstance(meta, dict):
-        raise ValueError(f"data.path: expected the metadata of 'jaxdrive data encode' ({METADATA_KEY!r}) in "
-                         f"{d.path}, got {sorted(info['metadata'])}")
+        raise ValueError(
+            f"data.path: expected the metadata of 'jaxdrive data encode' ({METADATA_KEY!r}) in "
+            f"{d.path}, got {sorted(info['metadata'])}"
+        )
     codec_fields = ("source",) + (("factor", "scale") if lat.source == "space_to_depth" else ("vae_mode",))
     pairs = [(f"latents.{k}", meta["latents"].get(k), getattr(lat, k)) for k in codec_fields]
     pairs += [(f"data.{k}", meta["data"].get(k), getattr(d, k)) for k in _DATA_FIELDS]
     pairs.append(("latent channels", meta.get("latent_channels"), codec.channels))
     for name, stored, value in pairs:
         if stored != value:
-            raise ValueError(f"{name}: expected {stored!r} (what the latent windows at {d.path} were encoded with), "
-                             f"got {value!r}")
+            raise ValueError(
+                f"{name}: expected {stored!r} (what the latent windows at {d.path} were encoded with), got {value!r}"
+            )

@@ -59,7 +59,7 @@ class FlowTraining:
     model: DiTConfig
     flow: FlowConfig
     codec: LatentCodec
-    teacher: DiTConfig | None = None     # the frozen fine model of LongDWM's distillation
+    teacher: DiTConfig | None = None  # the frozen fine model of LongDWM's distillation
     stream: StreamConfig = StreamConfig()  # STAGE's frame-by-frame training when enabled
 
     @property
@@ -73,14 +73,23 @@ def draw_levels(key, x, config: FlowConfig, *, height: int, width: int):
     b, nf = x.shape[0], x.shape[-4]
     k_sig, k_masks = jax.random.split(key)
     shift = config.shift if config.shift > 0 else flow.resolution_shift(height, width, nf)
-    sigma = flow.sample_sigmas(k_sig, (b,), distribution=config.sigma_sampling, loc=config.logit_loc,
-                               scale=config.logit_scale, shift=shift)
+    sigma = flow.sample_sigmas(
+        k_sig, (b,), distribution=config.sigma_sampling, loc=config.logit_loc, scale=config.logit_scale, shift=shift
+    )
     cond, anchor = flow.draw_condition_masks(
-        k_masks, b, nf, patterns=config.patterns, pattern_rates=config.pattern_rates,
-        cond_frames=config.cond_frames, cond_frames_random=config.cond_frames_random,
-        anchor_every=config.anchor_every, anchor_rate=config.jdc_anchor_rate)
-    levels = flow.frame_sigmas(sigma, cond, anchor_mask=anchor, tpd=config.tpd, omega=config.tpd_omega,
-                               anchor_slope=config.jdc_slope)
+        k_masks,
+        b,
+        nf,
+        patterns=config.patterns,
+        pattern_rates=config.pattern_rates,
+        cond_frames=config.cond_frames,
+        cond_frames_random=config.cond_frames_random,
+        anchor_every=config.anchor_every,
+        anchor_rate=config.jdc_anchor_rate,
+    )
+    levels = flow.frame_sigmas(
+        sigma, cond, anchor_mask=anchor, tpd=config.tpd, omega=config.tpd_omega, anchor_slope=config.jdc_slope
+    )
     return sigma, cond, levels, anchor
 
 
@@ -89,46 +98,60 @@ def foreground_weights(training: FlowTraining, fields: dict, x, *, height: int, 
     pixel frame ``temporal * j`` (the newest frame a causal VAE's latent j has seen)."""
     frames = np.arange(x.shape[-4]) * training.codec.temporal
     f = training.flow
-    return flow.foreground_weight_map(fields["boxes"][:, frames], fields["box_valid"][:, frames],
-                                      fields["intrinsics"], fields["cam_to_ego"], map_hw=x.shape[-3:-1],
-                                      image_hw=(height, width), k=f.foreground_k, c=f.foreground_c)
+    return flow.foreground_weight_map(
+        fields["boxes"][:, frames],
+        fields["box_valid"][:, frames],
+        fields["intrinsics"],
+        fields["cam_to_ego"],
+        map_hw=x.shape[-3:-1],
+        image_hw=(height, width),
+        k=f.foreground_k,
+        c=f.foreground_c,
+    )
 
 
 def flow_loss_fn(training: FlowTraining, params, codec_params, inputs: dict, key, teacher_params=None):
     """The loss of one micro-batch and its metrics (steps 1-4 of the module docstring)."""
     cond, loss_fields, teacher_inputs = inputs["cond"], inputs.get("loss"), inputs.get("teacher")
     # precomputed latents (jaxdrive data encode) or the video encoded here
-    x = inputs["latents"] if "latents" in inputs else (
-        jax.lax.stop_gradient(training.codec.encode(codec_params, inputs["video"])))
-    if training.model.controls.warp:      # LongDWM's warped frames enter encoded, like the latents
+    x = (
+        inputs["latents"]
+        if "latents" in inputs
+        else (jax.lax.stop_gradient(training.codec.encode(codec_params, inputs["video"])))
+    )
+    if training.model.controls.warp:  # LongDWM's warped frames enter encoded, like the latents
         if "warp_video" not in inputs:
-            raise ValueError("inputs: expected 'warp_video' (the pipeline's warp_depth > 0) for a model with "
-                             "controls.warp, got none")
+            raise ValueError(
+                "inputs: expected 'warp_video' (the pipeline's warp_depth > 0) for a model with controls.warp, got none"
+            )
         cond = cond.replace(warp=jax.lax.stop_gradient(training.codec.encode(codec_params, inputs["warp_video"])))
-    if training.stream.enabled:            # STAGE: one [anchor, condition, new] window per clip
+    if training.stream.enabled:  # STAGE: one [anchor, condition, new] window per clip
         from jaxdrive.train.stream_step import stream_loss_fn
+
         return stream_loss_fn(training, params, x, inputs, key)
     height, width = x.shape[-3] * training.codec.spatial, x.shape[-2] * training.codec.spatial
     k_levels, k_noise = jax.random.split(key)
     noise = jax.random.normal(k_noise, x.shape, jnp.float32)
     distill = training.teacher is not None
-    if distill:                           # the coarse model sees the coarse frames of the dense clip
+    if distill:  # the coarse model sees the coarse frames of the dense clip
         seg = training.flow.distill_segment_len
         dense, dense_noise = x, noise
         x, noise = flow.dense_to_coarse(x, seg), flow.dense_to_coarse(noise, seg)
         cond = distill_step.coarse_conditions(cond, seg)
         loss_fields = loss_fields and distill_step.coarse_fields(loss_fields, seg)
     sigma, given, levels, anchor = draw_levels(k_levels, x, training.flow, height=height, width=width)
-    if training.flow.jdc_anchor_rate > 0:     # anchors as the sampler makes them; noise = their flow noise
-        x_t, noise = flow.jdc_training_anchors(jax.random.fold_in(k_noise, 1), x, noise, levels, anchor,
-                                               training.flow.jdc_alpha1)
+    if training.flow.jdc_anchor_rate > 0:  # anchors as the sampler makes them; noise = their flow noise
+        x_t, noise = flow.jdc_training_anchors(
+            jax.random.fold_in(k_noise, 1), x, noise, levels, anchor, training.flow.jdc_alpha1
+        )
     else:
         x_t = flow.add_noise(x, noise, levels)
     if training.model.controls.cond_frames is not None:
         cond = cond.replace(cond_latents=x, cond_mask=given)
     m = training.model
-    v = flow.velocity_from_output(training.dit.forward(params, x_t, levels, cond), x_t, levels,
-                                  m.prediction, m.prediction_min_sigma)
+    v = flow.velocity_from_output(
+        training.dit.forward(params, x_t, levels, cond), x_t, levels, m.prediction, m.prediction_min_sigma
+    )
     weight_map = None
     if loss_fields:
         weight_map = foreground_weights(training, loss_fields, x, height=height, width=width)
@@ -136,15 +159,22 @@ def flow_loss_fn(training: FlowTraining, params, codec_params, inputs: dict, key
     metrics = {"flow_loss": loss}
     f = training.flow
     if f.structure_weight > 0:
-        s = flow.structure_loss(flow.data_from_velocity(x_t, v, levels), x, cutoff=f.structure_cutoff,
-                                cond_mask=given)
+        s = flow.structure_loss(flow.data_from_velocity(x_t, v, levels), x, cutoff=f.structure_cutoff, cond_mask=given)
         metrics["structure_loss"] = s
         loss = loss + f.structure_weight * s
     if distill:
         d_levels, d_cond = distill_step.dense_levels(sigma, given, dense.shape[-4], seg)
         target = distill_step.teacher_coarse_estimate(
-            DiT(training.teacher), teacher_params, dense, flow.add_noise(dense, dense_noise, d_levels),
-            d_levels, d_cond, teacher_inputs, segment_len=seg, boundary=f.distill_boundary)
+            DiT(training.teacher),
+            teacher_params,
+            dense,
+            flow.add_noise(dense, dense_noise, d_levels),
+            d_levels,
+            d_cond,
+            teacher_inputs,
+            segment_len=seg,
+            boundary=f.distill_boundary,
+        )
         d = flow.distill_loss(flow.data_from_velocity(x_t, v, levels), target, cond_mask=given)
         metrics["distill_loss"] = d
         loss = loss + f.distill_weight * d
@@ -152,8 +182,7 @@ def flow_loss_fn(training: FlowTraining, params, codec_params, inputs: dict, key
     return loss, metrics
 
 
-def train_step(training: FlowTraining, optimizer, ema_decay: float, state: TrainState, frozen,
-               batch: dict):
+def train_step(training: FlowTraining, optimizer, ema_decay: float, state: TrainState, frozen, batch: dict):
     """One update from the micro-batches ``batch`` (leaves ``[A, b, ...]``). ``frozen``: the
     parameters that are not trained, ``{"codec": VAE params, "teacher": fine DiT params}`` (either
     may be None; None for both). Returns ``(state, metrics)``; metrics are means over the
@@ -163,8 +192,9 @@ def train_step(training: FlowTraining, optimizer, ema_decay: float, state: Train
     key, next_key = jax.random.split(state.key)
     n = jax.tree_util.tree_leaves(batch)[0].shape[0]
     keys = jax.random.split(key, n)
-    grad_fn = jax.value_and_grad(lambda p, inp, k: flow_loss_fn(training, p, codec_params, inp, k, teacher_params),
-                             has_aux=True)
+    grad_fn = jax.value_and_grad(
+        lambda p, inp, k: flow_loss_fn(training, p, codec_params, inp, k, teacher_params), has_aux=True
+    )
 
     def micro(acc, xs):
         inp, k = xs
@@ -172,7 +202,7 @@ def train_step(training: FlowTraining, optimizer, ema_decay: float, state: Train
         return jax.tree_util.tree_map(jnp.add, acc, (grads, metrics)), None
 
     first = jax.tree_util.tree_map(lambda x: x[0], batch)
-    if n == 1:      # no loop: a one-trip scan still costs a zeroed gradient tree and an add per leaf
+    if n == 1:  # no loop: a one-trip scan still costs a zeroed gradient tree and an add per leaf
         (_, metrics), grads = grad_fn(state.params, first, keys[0])
     else:
         zeros = jax.tree_util.tree_map(jnp.zeros_like, state.params)
@@ -191,5 +221,6 @@ def make_train_step(training: FlowTraining, optimizer, ema_decay: float, *, stat
     frozen params (VAE, teacher) and the batch keep the shardings they come with
     (:meth:`jaxdrive.train.run.Run.global_batch`). Call it under ``jax.set_mesh(mesh)``."""
     fn = lambda state, frozen, batch: train_step(training, optimizer, ema_decay, state, frozen, batch)
-    return jax.jit(fn, in_shardings=(state_shardings, None, None),
-                   out_shardings=(state_shardings, None), donate_argnums=(0,))
+    return jax.jit(
+        fn, in_shardings=(state_shardings, None, None), out_shardings=(state_shardings, None), donate_argnums=(0,)
+    )

@@ -78,12 +78,16 @@ def source_params(path, *, mesh, ema: bool = True, target_model=None) -> dict:
     p = Path(path)
     if any((p / name).is_file() for name in DIFFUSERS_WEIGHTS):
         from jaxdrive.convert import load_diffusers_transformer
+
         overrides = {} if target_model is None else {"scan_layers": target_model.scan_layers}
         return load_diffusers_transformer(p, **overrides)[1]
     from jaxdrive.train.checkpoint import Checkpoints
+
     if not (p / CONFIG_FILE).is_file():
-        raise ValueError(f"train.init_from: expected a jaxdrive run directory (with {CONFIG_FILE}) or a diffusers "
-                         f"transformer folder (with {DIFFUSERS_WEIGHTS[0]}), got {str(path)!r}")
+        raise ValueError(
+            f"train.init_from: expected a jaxdrive run directory (with {CONFIG_FILE}) or a diffusers "
+            f"transformer folder (with {DIFFUSERS_WEIGHTS[0]}), got {str(path)!r}"
+        )
     src = load_run_config(p)
     abstract, _ = abstract_train_state(src.model, src.optim, src.train.steps, mesh, seed=src.train.seed)
     ckpts = Checkpoints(p, keep=src.train.keep_checkpoints, asynchronous=False, option="train.init_from")
@@ -133,6 +137,7 @@ def _source_value(name, src_flat, pieces):
             run, i = pieces[key]
             return src_flat[run][i], run
         return None, None
+
     m = _RUN.match(name)
     if m is None:
         value, src = layer(name) if _LAYER.match(name) else (None, None)
@@ -155,8 +160,10 @@ def merge_params(new_params, source, *, name_map=(), source_name: str = "source"
     for k, v in flatten_dict(source, sep="/").items():
         name = _rename(k, rules)
         if name in src_flat:
-            raise ValueError(f"train.init_map: expected distinct parameter names after renaming, got two source "
-                             f"parameters named {name!r}")
+            raise ValueError(
+                f"train.init_map: expected distinct parameter names after renaming, got two source "
+                f"parameters named {name!r}"
+            )
         src_flat[name] = v
     pieces = _layer_pieces(src_flat)
     out, loaded, kept, used = {}, [], [], set()
@@ -168,17 +175,21 @@ def merge_params(new_params, source, *, name_map=(), source_name: str = "source"
             continue
         used.update(names)
         if tuple(np.shape(value)) != tuple(leaf.shape):
-            raise ValueError(f"train.init_from: parameter {name!r}: expected shape {list(leaf.shape)} (the new "
-                             f"model), got {list(np.shape(value))} in {source_name}")
+            raise ValueError(
+                f"train.init_from: parameter {name!r}: expected shape {list(leaf.shape)} (the new "
+                f"model), got {list(np.shape(value))} in {source_name}"
+            )
         sharding = getattr(leaf, "sharding", None)
         value = np.asarray(value, leaf.dtype) if isinstance(value, np.ndarray) else value.astype(leaf.dtype)
         out[name] = jax.device_put(value, sharding) if sharding is not None else jax.numpy.asarray(value)
         loaded.append(name)
     unused = sorted(set(src_flat) - used)
     if not loaded:
-        raise ValueError(f"train.init_from: expected parameters of the new model in {source_name}, found none of "
-                         f"its {len(new_flat)} names (e.g. {sorted(new_flat)[:3]}; the source has e.g. "
-                         f"{sorted(src_flat)[:3]}); rename them with train.init_map")
+        raise ValueError(
+            f"train.init_from: expected parameters of the new model in {source_name}, found none of "
+            f"its {len(new_flat)} names (e.g. {sorted(new_flat)[:3]}; the source has e.g. "
+            f"{sorted(src_flat)[:3]}); rename them with train.init_map"
+        )
     report = InitReport(source_name, tuple(loaded), tuple(kept), tuple(unused))
     return unflatten_dict(out, sep="/"), report
 

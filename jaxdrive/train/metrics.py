@@ -13,8 +13,9 @@ import jax
 
 
 class MetricsWriter:
-    def __init__(self, workdir, *, total_steps: int, start_step: int = 0, tokens_per_step: int = 0,
-                 progress: bool = True):
+    def __init__(
+        self, workdir, *, total_steps: int, start_step: int = 0, tokens_per_step: int = 0, progress: bool = True
+    ):
         self.enabled = jax.process_index() == 0
         self.workdir = Path(workdir)
         self.tokens_per_step = tokens_per_step
@@ -25,9 +26,11 @@ class MetricsWriter:
         self.workdir.mkdir(parents=True, exist_ok=True)
         self._jsonl = open(self.workdir / "metrics.jsonl", "a", buffering=1)
         from tensorboardX import SummaryWriter
+
         self._tb = SummaryWriter(str(self.workdir / "tensorboard"))
         if progress:
             from tqdm import tqdm
+
             self._bar = tqdm(total=total_steps, initial=start_step, unit="step", dynamic_ncols=True)
 
     def write(self, step: int, metrics: dict, tokens: int | None = None) -> dict:

@@ -43,14 +43,17 @@ def trainable_labels(params, patterns) -> object:
     if not patterns:
         return jax.tree_util.tree_map(lambda _: "train", params)
     compiled = [re.compile(p) for p in patterns]
-    name = lambda path: jax.tree_util.keystr(path, simple=True, separator="/")    # "a/b/kernel"
+    name = lambda path: jax.tree_util.keystr(path, simple=True, separator="/")  # "a/b/kernel"
     paths = [name(p) for p, _ in jax.tree_util.tree_flatten_with_path(params)[0]]
     for pattern, rx in zip(patterns, compiled):
         if not any(rx.search(path) for path in paths):
-            raise ValueError(f"optim.trainable: expected patterns that match parameter paths, got {pattern!r} "
-                             f"(no match among {len(paths)} paths such as {paths[:3]})")
+            raise ValueError(
+                f"optim.trainable: expected patterns that match parameter paths, got {pattern!r} "
+                f"(no match among {len(paths)} paths such as {paths[:3]})"
+            )
     return jax.tree_util.tree_map_with_path(
-        lambda path, _: "train" if any(rx.search(name(path)) for rx in compiled) else "freeze", params)
+        lambda path, _: "train" if any(rx.search(name(path)) for rx in compiled) else "freeze", params
+    )
 
 
 def make_optimizer(config: OptimConfig, total_steps: int, params) -> optax.GradientTransformation:
@@ -59,10 +62,19 @@ def make_optimizer(config: OptimConfig, total_steps: int, params) -> optax.Gradi
     inner = []
     if config.clip_norm > 0:
         inner.append(optax.clip_by_global_norm(config.clip_norm))
-    inner.append(optax.adamw(learning_rate(config, total_steps), b1=config.b1, b2=config.b2, eps=config.eps,
-                             weight_decay=config.weight_decay, mask=decay_mask))
+    inner.append(
+        optax.adamw(
+            learning_rate(config, total_steps),
+            b1=config.b1,
+            b2=config.b2,
+            eps=config.eps,
+            weight_decay=config.weight_decay,
+            mask=decay_mask,
+        )
+    )
     tx = optax.chain(*inner)
     if config.trainable:
-        tx = optax.multi_transform({"train": tx, "freeze": optax.set_to_zero()},
-                                   trainable_labels(params, config.trainable))
+        tx = optax.multi_transform(
+            {"train": tx, "freeze": optax.set_to_zero()}, trainable_labels(params, config.trainable)
+        )
     return tx

@@ -62,8 +62,9 @@ def parse_mesh(spec, devices: int | None = None, name: str = "mesh") -> dict[str
         if axis not in MESH_AXES:
             raise ValueError(f"{name}: expected axes from {list(MESH_AXES)}, got {axis!r}")
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or (n < 1 and not (n == -1 and devices)):
-            raise ValueError(f"{name}: expected {axis} to be a positive integer"
-                             f"{' or -1' if devices else ''}, got {n!r}")
+            raise ValueError(
+                f"{name}: expected {axis} to be a positive integer{' or -1' if devices else ''}, got {n!r}"
+            )
     sizes = {a: int(sizes.get(a, 1)) for a in MESH_AXES}
     known = math.prod(n for n in sizes.values() if n != -1)
     rest = [a for a, n in sizes.items() if n == -1]
@@ -71,12 +72,14 @@ def parse_mesh(spec, devices: int | None = None, name: str = "mesh") -> dict[str
         raise ValueError(f"{name}: expected at most one axis of size -1, got {rest}")
     if rest:
         if devices % known:
-            raise ValueError(f"{name}: expected the other axes' product {known} to divide {devices} devices, "
-                             f"got {spec!r}")
+            raise ValueError(
+                f"{name}: expected the other axes' product {known} to divide {devices} devices, got {spec!r}"
+            )
         sizes[rest[0]] = devices // known
     elif devices is not None and known != devices:
-        raise ValueError(f"{name}: expected axis sizes whose product is the device count {devices}, got "
-                         f"{spec!r} (product {known})")
+        raise ValueError(
+            f"{name}: expected axis sizes whose product is the device count {devices}, got {spec!r} (product {known})"
+        )
     return sizes
 
 
@@ -111,36 +114,54 @@ def abstract_codec(latents):
     from jaxdrive.models.latents import LatentCodec
     from jaxdrive.models.pretrained import MODEL_FILE, load_pretrained_model
     from jaxdrive.models.vae.model import CausalVAE, VAEConfig
+
     if latents.source != "vae":
         return LatentCodec.from_config(latents), latents.source
     if (Path(latents.vae_path) / MODEL_FILE).is_file():
-        vae = load_pretrained_model(latents.vae_path, mode=latents.vae_mode, frame_wise_batch=latents.vae_frame_batch,
-                                    clip_batch=latents.vae_clip_batch)
+        vae = load_pretrained_model(
+            latents.vae_path,
+            mode=latents.vae_mode,
+            frame_wise_batch=latents.vae_frame_batch,
+            clip_batch=latents.vae_clip_batch,
+        )
         what = latents.vae_path
     else:
-        vae = CausalVAE(VAEConfig(mode=latents.vae_mode, frame_wise_batch=latents.vae_frame_batch,
-                                  clip_batch=latents.vae_clip_batch))
+        vae = CausalVAE(
+            VAEConfig(
+                mode=latents.vae_mode, frame_wise_batch=latents.vae_frame_batch, clip_batch=latents.vae_clip_batch
+            )
+        )
         what = f"CogVideoX-2B ({latents.vae_path!r} has none)"
     params = jax.eval_shape(vae.init, jax.random.PRNGKey(0))
     return LatentCodec("vae", 1, 1.0, vae, params), f"vae {what}"
 
 
 def _zeros(shape, dtype=np.float32):
-    return np.broadcast_to(np.zeros((), dtype), shape)     # a view: no memory at any shape
+    return np.broadcast_to(np.zeros((), dtype), shape)  # a view: no memory at any shape
 
 
 def pipeline_batch(run, batch: int, height: int, width: int, frames: int) -> dict:
     """A pipeline batch (:func:`jaxdrive.data.pipeline.collate`'s fields) of ``batch`` clips whose
     arrays are zero-stride views; the box count and BEV grid are nuScenes' (64 slots, 200 x 200)."""
     from jaxdrive.data.pipeline import CONDITIONS
+
     d, n_box, bev = run.config.data, 64, (200, 200)
     v, f = d.views, frames
-    out = {"intrinsics": _zeros((batch, v, 3, 3)), "cam_to_ego": _zeros((batch, v, 4, 4)),
-           "ego_to_world": _zeros((batch, f, 4, 4)), "waypoints": _zeros((batch, f, 2)), "fps": _zeros((batch,)),
-           "frame_times": _zeros((batch, f)), "boxes": _zeros((batch, f, n_box, 7)),
-           "box_classes": _zeros((batch, f, n_box), np.int32), "box_ids": _zeros((batch, f, n_box), np.int32),
-           "box_valid": _zeros((batch, f, n_box), bool), "bev_map": _zeros((batch, f, *bev, 8)),
-           "caption": ["a driving scene"] * batch, "drop": {c: _zeros((batch,), bool) for c in CONDITIONS}}
+    out = {
+        "intrinsics": _zeros((batch, v, 3, 3)),
+        "cam_to_ego": _zeros((batch, v, 4, 4)),
+        "ego_to_world": _zeros((batch, f, 4, 4)),
+        "waypoints": _zeros((batch, f, 2)),
+        "fps": _zeros((batch,)),
+        "frame_times": _zeros((batch, f)),
+        "boxes": _zeros((batch, f, n_box, 7)),
+        "box_classes": _zeros((batch, f, n_box), np.int32),
+        "box_ids": _zeros((batch, f, n_box), np.int32),
+        "box_valid": _zeros((batch, f, n_box), bool),
+        "bev_map": _zeros((batch, f, *bev, 8)),
+        "caption": ["a driving scene"] * batch,
+        "drop": {c: _zeros((batch,), bool) for c in CONDITIONS},
+    }
     video = (batch, v, f, height, width, 3)
     if run.config.latents.precomputed:
         sp = run.codec.spatial
@@ -157,24 +178,34 @@ def abstract_batch(run, bucket):
     leaves sharded like :meth:`Run.global_batch`'s (``b`` over ``data`` x ``fsdp``)."""
     from jaxdrive.data.batches import model_inputs
     from jaxdrive.train.run import check_batch
+
     _, micro = check_batch(run.config, run.mesh, bucket.batch_size)
     model = run.training.model
     text = run.text
-    if model.controls.text == "embeddings" and text is None:       # T5 embeddings: their shape is all that counts
-        text = lambda captions: (_zeros((len(captions), model.text_len, model.text_dim)),
-                                 _zeros((len(captions), model.text_len), bool))
-    inputs = model_inputs(pipeline_batch(run, micro, bucket.height, bucket.width, bucket.frames), model, text,
-                          foreground=run.training.flow.foreground_k > 0, teacher=run.training.teacher)
+    if model.controls.text == "embeddings" and text is None:  # T5 embeddings: their shape is all that counts
+        text = lambda captions: (
+            _zeros((len(captions), model.text_len, model.text_dim)),
+            _zeros((len(captions), model.text_len), bool),
+        )
+    inputs = model_inputs(
+        pipeline_batch(run, micro, bucket.height, bucket.width, bucket.frames),
+        model,
+        text,
+        foreground=run.training.flow.foreground_k > 0,
+        teacher=run.training.teacher,
+    )
     sharding = NamedSharding(run.mesh, P(None, batch_axes(run.mesh) or None))
     a = run.config.optim.grad_accum
-    return jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct((a, *np.shape(x)), np.asarray(x).dtype,
-                                                                 sharding=sharding), inputs)
+    return jax.tree_util.tree_map(
+        lambda x: jax.ShapeDtypeStruct((a, *np.shape(x)), np.asarray(x).dtype, sharding=sharding), inputs
+    )
 
 
 def planned_bucket(run):
     """The bucket whose micro-batch has the most tokens (ties: the first)."""
-    return max(run.buckets,
-               key=lambda b: run.tokens(b.batch_size, b.height, b.width, run.codec.latent_frames(b.frames)))
+    return max(
+        run.buckets, key=lambda b: run.tokens(b.batch_size, b.height, b.width, run.codec.latent_frames(b.frames))
+    )
 
 
 def accelerator_attention(config, sizes: dict):
@@ -190,11 +221,13 @@ def accelerator_attention(config, sizes: dict):
 
 def _with_mesh(config, sizes: dict):
     from jaxdrive.config import MeshConfig
+
     return dataclasses.replace(config, mesh=MeshConfig(**sizes))
 
 
-def plan_memory(config, mesh, *, device_memory: int | None = None, devices=None, codec=None,
-                compile_step: bool = True) -> dict:
+def plan_memory(
+    config, mesh, *, device_memory: int | None = None, devices=None, codec=None, compile_step: bool = True
+) -> dict:
     """Per-device bytes of ``config``'s train step on ``mesh`` (``{"fsdp": 4, ...}`` or
     ``"fsdp=4,..."``; its product devices of ``devices``, default ``jax.devices()``): see the
     module docstring. Returns ``{"mesh", "devices", "bucket", "batch", "tokens", "codec",
@@ -204,13 +237,15 @@ def plan_memory(config, mesh, *, device_memory: int | None = None, devices=None,
     parameters), ``batch``, and from the compiled step ``arguments``, ``outputs``, ``aliased``,
     ``temp`` and ``total`` (None with ``compile_step=False``, which compiles nothing)."""
     from jaxdrive.train.run import Run
+
     devices = list(jax.devices() if devices is None else devices)
     sizes = parse_mesh(mesh, None, name="mesh")
     n = math.prod(sizes.values())
     if n > len(devices):
         raise ValueError(f"mesh: expected at most {len(devices)} devices (those there are), got {sizes} (product {n})")
-    if device_memory is not None and (isinstance(device_memory, bool)
-                                      or not isinstance(device_memory, (int, np.integer)) or device_memory <= 0):
+    if device_memory is not None and (
+        isinstance(device_memory, bool) or not isinstance(device_memory, (int, np.integer)) or device_memory <= 0
+    ):
         raise ValueError(f"device_memory: expected a positive number of bytes, got {device_memory!r}")
     what = None
     if codec is None:
@@ -222,14 +257,24 @@ def plan_memory(config, mesh, *, device_memory: int | None = None, devices=None,
     bucket = planned_bucket(run)
     batch = abstract_batch(run, bucket)
     replicated = NamedSharding(run.mesh, P())
-    frozen = {"codec": jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=replicated),
-                                              codec.params), "teacher": None}
+    frozen = {
+        "codec": jax.tree_util.tree_map(
+            lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=replicated), codec.params
+        ),
+        "teacher": None,
+    }
     parts = {k: device_bytes(getattr(state, k)) for k in STATE_PARTS}
-    whole = [x for k in STATE_PARTS for x in jax.tree_util.tree_leaves(getattr(state, k))
-             if x.sharding.is_fully_replicated]
-    per_device = {**parts, "state_other": device_bytes(state) - sum(parts.values()), "replicated": device_bytes(whole),
-                  "frozen": device_bytes(frozen), "batch": device_bytes(batch),
-                  **dict.fromkeys(("arguments", "outputs", "aliased", "temp", "total"))}
+    whole = [
+        x for k in STATE_PARTS for x in jax.tree_util.tree_leaves(getattr(state, k)) if x.sharding.is_fully_replicated
+    ]
+    per_device = {
+        **parts,
+        "state_other": device_bytes(state) - sum(parts.values()),
+        "replicated": device_bytes(whole),
+        "frozen": device_bytes(frozen),
+        "batch": device_bytes(batch),
+        **dict.fromkeys(("arguments", "outputs", "aliased", "temp", "total")),
+    }
     seconds = None
     if compile_step:
         t = time.perf_counter()
@@ -237,15 +282,25 @@ def plan_memory(config, mesh, *, device_memory: int | None = None, devices=None,
             compiled = run.step_fn(optimizer, shardings).lower(state, frozen, batch).compile()
         seconds = round(time.perf_counter() - t, 1)
         a = compiled.memory_analysis()
-        per_device.update(arguments=int(a.argument_size_in_bytes), outputs=int(a.output_size_in_bytes),
-                          aliased=int(a.alias_size_in_bytes), temp=int(a.temp_size_in_bytes))
+        per_device.update(
+            arguments=int(a.argument_size_in_bytes),
+            outputs=int(a.output_size_in_bytes),
+            aliased=int(a.alias_size_in_bytes),
+            temp=int(a.temp_size_in_bytes),
+        )
         per_device["total"] = resident_bytes(per_device) + transient_bytes(a)
-    return {"mesh": sizes, "devices": n, "bucket": "x".join(map(str, bucket.key)), "batch": bucket.batch_size,
-            "tokens": run.tokens(bucket.batch_size, bucket.height, bucket.width,
-                                 run.codec.latent_frames(bucket.frames)),
-            "codec": what or codec.source, "per_device": per_device, "compile_seconds": seconds,
-            "device_memory": device_memory,
-            "fits": None if device_memory is None or not compile_step else per_device["total"] <= device_memory}
+    return {
+        "mesh": sizes,
+        "devices": n,
+        "bucket": "x".join(map(str, bucket.key)),
+        "batch": bucket.batch_size,
+        "tokens": run.tokens(bucket.batch_size, bucket.height, bucket.width, run.codec.latent_frames(bucket.frames)),
+        "codec": what or codec.source,
+        "per_device": per_device,
+        "compile_seconds": seconds,
+        "device_memory": device_memory,
+        "fits": None if device_memory is None or not compile_step else per_device["total"] <= device_memory,
+    }
 
 
 def largest_fit(config, mesh, device_memory: int, *, scales=(1.0,), devices=None, max_doublings: int = 6) -> dict:
@@ -254,19 +309,20 @@ def largest_fit(config, mesh, device_memory: int, *, scales=(1.0,), devices=None
     "probes"}, ...], "largest": the entry with the most tokens}``; ``frames`` is None where not even
     the shortest clip fits. Each probe's total is logged at DEBUG."""
     from jaxdrive.train.run import Run
+
     if isinstance(device_memory, bool) or not isinstance(device_memory, (int, np.integer)) or device_memory <= 0:
         raise ValueError(f"device_memory: expected a positive number of bytes, got {device_memory!r}")
     if not scales or any(not (isinstance(s, (int, float)) and math.isfinite(s) and s > 0) for s in scales):
         raise ValueError(f"scales: expected positive resolution scales, got {scales!r}")
     codec, _ = abstract_codec(config.latents)
     sizes = parse_mesh(mesh, None, name="mesh")
-    devices = list(jax.devices() if devices is None else devices)[:math.prod(sizes.values())]
+    devices = list(jax.devices() if devices is None else devices)[: math.prod(sizes.values())]
     run = Run(_with_mesh(config, sizes), devices=devices, codec=codec, check_data=False)
     bucket, temporal = planned_bucket(run), max(codec.temporal, 1)
     m = run.training.model
     gh, gw = codec.spatial * m.patch[1], codec.spatial * m.patch[2]
     k0 = (bucket.frames - 1) // temporal
-    k_min = max(1, -(-run.config.flow.cond_frames // temporal))   # a clip longer than its given frames
+    k_min = max(1, -(-run.config.flow.cond_frames // temporal))  # a clip longer than its given frames
     rows = []
     for s in scales:
         h, w = max(gh, round(bucket.height * s / gh) * gh), max(gw, round(bucket.width * s / gw) * gw)
@@ -274,17 +330,26 @@ def largest_fit(config, mesh, device_memory: int, *, scales=(1.0,), devices=None
 
         def total(k):
             if k not in totals:
-                probe = dataclasses.replace(config, data=dataclasses.replace(
-                    config.data, buckets=(), height=h, width=w, frames=1 + temporal * k, batch_size=bucket.batch_size))
+                probe = dataclasses.replace(
+                    config,
+                    data=dataclasses.replace(
+                        config.data,
+                        buckets=(),
+                        height=h,
+                        width=w,
+                        frames=1 + temporal * k,
+                        batch_size=bucket.batch_size,
+                    ),
+                )
                 try:
                     totals[k] = plan_memory(probe, sizes, devices=devices, codec=codec)["per_device"]["total"]
-                except ValueError:          # a clip length the config rules out (e.g. its anchor spacing)
+                except ValueError:  # a clip length the config rules out (e.g. its anchor spacing)
                     totals[k] = None
                 logger.debug("  %dx%dx%d: %s", h, w, 1 + temporal * k, totals[k])
             return totals[k]
 
         fits = lambda k: total(k) is not None and total(k) <= device_memory
-        lo, hi = None, None                 # largest k known to fit, smallest known not to
+        lo, hi = None, None  # largest k known to fit, smallest known not to
         k = max(k0, k_min)
         if fits(k):
             lo = k
@@ -300,10 +365,16 @@ def largest_fit(config, mesh, device_memory: int, *, scales=(1.0,), devices=None
         while lo is not None and hi is not None and hi - lo > 1:
             mid = (lo + hi) // 2
             lo, hi = (mid, hi) if fits(mid) else (lo, mid)
-        rows.append({"height": h, "width": w, "frames": None if lo is None else 1 + temporal * lo,
-                     "total": None if lo is None else totals[lo], "probes": len(totals),
-                     "capped": lo is not None and hi is None})
+        rows.append(
+            {
+                "height": h,
+                "width": w,
+                "frames": None if lo is None else 1 + temporal * lo,
+                "total": None if lo is None else totals[lo],
+                "probes": len(totals),
+                "capped": lo is not None and hi is None,
+            }
+        )
     found = [r for r in rows if r["frames"]]
     largest = max(found, key=lambda r: r["height"] * r["width"] * r["frames"]) if found else None
-    return {"device_memory": device_memory, "bucket_batch": bucket.batch_size, "resolutions": rows,
-            "largest": largest}
+    return {"device_memory": device_memory, "bucket_batch": bucket.batch_size, "resolutions": rows, "largest": largest}

@@ -38,7 +38,7 @@ from jaxdrive.validate import check_positive_int
 
 logger = logging.getLogger(__name__)
 
-YAW_METRES = 2.0            # metres of loss per radian of heading error
+YAW_METRES = 2.0  # metres of loss per radian of heading error
 INFO_FILE = "predictor.json"
 
 
@@ -59,25 +59,27 @@ class Windows:
     def __init__(self, clips: list[dict], history: int, horizon: int, stride: int, *, where: str):
         self.clips, self.history = clips, history
         self.offsets = stride * np.arange(history + horizon)
-        self.index = [(c, s) for c, clip in enumerate(clips)
-                      for s in range(len(clip["ego_to_world"]) - int(self.offsets[-1]))]
+        self.index = [
+            (c, s) for c, clip in enumerate(clips) for s in range(len(clip["ego_to_world"]) - int(self.offsets[-1]))
+        ]
         if not self.index:
             longest = max((len(c["ego_to_world"]) for c in clips), default=0)
-            raise ValueError(f"data.path: expected clips of at least {self.offsets[-1] + 1} frames ({where}: "
-                             f"history {history} + horizon {horizon} steps at stride {stride}), got at most {longest}")
+            raise ValueError(
+                f"data.path: expected clips of at least {self.offsets[-1] + 1} frames ({where}: "
+                f"history {history} + horizon {horizon} steps at stride {stride}), got at most {longest}"
+            )
 
     def batch(self, size: int, seed: int, step: int) -> dict:
         rng = np.random.default_rng([seed, step])
         picks = rng.integers(len(self.index), size=size)
-        ws = [window_traffic(self.clips[c], s + self.offsets, self.history) for c, s in
-              (self.index[i] for i in picks)]
+        ws = [window_traffic(self.clips[c], s + self.offsets, self.history) for c, s in (self.index[i] for i in picks)]
         return {k: np.stack([w[k] for w in ws]) for k in ws[0]}
 
 
 def rollout_loss(model: Predictor, params, batch: dict, history: int):
     """The mean error of a ``horizon``-step rollout (module docstring) and its parts."""
     traffic = to_traffic(batch, history)
-    bev = jnp.asarray(batch["bev"][:, history - 1:-1], jnp.float32)        # each step's current map
+    bev = jnp.asarray(batch["bev"][:, history - 1 : -1], jnp.float32)  # each step's current map
     steps = bev.shape[1]
     ego, agents, _ = rollout(model, params, traffic, steps, bev=bev)
     true_ego = jnp.asarray(batch["ego"][:, history:], jnp.float32)
@@ -87,6 +89,7 @@ def rollout_loss(model: Predictor, params, batch: dict, history: int):
     def error(pred, true):
         d = jnp.sqrt(jnp.sum((pred[..., :2] - true[..., :2]) ** 2, -1) + 1e-6)
         return d + YAW_METRES * jnp.abs(wrap(pred[..., 2] - true[..., 2]))
+
     e_ego = error(ego, true_ego).mean()
     e_agents = jnp.sum(error(agents, true_agents) * seen) / jnp.maximum(seen.sum(), 1)
     return e_ego + e_agents, {"ego_error": e_ego, "agent_error": e_agents}
@@ -99,17 +102,25 @@ def train_predictor(config: PredictorRunConfig, workdir, *, progress: bool = Tru
     ``"diverged"`` (``train.max_bad_steps`` non-finite losses in a row). ``on_step(step, metrics)``
     is called after every step (tests)."""
     from jaxdrive.train.aux_run import fit
+
     check_predictor_config(config)
     p, d, t = config.predictor, config.data, config.train
     clips = load_controls(d.path, d.split, max_agents=p.max_agents)
     windows = Windows(clips, p.history, p.horizon, p.stride, where=f"split {d.split!r}")
     model = Predictor(p)
     params = init_params(p, jax.random.key(t.seed), bev_size=clips[0]["bev_map"].shape[1:3])
-    fps = clips[0]["fps"]          # what generation needs to run it: its map grid and its step in seconds
+    fps = clips[0]["fps"]  # what generation needs to run it: its map grid and its step in seconds
     info = {"bev_size": list(clips[0]["bev_map"].shape[1:3]), "fps": fps, "step_seconds": p.stride / fps}
-    out = fit(config, workdir, params, lambda q, batch: rollout_loss(model, q, batch, p.history),
-              lambda step: windows.batch(d.batch_size, d.shuffle_seed, step), files={INFO_FILE: info},
-              progress=progress, on_step=on_step)
+    out = fit(
+        config,
+        workdir,
+        params,
+        lambda q, batch: rollout_loss(model, q, batch, p.history),
+        lambda step: windows.batch(d.batch_size, d.shuffle_seed, step),
+        files={INFO_FILE: info},
+        progress=progress,
+        on_step=on_step,
+    )
     status, params = out["status"], out["params"]
     if status == "done":
         motion = _validate(config, params, workdir)
@@ -121,14 +132,17 @@ def train_predictor(config: PredictorRunConfig, workdir, *, progress: bool = Tru
 def _validate(config, params, workdir):
     """ADE / FDE on the validation split at the horizons its clips allow, into ``motion.json``."""
     from jaxdrive.data.tfds_io import open_source
+
     try:
         open_source(config.data.path, "validation")
     except ValueError:
         return None
     clips = load_controls(config.data.path, "validation", max_agents=config.predictor.max_agents)
     from jaxdrive.data.tfds_io import dataset_info
-    scores = motion_errors(params, config.predictor, clips,
-                           bev_range=bev_range_of(dataset_info(config.data.path)["metadata"]))
+
+    scores = motion_errors(
+        params, config.predictor, clips, bev_range=bev_range_of(dataset_info(config.data.path)["metadata"])
+    )
     if scores is None:
         logger.warning("validation clips too short for a 1 s horizon: no ADE / FDE")
         return None
@@ -161,8 +175,9 @@ def motion_errors(params, config, clips, *, horizons=HORIZONS, bev_range=DEFAULT
         return None
     total = max(steps.values())
     predicted, constant = rollout_program(config), jax.jit(constant_velocity_rollout, static_argnums=(1,))
-    sums = {(who, kind, h): 0.0 for who in ("ego", "agents") for kind in ("ade", "fde", "cv_ade", "cv_fde")
-            for h in steps}
+    sums = {
+        (who, kind, h): 0.0 for who in ("ego", "agents") for kind in ("ade", "fde", "cv_ade", "cv_fde") for h in steps
+    }
     counts = {(who, h): 0 for who in ("ego", "agents") for h in steps}
     windows = tracks = 0
     for clip in clips:
@@ -175,18 +190,18 @@ def motion_errors(params, config, clips, *, horizons=HORIZONS, bev_range=DEFAULT
         bev = jnp.asarray(batch["bev"][:, t - 1], jnp.float32)
         runs = {"": predicted(params, traffic, total, bev, scene, None), "cv_": constant(traffic, total)}
         true_ego, true_agents = batch["ego"][:, t:], batch["agents"][:, t:]
-        seen = batch["seen"][:, t:] & batch["seen"][:, t - 1:t]
+        seen = batch["seen"][:, t:] & batch["seen"][:, t - 1 : t]
         windows += len(ws)
         tracks += int(batch["seen"][:, t - 1].sum())
         for prefix, (ego, agents) in runs.items():
-            e_ego = np.linalg.norm(np.asarray(ego)[..., :2] - true_ego[..., :2], axis=-1)            # [B, S]
-            e_ag = np.linalg.norm(np.asarray(agents)[..., :2] - true_agents[..., :2], axis=-1)        # [B, S, N]
+            e_ego = np.linalg.norm(np.asarray(ego)[..., :2] - true_ego[..., :2], axis=-1)  # [B, S]
+            e_ag = np.linalg.norm(np.asarray(agents)[..., :2] - true_agents[..., :2], axis=-1)  # [B, S, N]
             for h, k in steps.items():
                 sums["ego", prefix + "ade", h] += e_ego[:, :k].mean(1).sum()
                 sums["ego", prefix + "fde", h] += e_ego[:, k - 1].sum()
                 # agents: ADE over the steps each was seen, FDE where seen at h
                 m = seen[:, :k]
-                per = (e_ag[:, :k] * m).sum(1) / np.maximum(m.sum(1), 1)                              # [B, N]
+                per = (e_ag[:, :k] * m).sum(1) / np.maximum(m.sum(1), 1)  # [B, N]
                 scored = seen[:, k - 1]
                 sums["agents", prefix + "ade", h] += per[scored].sum()
                 sums["agents", prefix + "fde", h] += e_ag[:, k - 1][scored].sum()
@@ -195,17 +210,23 @@ def motion_errors(params, config, clips, *, horizons=HORIZONS, bev_range=DEFAULT
                     counts["agents", h] += int(scored.sum())
     out = {"horizons": {}, "windows": windows, "agent_tracks": tracks, "step_seconds": s / fps}
     for h in steps:
-        out["horizons"][f"{h:g}s"] = {who: {kind: round(sums[who, kind, h] / max(counts[who, h], 1), 3)
-                                            for kind in ("ade", "fde", "cv_ade", "cv_fde")}
-                                      for who in ("ego", "agents")}
+        out["horizons"][f"{h:g}s"] = {
+            who: {
+                kind: round(sums[who, kind, h] / max(counts[who, h], 1), 3)
+                for kind in ("ade", "fde", "cv_ade", "cv_fde")
+            }
+            for who in ("ego", "agents")
+        }
     return out
 
 
 def format_table(scores: dict) -> str:
     """The scores as a small table (metres; lower is better)."""
-    lines = [f"ADE / FDE in metres over {scores['windows']} windows ({scores['agent_tracks']} agent tracks); "
-             f"predictor vs constant velocity",
-             f"  {'horizon':8s} {'who':7s} {'ADE':>7s} {'cv ADE':>7s} {'FDE':>7s} {'cv FDE':>7s}"]
+    lines = [
+        f"ADE / FDE in metres over {scores['windows']} windows ({scores['agent_tracks']} agent tracks); "
+        f"predictor vs constant velocity",
+        f"  {'horizon':8s} {'who':7s} {'ADE':>7s} {'cv ADE':>7s} {'FDE':>7s} {'cv FDE':>7s}",
+    ]
     for h, row in scores["horizons"].items():
         for who, r in row.items():
             lines.append(f"  {h:8s} {who:7s} {r['ade']:7.3f} {r['cv_ade']:7.3f} {r['fde']:7.3f} {r['cv_fde']:7.3f}")
@@ -217,6 +238,7 @@ def load_predictor(workdir, *, option: str = "workdir"):
     kept) and ``info`` (``bev_size``, the ``fps`` of its data and ``step_seconds``). Errors name
     ``option`` (how the caller calls ``workdir``)."""
     from jaxdrive.train.aux_run import load_trained
+
     path = Path(workdir) / INFO_FILE
     info = json.loads(path.read_text()) if path.is_file() else None
 
@@ -224,8 +246,8 @@ def load_predictor(workdir, *, option: str = "workdir"):
         if info is None:
             raise ValueError(f"{option}: expected {path} (written by the predictor's training), found none")
         return init_params(c.predictor, jax.random.key(0), bev_size=tuple(info["bev_size"]))
-    config, params = load_trained(workdir, PredictorRunConfig, "predictor", init, option=option,
-                                  what="predictor")
+
+    config, params = load_trained(workdir, PredictorRunConfig, "predictor", init, option=option, what="predictor")
     return config, params, info
 
 

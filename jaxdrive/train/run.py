@@ -64,8 +64,10 @@ def check_batch(config: Config, mesh, batch: int | None = None, name: str = "dat
     a, procs = config.optim.grad_accum, jax.process_count()
     micro = b // a if b % a == 0 else None
     if micro is None or micro % shards or micro % procs:
-        raise ValueError(f"{name}: expected a multiple of optim.grad_accum ({a}) x the batch mesh "
-                         f"axes data x fsdp ({shards}) and of the process count ({procs}), got {b}")
+        raise ValueError(
+            f"{name}: expected a multiple of optim.grad_accum ({a}) x the batch mesh "
+            f"axes data x fsdp ({shards}) and of the process count ({procs}), got {b}"
+        )
     return micro // procs, micro
 
 
@@ -74,11 +76,12 @@ def training_buckets(config: Config, compression: int):
     (:class:`jaxdrive.data.buckets.Bucket`): ``data.buckets``, or the one bucket
     ``data.height x data.width x data.frames`` at ``data.batch_size``."""
     from jaxdrive.data.buckets import parse_bucket_specs, parse_buckets
+
     d = config.data
     specs = parse_bucket_specs(d.buckets) if d.buckets else {(d.height, d.width, d.frames): (d.batch_size, 1.0)}
     try:
         return parse_buckets(specs, compression=compression)
-    except ValueError as e:         # parse_buckets names its argument "buckets"
+    except ValueError as e:  # parse_buckets names its argument "buckets"
         raise ValueError(f"data.{e}") from None
 
 
@@ -105,14 +108,19 @@ def check_warp(config: Config) -> None:
     ``ValueError`` naming the option that rules it out."""
     d = config.data
     if not (np.isfinite(d.warp_depth) and d.warp_depth > 0):
-        raise ValueError(f"data.warp_depth: expected a positive depth in metres for a model with controls.warp, "
-                         f"got {d.warp_depth}")
-    for name, value, ok in (("latents.precomputed", config.latents.precomputed, False),
-                            ("flow.distill_teacher", config.flow.distill_teacher, ""),
-                            ("stream.enabled", config.stream.enabled, False)):
+        raise ValueError(
+            f"data.warp_depth: expected a positive depth in metres for a model with controls.warp, got {d.warp_depth}"
+        )
+    for name, value, ok in (
+        ("latents.precomputed", config.latents.precomputed, False),
+        ("flow.distill_teacher", config.flow.distill_teacher, ""),
+        ("stream.enabled", config.stream.enabled, False),
+    ):
         if value != ok:
-            raise ValueError(f"{name}: expected {ok!r} with model.controls.warp (the warp is made from the clip's "
-                             f"pixels, one warped clip per window), got {value!r}")
+            raise ValueError(
+                f"{name}: expected {ok!r} with model.controls.warp (the warp is made from the clip's "
+                f"pixels, one warped clip per window), got {value!r}"
+            )
 
 
 def global_micro_batches(inputs: list[dict], mesh):
@@ -124,8 +132,15 @@ def global_micro_batches(inputs: list[dict], mesh):
 class Run:
     """Everything a run builds from its config (see the module docstring)."""
 
-    def __init__(self, config: Config, *, devices=None, total_steps: int | None = None,
-                 codec: LatentCodec | None = None, check_data: bool = True):
+    def __init__(
+        self,
+        config: Config,
+        *,
+        devices=None,
+        total_steps: int | None = None,
+        codec: LatentCodec | None = None,
+        check_data: bool = True,
+    ):
         """``codec``: the latents' codec in place of the one ``config.latents`` loads, and
         ``check_data=False``: ``data.path`` is not read (the memory planner's run: its VAE
         parameters are shapes only, and it needs no data)."""
@@ -136,10 +151,10 @@ class Run:
         check_batch(config, self.mesh)
         self.codec = LatentCodec.from_config(config.latents) if codec is None else codec
         self.buckets = training_buckets(config, max(self.codec.temporal, 1))
-        for b in self.buckets if config.data.buckets else ():      # the default bucket is data.batch_size's
+        for b in self.buckets if config.data.buckets else ():  # the default bucket is data.batch_size's
             check_batch(config, self.mesh, b.batch_size, name=f"data.buckets {'x'.join(map(str, b.key))}")
         if check_data:
-            check_dataset(config, self.codec)       # latent windows or clips, as latents.precomputed says
+            check_dataset(config, self.codec)  # latent windows or clips, as latents.precomputed says
         model = config.model
         if config.train.compute_dtype != model.dtype:
             model = model.replace(dtype=config.train.compute_dtype)
@@ -150,14 +165,18 @@ class Run:
         d = config.data
         grid = self.codec.spatial * model.patch[1]
         for name, (h, w) in [("data.height, data.width", (d.height, d.width))] + [
-                (f"data.buckets {'x'.join(map(str, b.key))}", (b.height, b.width)) for b in self.buckets]:
+            (f"data.buckets {'x'.join(map(str, b.key))}", (b.height, b.width)) for b in self.buckets
+        ]:
             if h % grid or w % (self.codec.spatial * model.patch[2]):
                 raise ValueError(f"{name}: expected multiples of latent compression x patch ({grid}), got {h} x {w}")
         if config.train.init_from and not Path(config.train.init_from).is_dir():
-            raise ValueError(f"train.init_from: expected a run directory or a diffusers transformer folder, got "
-                             f"{config.train.init_from!r} (not a directory)")
+            raise ValueError(
+                f"train.init_from: expected a run directory or a diffusers transformer folder, got "
+                f"{config.train.init_from!r} (not a directory)"
+            )
         if config.train.init_map:
             from jaxdrive.train.init_from import parse_name_map
+
             parse_name_map(config.train.init_map)
         teacher = self._teacher_model() if config.flow.distill_teacher else None
         self.training = flow_step.FlowTraining(model, config.flow, self.codec, teacher, config.stream)
@@ -168,6 +187,7 @@ class Run:
             self.latent_frames = (d.frames - 1) // (config.flow.distill_segment_len - 1) + 1
             self.frame_stride = d.stride * (config.flow.distill_segment_len - 1)
         from jaxdrive.train.stream_step import check_stream
+
         check_stream(config, self.latent_frames)
         if model.controls.warp:
             check_warp(config)
@@ -179,15 +199,23 @@ class Run:
     def tokens(self, batch: int, height: int, width: int, latent_frames: int) -> int:
         """Video tokens of a global batch of ``batch`` clips at ``height x width`` pixels."""
         m, sp = self.training.model, self.codec.spatial
-        return (batch * self.config.data.views * latent_frames * (height // (sp * m.patch[1]))
-                * (width // (sp * m.patch[2])))
+        return (
+            batch
+            * self.config.data.views
+            * latent_frames
+            * (height // (sp * m.patch[1]))
+            * (width // (sp * m.patch[2]))
+        )
 
     def batch_tokens(self, batch) -> int:
         """Video tokens of a global batch from :meth:`global_batch` (its bucket's shape)."""
-        x = batch["latents"] if "latents" in batch else batch["video"]       # [A, b, V, F, H, W, C]
+        x = batch["latents"] if "latents" in batch else batch["video"]  # [A, b, V, F, H, W, C]
         frames = x.shape[3] if "latents" in batch else self.codec.latent_frames(x.shape[3])
-        h, w = (x.shape[4] * self.codec.spatial, x.shape[5] * self.codec.spatial) if "latents" in batch else \
-            (x.shape[4], x.shape[5])
+        h, w = (
+            (x.shape[4] * self.codec.spatial, x.shape[5] * self.codec.spatial)
+            if "latents" in batch
+            else (x.shape[4], x.shape[5])
+        )
         return self.tokens(x.shape[0] * x.shape[1], h, w, frames)
 
     def _teacher_model(self):
@@ -195,20 +223,24 @@ class Run:
         ``flow.distill_teacher`` (its parameters: :meth:`frozen_params`)."""
         cfg, path = self.config, self.config.flow.distill_teacher
         if self.codec.temporal != 1:
-            raise ValueError(f"latents: expected frame-wise latents (temporal compression 1) for distillation "
-                             f"(a segment boundary must be a latent frame; LongDWM encodes frames one by one), "
-                             f"got temporal compression {self.codec.temporal}")
+            raise ValueError(
+                f"latents: expected frame-wise latents (temporal compression 1) for distillation "
+                f"(a segment boundary must be a latent frame; LongDWM encodes frames one by one), "
+                f"got temporal compression {self.codec.temporal}"
+            )
         try:
             tcfg = load_run_config(path)
         except ValueError as e:
-            raise ValueError(f"flow.distill_teacher: expected the run directory of the fine model, got {path!r} "
-                             f"({e})") from e
+            raise ValueError(
+                f"flow.distill_teacher: expected the run directory of the fine model, got {path!r} ({e})"
+            ) from e
         model = tcfg.model.replace(dtype=cfg.train.compute_dtype)
         try:
             self.codec.check_model(model)
         except ValueError as e:
-            raise ValueError(f"flow.distill_teacher: the fine model of {path} does not read this run's latents: "
-                             f"{e}") from e
+            raise ValueError(
+                f"flow.distill_teacher: the fine model of {path} does not read this run's latents: {e}"
+            ) from e
         self._teacher_config = tcfg
         return model
 
@@ -217,31 +249,49 @@ class Run:
         the VAE's and, when distilling, the fine model's (EMA) parameters, restored from its run
         directory (call once per run; nothing is cached here)."""
         teacher = None
-        if self.training.teacher is not None:       # restored on this run's mesh; its own data plays no part
+        if self.training.teacher is not None:  # restored on this run's mesh; its own data plays no part
             t = self._teacher_config
             abstract, _ = abstract_train_state(t.model, t.optim, t.train.steps, self.mesh, seed=t.train.seed)
-            _, teacher = restore_latest_params(abstract, self.config.flow.distill_teacher,
-                                               keep=t.train.keep_checkpoints, option="flow.distill_teacher")
+            _, teacher = restore_latest_params(
+                abstract, self.config.flow.distill_teacher, keep=t.train.keep_checkpoints, option="flow.distill_teacher"
+            )
         return {"codec": self.codec.params, "teacher": teacher}
 
     def sampling(self):
         """The :class:`jaxdrive.generate.samples.Sampling` of this run's model (its window and
         frame stride, a distilled coarse model's included)."""
         from jaxdrive.generate.samples import Sampling
+
         c = self.config
         from jaxdrive.generate.streaming import WINDOW
-        return Sampling(self.training.model, self.codec, self.mesh, c.data, c.flow, text_embeddings=self.text,
-                        window=WINDOW if c.stream.enabled else self.latent_frames, stride=self.frame_stride,
-                        precomputed=c.latents.precomputed, steps=c.train.sample_steps, stream=c.stream,
-                        guidance=c.sample.cfg)
+
+        return Sampling(
+            self.training.model,
+            self.codec,
+            self.mesh,
+            c.data,
+            c.flow,
+            text_embeddings=self.text,
+            window=WINDOW if c.stream.enabled else self.latent_frames,
+            stride=self.frame_stride,
+            precomputed=c.latents.precomputed,
+            steps=c.train.sample_steps,
+            stream=c.stream,
+            guidance=c.sample.cfg,
+        )
 
     # ------------------------------------------------------------------ state
     def boxed_params(self):
         """The model's initial parameters in ``nn.LogicallyPartitioned`` boxes, drawn on the host
         (``train.seed``)."""
         d, dit = self.config.data, self.training.dit
-        shapes = dict(batch=1, views=d.views, frames=self.latent_frames, height=d.height // self.codec.spatial,
-                      width=d.width // self.codec.spatial)
+        shapes = dict(
+            batch=1,
+            views=d.views,
+            frames=self.latent_frames,
+            height=d.height // self.codec.spatial,
+            width=d.width // self.codec.spatial,
+        )
         return dit.init_params(self.config.train.seed, boxed=True, **shapes)
 
     @deprecated_log
@@ -255,8 +305,15 @@ class Run:
             params = shard_params(self.boxed_params(), self.mesh)
         if t.init_from:
             from jaxdrive.train.init_from import init_from
-            params, report = init_from(params, t.init_from, mesh=self.mesh, ema=t.init_from_ema, name_map=t.init_map,
-                                       target_model=self.training.model)
+
+            params, report = init_from(
+                params,
+                t.init_from,
+                mesh=self.mesh,
+                ema=t.init_from_ema,
+                name_map=t.init_map,
+                target_model=self.training.model,
+            )
             logger.info("%s", report.summary())
         state, optimizer = state_from_params(params, self.mesh, cfg.optim, self.total_steps, cfg.train.seed)
         return state, optimizer, jax.tree_util.tree_map(lambda x: x.sharding, state)
@@ -269,32 +326,48 @@ class Run:
 
     def step_fn(self, optimizer, shardings):
         """The jitted train step for the state's ``optimizer`` and ``shardings``."""
-        return flow_step.make_train_step(self.training, optimizer, self.config.optim.ema_decay,
-                                         state_shardings=shardings)
+        return flow_step.make_train_step(
+            self.training, optimizer, self.config.optim.ema_decay, state_shardings=shardings
+        )
 
     # ------------------------------------------------------------------ data
     def dataset(self, split: str | None = None):
         from jaxdrive.data.pipeline import CONDITIONS, make_pipeline
         from jaxdrive.data.tfds_io import open_source
+
         d = self.config.data
         source = open_source(d.path, split or d.split)
-        stride = 1 if self.config.latents.precomputed else d.stride     # latent windows are strided already
+        stride = 1 if self.config.latents.precomputed else d.stride  # latent windows are strided already
         procs = jax.process_count()
-        buckets = {b.key: (b.batch_size // (procs * self.config.optim.grad_accum), b.prob, b.repeat)
-                   for b in self.buckets}
-        return make_pipeline(source, buckets, stride=stride,
-                             views=list(range(d.views)), drop_probs={n: d.drop_prob for n in CONDITIONS},
-                             seed=d.shuffle_seed, num_threads=d.threads, prefetch=2 if d.threads else 0,
-                             compression=max(self.codec.temporal, 1), rate_head=d.rate_head,
-                             rate_strides=d.rate_strides,
-                             warp_depth=d.warp_depth if self.training.model.controls.warp else 0.0,
-                             skip_bad_records=d.skip_bad_records)
+        buckets = {
+            b.key: (b.batch_size // (procs * self.config.optim.grad_accum), b.prob, b.repeat) for b in self.buckets
+        }
+        return make_pipeline(
+            source,
+            buckets,
+            stride=stride,
+            views=list(range(d.views)),
+            drop_probs={n: d.drop_prob for n in CONDITIONS},
+            seed=d.shuffle_seed,
+            num_threads=d.threads,
+            prefetch=2 if d.threads else 0,
+            compression=max(self.codec.temporal, 1),
+            rate_head=d.rate_head,
+            rate_strides=d.rate_strides,
+            warp_depth=d.warp_depth if self.training.model.controls.warp else 0.0,
+            skip_bad_records=d.skip_bad_records,
+        )
 
     def global_batch(self, micro_batches: list[dict]):
         """Host micro-batches (this process's samples) -> one global ``[A, b, ...]`` tree."""
         t = self.training
-        return global_micro_batches([model_inputs(b, t.model, self.text, foreground=t.flow.foreground_k > 0,
-                                                  teacher=t.teacher) for b in micro_batches], self.mesh)
+        return global_micro_batches(
+            [
+                model_inputs(b, t.model, self.text, foreground=t.flow.foreground_k > 0, teacher=t.teacher)
+                for b in micro_batches
+            ],
+            self.mesh,
+        )
 
 
 class _BadRecords:
@@ -320,12 +393,16 @@ def _save(ckpts, step, state, it, config, **extra) -> bool:
     of an earlier one that surfaces here, fails: orbax commits a checkpoint by renaming its
     temporary folder, so the ones written before stay intact."""
     try:
-        ckpts.save(step, state, it.get_state(), {"step": step, "time": time.time(), **extra,
-                                                 "config": to_dict(config)})
+        ckpts.save(step, state, it.get_state(), {"step": step, "time": time.time(), **extra, "config": to_dict(config)})
         return True
-    except Exception as e:               # OSError (disk full), or orbax's wrapping of one
-        logger.warning("checkpoint %s could not be written (%s: %s); checkpoints kept: %s",
-                       ckpts.directory / str(step), type(e).__name__, str(e)[:200], _kept(ckpts))
+    except Exception as e:  # OSError (disk full), or orbax's wrapping of one
+        logger.warning(
+            "checkpoint %s could not be written (%s: %s); checkpoints kept: %s",
+            ckpts.directory / str(step),
+            type(e).__name__,
+            str(e)[:200],
+            _kept(ckpts),
+        )
         return False
 
 
@@ -345,7 +422,7 @@ def _compile_together(step_fn, compiled: set, *args) -> None:
     shapes = tuple((x.shape, str(x.dtype)) for x in jax.tree_util.tree_leaves(args[-1]))
     if shapes not in compiled:
         compiled.add(shapes)
-        step_fn.lower(*args).compile()          # jit reuses this executable for the call that follows
+        step_fn.lower(*args).compile()  # jit reuses this executable for the call that follows
         wait_for_all_processes(f"jaxdrive.train: step compiled for batch shape {len(compiled)}")
 
 
@@ -365,6 +442,7 @@ def train(config: Config, workdir, *, on_step=None, progress: bool = True) -> di
     endangers the run (non-finite losses, a checkpoint not written, a signal) at WARNING
     (:mod:`jaxdrive.logs`); ``log=`` is deprecated (:func:`jaxdrive.logs.deprecated_log`)."""
     from jaxdrive import compile_cache
+
     started = time.perf_counter()
     cache_dir, cache_before = compile_cache.enable(config.train.compile_cache), compile_cache.counts()
     workdir = Path(workdir)
@@ -386,14 +464,16 @@ def train(config: Config, workdir, *, on_step=None, progress: bool = True) -> di
     skipping = cfg.data.skip_bad_records
     bad_records = _BadRecords(meta.get("bad_records", 0))
 
-    def counts() -> dict:               # what metrics rows and checkpoint metadata add
+    def counts() -> dict:  # what metrics rows and checkpoint metadata add
         return {"bad_records": bad_records.sync()} if skipping else {}
+
     if jax.process_index() == 0:
         workdir.mkdir(parents=True, exist_ok=True)
         (workdir / CONFIG_FILE).write_text(json.dumps(to_dict(cfg), indent=1))
     step_fn, frozen = run.step_fn(optimizer, shardings), run.frozen_params()
-    writer = MetricsWriter(workdir, total_steps=run.total_steps, start_step=start,
-                           tokens_per_step=run.tokens_per_step, progress=progress)
+    writer = MetricsWriter(
+        workdir, total_steps=run.total_steps, start_step=start, tokens_per_step=run.tokens_per_step, progress=progress
+    )
     status, step, row, tokens, first_step = "done", start, {}, 0, None
     compiled_shapes = set()
     with Stop() as stop, jax.set_mesh(run.mesh):
@@ -401,64 +481,93 @@ def train(config: Config, workdir, *, on_step=None, progress: bool = True) -> di
             micro = [next(it) for _ in range(cfg.optim.grad_accum)]
             bad_records.add(micro)
             batch = run.global_batch(micro)
-            tokens += run.batch_tokens(batch)          # buckets differ in tokens per step
+            tokens += run.batch_tokens(batch)  # buckets differ in tokens per step
             _compile_together(step_fn, compiled_shapes, state, frozen, batch)
-            state, metrics = step_fn(state, frozen, batch)   # compiled once per bucket shape
+            state, metrics = step_fn(state, frozen, batch)  # compiled once per bucket shape
             step += 1
             bad = int(metrics["bad_steps"])
             if first_step is None:
                 first_step = time.perf_counter() - started
-                logger.info("first step done %.1f s after the start; %s", first_step,
-                            compile_cache.describe(cache_dir, cache_before))
+                logger.info(
+                    "first step done %.1f s after the start; %s",
+                    first_step,
+                    compile_cache.describe(cache_dir, cache_before),
+                )
             if step % cfg.train.log_every == 0 or step == run.total_steps or bad:
                 # skipped (all steps so far) and the last step whose update was applied
-                row = writer.write(step, {**jax.device_get(metrics), "last_good_step": step - bad, **counts()},
-                                   tokens=tokens)
+                row = writer.write(
+                    step, {**jax.device_get(metrics), "last_good_step": step - bad, **counts()}, tokens=tokens
+                )
                 tokens = 0
             if on_step is not None:
                 on_step(step, metrics)
             if bad >= cfg.train.max_bad_steps:
                 status = "diverged"
                 _save(ckpts, step, state, it, cfg, status=status, **counts())
-                logger.warning("stopping: %d non-finite losses in a row at step %d (train.max_bad_steps = %d); "
-                               "checkpoint %s holds the last good parameters", bad, step, cfg.train.max_bad_steps,
-                               ckpts.directory / str(step))
+                logger.warning(
+                    "stopping: %d non-finite losses in a row at step %d (train.max_bad_steps = %d); "
+                    "checkpoint %s holds the last good parameters",
+                    bad,
+                    step,
+                    cfg.train.max_bad_steps,
+                    ckpts.directory / str(step),
+                )
                 break
             if cfg.train.checkpoint_every and step % cfg.train.checkpoint_every == 0:
                 if not _save(ckpts, step, state, it, cfg, **counts()) and cfg.train.on_save_error == "stop":
                     status = "save_failed"
-                    logger.warning("stopping at step %d (train.on_save_error = 'stop'); the last checkpoint is "
-                                   "the newest of %s", step, _kept(ckpts))
+                    logger.warning(
+                        "stopping at step %d (train.on_save_error = 'stop'); the last checkpoint is the newest of %s",
+                        step,
+                        _kept(ckpts),
+                    )
                     break
             if cfg.train.sample_every and step % cfg.train.sample_every == 0:
                 from jaxdrive.generate.samples import write_samples
+
                 write_samples(run.sampling(), state, workdir / "samples" / f"step_{step:07d}")
-            signum = stop.agreed()                     # one process's signal stops every process
+            signum = stop.agreed()  # one process's signal stops every process
             if signum is not None:
                 status = "interrupted"
                 _save(ckpts, step, state, it, cfg, status=status, **counts())
-                logger.warning("signal %s: saved checkpoint %s; run the same command to resume",
-                               signal.Signals(signum).name, ckpts.directory / str(step))
+                logger.warning(
+                    "signal %s: saved checkpoint %s; run the same command to resume",
+                    signal.Signals(signum).name,
+                    ckpts.directory / str(step),
+                )
                 break
         else:
             if not _save(ckpts, step, state, it, cfg, status=status, **counts()):
                 status = "save_failed"
     try:
-        with Stop():                     # a late SIGTERM (the launcher stopping the others) waits for the commit
-            ckpts.close()                # waits for the last asynchronous write
+        with Stop():  # a late SIGTERM (the launcher stopping the others) waits for the commit
+            ckpts.close()  # waits for the last asynchronous write
     except Exception as e:
         status = "save_failed"
-        logger.warning("the last checkpoint could not be written (%s: %s); checkpoints kept: %s",
-                       type(e).__name__, str(e)[:200], _kept(ckpts))
+        logger.warning(
+            "the last checkpoint could not be written (%s: %s); checkpoints kept: %s",
+            type(e).__name__,
+            str(e)[:200],
+            _kept(ckpts),
+        )
     writer.close()
     # programs the step compiled: one per bucket shape met since this process started
     compiled = step_fn._cache_size() if hasattr(step_fn, "_cache_size") else None
     now = compile_cache.counts()
-    return {"step": step, "status": status, "loss": row.get("loss"), "state": state, "run": run,
-            "bad_records": bad_records.total if skipping else None,     # summed by the last save
-            "compiled_steps": compiled, "first_step_seconds": first_step,
-            "compile_cache": {"folder": None if cache_dir is None else str(cache_dir),
-                              **{k: now[k] - cache_before[k] for k in now}}}
+    return {
+        "step": step,
+        "status": status,
+        "loss": row.get("loss"),
+        "state": state,
+        "run": run,
+        "bad_records": bad_records.total if skipping else None,  # summed by the last save
+        "compiled_steps": compiled,
+        "first_step_seconds": first_step,
+        "compile_cache": {
+            "folder": None if cache_dir is None else str(cache_dir),
+            **{k: now[k] - cache_before[k] for k in now},
+        },
+    }
 
 
 @deprecated_log
@@ -466,8 +575,9 @@ def restore_params(run: Run, workdir, *, ema: bool = True, option: str = "workdi
     """``(step, params)`` of the newest readable checkpoint of ``workdir`` (EMA when kept); a
     damaged newer one is skipped with a warning in the log; errors name ``option`` (how the
     caller calls ``workdir``). ``log=`` is deprecated (:func:`jaxdrive.logs.deprecated_log`)."""
-    return restore_latest_params(run.abstract_state()[0], workdir, keep=run.config.train.keep_checkpoints,
-                                 ema=ema, option=option)
+    return restore_latest_params(
+        run.abstract_state()[0], workdir, keep=run.config.train.keep_checkpoints, ema=ema, option=option
+    )
 
 
 def restore_latest_params(abstract, workdir, *, keep: int, ema: bool = True, option: str = "workdir"):
@@ -481,4 +591,3 @@ def restore_latest_params(abstract, workdir, *, keep: int, ema: bool = True, opt
         raise ValueError(f"{option}: expected checkpoints under {Path(workdir) / 'checkpoints'}, found none")
     step, state = restored[0], restored[1]
     return step, (state.ema if ema and state.ema is not None else state.params)
-

@@ -34,9 +34,10 @@ def check_segmenter_config(config: SegmenterRunConfig) -> None:
     check_positive_int("segmenter.levels", s.levels, minimum=0)
     for name in ("height", "width"):
         size = getattr(d, name)
-        if isinstance(size, bool) or not isinstance(size, int) or size < 2 ** s.levels or size % 2 ** s.levels:
-            raise ValueError(f"data.{name}: expected a positive multiple of 2 ** segmenter.levels = {2 ** s.levels}, "
-                             f"got {size!r}")
+        if isinstance(size, bool) or not isinstance(size, int) or size < 2**s.levels or size % 2**s.levels:
+            raise ValueError(
+                f"data.{name}: expected a positive multiple of 2 ** segmenter.levels = {2**s.levels}, got {size!r}"
+            )
     for name in ("views", "stride", "batch_size"):
         check_positive_int(f"data.{name}", getattr(d, name))
     check_positive_int("train.steps", config.train.steps)
@@ -48,13 +49,21 @@ def load_frames(path, split: str, *, size: tuple[int, int], views: int, stride: 
     from jaxdrive.data.pipeline import sample_clip
     from jaxdrive.data.tfds_io import open_source
     from jaxdrive.media import to_uint8
+
     source = open_source(path, split)
     frames, masks = [], []
     for i in range(len(source)):
         clip = source[i]
         have = int(np.shape(clip["ego_to_world"])[0])
-        s = sample_clip(clip, size=size, frames=1 + (have - 1) // stride, stride=stride, views=list(range(views)),
-                        instances=True, where=f"{split} clip {i}")
+        s = sample_clip(
+            clip,
+            size=size,
+            frames=1 + (have - 1) // stride,
+            stride=stride,
+            views=list(range(views)),
+            instances=True,
+            where=f"{split} clip {i}",
+        )
         frames.append(to_uint8(s["video"]).reshape(-1, *size, 3))
         masks.append(class_masks_of(s).astype(np.uint8).reshape(-1, *size))
     return np.concatenate(frames), np.concatenate(masks)
@@ -73,14 +82,17 @@ def degrade(frames: np.ndarray, masks: np.ndarray, rng: np.random.Generator) -> 
     Gaussian noise of a random level (up to 0.1) added, half of them flipped with their masks."""
     x = frames.astype(np.float32) / 127.5 - 1.0
     pad = np.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)), mode="edge")
-    blur = sum(pad[:, i:i + x.shape[1], j:j + x.shape[2]] for i in range(3) for j in range(3)) / 9.0
+    blur = sum(pad[:, i : i + x.shape[1], j : j + x.shape[2]] for i in range(3) for j in range(3)) / 9.0
     n = len(x)
     mix = rng.uniform(0.0, 1.0, (n, 1, 1, 1)).astype(np.float32)
-    x = (1 - mix) * x + mix * blur + rng.uniform(0.0, 0.1, (n, 1, 1, 1)).astype(np.float32) * \
-        rng.standard_normal(x.shape).astype(np.float32)
+    x = (
+        (1 - mix) * x
+        + mix * blur
+        + rng.uniform(0.0, 0.1, (n, 1, 1, 1)).astype(np.float32) * rng.standard_normal(x.shape).astype(np.float32)
+    )
     flip = rng.random(n) < 0.5
     x[flip] = x[flip, :, ::-1]
-    masks = masks.copy()                          # the caller's array stays as it was
+    masks = masks.copy()  # the caller's array stays as it was
     masks[flip] = masks[flip, :, ::-1]
     return np.clip(x, -1.0, 1.0), masks
 
@@ -101,13 +113,20 @@ def train_segmenter(config: SegmenterRunConfig, workdir, *, progress: bool = Tru
     "params"}`` (and ``"validation"``, the ceiling scores of :func:`jaxdrive.models.segmenter.summary`,
     when the dataset has a validation split); ``status`` as a DiT run's."""
     from jaxdrive.train.aux_run import fit
+
     check_segmenter_config(config)
     s, d, t = config.segmenter, config.data, config.train
     size = (d.height, d.width)
     frames, masks = load_frames(d.path, d.split, size=size, views=d.views, stride=d.stride)
     weights = class_weights(masks)
-    logger.info("segmenter: %d frames of %d x %d from split %r; object pixels %s", len(frames), d.height, d.width,
-                d.split, f"{(masks > 0).mean():.1%}")
+    logger.info(
+        "segmenter: %d frames of %d x %d from split %r; object pixels %s",
+        len(frames),
+        d.height,
+        d.width,
+        d.split,
+        f"{(masks > 0).mean():.1%}",
+    )
     model = Segmenter(s)
 
     def batch(step):
@@ -115,10 +134,18 @@ def train_segmenter(config: SegmenterRunConfig, workdir, *, progress: bool = Tru
         pick = rng.integers(len(frames), size=d.batch_size)
         x, m = degrade(frames[pick], masks[pick], rng)
         return {"frames": x, "masks": m}
+
     info = {"size": list(size), "classes": list(CLASSES), "class_weights": [round(float(w), 4) for w in weights]}
-    out = fit(config, workdir, init_params(s, jax.random.key(t.seed), size),
-              lambda q, b: pixel_loss(model, q, b, weights), batch, files={INFO_FILE: info},
-              progress=progress, on_step=on_step)
+    out = fit(
+        config,
+        workdir,
+        init_params(s, jax.random.key(t.seed), size),
+        lambda q, b: pixel_loss(model, q, b, weights),
+        batch,
+        files={INFO_FILE: info},
+        progress=progress,
+        on_step=on_step,
+    )
     if out["status"] == "done":
         scores = _validate(config, out["params"], workdir, info)
         if scores is not None:
@@ -132,6 +159,7 @@ def _validate(config, params, workdir, info):
     from pathlib import Path
 
     from jaxdrive.data.tfds_io import open_source
+
     d = config.data
     try:
         open_source(d.path, "validation")
@@ -141,8 +169,9 @@ def _validate(config, params, workdir, info):
     pred = predict(config.segmenter, params, frames.astype(np.float32) / 127.5 - 1.0)
     scores = summary(confusion(pred, masks))
     if jax.process_index() == 0:
-        (Path(workdir) / INFO_FILE).write_text(json.dumps({**info, "validation": scores,
-                                                           "validation_frames": len(frames)}, indent=1))
+        (Path(workdir) / INFO_FILE).write_text(
+            json.dumps({**info, "validation": scores, "validation_frames": len(frames)}, indent=1)
+        )
     per_class = ", ".join(f"{k} {v:.3f}" for k, v in scores["per_class"].items() if v is not None and k != "background")
     logger.info("validation (%d recorded frames): mIoU %.3f (%s)", len(frames), scores["miou"], per_class)
     return scores

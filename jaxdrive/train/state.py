@@ -21,9 +21,9 @@ class TrainState:
     params: object
     opt_state: object
     ema: object
-    rng: jax.Array            # uint32 key data of the run's random stream
-    bad_steps: jax.Array      # non-finite steps in a row
-    skipped: jax.Array        # non-finite steps since the start
+    rng: jax.Array  # uint32 key data of the run's random stream
+    bad_steps: jax.Array  # non-finite steps in a row
+    skipped: jax.Array  # non-finite steps since the start
 
     @property
     def key(self):
@@ -32,18 +32,24 @@ class TrainState:
 
 def create_state(params, optimizer: optax.GradientTransformation, seed: int, *, ema: bool = True) -> TrainState:
     """A fresh state at step 0 (EMA starts at the parameters; ``ema=False`` keeps none)."""
-    return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer.init(params),
-                      ema=jax.tree_util.tree_map(jnp.copy, params) if ema else None,
-                      rng=jax.random.key_data(jax.random.key(seed)),
-                      bad_steps=jnp.zeros((), jnp.int32), skipped=jnp.zeros((), jnp.int32))
+    return TrainState(
+        step=jnp.zeros((), jnp.int32),
+        params=params,
+        opt_state=optimizer.init(params),
+        ema=jax.tree_util.tree_map(jnp.copy, params) if ema else None,
+        rng=jax.random.key_data(jax.random.key(seed)),
+        bad_steps=jnp.zeros((), jnp.int32),
+        skipped=jnp.zeros((), jnp.int32),
+    )
 
 
 def all_finite(tree) -> jax.Array:
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree)]))
 
 
-def apply_gradients(state: TrainState, grads, loss, optimizer: optax.GradientTransformation,
-                    ema_decay: float, rng) -> TrainState:
+def apply_gradients(
+    state: TrainState, grads, loss, optimizer: optax.GradientTransformation, ema_decay: float, rng
+) -> TrainState:
     """The next state after one update with ``grads`` (or the same state, counted, when ``loss``
     or ``grads`` are not finite). ``rng`` is the key data the next step starts from."""
     ok = jnp.isfinite(loss) & all_finite(grads)

@@ -43,8 +43,10 @@ def check_stream(config, latent_frames: int) -> None:
     check_positive_int("stream.buffer", s.buffer)
     check_taps(s.taps, s.buffer, "stream.taps")
     if s.taps and not m.htft_layers:
-        raise ValueError(f"stream.taps: HTFT needs a model with HTFT layers (model.htft_layers), got taps "
-                         f"{list(s.taps)} for a model without them (stage 1: stream.taps=())")
+        raise ValueError(
+            f"stream.taps: HTFT needs a model with HTFT layers (model.htft_layers), got taps "
+            f"{list(s.taps)} for a model without them (stage 1: stream.taps=())"
+        )
     check_positive_int("stream.rollout_steps", s.rollout_steps)
     check_range("stream.degrade_rate", s.degrade_rate, 0.0, 1.0)
     check_range("stream.degrade_keep", s.degrade_keep, 0.0, 1.0, lo_open=True)
@@ -52,14 +54,20 @@ def check_stream(config, latent_frames: int) -> None:
     if latent_frames < 2:
         raise ValueError(f"data.frames: streaming windows need clips of at least 2 latent frames, got {latent_frames}")
     f, d = config.flow, config.data
-    for name, value, ok in (("data.buckets", d.buckets, ()), ("flow.distill_teacher", f.distill_teacher, ""),
-                            ("flow.jdc_anchor_rate", f.jdc_anchor_rate, 0.0), ("flow.tpd", f.tpd, False),
-                            ("flow.structure_weight", f.structure_weight, 0.0)):
+    for name, value, ok in (
+        ("data.buckets", d.buckets, ()),
+        ("flow.distill_teacher", f.distill_teacher, ""),
+        ("flow.jdc_anchor_rate", f.jdc_anchor_rate, 0.0),
+        ("flow.tpd", f.tpd, False),
+        ("flow.structure_weight", f.structure_weight, 0.0),
+    ):
         if value != ok:
             raise ValueError(f"{name}: expected {ok!r} with stream.enabled (one new frame per window), got {value!r}")
     if s.taps and config.optim.trainable and not config.train.init_from:
-        raise ValueError("train.init_from: HTFT learning (STAGE stage 2) trains HTFT over a frozen stage-1 model "
-                         "(optim.trainable), expected the stage-1 run directory, got none")
+        raise ValueError(
+            "train.init_from: HTFT learning (STAGE stage 2) trains HTFT over a frozen stage-1 model "
+            "(optim.trainable), expected the stage-1 run directory, got none"
+        )
 
 
 def _frame(x, j):
@@ -83,11 +91,21 @@ def _augment(key, prev, stream):
 def stream_model(training, hw):
     """The :class:`jaxdrive.generate.windows.WindowModel` of the stage-3 rollout at ``hw`` pixels."""
     from jaxdrive.generate.windows import WindowModel
+
     s = training.stream
     from jaxdrive.generate.streaming import WINDOW
-    return WindowModel(training.dit, None, window=WINDOW, steps=s.rollout_steps, shift=_shift(training, hw),
-                       streaming=True, stream_buffer=s.buffer, stream_taps=_taps(training),
-                       value_range=training.codec.value_range)
+
+    return WindowModel(
+        training.dit,
+        None,
+        window=WINDOW,
+        steps=s.rollout_steps,
+        shift=_shift(training, hw),
+        streaming=True,
+        stream_buffer=s.buffer,
+        stream_taps=_taps(training),
+        value_range=training.codec.value_range,
+    )
 
 
 def _taps(training) -> tuple[int, ...]:
@@ -100,6 +118,7 @@ def _shift(training, hw) -> float:
     if f.shift > 0:
         return f.shift
     from jaxdrive.generate.streaming import WINDOW
+
     return flow.resolution_shift(*hw, WINDOW)
 
 
@@ -107,6 +126,7 @@ def self_rollout(training, params, x, cond, key):
     """Stage 3: the clip streamed by the model from its first frame, ``[B, V, F - 1, ...]`` (frames
     0 .. F - 2: the recorded first one, then the model's), without gradients."""
     from jaxdrive.generate.streaming import new_buffer, stream_frame, window_controls
+
     b, v, nf, h, w, _ = x.shape
     model, taps = stream_model(training, (h * training.codec.spatial, w * training.codec.spatial)), _taps(training)
     params = jax.lax.stop_gradient(params)
@@ -118,6 +138,7 @@ def self_rollout(training, params, x, cond, key):
         ctrl = window_controls(cond, jnp.full((b,), p), training.codec.temporal)
         new, buf = stream_frame(model, taps, params, anchor, prev, ctrl, jax.random.fold_in(key, p), buf)
         return (new, buf), new[:, :, 0]
+
     _, frames = jax.lax.scan(frame, (anchor, buffer), jnp.arange(1, nf - 1))
     return jax.lax.stop_gradient(jnp.concatenate([anchor, jnp.moveaxis(frames, 0, 2)], axis=2))
 
@@ -127,6 +148,7 @@ def past_features(training, params, x, given, cond, sigma, key):
     from the window ``[x_0, given_{p-1}, given_p noised]`` fusing its own taps among the frames
     before it: ``{layer: [B, F, S, V, D]}`` (frame 0 and F - 1 zero), without gradients."""
     from jaxdrive.generate.streaming import window_controls
+
     taps, temporal = _taps(training), training.codec.temporal
     m = training.model
     b, v, nf, h, w, _ = x.shape
@@ -142,6 +164,7 @@ def past_features(training, params, x, given, cond, sigma, key):
         window = jnp.concatenate([anchor, _frame(given, pj - 1), flow.add_noise(_frame(given, pj), noise, sigma)], 2)
         _, out = _forward(training, params, window, sigma, window_controls(cond, pj, temporal), feats, mask)
         return {i: write_slot(store[i], out[i], p, 1) for i in store}, None
+
     if nf > 2:
         store, _ = jax.lax.scan(frame, store, jnp.arange(1, nf - 1))
     return jax.lax.stop_gradient(store)
@@ -160,6 +183,7 @@ def _forward(training, params, window, sigma, cond, features, features_mask):
     """The DiT on a streaming window, the new frame at ``sigma [B]``: ``(velocity, the new slot's
     features)`` (:func:`jaxdrive.generate.streaming.window_velocity`, as the sampler)."""
     from jaxdrive.generate.streaming import window_conditions, window_velocity
+
     mask, cond = window_conditions(training.dit, window, cond)
     levels = jnp.where(mask, 0.0, sigma[:, None])
     past = None if features is None else {"features": features, "mask": features_mask}
@@ -169,14 +193,16 @@ def _forward(training, params, window, sigma, cond, features, features_mask):
 def stream_loss_fn(training, params, x, inputs: dict, key):
     """The loss of one micro-batch of latents ``x`` (module docstring) and its metrics."""
     from jaxdrive.generate.streaming import COND_MASK, window_controls
+
     cond, loss_fields = inputs["cond"], inputs.get("loss")
     s, f, temporal = training.stream, training.flow, training.codec.temporal
     b, _, nf, h, w, _ = x.shape
     k_j, k_sig, k_noise, k_roll, k_past, k_aug = jax.random.split(key, 6)
     j = jax.random.randint(k_j, (b,), 1, nf)
     hw = (h * training.codec.spatial, w * training.codec.spatial)
-    sigma = flow.sample_sigmas(k_sig, (b,), distribution=f.sigma_sampling, loc=f.logit_loc, scale=f.logit_scale,
-                               shift=_shift(training, hw))
+    sigma = flow.sample_sigmas(
+        k_sig, (b,), distribution=f.sigma_sampling, loc=f.logit_loc, scale=f.logit_scale, shift=_shift(training, hw)
+    )
     given = self_rollout(training, params, x, cond, k_roll) if s.self_rollout else x
     taps = _taps(training)
     feats = mask = None
@@ -191,12 +217,18 @@ def stream_loss_fn(training, params, x, inputs: dict, key):
     noise3 = jnp.concatenate([jnp.zeros_like(anchor), jnp.zeros_like(prev), noise], axis=2)
     weight_map = None
     if loss_fields:
-        frames = jnp.stack([jnp.zeros_like(j), temporal * (j - 1), temporal * j], axis=1)   # newest pixel frame
+        frames = jnp.stack([jnp.zeros_like(j), temporal * (j - 1), temporal * j], axis=1)  # newest pixel frame
         pick = lambda a: gather_frames(a, frames, 1)
-        weight_map = flow.foreground_weight_map(pick(loss_fields["boxes"]), pick(loss_fields["box_valid"]),
-                                                loss_fields["intrinsics"], loss_fields["cam_to_ego"],
-                                                map_hw=(h, w), image_hw=hw, k=f.foreground_k, c=f.foreground_c)
+        weight_map = flow.foreground_weight_map(
+            pick(loss_fields["boxes"]),
+            pick(loss_fields["box_valid"]),
+            loss_fields["intrinsics"],
+            loss_fields["cam_to_ego"],
+            map_hw=(h, w),
+            image_hw=hw,
+            k=f.foreground_k,
+            c=f.foreground_c,
+        )
     cond_mask = jnp.broadcast_to(jnp.asarray(COND_MASK), (b, 3))
     loss = flow.flow_loss(v, clean, noise3, cond_mask=cond_mask, weight_map=weight_map)
     return loss, {"flow_loss": loss, "loss": loss}
-

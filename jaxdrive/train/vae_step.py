@@ -29,10 +29,10 @@ from jaxdrive.models.vae.model import CausalVAE
 
 @dataclasses.dataclass(frozen=True)
 class VAELossConfig:
-    recon: str = "l1"                 # "l1" or "l2"
+    recon: str = "l1"  # "l1" or "l2"
     kl_weight: float = 1e-6
     perceptual_weight: float = 0.0
-    mode: str | None = None           # the VAE's pass while training; None = its config's mode
+    mode: str | None = None  # the VAE's pass while training; None = its config's mode
 
     def __post_init__(self):
         validate.check_choice("recon", self.recon, ("l1", "l2"))
@@ -46,8 +46,9 @@ def kl_to_standard_normal(mean, logvar):
     return 0.5 * jnp.sum(terms.reshape(terms.shape[0], -1), axis=1)
 
 
-def vae_loss(vae: CausalVAE, params, video, key, config: VAELossConfig = VAELossConfig(),
-             perceptual: Callable | None = None):
+def vae_loss(
+    vae: CausalVAE, params, video, key, config: VAELossConfig = VAELossConfig(), perceptual: Callable | None = None
+):
     """``(loss, metrics)`` of the VAE on ``video [B, (V,) F, H, W, 3]`` in [-1, 1] (see the module
     docstring); ``key`` draws the posterior sample."""
     if config.perceptual_weight > 0 and perceptual is None:
@@ -68,8 +69,12 @@ def vae_loss(vae: CausalVAE, params, video, key, config: VAELossConfig = VAELoss
     return loss, metrics
 
 
-def make_vae_train_step(vae: CausalVAE, optimizer: optax.GradientTransformation,
-                        config: VAELossConfig = VAELossConfig(), perceptual: Callable | None = None):
+def make_vae_train_step(
+    vae: CausalVAE,
+    optimizer: optax.GradientTransformation,
+    config: VAELossConfig = VAELossConfig(),
+    perceptual: Callable | None = None,
+):
     """A jitted ``step(params, opt_state, video, key) -> (params, opt_state, metrics)``; params and
     optimizer state are donated. Use ``optimizer.init(params)`` for the first ``opt_state``."""
 

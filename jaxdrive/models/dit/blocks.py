@@ -52,12 +52,13 @@ class LayerContext:
     t0: jax.Array | None = None
     t: jax.Array | None = None
     t_text: jax.Array | None = None
-    rope: tuple[jax.Array | np.ndarray, jax.Array | np.ndarray] | None = None     # (cos, sin)
+    rope: tuple[jax.Array | np.ndarray, jax.Array | np.ndarray] | None = None  # (cos, sin)
     text: jax.Array | None = None
     text_mask: jax.Array | None = None
     tokens: jax.Array | None = None
     tokens_mask: jax.Array | None = None
     warp: jax.Array | None = None
+
 
 # Token order of merged video sequences: S (sharded) major, then F, then V.
 SFV = (2, 1, 3)
@@ -71,22 +72,30 @@ def _out(proj: AttnProj, o):
 
 
 def _proj(cfg: DiTConfig, name: str, *, qk_norm=None, zero_out=False, eps=None):
-    return AttnProj(cfg.heads, cfg.head_dim, cfg.width, qkv_bias=cfg.qkv_bias,
-                    qk_norm=cfg.qk_norm if qk_norm is None else qk_norm,
-                    eps=1e-6 if eps is None else eps, dtype=cfg.compute_dtype, zero_out=zero_out, name=name)
+    return AttnProj(
+        cfg.heads,
+        cfg.head_dim,
+        cfg.width,
+        qkv_bias=cfg.qkv_bias,
+        qk_norm=cfg.qk_norm if qk_norm is None else qk_norm,
+        eps=1e-6 if eps is None else eps,
+        dtype=cfg.compute_dtype,
+        zero_out=zero_out,
+        name=name,
+    )
 
 
 def spatial_attention(proj: AttnProj, x, impl: str, per_view: bool):
     """Self-attention within each frame: over all views' patches (MiLA [2503.15875v1] eq. 3,
     ``Q, K, V in R^{T x (V H W) x C}``) or, ``per_view``, within each view's patches."""
-    q, (k, v) = proj.q(x), proj.kv(x)                        # [B, F, S, V, H, Dh]
+    q, (k, v) = proj.q(x), proj.kv(x)  # [B, F, S, V, H, Dh]
     shape = q.shape
     if per_view:
-        seq = lambda a: merge(merge(jnp.transpose(a, (0, 1, 3, 2, 4, 5)), 0), 0)   # [B F V, S]
+        seq = lambda a: merge(merge(jnp.transpose(a, (0, 1, 3, 2, 4, 5)), 0), 0)  # [B F V, S]
         o = attention(seq(q), seq(k), seq(v), impl=impl)
         o = jnp.transpose(split(split(o, 0, shape[0]), 1, shape[1]), (0, 1, 3, 2, 4, 5))
     else:
-        seq = lambda a: merge(merge(a, 2), 0)                                       # [B F, S V]
+        seq = lambda a: merge(merge(a, 2), 0)  # [B F, S V]
         o = attention(seq(q), seq(k), seq(v), impl=impl)
         o = split(split(o, 0, shape[0]), 2, shape[2])
     return _out(proj, o)
@@ -95,13 +104,14 @@ def spatial_attention(proj: AttnProj, x, impl: str, per_view: bool):
 def cross_view_attention(proj: AttnProj, x, offsets, impl: str):
     """MagicDrive-V2's cross-view attention (sec. 4.2, after MagicDrive): the tokens of view v
     attend to all tokens of the views ``v + o`` (mod V) for ``o`` in ``offsets``."""
-    q, (k, v) = proj.q(x), proj.kv(x)                        # [B, F, S, V, H, Dh]
+    q, (k, v) = proj.q(x), proj.kv(x)  # [B, F, S, V, H, Dh]
     shape = q.shape
 
-    def neighbours(a):                                       # [B F V, S O, H, Dh]
-        a = jnp.stack([jnp.roll(a, -o, axis=3) for o in offsets], axis=3)   # [B, F, S, O, V, ...]
-        a = jnp.transpose(a, (0, 1, 4, 2, 3, 5, 6))                         # [B, F, V, S, O, ...]
+    def neighbours(a):  # [B F V, S O, H, Dh]
+        a = jnp.stack([jnp.roll(a, -o, axis=3) for o in offsets], axis=3)  # [B, F, S, O, V, ...]
+        a = jnp.transpose(a, (0, 1, 4, 2, 3, 5, 6))  # [B, F, V, S, O, ...]
         return merge(merge(merge(a, 3), 0), 0)
+
     qs = merge(merge(jnp.transpose(q, (0, 1, 3, 2, 4, 5)), 0), 0)
     o = attention(qs, neighbours(k), neighbours(v), impl=impl)
     o = jnp.transpose(split(split(o, 0, shape[0]), 1, shape[1]), (0, 1, 3, 2, 4, 5))
@@ -111,12 +121,11 @@ def cross_view_attention(proj: AttnProj, x, offsets, impl: str):
 def temporal_attention(proj: AttnProj, x, impl: str, theta: float):
     """Self-attention over the frames of each (patch, view) position with RoPE over the frame index
     (Open-Sora's temporal attention); local: every device holds all frames of its patches."""
-    q, (k, v) = proj.q(x), proj.kv(x)                        # [B, F, S, V, H, Dh]
-    cos, sin = (jnp.asarray(a)[:, None, None, None, :] for a in rope_1d(np.arange(q.shape[1]),
-                                                                          q.shape[-1], theta))
+    q, (k, v) = proj.q(x), proj.kv(x)  # [B, F, S, V, H, Dh]
+    cos, sin = (jnp.asarray(a)[:, None, None, None, :] for a in rope_1d(np.arange(q.shape[1]), q.shape[-1], theta))
     q, k = apply_rope(q, cos, sin), apply_rope(k, cos, sin)
     fn = lambda q, k, v: attention(q, k, v, impl=impl)
-    over_views = jax.vmap(fn, in_axes=2, out_axes=2)          # [B, F, V, H, Dh] -> vmap V
+    over_views = jax.vmap(fn, in_axes=2, out_axes=2)  # [B, F, V, H, Dh] -> vmap V
     o = jax.vmap(over_views, in_axes=2, out_axes=2)(q, k, v)  # vmap S
     return _out(proj, o)
 
@@ -130,25 +139,25 @@ def context_attention(proj: AttnProj, x, ctx: LayerContext, impl: str):
     text, tokens = ctx.text, ctx.tokens
     if text is None and tokens is None:
         return jnp.zeros_like(x)
-    q = proj.q(x)                                            # [B, F, S, V, H, Dh]
+    q = proj.q(x)  # [B, F, S, V, H, Dh]
     shape = q.shape
     if tokens is None:
         k, v = proj.kv(text)
         o = attention(to_sequence(q, SFV), k, v, impl=impl, kv_mask=ctx.text_mask)
         return _out(proj, from_sequence(o, shape, SFV))
     b, f, _, nv = shape[:4]
-    kc, vc = proj.kv(tokens)                                 # [B, F, V, N, H, Dh]
+    kc, vc = proj.kv(tokens)  # [B, F, V, N, H, Dh]
     mc = ctx.tokens_mask
-    assert mc is not None                                    # control tokens come with their mask
+    assert mc is not None  # control tokens come with their mask
     if text is not None:
-        kt, vt = proj.kv(text)                               # [B, L, H, Dh]
+        kt, vt = proj.kv(text)  # [B, L, H, Dh]
         # the text's sharding may differ from the control tokens' (text replicated, boxes per sample)
         grow = lambda a, like: reshard_like(jnp.broadcast_to(a[:, None, None], (b, f, nv) + a.shape[1:]), like)
         kc, vc = jnp.concatenate([grow(kt, kc), kc], 3), jnp.concatenate([grow(vt, vc), vc], 3)
         tm = ctx.text_mask
         tm = jnp.ones(text.shape[:2], bool) if tm is None else tm
         mc = jnp.concatenate([grow(tm, mc), mc], 3)
-    groups = lambda a: merge(merge(a, 0), 0)                 # [B F V, ...]
+    groups = lambda a: merge(merge(a, 0), 0)  # [B F V, ...]
     qs = groups(jnp.transpose(q, (0, 1, 3, 2, 4, 5)))
     o = attention(qs, groups(kc), groups(vc), impl=impl, kv_mask=groups(mc))
     o = jnp.transpose(split(split(o, 0, b), 1, f), (0, 1, 3, 2, 4, 5))
@@ -170,7 +179,7 @@ def joint_attention(proj: AttnProj, xv, xt, *, impl: str, rope=None, text_mask=N
         cos, sin = (jnp.asarray(a)[:, :, None, None, :] for a in rope)
         qv, kv_ = apply_rope(qv, cos, sin), apply_rope(kv_, cos, sin)
     shape = qv.shape
-    seqs_v = [to_sequence(a, SFV) for a in (qv, kv_, vv)]    # [B, N, H, Dh]
+    seqs_v = [to_sequence(a, SFV) for a in (qv, kv_, vv)]  # [B, N, H, Dh]
     b, lt, n_vid = xt.shape[0], xt.shape[1], seqs_v[0].shape[1]
     n = mesh_axis_size("seq")
     if n_vid % n or shape[2] % n:
@@ -184,10 +193,11 @@ def joint_attention(proj: AttnProj, xv, xt, *, impl: str, rope=None, text_mask=N
 
     def join(t, v):
         if n == 1:
-            if explicit_mesh() is not None:      # one seq device: give the text the video's layout
+            if explicit_mesh() is not None:  # one seq device: give the text the video's layout
                 t = jax.reshard(t, PartitionSpec(*spec_of(v)))
             return jnp.concatenate([t, v], axis=1)
         return merge(jnp.concatenate([split(t, 1, n), split(v, 1, n)], axis=2), 1)
+
     q, k, v = (join(t, v) for t, v in zip(seqs_t, seqs_v))
     mask = join(constrain(tmask, ("batch", "tokens")), constrain(vmask, ("batch", "tokens")))
     o = attention(q, k, v, impl=impl, kv_mask=None if text_mask is None and lp == lt else mask)
@@ -196,7 +206,7 @@ def joint_attention(proj: AttnProj, xv, xt, *, impl: str, rope=None, text_mask=N
     else:
         chunks = split(o, 1, n)
         ot = merge(chunks[:, :, : lp // n], 1)
-        ov = merge(chunks[:, :, lp // n:], 1)
+        ov = merge(chunks[:, :, lp // n :], 1)
         ot = constrain(ot, ("batch", None, "heads", "head_dim"))[:, :lt]
     return _out(proj, from_sequence(ov, shape, SFV)), proj.out(ot)
 
@@ -210,8 +220,7 @@ class CrossView(nn.Module):
     def __call__(self, x):
         cfg = self.cfg
         h = LayerNorm(cfg.norm_eps, name="norm")(x)
-        return cross_view_attention(_proj(cfg, "attn", zero_out=True), h, cfg.neighbor_offsets,
-                                    cfg.attn_impl)
+        return cross_view_attention(_proj(cfg, "attn", zero_out=True), h, cfg.neighbor_offsets, cfg.attn_impl)
 
 
 def _table(module, n: int, width: int):
@@ -239,7 +248,7 @@ class STBlock(nn.Module):
         cfg = self.cfg
         shift, scale, gate, shift_m, scale_m, gate_m = _chunks(_table(self, 6, cfg.width), ctx.t0, 6)
         h = modulate(LayerNorm(cfg.norm_eps, affine=False, name="norm1")(x), shift, scale)
-        grown = self.temporal and cfg.temporal == "zero_init"      # added to a spatial-only model: identity at init
+        grown = self.temporal and cfg.temporal == "zero_init"  # added to a spatial-only model: identity at init
         proj = _proj(cfg, "attn", zero_out=grown)
         if self.temporal:
             a = temporal_attention(proj, h, cfg.local_attn_impl, cfg.rope_theta)
@@ -248,8 +257,7 @@ class STBlock(nn.Module):
         x = x + gate * a
         if not self.temporal and cfg.multiview == "cross_view":
             x = x + CrossView(cfg, name="cross_view")(x)
-        x = x + context_attention(_proj(cfg, "cross_attn", qk_norm="none", zero_out=True), x, ctx,
-                                  cfg.local_attn_impl)
+        x = x + context_attention(_proj(cfg, "cross_attn", qk_norm="none", zero_out=True), x, ctx, cfg.local_attn_impl)
         h = modulate(LayerNorm(cfg.norm_eps, affine=False, name="norm2")(x), shift_m, scale_m)
         mlp = MLP(int(cfg.width * cfg.mlp_ratio), cfg.width, dtype=cfg.compute_dtype, zero_out=grown, name="mlp")
         return x + gate_m * mlp(h)
@@ -269,8 +277,9 @@ class FactorizedLayer(nn.Module):
         cfg = self.cfg
         x = constrain(x, VIDEO)
         if ctx.warp is not None:
-            x = x + Dense(cfg.width, ("embed", None), dtype=cfg.compute_dtype,
-                          kernel_init=ZEROS, name="warp_proj")(ctx.warp)
+            x = x + Dense(cfg.width, ("embed", None), dtype=cfg.compute_dtype, kernel_init=ZEROS, name="warp_proj")(
+                ctx.warp
+            )
         if cfg.block == "stdit3":
             x = STBlock(cfg, False, name="spatial")(x, ctx)
             if cfg.temporal != "off":
@@ -279,17 +288,14 @@ class FactorizedLayer(nn.Module):
         chunks = _chunks(_table(self, 9, cfg.width), ctx.t0, 9)
         shift, scale, gate, shift_m, scale_m, gate_m, shift_t, scale_t, gate_t = chunks
         h = modulate(LayerNorm(cfg.norm_eps, affine=False, name="norm1")(x), shift, scale)
-        x = x + gate * spatial_attention(_proj(cfg, "attn"), h, cfg.attn_impl,
-                                         cfg.multiview == "cross_view")
+        x = x + gate * spatial_attention(_proj(cfg, "attn"), h, cfg.attn_impl, cfg.multiview == "cross_view")
         if cfg.multiview == "cross_view":
             x = x + CrossView(cfg, name="cross_view")(x)
         h = modulate(LayerNorm(cfg.norm_eps, affine=False, name="norm_temp")(x), shift_t, scale_t)
         x = x + gate_t * temporal_attention(_proj(cfg, "attn_temp"), h, cfg.local_attn_impl, cfg.rope_theta)
-        x = x + context_attention(_proj(cfg, "cross_attn", qk_norm="none", zero_out=True), x, ctx,
-                                  cfg.local_attn_impl)
+        x = x + context_attention(_proj(cfg, "cross_attn", qk_norm="none", zero_out=True), x, ctx, cfg.local_attn_impl)
         h = modulate(LayerNorm(cfg.norm_eps, affine=False, name="norm2")(x), shift_m, scale_m)
-        x = x + gate_m * MLP(int(cfg.width * cfg.mlp_ratio), cfg.width, dtype=cfg.compute_dtype,
-                             name="mlp")(h)
+        x = x + gate_m * MLP(int(cfg.width * cfg.mlp_ratio), cfg.width, dtype=cfg.compute_dtype, name="mlp")(h)
         return constrain(x, VIDEO)
 
 
@@ -309,22 +315,24 @@ class FullBlock(nn.Module):
         xv, xt = carry
         xv = constrain(xv, VIDEO)
         if ctx.warp is not None:
-            xv = xv + Dense(cfg.width, ("embed", None), dtype=cfg.compute_dtype,
-                            kernel_init=ZEROS, name="warp_proj")(ctx.warp)
+            xv = xv + Dense(cfg.width, ("embed", None), dtype=cfg.compute_dtype, kernel_init=ZEROS, name="warp_proj")(
+                ctx.warp
+            )
         rope = ctx.rope
         for i, sub in enumerate(("attn", "ff")):
             lin = Dense(6 * cfg.width, ("embed", None), dtype=cfg.compute_dtype, name=f"norm{i + 1}_linear")
             norm = LayerNorm(cfg.norm_eps, name=f"norm{i + 1}")
-            mv = lin(jax.nn.silu(ctx.t))                     # [B, F, 6D]: video shift, scale, gate
-            mt = lin(jax.nn.silu(ctx.t_text))                # [B, 6D]: text (last three)
+            mv = lin(jax.nn.silu(ctx.t))  # [B, F, 6D]: video shift, scale, gate
+            mt = lin(jax.nn.silu(ctx.t_text))  # [B, 6D]: text (last three)
             b, f = mv.shape[:2]
             mv = reshape(mv, (b, f, 6, 1, 1, cfg.width))
             mt = reshape(mt, (b, 6, 1, cfg.width))
             hv = modulate(norm(xv), mv[:, :, 0], mv[:, :, 1])
             ht = modulate(norm(xt), mt[:, 3], mt[:, 4])
             if sub == "attn":
-                ov, ot = joint_attention(_proj(cfg, "attn", eps=1e-6), hv, ht, impl=cfg.attn_impl,
-                                         rope=rope, text_mask=ctx.text_mask)
+                ov, ot = joint_attention(
+                    _proj(cfg, "attn", eps=1e-6), hv, ht, impl=cfg.attn_impl, rope=rope, text_mask=ctx.text_mask
+                )
             else:
                 mlp = MLP(int(cfg.width * cfg.mlp_ratio), cfg.width, dtype=cfg.compute_dtype, name="ff")
                 ov, ot = mlp(hv), mlp(ht)
@@ -332,9 +340,12 @@ class FullBlock(nn.Module):
             xt = xt + mt[:, 5] * ot
         if ctx.tokens is not None:
             h = LayerNorm(cfg.norm_eps, name="ctx_norm")(xv)
-            xv = xv + context_attention(_proj(cfg, "ctx_attn", qk_norm="none", zero_out=True), h,
-                                        LayerContext(tokens=ctx.tokens, tokens_mask=ctx.tokens_mask),
-                                        cfg.local_attn_impl)
+            xv = xv + context_attention(
+                _proj(cfg, "ctx_attn", qk_norm="none", zero_out=True),
+                h,
+                LayerContext(tokens=ctx.tokens, tokens_mask=ctx.tokens_mask),
+                cfg.local_attn_impl,
+            )
         return constrain(xv, VIDEO), constrain(xt, TEXT)
 
 

@@ -41,17 +41,31 @@ from jaxdrive.parallel.mesh import mesh_axis_size
 from jaxdrive.validate import check_range, check_shape
 
 # Fields that belong to a control; given while the control is off they are an error.
-CONTROL_OF = {"fps": "fps", "intrinsics": "camera", "cam_to_ego": "camera", "waypoints": "waypoints",
-              "ego_to_world": "trajectory", "boxes": "boxes", "box_classes": "boxes",
-              "box_valid": "boxes", "bev_map": "map", "warp": "warp",
-              "frame_times": "frame_time"}
+CONTROL_OF = {
+    "fps": "fps",
+    "intrinsics": "camera",
+    "cam_to_ego": "camera",
+    "waypoints": "waypoints",
+    "ego_to_world": "trajectory",
+    "boxes": "boxes",
+    "box_classes": "boxes",
+    "box_valid": "boxes",
+    "bev_map": "map",
+    "warp": "warp",
+    "frame_times": "frame_time",
+}
 # Fields the projected layout (controls.layout) reads besides those of its own controls.
 LAYOUT_FIELDS = ("intrinsics", "cam_to_ego", "bev_map")
 # Fields with a (pixel or latent) frame axis at 1; the others are per clip or per view.
 PER_FRAME = ("waypoints", "ego_to_world", "boxes", "box_classes", "box_valid", "bev_map", "frame_times")
 # The data pipeline's drop names (jaxdrive.data.pipeline.CONDITIONS) -> the DiT conditions they drop.
-BATCH_DROPS = {"text": ("text",), "camera": ("camera",), "trajectory": ("trajectory", "waypoints", "warp"),
-               "boxes": ("boxes",), "map": ("map",)}
+BATCH_DROPS = {
+    "text": ("text",),
+    "camera": ("camera",),
+    "trajectory": ("trajectory", "waypoints", "warp"),
+    "boxes": ("boxes",),
+    "map": ("map",),
+}
 
 
 @struct.dataclass
@@ -104,11 +118,16 @@ class Conditions:
         if "boxes" in on:
             kw.update({k: np.asarray(batch[k]) for k in ("boxes", "box_classes", "box_valid")})
         if "map" in on or layout:
-            kw["bev_map"] = f32("bev_map")          # the schema's classes are 0 / 1 already
+            kw["bev_map"] = f32("bev_map")  # the schema's classes are 0 / 1 already
         if "frame_time" in on:
             kw["frame_times"] = f32("frame_times")
-        kw["drop"] = {t: np.asarray(batch["drop"][name], bool) for name, targets in BATCH_DROPS.items()
-                      if name in batch.get("drop", {}) for t in targets if t in on}
+        kw["drop"] = {
+            t: np.asarray(batch["drop"][name], bool)
+            for name, targets in BATCH_DROPS.items()
+            if name in batch.get("drop", {})
+            for t in targets
+            if t in on
+        }
         return cls(**kw)
 
     def check(self, cfg: DiTConfig, latents, sigma) -> Conditions:
@@ -122,8 +141,13 @@ class Conditions:
         """A copy with every given per-frame field ``k`` replaced by ``fn(k, value)`` (windows,
         segments and coarse frames of a clip)."""
         # flax.struct.dataclass adds .replace at runtime; its stub does not declare it
-        return self.replace(**{k: fn(k, getattr(self, k))  # type: ignore[attr-defined]
-                               for k in PER_FRAME if getattr(self, k) is not None})
+        return self.replace(
+            **{
+                k: fn(k, getattr(self, k))  # type: ignore[attr-defined]
+                for k in PER_FRAME
+                if getattr(self, k) is not None
+            }
+        )
 
     def with_drops(self, names, value: bool, batch: int) -> Conditions:
         """A copy whose ``drop`` sets each of ``names`` to ``value`` for all ``batch`` clips
@@ -154,40 +178,40 @@ def _check(cfg: DiTConfig, latents, sigma, cond: Conditions) -> None:
     b, nv, nf, h, w, ch = np.shape(latents)
     pt, ph, pw = cfg.patch
     if ch != cfg.in_channels:
-        raise ValueError(f"latents: expected {cfg.in_channels} channels (in_channels), got shape "
-                         f"{_shape(latents)}")
+        raise ValueError(f"latents: expected {cfg.in_channels} channels (in_channels), got shape {_shape(latents)}")
     if h % ph or w % pw or nf % pt:
-        raise ValueError(f"latents: expected F', h, w divisible by the patch {cfg.patch}, got shape "
-                         f"{_shape(latents)}")
+        raise ValueError(f"latents: expected F', h, w divisible by the patch {cfg.patch}, got shape {_shape(latents)}")
     if np.ndim(sigma) == 1:
         check_shape("sigma", sigma, [b])
     elif np.ndim(sigma) == 2:
         if tuple(np.shape(sigma)) != (b, nf):
-            raise ValueError(f"sigma: expected shape [B] = [{b}] or [B, F'] = [{b}, {nf}], got "
-                             f"{_shape(sigma)}")
+            raise ValueError(f"sigma: expected shape [B] = [{b}] or [B, F'] = [{b}, {nf}], got {_shape(sigma)}")
     else:
         raise ValueError(f"sigma: expected shape [B] = [{b}] or [B, F'] = [{b}, {nf}], got {_shape(sigma)}")
     check_range("sigma", sigma, 0.0, 1.0)
     tensor = mesh_axis_size("tensor")
     if cfg.heads % tensor:
-        raise ValueError(f"heads: expected a multiple of the mesh axis 'tensor' (size {tensor}), "
-                         f"got {cfg.heads}")
+        raise ValueError(f"heads: expected a multiple of the mesh axis 'tensor' (size {tensor}), got {cfg.heads}")
     _check_text(cfg, b, text, kw.get("text_mask"))
     on = c.enabled()
     for name, control in CONTROL_OF.items():
         if control == "camera" and c.boxes and c.box_per_view:
-            continue                                     # per-view boxes use the cameras too
+            continue  # per-view boxes use the cameras too
         if c.layout and name in LAYOUT_FIELDS:
-            continue                                     # the layout draws the map with the cameras
+            continue  # the layout draws the map with the cameras
         if kw.get(name) is not None and control not in on:
-            raise ValueError(f"{name}: this DiT takes no {control} (controls.{control} is False), "
-                             f"got an array of shape {_shape(kw[name])}")
+            raise ValueError(
+                f"{name}: this DiT takes no {control} (controls.{control} is False), "
+                f"got an array of shape {_shape(kw[name])}"
+            )
     if kw.get("fps") is not None:
         check_shape("fps", kw["fps"], [b])
     cams = [kw.get("intrinsics"), kw.get("cam_to_ego")]
     if (cams[0] is None) != (cams[1] is None):
-        raise ValueError("intrinsics, cam_to_ego: expected both or neither, got only "
-                         f"{'intrinsics' if cams[1] is None else 'cam_to_ego'}")
+        raise ValueError(
+            "intrinsics, cam_to_ego: expected both or neither, got only "
+            f"{'intrinsics' if cams[1] is None else 'cam_to_ego'}"
+        )
     if cams[0] is not None:
         check_shape("intrinsics", cams[0], [b, nv, 3, 3])
         check_shape("cam_to_ego", cams[1], [b, nv, 4, 4])
@@ -208,8 +232,10 @@ def _check(cfg: DiTConfig, latents, sigma, cond: Conditions) -> None:
         boxes = kw.get("boxes")
         fb, fm = (() if boxes is None else np.shape(boxes)[1:2]), np.shape(kw["bev_map"])[1]
         if c.layout and fb and fb[0] != fm:
-            raise ValueError(f"bev_map: the layout (controls.layout) draws each frame's boxes and map together, "
-                             f"expected {fb[0]} frames as the boxes, got {fm}")
+            raise ValueError(
+                f"bev_map: the layout (controls.layout) draws each frame's boxes and map together, "
+                f"expected {fb[0]} frames as the boxes, got {fm}"
+            )
     for name in ("cond_latents", "cond_mask"):
         if kw.get(name) is not None and c.cond_frames is None:
             raise ValueError(f"{name}: this DiT takes no condition frames (controls.cond_frames is None)")
@@ -263,8 +289,9 @@ def _check_boxes(cfg, b, nf, intrinsics, kw):
     names = ("boxes", "box_classes", "box_valid")
     given = [kw.get(n) is not None for n in names]
     if any(given) and not all(given):
-        raise ValueError(f"boxes, box_classes, box_valid: expected all three or none, got "
-                         f"{[n for n, g in zip(names, given) if g]}")
+        raise ValueError(
+            f"boxes, box_classes, box_valid: expected all three or none, got {[n for n, g in zip(names, given) if g]}"
+        )
     if not all(given):
         return
     check_shape("boxes", kw["boxes"], [b, None, None, 7])
@@ -274,11 +301,12 @@ def _check_boxes(cfg, b, nf, intrinsics, kw):
     check_shape("box_valid", kw["box_valid"], [b, fb, n])
     _check_bool("box_valid", kw["box_valid"])
     if cfg.controls.boxes and cfg.controls.box_per_view and intrinsics is None:
-        raise ValueError("intrinsics: per-view boxes (controls.box_per_view) need intrinsics and "
-                         "cam_to_ego, got none")
+        raise ValueError("intrinsics: per-view boxes (controls.box_per_view) need intrinsics and cam_to_ego, got none")
     if cfg.controls.layout and intrinsics is None:
-        raise ValueError("intrinsics: the projected layout (controls.layout) draws the boxes with the cameras, "
-                         "expected intrinsics and cam_to_ego, got none")
+        raise ValueError(
+            "intrinsics: the projected layout (controls.layout) draws the boxes with the cameras, "
+            "expected intrinsics and cam_to_ego, got none"
+        )
 
 
 def _check_features(cfg, b, latents, features, mask):
@@ -289,8 +317,9 @@ def _check_features(cfg, b, latents, features, mask):
     if not cfg.htft_layers:
         raise ValueError("features: this DiT fuses no features (htft_layers is empty)")
     if set(features) != set(cfg.htft_layers):
-        raise ValueError(f"features: expected a mapping with the layers {sorted(cfg.htft_layers)}, "
-                         f"got {sorted(features)}")
+        raise ValueError(
+            f"features: expected a mapping with the layers {sorted(cfg.htft_layers)}, got {sorted(features)}"
+        )
     _, nv, _, h, w, _ = np.shape(latents)
     pt, ph, pw = cfg.patch
     k = None

@@ -120,9 +120,17 @@ class Controls:
         of which controls are on: checks, batch preparation and guidance read it). ``"boxes"``
         names the box inputs and their drop, which both box pathways read (cross-attention with
         ``boxes``, the canvas with ``layout``)."""
-        on = {"text": self.text is not None, "fps": self.fps, "camera": self.camera, "waypoints": self.waypoints,
-              "trajectory": self.trajectory, "boxes": self.boxes or self.layout, "map": self.map, "warp": self.warp,
-              "frame_time": self.frame_time}
+        on = {
+            "text": self.text is not None,
+            "fps": self.fps,
+            "camera": self.camera,
+            "waypoints": self.waypoints,
+            "trajectory": self.trajectory,
+            "boxes": self.boxes or self.layout,
+            "map": self.map,
+            "warp": self.warp,
+            "frame_time": self.frame_time,
+        }
         return tuple(name for name in CONDITIONS if on[name])
 
 
@@ -265,8 +273,10 @@ def check_config(cfg: DiTConfig) -> DiTConfig:
     check_choice("block", cfg.block, BLOCKS)
     check_choice("temporal", cfg.temporal, TEMPORAL)
     if cfg.temporal != "on" and (cfg.layout, cfg.block) != ("factorized", "stdit3"):
-        raise ValueError(f"temporal: expected 'on' for layout {cfg.layout!r} with block {cfg.block!r} (only the "
-                         f"factorized stdit3 layer has separate temporal blocks to drop or grow), got {cfg.temporal!r}")
+        raise ValueError(
+            f"temporal: expected 'on' for layout {cfg.layout!r} with block {cfg.block!r} (only the "
+            f"factorized stdit3 layer has separate temporal blocks to drop or grow), got {cfg.temporal!r}"
+        )
     check_choice("multiview", cfg.multiview, MULTIVIEW)
     check_choice("qk_norm", cfg.qk_norm, QK_NORMS)
     check_choice("positions", cfg.positions, POSITIONS)
@@ -279,21 +289,45 @@ def check_config(cfg: DiTConfig) -> DiTConfig:
     check_choice("prediction", cfg.prediction, PREDICTIONS)
     if not 0.0 < cfg.prediction_min_sigma <= 1.0:
         raise ValueError(f"prediction_min_sigma: expected a level in (0, 1], got {cfg.prediction_min_sigma}")
-    for name in ("depth", "heads", "head_dim", "in_channels", "text_dim", "text_len", "time_freq_dim",
-                 "vae_temporal", "vae_spatial", "htft_groups"):
+    for name in (
+        "depth",
+        "heads",
+        "head_dim",
+        "in_channels",
+        "text_dim",
+        "text_len",
+        "time_freq_dim",
+        "vae_temporal",
+        "vae_spatial",
+        "htft_groups",
+    ):
         check_positive_int(name, getattr(cfg, name))
     check_positive_int("final_conv", cfg.final_conv, minimum=0)
-    if cfg.box_range is not None and (isinstance(cfg.box_range, bool) or not isinstance(cfg.box_range, (int, float))
-                                      or not 0.0 < cfg.box_range < float("inf")):
-        raise ValueError(f"box_range: expected a positive number of metres (or None: raw metres), "
-                         f"got {cfg.box_range!r}")
+    if cfg.box_range is not None and (
+        isinstance(cfg.box_range, bool)
+        or not isinstance(cfg.box_range, (int, float))
+        or not 0.0 < cfg.box_range < float("inf")
+    ):
+        raise ValueError(
+            f"box_range: expected a positive number of metres (or None: raw metres), got {cfg.box_range!r}"
+        )
     check_positive_int("box_freqs", cfg.box_freqs)
-    for name in ("num_classes", "map_channels", "map_hidden", "fourier_freqs", "caption_vocab", "layout_hidden",
-                 "layout_samples"):
+    for name in (
+        "num_classes",
+        "map_channels",
+        "map_hidden",
+        "fourier_freqs",
+        "caption_vocab",
+        "layout_hidden",
+        "layout_samples",
+    ):
         check_positive_int(f"controls.{name}", getattr(cfg.controls, name))
     bev = cfg.controls.layout_bev_range
-    if (len(tuple(bev)) != 2 or any(isinstance(r, bool) or not isinstance(r, (int, float)) for r in bev)
-            or not all(0.0 < r < float("inf") for r in bev)):
+    if (
+        len(tuple(bev)) != 2
+        or any(isinstance(r, bool) or not isinstance(r, (int, float)) for r in bev)
+        or not all(0.0 < r < float("inf") for r in bev)
+    ):
         raise ValueError(f"controls.layout_bev_range: expected two positive extents in metres (x, y), got {bev!r}")
     check_positive_int("controls.encoder_layers", cfg.controls.encoder_layers, minimum=0)
     check_positive_int("controls.caption_layers", cfg.controls.caption_layers, minimum=0)
@@ -302,36 +336,40 @@ def check_config(cfg: DiTConfig) -> DiTConfig:
     for p in cfg.patch:
         check_positive_int("patch", p)
     if cfg.prediction == "velocity" and cfg.patch_dim > cfg.width:
-        raise ValueError(f"prediction: a token of patch x in_channels = {cfg.patch_dim} numbers is wider than the "
-                         f"model (heads x head_dim = {cfg.width}), which cannot pass the token's noise through to "
-                         f"predict the velocity; expected prediction='data', a width of at least {cfg.patch_dim} "
-                         f"or a smaller patch, got prediction='velocity'")
+        raise ValueError(
+            f"prediction: a token of patch x in_channels = {cfg.patch_dim} numbers is wider than the "
+            f"model (heads x head_dim = {cfg.width}), which cannot pass the token's noise through to "
+            f"predict the velocity; expected prediction='data', a width of at least {cfg.patch_dim} "
+            f"or a smaller patch, got prediction='velocity'"
+        )
     if cfg.layout == "full" and cfg.positions == "rope" and cfg.head_dim % 8:
         raise ValueError(f"head_dim: 3D RoPE needs a multiple of 8, got {cfg.head_dim}")
     if cfg.layout == "factorized" and cfg.head_dim % 2:
         raise ValueError(f"head_dim: temporal RoPE needs an even head size, got {cfg.head_dim}")
     if cfg.layout == "full" and cfg.positions == "sincos" and cfg.width % 16:
-        raise ValueError(f"heads * head_dim: 3D sin-cos positions need a width divisible by 16, "
-                         f"got {cfg.width}")
+        raise ValueError(f"heads * head_dim: 3D sin-cos positions need a width divisible by 16, got {cfg.width}")
     if cfg.layout == "factorized" and cfg.width % 4:
-        raise ValueError(f"heads * head_dim: 2D sin-cos positions need a width divisible by 4, "
-                         f"got {cfg.width}")
+        raise ValueError(f"heads * head_dim: 2D sin-cos positions need a width divisible by 4, got {cfg.width}")
     check_choice("controls.reference_frame", cfg.controls.reference_frame, REFERENCE_FRAME)
     if cfg.controls.reference_frame and cfg.controls.cond_frames is None:
-        raise ValueError("controls.reference_frame: expected condition frames (controls.cond_frames 'replace' or "
-                         "'concat') to take the reference from, got cond_frames=None")
+        raise ValueError(
+            "controls.reference_frame: expected condition frames (controls.cond_frames 'replace' or "
+            "'concat') to take the reference from, got cond_frames=None"
+        )
     if cfg.controls.reference_frame == "residual" and cfg.prediction != "data":
-        raise ValueError(f"controls.reference_frame: 'residual' makes the output the change from the given frame's "
-                         f"latents, which needs prediction='data', got prediction={cfg.prediction!r}")
+        raise ValueError(
+            f"controls.reference_frame: 'residual' makes the output the change from the given frame's "
+            f"latents, which needs prediction='data', got prediction={cfg.prediction!r}"
+        )
     if cfg.controls.reference_frame == "residual" and cfg.out_dim != cfg.in_channels:
-        raise ValueError(f"out_channels: a residual to the given frame needs in_channels = {cfg.in_channels} outputs, "
-                         f"got {cfg.out_dim}")
+        raise ValueError(
+            f"out_channels: a residual to the given frame needs in_channels = {cfg.in_channels} outputs, "
+            f"got {cfg.out_dim}"
+        )
     if cfg.layout == "full" and cfg.controls.text is None:
-        raise ValueError("controls.text: the full layout attends over [text; video] and needs a text "
-                         "control, got None")
+        raise ValueError("controls.text: the full layout attends over [text; video] and needs a text control, got None")
     if cfg.controls.map and not 1 <= cfg.controls.map_blocks <= cfg.depth:
-        raise ValueError(f"controls.map_blocks: expected 1 .. depth = {cfg.depth}, "
-                         f"got {cfg.controls.map_blocks}")
+        raise ValueError(f"controls.map_blocks: expected 1 .. depth = {cfg.depth}, got {cfg.controls.map_blocks}")
     for i in cfg.scan_breaks:
         if not 0 < i < cfg.depth:
             raise ValueError(f"scan_breaks: expected layer indices in (0, {cfg.depth}), got {i}")
@@ -341,13 +379,11 @@ def check_config(cfg: DiTConfig) -> DiTConfig:
     if len(set(cfg.htft_layers)) != len(cfg.htft_layers):
         raise ValueError(f"htft_layers: expected distinct layers, got {cfg.htft_layers}")
     if cfg.htft_layers and cfg.width % cfg.htft_groups:
-        raise ValueError(f"htft_groups: expected a divisor of the width {cfg.width}, "
-                         f"got {cfg.htft_groups}")
+        raise ValueError(f"htft_groups: expected a divisor of the width {cfg.width}, got {cfg.htft_groups}")
     if not 0.0 <= cfg.htft_dropout < 1.0:
         raise ValueError(f"htft_dropout: expected a rate in [0, 1), got {cfg.htft_dropout}")
     if cfg.ofs_embed_dim is not None and cfg.ofs_embed_dim != cfg.t_dim:
-        raise ValueError(f"ofs_embed_dim: expected the time embedding size {cfg.t_dim}, "
-                         f"got {cfg.ofs_embed_dim}")
+        raise ValueError(f"ofs_embed_dim: expected the time embedding size {cfg.t_dim}, got {cfg.ofs_embed_dim}")
     if cfg.multiview == "cross_view" and (not cfg.neighbor_offsets or 0 in cfg.neighbor_offsets):
         raise ValueError(f"neighbor_offsets: expected non-zero view offsets, got {cfg.neighbor_offsets}")
     return cfg

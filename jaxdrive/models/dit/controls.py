@@ -37,8 +37,10 @@ def frame_mode(name: str, frames: int, latent_frames: int, ratio: int) -> str:
         return "latent"
     if frames == pixel:
         return "pixel"
-    raise ValueError(f"{name}: expected {latent_frames} (latent) or {pixel} (pixel) frames for "
-                     f"{latent_frames} latent frames, got {frames}")
+    raise ValueError(
+        f"{name}: expected {latent_frames} (latent) or {pixel} (pixel) frames for "
+        f"{latent_frames} latent frames, got {frames}"
+    )
 
 
 def group_frames(x, ratio: int, axis: int = 1):
@@ -62,8 +64,8 @@ class TemporalDownsample(nn.Module):
 
     @nn.compact
     def __call__(self, x, mask=None):
-        g = group_frames(x, self.ratio)                        # [B, F', r, ..., D]
-        g = jnp.moveaxis(g, 2, -2)                             # [B, F', ..., r, D]
+        g = group_frames(x, self.ratio)  # [B, F', r, ..., D]
+        g = jnp.moveaxis(g, 2, -2)  # [B, F', ..., r, D]
         y = Dense(self.width, ("channels", "embed"), dtype=self.dtype)(merge(g, g.ndim - 2))
         if mask is None:
             return y, None
@@ -85,8 +87,7 @@ class TimestepMLP(nn.Module):
         e = timestep_embedding(t, self.freq_dim, flip_sin_to_cos=self.flip_sin_to_cos, shift=self.shift)
         init = normal(0.02)
         h = Dense(self.out, ("channels", "embed"), dtype=self.dtype, kernel_init=init, name="linear_1")(e)
-        return Dense(self.out, ("mlp", "embed"), dtype=self.dtype, kernel_init=init,
-                     name="linear_2")(jax.nn.silu(h))
+        return Dense(self.out, ("mlp", "embed"), dtype=self.dtype, kernel_init=init, name="linear_2")(jax.nn.silu(h))
 
 
 class FourierMLP(nn.Module):
@@ -103,8 +104,9 @@ class FourierMLP(nn.Module):
     def __call__(self, c):
         f = fourier_features(c, self.num_freqs, self.temperature)
         h = Dense(self.out, ("channels", "embed"), dtype=self.dtype, name="fc1")(f)
-        return Dense(self.out, ("mlp", "embed"), dtype=self.dtype, kernel_init=ZEROS if self.zero_out else None,
-                     name="fc2")(jax.nn.silu(h))
+        return Dense(
+            self.out, ("mlp", "embed"), dtype=self.dtype, kernel_init=ZEROS if self.zero_out else None, name="fc2"
+        )(jax.nn.silu(h))
 
 
 def null_param(module: nn.Module, name: str, shape, names):
@@ -133,8 +135,9 @@ class EncoderLayer(nn.Module):
     @nn.compact
     def __call__(self, x, mask=None, rope=None):
         name = self.axis_name
-        proj = AttnProj(self.heads, self.width // self.heads, self.width, dtype=self.dtype, context_name=name,
-                        name="attn")
+        proj = AttnProj(
+            self.heads, self.width // self.heads, self.width, dtype=self.dtype, context_name=name, name="attn"
+        )
         h = LayerNorm(name="norm1", name_=name)(x)
         q, (k, v) = proj.q(h), proj.kv(h)
         if rope is not None:
@@ -161,7 +164,7 @@ class TemporalEncoder(nn.Module):
             return x
         f = x.shape[1]
         items = x.shape[2:-1]
-        seq = jnp.moveaxis(x, 1, -2)                           # [B, *items, F, D]
+        seq = jnp.moveaxis(x, 1, -2)  # [B, *items, F, D]
         m = None if mask is None else jnp.moveaxis(mask, 1, -1)
         for _ in range(len(items)):
             seq = merge(seq, 0)
@@ -204,8 +207,7 @@ class CameraEncoder(nn.Module):
         k = intrinsics.astype(jnp.float32)
         params = jnp.stack([k[..., 0, 0] / w, k[..., 1, 1] / h, k[..., 0, 2] / w, k[..., 1, 2] / h], -1)
         pose = cam_to_ego[..., :3, :4].astype(jnp.float32).reshape(*cam_to_ego.shape[:-2], 12)
-        return FourierMLP(self.width, self.num_freqs, self.temperature, self.dtype)(
-            jnp.concatenate([params, pose], -1))
+        return FourierMLP(self.width, self.num_freqs, self.temperature, self.dtype)(jnp.concatenate([params, pose], -1))
 
 
 class _PerFrameFourier(nn.Module):
@@ -268,8 +270,7 @@ class TrajectoryEncoder(nn.Module):
     @nn.compact
     def __call__(self, ego_to_world, latent_frames):
         rel = geometry.relative_to_first(ego_to_world)[..., :3, :4]
-        h = FourierMLP(self.width, self.num_freqs, self.temperature, self.dtype)(
-            rel.reshape(*rel.shape[:-2], 12))
+        h = FourierMLP(self.width, self.num_freqs, self.temperature, self.dtype)(rel.reshape(*rel.shape[:-2], 12))
         h = TemporalEncoder(self.width, self.layers, self.heads, self.impl, self.dtype)(h)
         return align_frames(self, "trajectory", h, None, latent_frames, self.ratio, self.width, self.dtype)[0]
 
@@ -329,26 +330,24 @@ class BoxEncoder(nn.Module):
     box_range: float | None = None
 
     @nn.compact
-    def __call__(self, boxes, classes, valid, latent_frames, intrinsics=None, cam_to_ego=None,
-                 image_hw=None):
-        corners = geometry.box_corners(boxes)                         # [B, Fb, N, 8, 3]
+    def __call__(self, boxes, classes, valid, latent_frames, intrinsics=None, cam_to_ego=None, image_hw=None):
+        corners = geometry.box_corners(boxes)  # [B, Fb, N, 8, 3]
         valid = jnp.asarray(valid, bool)
         if self.per_view:
-            pts = corners[:, :, None]                                  # [B, Fb, 1, N, 8, 3]
+            pts = corners[:, :, None]  # [B, Fb, 1, N, 8, 3]
             flat = pts.reshape(*pts.shape[:3], -1, 3)
-            cam = geometry.ego_to_camera(flat, cam_to_ego[:, None])     # [B, Fb, V, N*8, 3]
+            cam = geometry.ego_to_camera(flat, cam_to_ego[:, None])  # [B, Fb, V, N*8, 3]
             coords = cam.reshape(*cam.shape[:3], corners.shape[2], 8, 3)
             vis = box_visibility(coords, intrinsics[:, None, :, None], image_hw)
-            mask = valid[:, :, None] & vis                            # [B, Fb, V, N]
+            mask = valid[:, :, None] & vis  # [B, Fb, V, N]
         else:
             coords, mask = corners[:, :, None], valid[:, :, None]
         feats = box_corner_features(coords, self.box_range, self.num_freqs, self.temperature)
         table = param(self, "class_embed", normal(0.02), (self.num_classes, self.width), ("vocab", "embed"))
-        table = constrain(table, (None, "embed"))           # whole table on every device for the lookup
+        table = constrain(table, (None, "embed"))  # whole table on every device for the lookup
         cls = lookup(table, jnp.clip(jnp.asarray(classes, jnp.int32), 0, self.num_classes - 1))
         cls = jnp.broadcast_to(cls[:, :, None], feats.shape[:-1] + (self.width,))
-        h = Dense(self.width, ("channels", "embed"), dtype=self.dtype, name="fc1")(
-            jnp.concatenate([feats, cls], -1))
+        h = Dense(self.width, ("channels", "embed"), dtype=self.dtype, name="fc1")(jnp.concatenate([feats, cls], -1))
         h = Dense(self.width, ("mlp", "embed"), dtype=self.dtype, name="fc2")(jax.nn.silu(h))
         h = h * mask[..., None]
         h = TemporalEncoder(self.width, self.layers, self.heads, self.impl, self.dtype)(h, mask)
@@ -367,8 +366,13 @@ class Conv3x3(nn.Module):
     def __call__(self, x):
         names = ("kernel", "kernel", "channels", "channels")
         w = param(self, "kernel", Init("lecun", fan_in_axes=3), (3, 3, x.shape[-1], self.features), names)
-        y = jax.lax.conv_general_dilated(x.astype(self.dtype), w.astype(self.dtype), (self.stride,) * 2, "SAME",
-                                         dimension_numbers=("NHWC", "HWIO", "NHWC"))
+        y = jax.lax.conv_general_dilated(
+            x.astype(self.dtype),
+            w.astype(self.dtype),
+            (self.stride,) * 2,
+            "SAME",
+            dimension_numbers=("NHWC", "HWIO", "NHWC"),
+        )
         return y + param(self, "bias", ZEROS, (self.features,), ("channels",)).astype(self.dtype)
 
 
@@ -388,14 +392,14 @@ class MapEncoder(nn.Module):
     @nn.compact
     def __call__(self, bev, latent_frames, grid_hw):
         b, fm = bev.shape[:2]
-        x = merge(jnp.asarray(bev, jnp.float32), 0).astype(self.dtype)   # [B * Fm, Hm, Wm, C]
+        x = merge(jnp.asarray(bev, jnp.float32), 0).astype(self.dtype)  # [B * Fm, Hm, Wm, C]
         conv = lambda n, s, name: Conv3x3(n, s, self.dtype, name=name)
         x = jax.nn.silu(conv(self.hidden, 1, "conv_in")(x))
         for i in range(3):
             x = jax.nn.silu(conv(self.hidden, 2, f"down_{i}")(x))
         x = jax.image.resize(x, (x.shape[0], *grid_hw, x.shape[-1]), "linear")
         x = Dense(self.width, ("channels", "embed"), dtype=self.dtype, name="proj")(x)
-        x = merge(split(x, 0, b), 2)                                   # [B, Fm, S, D]
+        x = merge(split(x, 0, b), 2)  # [B, Fm, S, D]
         return align_frames(self, "bev_map", x, None, latent_frames, self.ratio, self.width, self.dtype)[0]
 
 
@@ -414,8 +418,9 @@ class CaptionEncoder(nn.Module):
 
     @nn.compact
     def __call__(self, ids, mask):
-        table = constrain(param(self, "embed", normal(0.02), (self.vocab, self.dim), ("vocab", "text_embed")),
-                          (None, "text_embed"))
+        table = constrain(
+            param(self, "embed", normal(0.02), (self.vocab, self.dim), ("vocab", "text_embed")), (None, "text_embed")
+        )
         pos = param(self, "pos", normal(0.02), (self.max_len, self.dim), ("text_tokens", "text_embed"))
         ids = jnp.clip(jnp.asarray(ids, jnp.int32), 0, self.vocab - 1)
         x = (lookup(table, ids) + pos[: ids.shape[1]]).astype(self.dtype)

@@ -13,9 +13,21 @@ from jaxdrive.models.dit.conditions import Conditions
 from jaxdrive.models.dit.config import DiTConfig
 
 
-def example_inputs(cfg: DiTConfig, *, batch: int = 1, views: int = 1, frames: int = 1, height: int | None = None,
-                   width: int | None = None, text_len: int = 4, boxes: int = 2, pixel_frames: bool = True,
-                   past: int = 1, map_hw: tuple[int, int] = (16, 16), seed: int = 0) -> dict:
+def example_inputs(
+    cfg: DiTConfig,
+    *,
+    batch: int = 1,
+    views: int = 1,
+    frames: int = 1,
+    height: int | None = None,
+    width: int | None = None,
+    text_len: int = 4,
+    boxes: int = 2,
+    pixel_frames: bool = True,
+    past: int = 1,
+    map_hw: tuple[int, int] = (16, 16),
+    seed: int = 0,
+) -> dict:
     """Keyword arguments for ``DiT.init`` / ``DiT.__call__`` with every input ``cfg`` takes:
     ``latents [batch, views, frames, height, width, C]`` (height/width default to one patch grid
     of 2 x 2 tokens), ``sigma [batch, frames]``, and ``cond``, a
@@ -31,8 +43,10 @@ def example_inputs(cfg: DiTConfig, *, batch: int = 1, views: int = 1, frames: in
     def f32(*s: int) -> np.ndarray:
         return rng.standard_normal(s).astype(np.float32)
 
-    out: dict[str, Any] = {"latents": f32(batch, views, frames, height, width, cfg.in_channels),
-                           "sigma": rng.uniform(0, 1, (batch, frames)).astype(np.float32)}
+    out: dict[str, Any] = {
+        "latents": f32(batch, views, frames, height, width, cfg.in_channels),
+        "sigma": rng.uniform(0, 1, (batch, frames)).astype(np.float32),
+    }
     fc = 1 + cfg.vae_temporal * (frames - 1) if pixel_frames else frames
     if c.text == "embeddings":
         out["text"] = f32(batch, text_len, cfg.text_dim)
@@ -46,7 +60,7 @@ def example_inputs(cfg: DiTConfig, *, batch: int = 1, views: int = 1, frames: in
         out.update(example_cameras(batch, views, height * cfg.vae_spatial, width * cfg.vae_spatial))
     if c.waypoints:
         out["waypoints"] = np.cumsum(np.abs(f32(batch, fc, 2)), axis=1)
-    if c.frame_time:       # 12 fps, then 1 fps: a mixed-rate clip (MiLA [2503.15875v1] appendix B)
+    if c.frame_time:  # 12 fps, then 1 fps: a mixed-rate clip (MiLA [2503.15875v1] appendix B)
         steps = np.where(np.arange(fc) < min(fc, 4), 1 / 12, 1.0)
         out["frame_times"] = np.tile(np.cumsum(steps) - steps[0], (batch, 1)).astype(np.float32)
     if c.trajectory:
@@ -95,5 +109,7 @@ def example_cameras(batch: int, views: int, image_h: int, image_w: int) -> dict:
         m[:3, :3] = np.stack([right, down, fwd], axis=1)
         m[:3, 3] = (1.0, 0.0, 1.5)
         mats.append(m)
-    return {"intrinsics": np.tile(k, (batch, views, 1, 1)),
-            "cam_to_ego": np.tile(np.stack(mats), (batch, 1, 1, 1)).astype(np.float32)}
+    return {
+        "intrinsics": np.tile(k, (batch, views, 1, 1)),
+        "cam_to_ego": np.tile(np.stack(mats), (batch, 1, 1, 1)).astype(np.float32),
+    }

@@ -59,8 +59,9 @@ def camera_rays(intrinsics, cam_to_ego, image_hw, grid_hw, samples: int = 1):
     if np.ndim(intrinsics) < 3 or tuple(np.shape(intrinsics)[-2:]) != (3, 3):
         raise ValueError(f"intrinsics: expected shape [..., V, 3, 3], got {list(np.shape(intrinsics))}")
     if tuple(np.shape(cam_to_ego)) != tuple(np.shape(intrinsics)[:-2]) + (4, 4):
-        raise ValueError(f"cam_to_ego: expected shape {list(np.shape(intrinsics)[:-2]) + [4, 4]}, "
-                         f"got {list(np.shape(cam_to_ego))}")
+        raise ValueError(
+            f"cam_to_ego: expected shape {list(np.shape(intrinsics)[:-2]) + [4, 4]}, got {list(np.shape(cam_to_ego))}"
+        )
     for name, hw in (("image_hw", image_hw), ("grid_hw", grid_hw)):
         if len(tuple(hw)) != 2:
             raise ValueError(f"{name}: expected (height, width), got {hw!r}")
@@ -72,10 +73,10 @@ def camera_rays(intrinsics, cam_to_ego, image_hw, grid_hw, samples: int = 1):
     v = (np.arange(gh * samples) + 0.5) * (h / (gh * samples))
     k = jnp.asarray(intrinsics, jnp.float32)
     fx, fy, cx, cy = (k[..., i, j][..., None, None] for i, j in ((0, 0), (1, 1), (0, 2), (1, 2)))
-    x = (jnp.asarray(u, jnp.float32)[None, :] - cx) / fx                     # [..., V, 1, Ws]
-    y = (jnp.asarray(v, jnp.float32)[:, None] - cy) / fy                     # [..., V, Hs, 1]
+    x = (jnp.asarray(u, jnp.float32)[None, :] - cx) / fx  # [..., V, 1, Ws]
+    y = (jnp.asarray(v, jnp.float32)[:, None] - cy) / fy  # [..., V, Hs, 1]
     x, y = jnp.broadcast_arrays(x, y)
-    cam = jnp.stack([x, y, jnp.ones_like(x)], -1)                            # [..., V, Hs, Ws, 3]
+    cam = jnp.stack([x, y, jnp.ones_like(x)], -1)  # [..., V, Hs, Ws, 3]
     pose = jnp.asarray(cam_to_ego, jnp.float32)
     dirs = jnp.einsum("...ij,...hwj->...hwi", pose[..., :3, :3], cam)
     return pose[..., :3, 3], dirs
@@ -85,16 +86,22 @@ def _hit(box, origin, dirs):
     """Camera depth of the ray hits of one box per (batch, frame): ``box [B, F, 7]``, ``origin
     [B, V, 3]``, ``dirs [B, V, P, 3]`` -> ``[B, F, V, P]`` (inf where the ray misses or the box
     lies behind the camera). The slab test in the box's frame (yaw about z)."""
-    c, s = jnp.cos(box[..., 6]), jnp.sin(box[..., 6])                        # [B, F]
-    c, s = c[:, :, None], s[:, :, None]                                      # [B, F, 1] (views)
-    rel = origin[:, None] - box[:, :, None, :3]                              # [B, F, V, 3]
+    c, s = jnp.cos(box[..., 6]), jnp.sin(box[..., 6])  # [B, F]
+    c, s = c[:, :, None], s[:, :, None]  # [B, F, 1] (views)
+    rel = origin[:, None] - box[:, :, None, :3]  # [B, F, V, 3]
     o = jnp.stack([c * rel[..., 0] + s * rel[..., 1], -s * rel[..., 0] + c * rel[..., 1], rel[..., 2]], -1)
-    d = dirs[:, None]                                                        # [B, 1, V, P, 3]
+    d = dirs[:, None]  # [B, 1, V, P, 3]
     c, s = c[..., None], s[..., None]
-    d = jnp.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1],
-                   jnp.broadcast_to(d[..., 2], jnp.broadcast_shapes(c.shape, d[..., 2].shape))], -1)
-    inv = 1.0 / jnp.where(jnp.abs(d) < _EPS, _EPS, d)                        # a parallel ray: +-huge slabs
-    half = 0.5 * box[:, :, None, None, 3:6]                                  # [B, F, 1, 1, 3]
+    d = jnp.stack(
+        [
+            c * d[..., 0] + s * d[..., 1],
+            -s * d[..., 0] + c * d[..., 1],
+            jnp.broadcast_to(d[..., 2], jnp.broadcast_shapes(c.shape, d[..., 2].shape)),
+        ],
+        -1,
+    )
+    inv = 1.0 / jnp.where(jnp.abs(d) < _EPS, _EPS, d)  # a parallel ray: +-huge slabs
+    half = 0.5 * box[:, :, None, None, 3:6]  # [B, F, 1, 1, 3]
     t1 = (-half - o[..., None, :]) * inv
     t2 = (half - o[..., None, :]) * inv
     t_in = jnp.max(jnp.minimum(t1, t2), -1)
@@ -118,8 +125,8 @@ def box_hits(boxes, box_valid, origin, dirs):
     hs, ws = np.shape(dirs)[2:4]
     flat = reshape(jnp.asarray(dirs, jnp.float32), (b, np.shape(dirs)[1], hs * ws, 3))
     origin = jnp.asarray(origin, jnp.float32)
-    bx = jnp.moveaxis(jnp.asarray(boxes, jnp.float32), 2, 0)                # [N, B, F, 7]
-    ok = jnp.moveaxis(jnp.asarray(box_valid, bool), 2, 0)                    # [N, B, F]
+    bx = jnp.moveaxis(jnp.asarray(boxes, jnp.float32), 2, 0)  # [N, B, F, 7]
+    ok = jnp.moveaxis(jnp.asarray(box_valid, bool), 2, 0)  # [N, B, F]
     shape = (b, f, np.shape(origin)[1], hs, ws)
     if n == 0:
         return jnp.full(shape, jnp.inf, jnp.float32), jnp.full(shape, -1, jnp.int32)
@@ -153,7 +160,7 @@ def ground_classes(bev_map, origin, dirs, bev_range):
     check_shape("dirs", dirs, [b, np.shape(origin)[1], None, None, 3])
     if len(tuple(bev_range)) != 2 or not all(float(r) > 0 for r in bev_range):
         raise ValueError(f"bev_range: expected two positive extents in metres (x, y), got {bev_range!r}")
-    origin = jnp.asarray(origin, jnp.float32)[:, :, None, None]              # [B, V, 1, 1, 3]
+    origin = jnp.asarray(origin, jnp.float32)[:, :, None, None]  # [B, V, 1, 1, 3]
     dirs = jnp.asarray(dirs, jnp.float32)
     down = dirs[..., 2] < -_EPS
     t = jnp.where(down, -origin[..., 2] / jnp.where(down, dirs[..., 2], -1.0), jnp.inf)
@@ -161,9 +168,9 @@ def ground_classes(bev_map, origin, dirs, bev_range):
     row = jnp.floor(hm / 2 - point[..., 0] / (float(bev_range[0]) / hm)).astype(jnp.int32)
     col = jnp.floor(wm / 2 - point[..., 1] / (float(bev_range[1]) / wm)).astype(jnp.int32)
     inside = down & (row >= 0) & (row < hm) & (col >= 0) & (col < wm)
-    index = jnp.where(inside, row * wm + col, 0)                             # [B, V, Hs, Ws]
+    index = jnp.where(inside, row * wm + col, 0)  # [B, V, Hs, Ws]
     flat = reshape(jnp.asarray(bev_map, jnp.float32), (b, f, hm * wm, ch))
-    rays = int(np.prod(index.shape[1:]))                                     # V Hs Ws
+    rays = int(np.prod(index.shape[1:]))  # V Hs Ws
     picked = jnp.take_along_axis(flat, reshape(index, (b, 1, rays, 1)), axis=2)  # [B, F, V Hs Ws, C]
     picked = reshape(picked, (b, f, *index.shape[1:], ch)) * inside[:, None, ..., None]
     return picked, jnp.where(inside, t, jnp.inf)
@@ -177,8 +184,20 @@ def _pool(x, s: int):
     return jnp.mean(reshape(x, (*lead, hs // s, s, ws // s, s, c)), axis=(-4, -2))
 
 
-def layout_canvas(boxes, box_classes, box_valid, intrinsics, cam_to_ego, image_hw, grid_hw, *,
-                  num_classes: int, bev_map=None, bev_range=(100.0, 100.0), samples: int = 1):
+def layout_canvas(
+    boxes,
+    box_classes,
+    box_valid,
+    intrinsics,
+    cam_to_ego,
+    image_hw,
+    grid_hw,
+    *,
+    num_classes: int,
+    bev_map=None,
+    bev_range=(100.0, 100.0),
+    samples: int = 1,
+):
     """The layout canvas ``[B, F, V, gh, gw, num_classes + 1 + C]`` (channels in the module
     docstring; ``C`` = the BEV map's channels, 0 without ``bev_map``) of ``boxes [B, F, N, 7]``,
     ``box_classes``, ``box_valid [B, F, N]`` and ``bev_map [B, F, Hm, Wm, C]`` (or None) seen by
@@ -193,16 +212,18 @@ def layout_canvas(boxes, box_classes, box_valid, intrinsics, cam_to_ego, image_h
     if bev_map is not None:
         check_shape("bev_map", bev_map, [b, f, None, None, None])
     origin, dirs = camera_rays(intrinsics, cam_to_ego, image_hw, grid_hw, samples)
-    depth, owner = box_hits(boxes, box_valid, origin, dirs)                  # [B, F, V, Hs, Ws]
-    owners = reshape(jnp.maximum(owner, 0), (b, f, int(np.prod(owner.shape[2:]))))     # [B, F, V Hs Ws]
+    depth, owner = box_hits(boxes, box_valid, origin, dirs)  # [B, F, V, Hs, Ws]
+    owners = reshape(jnp.maximum(owner, 0), (b, f, int(np.prod(owner.shape[2:]))))  # [B, F, V Hs Ws]
     cls = jnp.take_along_axis(jnp.asarray(box_classes, jnp.int32), owners, axis=2)
     cls = jnp.where(owner >= 0, reshape(cls, owner.shape), -1)
     # each part pooled on its own (a concatenation at the rays' resolution would be kept whole)
-    parts = [_pool(jax.nn.one_hot(cls, num_classes, dtype=jnp.float32), samples),   # -1, out of range: zeros
-             _pool(jnp.where(owner >= 0, 1.0 / jnp.maximum(depth, 1.0), 0.0)[..., None], samples)]
+    parts = [
+        _pool(jax.nn.one_hot(cls, num_classes, dtype=jnp.float32), samples),  # -1, out of range: zeros
+        _pool(jnp.where(owner >= 0, 1.0 / jnp.maximum(depth, 1.0), 0.0)[..., None], samples),
+    ]
     if bev_map is not None:
         road, ground = ground_classes(bev_map, origin, dirs, bev_range)
-        parts.append(_pool(road * (ground[:, None] < depth)[..., None], samples))   # a nearer box hides the road
+        parts.append(_pool(road * (ground[:, None] < depth)[..., None], samples))  # a nearer box hides the road
     return jnp.concatenate(parts, -1)
 
 
@@ -223,17 +244,30 @@ class LayoutEncoder(nn.Module):
     dtype: jnp.dtype = jnp.float32
 
     @nn.compact
-    def __call__(self, boxes, box_classes, box_valid, intrinsics, cam_to_ego, bev_map, image_hw, grid_hw,
-                 latent_frames):
-        canvas = jax.lax.stop_gradient(layout_canvas(
-            boxes, box_classes, box_valid, intrinsics, cam_to_ego, image_hw, grid_hw, num_classes=self.num_classes,
-            bev_map=bev_map, bev_range=self.bev_range, samples=self.samples))    # [B, F, V, h, w, K]
-        if bev_map is None:                                  # no map: no road anywhere, same channels
+    def __call__(
+        self, boxes, box_classes, box_valid, intrinsics, cam_to_ego, bev_map, image_hw, grid_hw, latent_frames
+    ):
+        canvas = jax.lax.stop_gradient(
+            layout_canvas(
+                boxes,
+                box_classes,
+                box_valid,
+                intrinsics,
+                cam_to_ego,
+                image_hw,
+                grid_hw,
+                num_classes=self.num_classes,
+                bev_map=bev_map,
+                bev_range=self.bev_range,
+                samples=self.samples,
+            )
+        )  # [B, F, V, h, w, K]
+        if bev_map is None:  # no map: no road anywhere, same channels
             canvas = jnp.pad(canvas, [(0, 0)] * 5 + [(0, self.map_channels)])
         b, f, nv = canvas.shape[:3]
-        x = merge(merge(canvas, 0), 0).astype(self.dtype)                     # [B F V, h, w, K]
+        x = merge(merge(canvas, 0), 0).astype(self.dtype)  # [B F V, h, w, K]
         x = jax.nn.silu(Conv3x3(self.hidden, 1, self.dtype, name="conv_in")(x))
         x = jax.nn.silu(Conv3x3(self.hidden, 1, self.dtype, name="conv_out")(x))
-        x = split(split(x, 0, b), 1, f)                                        # [B, F, V, h, w, hidden]
+        x = split(split(x, 0, b), 1, f)  # [B, F, V, h, w, hidden]
         x = align_frames(self, "layout", x, None, latent_frames, self.ratio, self.hidden, self.dtype)[0]
-        return jnp.moveaxis(x, 2, 1)                                           # [B, V, F', h, w, hidden]
+        return jnp.moveaxis(x, 2, 1)  # [B, V, F', h, w, hidden]

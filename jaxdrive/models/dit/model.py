@@ -79,9 +79,11 @@ from jaxdrive.models.params import ZEROS, Init, abstract_params, count_params, h
 from jaxdrive.models.tokens import TEXT, VIDEO, pool_frames, reshape
 from jaxdrive.parallel.rules import constrain
 
-POLICIES = {"full": jax.checkpoint_policies.nothing_saveable,
-            "dots": jax.checkpoint_policies.checkpoint_dots,
-            "dots_no_batch": jax.checkpoint_policies.dots_with_no_batch_dims_saveable}
+POLICIES = {
+    "full": jax.checkpoint_policies.nothing_saveable,
+    "dots": jax.checkpoint_policies.checkpoint_dots,
+    "dots_no_batch": jax.checkpoint_policies.dots_with_no_batch_dims_saveable,
+}
 
 
 def patchify(x, patch):
@@ -115,16 +117,16 @@ class _Body(nn.Module):
         cfg = self.cfg
         # a layer's output keeps its input's dtype (float32 parameters promote a bf16 stream), so a
         # scan's carry has one type
-        carry = jax.tree_util.tree_map(lambda new, old: new.astype(old.dtype),
-                                       layer_class(cfg)(cfg, name="layer")(carry, ctx), carry)
+        carry = jax.tree_util.tree_map(
+            lambda new, old: new.astype(old.dtype), layer_class(cfg)(cfg, name="layer")(carry, ctx), carry
+        )
         video = carry[0] if cfg.layout == "full" else carry
         if res is not None:
             video = video + res
             carry = (video, carry[1]) if cfg.layout == "full" else video
         out = None
         if self.emit:
-            out = Dense(cfg.width, ("embed", None), dtype=cfg.compute_dtype,
-                        kernel_init=ZEROS, name="out")(video)
+            out = Dense(cfg.width, ("embed", None), dtype=cfg.compute_dtype, kernel_init=ZEROS, name="out")(video)
         return carry, out
 
 
@@ -173,8 +175,7 @@ class DiT(nn.Module):
     # ------------------------------------------------------------------ the network
 
     @nn.compact
-    def __call__(self, latents, sigma, cond: Conditions | None = None, *, return_features=False,
-                 deterministic=True):
+    def __call__(self, latents, sigma, cond: Conditions | None = None, *, return_features=False, deterministic=True):
         """Network output ``[B, V, F', h, w, C_out]`` (and ``{layer: features}`` with
         ``return_features``) for ``latents [B, V, F', h, w, C]`` at levels ``sigma [B]``/``[B, F']``
         under the conditions ``cond`` (:class:`~jaxdrive.models.dit.conditions.Conditions`; None: none
@@ -195,7 +196,7 @@ class DiT(nn.Module):
             m = jnp.asarray(cond_mask, bool)
             x = jnp.where(m[:, None, :, None, None, None], jnp.asarray(cond_latents, jnp.float32), x)
             sig = jnp.where(m, 0.0, sig)
-        sig_tok = pool_frames(sig, pt)                                     # [B, Ft]
+        sig_tok = pool_frames(sig, pt)  # [B, Ft]
 
         # tokens: patch embedding, positions, additive conditions (MiLA [2503.15875v1] eq. 2: h_fuse = h_f + h_c)
         tokens = constrain(patchify(x, cfg.patch), VIDEO[:-1] + ("channels",))
@@ -204,8 +205,9 @@ class DiT(nn.Module):
             pos = sincos_2d(*grid, cfg.width, cfg.spatial_interpolation_scale)
             hid = hid + jnp.asarray(pos, dt)[None, None, :, None]
         elif cfg.positions == "sincos":
-            pos = sincos_3d(nf // pt, *grid, cfg.width, cfg.spatial_interpolation_scale,
-                            cfg.temporal_interpolation_scale)
+            pos = sincos_3d(
+                nf // pt, *grid, cfg.width, cfg.spatial_interpolation_scale, cfg.temporal_interpolation_scale
+            )
             hid = hid + jnp.asarray(pos, dt)[None, :, :, None]
         ref = reference_input(x, cond_latents, cond_mask) if cfg.controls.reference_frame else None
         hid = hid + self._additive(cfg, x, c, drop, (h, w), grid, ref)
@@ -213,24 +215,31 @@ class DiT(nn.Module):
         self.sow("intermediates", "tokens", hid)
 
         # noise levels -> per-frame timestep embeddings (+ fps, + ofs)
-        temb = TimestepMLP(cfg.time_freq_dim, cfg.t_dim, cfg.flip_sin_to_cos, cfg.freq_shift, dt,
-                           name="t_embedder")
-        t = temb(sig_tok * cfg.timestep_scale)                             # [B, Ft, Dt]
+        temb = TimestepMLP(cfg.time_freq_dim, cfg.t_dim, cfg.flip_sin_to_cos, cfg.freq_shift, dt, name="t_embedder")
+        t = temb(sig_tok * cfg.timestep_scale)  # [B, Ft, Dt]
         extra = self._clip_embeddings(cfg, b, c.fps, c.ofs, drop)
         t = t + extra[:, None]
         ctx = LayerContext()
         if cfg.layout == "full":
             # flax.struct.dataclass adds .replace at runtime; its stub does not declare it
-            ctx = ctx.replace(t=t,  # type: ignore[attr-defined]
-                              t_text=temb(jnp.max(sig_tok, axis=1) * cfg.timestep_scale) + extra)
+            ctx = ctx.replace(
+                t=t,  # type: ignore[attr-defined]
+                t_text=temb(jnp.max(sig_tok, axis=1) * cfg.timestep_scale) + extra,
+            )
             if cfg.positions == "rope":
-                ctx = ctx.replace(rope=rope_3d(nf // pt, *grid, cfg.head_dim, theta=cfg.rope_theta,
-                                               base=cfg.rope_base))
+                ctx = ctx.replace(rope=rope_3d(nf // pt, *grid, cfg.head_dim, theta=cfg.rope_theta, base=cfg.rope_base))
         else:
             k = 6 if cfg.block == "stdit3" else 9
             # flax.struct.dataclass adds .replace at runtime; its stub does not declare it
-            ctx = ctx.replace(t0=Dense(k * cfg.width, ("embed", None), dtype=dt,  # type: ignore[attr-defined]
-                                       kernel_init=normal(0.02), name="t_block")(jax.nn.silu(t)))
+            ctx = ctx.replace(
+                t0=Dense(
+                    k * cfg.width,
+                    ("embed", None),
+                    dtype=dt,  # type: ignore[attr-defined]
+                    kernel_init=normal(0.02),
+                    name="t_block",
+                )(jax.nn.silu(t))
+            )
         self.sow("intermediates", "modulation", t if ctx.t0 is None else ctx.t0)
 
         # context: text and control tokens; warp tokens
@@ -239,18 +248,24 @@ class DiT(nn.Module):
         ctx = ctx.replace(tokens=tok, tokens_mask=tok_mask)
         if warp is not None:
             wt = Dense(cfg.width, ("channels", "embed"), dtype=dt, name="warp_embed")(
-                constrain(patchify(jnp.asarray(warp, jnp.float32), cfg.patch), VIDEO[:-1] + ("channels",)))
-            ctx = ctx.replace(warp=use_null(drop.get("warp"), wt,
-                                            null_param(self, "warp_null", (cfg.width,), ("embed",))))
+                constrain(patchify(jnp.asarray(warp, jnp.float32), cfg.patch), VIDEO[:-1] + ("channels",))
+            )
+            ctx = ctx.replace(
+                warp=use_null(drop.get("warp"), wt, null_param(self, "warp_null", (cfg.width,), ("embed",)))
+            )
 
-        carry: jax.Array | tuple[jax.Array, jax.Array] = hid      # (video, text) in the full layout
+        carry: jax.Array | tuple[jax.Array, jax.Array] = hid  # (video, text) in the full layout
         if cfg.layout == "full":
-            carry = (hid, constrain(Dense(cfg.width, ("text_embed", "embed"), dtype=dt, name="text_proj")(
-                text_ctx), TEXT))
+            carry = (
+                hid,
+                constrain(Dense(cfg.width, ("text_embed", "embed"), dtype=dt, name="text_proj")(text_ctx), TEXT),
+            )
             ctx = ctx.replace(text_mask=tmask)
         elif text_ctx is not None:
-            ctx = ctx.replace(text=MLP(cfg.width, cfg.width, dtype=dt, in_name="text_embed", name="text_proj")(
-                text_ctx), text_mask=tmask)
+            ctx = ctx.replace(
+                text=MLP(cfg.width, cfg.width, dtype=dt, in_name="text_embed", name="text_proj")(text_ctx),
+                text_mask=tmask,
+            )
 
         residuals = None
         if cfg.controls.map and c.bev_map is not None:
@@ -263,8 +278,8 @@ class DiT(nn.Module):
         if cfg.final_conv:
             out = out + self._final_conv(cfg, out, x, ref)
         if cfg.controls.reference_frame == "residual":
-            assert ref is not None                          # made above: reference_frame is set
-            out = out + ref[..., :-1]                       # the change from the newest given frame
+            assert ref is not None  # made above: reference_frame is set
+            out = out + ref[..., :-1]  # the change from the newest given frame
         return (out, feats) if return_features else out
 
     # ------------------------------------------------------------------ pieces
@@ -290,28 +305,32 @@ class DiT(nn.Module):
                 cam = jnp.broadcast_to(null.astype(dt), (b, nv, width))
             else:
                 cam = CameraEncoder(width, c.fourier_freqs, c.fourier_temperature, dt, name="camera_embed")(
-                    intrinsics, cam_to_ego, image_hw)
+                    intrinsics, cam_to_ego, image_hw
+                )
                 cam = use_null(drop.get("camera"), cam, null)
-            add = add + cam[:, None, None]                                  # [B, 1, 1, V, D]
+            add = add + cam[:, None, None]  # [B, 1, 1, V, D]
         if c.waypoints:
             null = null_param(self, "waypoints_null", (width,), ("embed",))
             if waypoints is None:
                 wp = jnp.broadcast_to(null.astype(dt), (b, nf // pt, width))
             else:
-                wp = WaypointEncoder(width, c.fourier_freqs, c.fourier_temperature, cfg.vae_temporal, dt,
-                                     name="waypoints_embed")(jnp.asarray(waypoints, jnp.float32), nf)
+                wp = WaypointEncoder(
+                    width, c.fourier_freqs, c.fourier_temperature, cfg.vae_temporal, dt, name="waypoints_embed"
+                )(jnp.asarray(waypoints, jnp.float32), nf)
                 wp = use_null(drop.get("waypoints"), pool_frames(wp, pt), null)
-            add = add + wp[:, :, None, None]                                # [B, Ft, 1, 1, D]
+            add = add + wp[:, :, None, None]  # [B, Ft, 1, 1, D]
         if c.frame_time and cond.frame_times is not None:
-            ft = FrameTimeEncoder(width, c.fourier_freqs, c.fourier_temperature, cfg.vae_temporal, dt,
-                                  name="frame_time_embed")(cond.frame_times, nf)
+            ft = FrameTimeEncoder(
+                width, c.fourier_freqs, c.fourier_temperature, cfg.vae_temporal, dt, name="frame_time_embed"
+            )(cond.frame_times, nf)
             ft = use_null(drop.get("frame_time"), pool_frames(ft, pt), jnp.zeros((), dt))
-            add = add + ft[:, :, None, None]                                # [B, Ft, 1, 1, D]
+            add = add + ft[:, :, None, None]  # [B, Ft, 1, 1, D]
         if c.layout and cond.boxes is not None:
             add = add + self._layout(cfg, cond, drop, hw, nf)
         if ref is not None:
             add = add + Dense(width, ("channels", "embed"), dtype=dt, kernel_init=ZEROS, name="reference_embed")(
-                constrain(patchify(ref, cfg.patch), VIDEO[:-1] + ("channels",)))
+                constrain(patchify(ref, cfg.patch), VIDEO[:-1] + ("channels",))
+            )
         if c.cond_frames == "concat":
             if cond_latents is None:
                 cl, cm = jnp.zeros_like(x), jnp.zeros((b, nf), bool)
@@ -319,8 +338,9 @@ class DiT(nn.Module):
                 cl, cm = jnp.asarray(cond_latents, jnp.float32), jnp.asarray(cond_mask, bool)
             mb = jnp.broadcast_to(cm[:, None, :, None, None, None], x.shape[:-1] + (1,)).astype(jnp.float32)
             cin = jnp.concatenate([cl * mb, mb], axis=-1)
-            add = add + Dense(width, ("channels", "embed"), dtype=dt, kernel_init=ZEROS,
-                              name="cond_embed")(constrain(patchify(cin, cfg.patch), VIDEO[:-1] + ("channels",)))
+            add = add + Dense(width, ("channels", "embed"), dtype=dt, kernel_init=ZEROS, name="cond_embed")(
+                constrain(patchify(cin, cfg.patch), VIDEO[:-1] + ("channels",))
+            )
         return add
 
     def _layout(self, cfg, cond: Conditions, drop, hw, nf):
@@ -332,10 +352,26 @@ class DiT(nn.Module):
         the control. The caller adds nothing when the boxes are absent."""
         c, dt = cfg.controls, cfg.compute_dtype
         image_hw = (hw[0] * cfg.vae_spatial, hw[1] * cfg.vae_spatial)
-        feats = LayoutEncoder(c.num_classes, c.map_channels, c.layout_hidden, c.layout_samples,
-                              tuple(c.layout_bev_range), cfg.vae_temporal, dt, name="layout_embed")(
-            cond.boxes, cond.box_classes, cond.box_valid, cond.intrinsics, cond.cam_to_ego, cond.bev_map, image_hw,
-            hw, nf)                                                         # [B, V, F', h, w, hidden]
+        feats = LayoutEncoder(
+            c.num_classes,
+            c.map_channels,
+            c.layout_hidden,
+            c.layout_samples,
+            tuple(c.layout_bev_range),
+            cfg.vae_temporal,
+            dt,
+            name="layout_embed",
+        )(
+            cond.boxes,
+            cond.box_classes,
+            cond.box_valid,
+            cond.intrinsics,
+            cond.cam_to_ego,
+            cond.bev_map,
+            image_hw,
+            hw,
+            nf,
+        )  # [B, V, F', h, w, hidden]
         tokens = constrain(patchify(feats, cfg.patch), VIDEO[:-1] + ("channels",))
         out = Dense(cfg.width, ("channels", "embed"), dtype=dt, kernel_init=ZEROS, name="layout_gate")(tokens)
         return use_null(drop.get("boxes"), out, jnp.zeros((), dt))
@@ -352,8 +388,14 @@ class DiT(nn.Module):
                 extra = extra + use_null(drop.get("fps"), e, null)
         if cfg.ofs_embed_dim is not None:
             o = jnp.full((b,), 2.0, jnp.float32) if ofs is None else jnp.asarray(ofs, jnp.float32)
-            extra = extra + TimestepMLP(cfg.ofs_embed_dim, cfg.ofs_embed_dim, cfg.flip_sin_to_cos,
-                                        cfg.freq_shift, cfg.compute_dtype, name="ofs_embedder")(o)
+            extra = extra + TimestepMLP(
+                cfg.ofs_embed_dim,
+                cfg.ofs_embed_dim,
+                cfg.flip_sin_to_cos,
+                cfg.freq_shift,
+                cfg.compute_dtype,
+                name="ofs_embedder",
+            )(o)
         return extra
 
     def _text(self, cfg, b, text, text_mask, drop):
@@ -363,8 +405,15 @@ class DiT(nn.Module):
         if text is not None:
             mask = jnp.ones(np.shape(text)[:2], bool) if text_mask is None else jnp.asarray(text_mask, bool)
             if c.text == "caption":
-                y = CaptionEncoder(cfg.text_dim, c.caption_vocab, cfg.text_len, c.caption_layers,
-                                   cfg.local_attn_impl, cfg.compute_dtype, name="caption_encoder")(text, mask)
+                y = CaptionEncoder(
+                    cfg.text_dim,
+                    c.caption_vocab,
+                    cfg.text_len,
+                    c.caption_layers,
+                    cfg.local_attn_impl,
+                    cfg.compute_dtype,
+                    name="caption_encoder",
+                )(text, mask)
             else:
                 y = jnp.asarray(text, cfg.compute_dtype)
         if not c.text_null:
@@ -373,8 +422,10 @@ class DiT(nn.Module):
         # text_len (padding masked) so that a dropped row and an absent text are the same input
         null = null_param(self, "text_null", (cfg.text_len, cfg.text_dim), ("text_tokens", "text_embed"))
         if text is None:
-            return (jnp.broadcast_to(null.astype(cfg.compute_dtype), (b,) + null.shape),
-                    jnp.ones((b, cfg.text_len), bool))
+            return (
+                jnp.broadcast_to(null.astype(cfg.compute_dtype), (b,) + null.shape),
+                jnp.ones((b, cfg.text_len), bool),
+            )
         pad = cfg.text_len - y.shape[1]
         y = jnp.pad(y, ((0, 0), (0, pad), (0, 0)))
         mask = jnp.pad(mask, ((0, 0), (0, pad)))
@@ -392,13 +443,24 @@ class DiT(nn.Module):
             if ego_to_world is None:
                 tr = jnp.broadcast_to(null.astype(dt), (b, ft, width))
             else:
-                tr = TrajectoryEncoder(width, cfg.heads, c.encoder_layers, c.fourier_freqs, c.fourier_temperature,
-                                       cfg.vae_temporal, cfg.local_attn_impl, dt, name="trajectory_embed")(
-                    ego_to_world, nf)
+                tr = TrajectoryEncoder(
+                    width,
+                    cfg.heads,
+                    c.encoder_layers,
+                    c.fourier_freqs,
+                    c.fourier_temperature,
+                    cfg.vae_temporal,
+                    cfg.local_attn_impl,
+                    dt,
+                    name="trajectory_embed",
+                )(ego_to_world, nf)
                 tr = use_null(drop.get("trajectory"), pool_frames(tr, pt), null)
             # over the batch axes, as the box tokens below: the two are concatenated per token
-            toks.append(constrain(jnp.broadcast_to(tr[:, :, None, None], (b, ft, nv, 1, width)),
-                                  ("batch", None, None, None, None)))
+            toks.append(
+                constrain(
+                    jnp.broadcast_to(tr[:, :, None, None], (b, ft, nv, 1, width)), ("batch", None, None, None, None)
+                )
+            )
             masks.append(constrain(jnp.ones((b, ft, nv, 1), bool), ("batch", None, None, None)))
         if c.boxes:
             null = null_param(self, "boxes_null", (width,), ("embed",))
@@ -407,10 +469,20 @@ class DiT(nn.Module):
                 bm = jnp.ones((b, ft, nv, 1), bool)
             else:
                 image_hw = (hw[0] * cfg.vae_spatial, hw[1] * cfg.vae_spatial)
-                bt, bm = BoxEncoder(width, cfg.heads, c.encoder_layers, c.num_classes, cfg.box_freqs,
-                                    c.fourier_temperature, cfg.vae_temporal, c.box_per_view, cfg.local_attn_impl,
-                                    dt, cfg.box_range, name="boxes_embed")(boxes, box_classes, box_valid, nf,
-                                                                           intrinsics, cam_to_ego, image_hw)
+                bt, bm = BoxEncoder(
+                    width,
+                    cfg.heads,
+                    c.encoder_layers,
+                    c.num_classes,
+                    cfg.box_freqs,
+                    c.fourier_temperature,
+                    cfg.vae_temporal,
+                    c.box_per_view,
+                    cfg.local_attn_impl,
+                    dt,
+                    cfg.box_range,
+                    name="boxes_embed",
+                )(boxes, box_classes, box_valid, nf, intrinsics, cam_to_ego, image_hw)
                 bt = pool_frames(bt, pt)
                 bm = jnp.any(bm.reshape(b, ft, pt, *bm.shape[2:]), axis=2)
                 # per-sample over the batch axes only: the encoder's reshapes over views may leave
@@ -439,7 +511,7 @@ class DiT(nn.Module):
             bev = use_null(drop["map"], bev, jnp.zeros((), jnp.float32))
         m = MapEncoder(cfg.width, c.map_hidden, cfg.vae_temporal, dt, name="map_embed")(bev, nf, grid)
         # the encoder folds frames into the batch: put the batch back on the batch axes alone
-        m = constrain(pool_frames(m, pt), ("batch", "frames", "tokens", "embed"))   # [B, Ft, S, D]
+        m = constrain(pool_frames(m, pt), ("batch", "frames", "tokens", "embed"))  # [B, Ft, S, D]
         m = Dense(cfg.width, ("embed", None), dtype=dt, kernel_init=ZEROS, name="map_in")(m)
         video = _video(cfg, carry)
         branch = _with_video(cfg, carry, constrain(video + m[:, :, :, None], VIDEO))
@@ -453,9 +525,14 @@ class DiT(nn.Module):
         computes in ``dtype``, the sums of its residual branches are kept in float32)."""
         carry = jax.tree_util.tree_map(lambda x: x.astype(jnp.float32), carry)
         if cfg.scan_layers and end - start > 1:
-            body = nn.scan(_body_class(cfg.remat, True), variable_axes={"params": 0},
-                           split_rngs={"params": True, "dropout": True}, in_axes=(0, nn.broadcast),
-                           length=end - start, metadata_params={nn.PARTITION_NAME: "layers"})
+            body = nn.scan(
+                _body_class(cfg.remat, True),
+                variable_axes={"params": 0},
+                split_rngs={"params": True, "dropout": True},
+                in_axes=(0, nn.broadcast),
+                length=end - start,
+                metadata_params={nn.PARTITION_NAME: "layers"},
+            )
             return body(cfg, emit, name=f"{prefix}_{start}_{end}")(carry, res, ctx)
         outs = []
         for i in range(start, end):
@@ -476,11 +553,21 @@ class DiT(nn.Module):
                 video = _video(cfg, carry)
                 feats[end - 1] = video
                 if features is not None:
-                    fused = HTFT(cfg.width, cfg.heads, cfg.head_dim, cfg.htft_groups, cfg.htft_dropout,
-                                 impl=cfg.attn_impl,
-                                 dtype=cfg.compute_dtype, name=f"htft_{end - 1}")(
-                        video, jnp.asarray(features[end - 1], cfg.compute_dtype), features_mask,
-                        deterministic=deterministic)
+                    fused = HTFT(
+                        cfg.width,
+                        cfg.heads,
+                        cfg.head_dim,
+                        cfg.htft_groups,
+                        cfg.htft_dropout,
+                        impl=cfg.attn_impl,
+                        dtype=cfg.compute_dtype,
+                        name=f"htft_{end - 1}",
+                    )(
+                        video,
+                        jnp.asarray(features[end - 1], cfg.compute_dtype),
+                        features_mask,
+                        deterministic=deterministic,
+                    )
                     carry = _with_video(cfg, carry, fused)
         return carry, feats
 
@@ -489,18 +576,17 @@ class DiT(nn.Module):
         if cfg.layout == "factorized":
             # T2I final layer (PixArt-alpha): per-frame shift/scale = table + t
             table = param(self, "final_table", normal(1.0 / np.sqrt(cfg.width)), (2, cfg.width), (None, "embed"))
-            mod = table[None, None] + t[:, :, None, :]                    # [B, Ft, 2, D]
+            mod = table[None, None] + t[:, :, None, :]  # [B, Ft, 2, D]
             shift, scale = mod[:, :, 0, None, None], mod[:, :, 1, None, None]
             h = modulate(LayerNorm(cfg.norm_eps, affine=False, name="final_norm")(x), shift, scale)
         else:
             # CogVideoX: norm_final, then AdaLayerNorm (shift, scale from silu(t))
             h = LayerNorm(cfg.norm_eps, name="norm_final")(x)
             mod = Dense(2 * cfg.width, ("embed", None), dtype=dt, name="norm_out_linear")(jax.nn.silu(t))
-            shift, scale = mod[:, :, None, None, : cfg.width], mod[:, :, None, None, cfg.width:]
+            shift, scale = mod[:, :, None, None, : cfg.width], mod[:, :, None, None, cfg.width :]
             h = modulate(LayerNorm(cfg.norm_eps, name="norm_out")(h), shift, scale)
         p = cfg.patch[0] * cfg.patch[1] * cfg.patch[2] * cfg.out_dim
         return Dense(p, ("embed", "channels"), dtype=dt, kernel_init=ZEROS, name="proj_out")(h)
-
 
     def _final_conv(self, cfg, out, x, ref):
         """U-ViT's 3x3 convolutions after the unpatchify (Bao et al. 2023, sec. 3.1): a token's
@@ -519,7 +605,9 @@ def _conv3x3(module, name, x, features, init):
     h, w = x.shape[-3:-1]
     kernel = param(module, f"{name}_kernel", init, (3, 3, x.shape[-1], features), (None, None, "channels", None))
     xp = jnp.pad(x, [(0, 0)] * (x.ndim - 3) + [(1, 1), (1, 1), (0, 0)])
-    y = sum(jnp.einsum("...c,cd->...d", xp[..., i:i + h, j:j + w, :], kernel[i, j]) for i in range(3) for j in range(3))
+    y = sum(
+        jnp.einsum("...c,cd->...d", xp[..., i : i + h, j : j + w, :], kernel[i, j]) for i in range(3) for j in range(3)
+    )
     return y + param(module, f"{name}_bias", ZEROS, (features,), (None,))
 
 
@@ -532,11 +620,11 @@ def reference_input(x, cond_latents, cond_mask):
     if cond_latents is None:
         return jnp.zeros((b, nv, nf, h, w, c + 1), jnp.float32)
     m = jnp.asarray(cond_mask, bool)
-    last = jnp.max(jnp.where(m, jnp.arange(nf)[None], -1), axis=1)                # [B]; -1: none given
+    last = jnp.max(jnp.where(m, jnp.arange(nf)[None], -1), axis=1)  # [B]; -1: none given
     # a one-hot sum over frames, not a gather: it keeps the batch sharding of an Explicit mesh
     pick = (jnp.arange(nf)[None] == last[:, None]).astype(jnp.float32)[:, None, :, None, None, None]
     ref = jnp.sum(jnp.asarray(cond_latents, jnp.float32) * pick, axis=2, keepdims=True)
-    like_x = jnp.zeros_like(x[..., :1])               # both halves take x's sharding before the concatenate
+    like_x = jnp.zeros_like(x[..., :1])  # both halves take x's sharding before the concatenate
     given = like_x + jnp.sum(pick, axis=2, keepdims=True)
     return jnp.concatenate([like_x + ref, given], axis=-1)
 

@@ -25,36 +25,111 @@ from __future__ import annotations
 from jaxdrive.models.dit.config import Controls, DiTConfig, check_config
 from jaxdrive.validate import check_choice
 
-_ALL_CONTROLS = Controls(text="embeddings", fps=True, camera=True, waypoints=True, trajectory=True,
-                         boxes=True, map=True, map_blocks=1, cond_frames="replace", warp=True,
-                         map_hidden=16, fourier_freqs=4)
+_ALL_CONTROLS = Controls(
+    text="embeddings",
+    fps=True,
+    camera=True,
+    waypoints=True,
+    trajectory=True,
+    boxes=True,
+    map=True,
+    map_blocks=1,
+    cond_frames="replace",
+    warp=True,
+    map_hidden=16,
+    fourier_freqs=4,
+)
 
-_STDIT3 = DiTConfig(layout="factorized", block="stdit3", depth=28, heads=16, head_dim=72, in_channels=4,
-                    text_dim=4096, text_len=300, controls=Controls(fps=True))
+_STDIT3 = DiTConfig(
+    layout="factorized",
+    block="stdit3",
+    depth=28,
+    heads=16,
+    head_dim=72,
+    in_channels=4,
+    text_dim=4096,
+    text_len=300,
+    controls=Controls(fps=True),
+)
 
-_COGVIDEOX_2B = DiTConfig(layout="full", depth=30, heads=30, head_dim=64, in_channels=16, patch=(1, 2, 2),
-                          positions="sincos", spatial_interpolation_scale=1.875, time_embed_dim=512,
-                          time_freq_dim=1920, text_dim=4096, text_len=226, qk_norm="layer", norm_eps=1e-5,
-                          controls=Controls(text_null=False))
+_COGVIDEOX_2B = DiTConfig(
+    layout="full",
+    depth=30,
+    heads=30,
+    head_dim=64,
+    in_channels=16,
+    patch=(1, 2, 2),
+    positions="sincos",
+    spatial_interpolation_scale=1.875,
+    time_embed_dim=512,
+    time_freq_dim=1920,
+    text_dim=4096,
+    text_len=226,
+    qk_norm="layer",
+    norm_eps=1e-5,
+    controls=Controls(text_null=False),
+)
 
 PRESETS: dict[str, DiTConfig] = {
     "stdit3-xl/2": _STDIT3,
     "magicdrive-v2": _STDIT3.replace(
-        multiview="cross_view", in_channels=16,
-        controls=dict(camera=True, trajectory=True, boxes=True, map=True, map_blocks=13)),
+        multiview="cross_view",
+        in_channels=16,
+        controls=dict(camera=True, trajectory=True, boxes=True, map=True, map_blocks=13),
+    ),
     "mila": _STDIT3.replace(block="stdit2", controls=dict(camera=True, waypoints=True, cond_frames="replace")),
     "cogvideox-2b": _COGVIDEOX_2B,
     "longdwm-fine": _COGVIDEOX_2B.replace(controls=dict(cond_frames="concat", warp=True)),
-    "tiny": DiTConfig(depth=2, heads=4, head_dim=16, in_channels=4, text_dim=32, text_len=8, time_freq_dim=64,
-                      controls=Controls(fps=True)),
-    "tiny-full": DiTConfig(layout="full", depth=2, heads=4, head_dim=16, in_channels=4, text_dim=32, text_len=8,
-                           time_embed_dim=32, time_freq_dim=64, qk_norm="layer", controls=Controls(fps=True)),
-    "tiny-mv": DiTConfig(depth=2, heads=4, head_dim=16, in_channels=4, text_dim=32, text_len=8,
-                         time_freq_dim=64, multiview="cross_view", controls=_ALL_CONTROLS, htft_layers=(0,)),
-    "small": DiTConfig(depth=4, heads=8, head_dim=32, in_channels=16, text_dim=256, text_len=32,
-                       controls=Controls(fps=True)),
-    "small-full": DiTConfig(layout="full", depth=4, heads=8, head_dim=32, in_channels=16, text_dim=256,
-                            text_len=32, time_embed_dim=128, qk_norm="layer", controls=Controls(fps=True)),
+    "tiny": DiTConfig(
+        depth=2,
+        heads=4,
+        head_dim=16,
+        in_channels=4,
+        text_dim=32,
+        text_len=8,
+        time_freq_dim=64,
+        controls=Controls(fps=True),
+    ),
+    "tiny-full": DiTConfig(
+        layout="full",
+        depth=2,
+        heads=4,
+        head_dim=16,
+        in_channels=4,
+        text_dim=32,
+        text_len=8,
+        time_embed_dim=32,
+        time_freq_dim=64,
+        qk_norm="layer",
+        controls=Controls(fps=True),
+    ),
+    "tiny-mv": DiTConfig(
+        depth=2,
+        heads=4,
+        head_dim=16,
+        in_channels=4,
+        text_dim=32,
+        text_len=8,
+        time_freq_dim=64,
+        multiview="cross_view",
+        controls=_ALL_CONTROLS,
+        htft_layers=(0,),
+    ),
+    "small": DiTConfig(
+        depth=4, heads=8, head_dim=32, in_channels=16, text_dim=256, text_len=32, controls=Controls(fps=True)
+    ),
+    "small-full": DiTConfig(
+        layout="full",
+        depth=4,
+        heads=8,
+        head_dim=32,
+        in_channels=16,
+        text_dim=256,
+        text_len=32,
+        time_embed_dim=128,
+        qk_norm="layer",
+        controls=Controls(fps=True),
+    ),
 }
 
 
@@ -68,6 +143,7 @@ def preset(name: str, **overrides) -> DiTConfig:
 def main() -> None:
     """Print each preset's parameter count (eval_shape, nothing allocated)."""
     from jaxdrive.models.dit.model import param_count
+
     for name in PRESETS:
         print(f"{name:16s} {param_count(PRESETS[name]):>15,d}")
 

@@ -48,8 +48,9 @@ def conv(x, kernel, bias, *, strides=(1, 1, 1), padding=((0, 0), (0, 0), (0, 0))
     if kernel.ndim == 4:
         kernel = kernel[None]
     dtype = dtype or x.dtype
-    y = jax.lax.conv_general_dilated(x.astype(dtype), kernel.astype(dtype), strides, padding,
-                                     dimension_numbers=("NDHWC", "DHWIO", "NDHWC"))
+    y = jax.lax.conv_general_dilated(
+        x.astype(dtype), kernel.astype(dtype), strides, padding, dimension_numbers=("NDHWC", "DHWIO", "NDHWC")
+    )
     return y + bias.astype(dtype)
 
 
@@ -69,7 +70,7 @@ class CausalConv3d(nn.Module):
         if kt > 1:
             front = jnp.repeat(x[:, :1], kt - 1, axis=1) if cache is None else cache.astype(x.dtype)
             x = jnp.concatenate([front, x], axis=1)
-            new_cache = x[:, x.shape[1] - (kt - 1):]
+            new_cache = x[:, x.shape[1] - (kt - 1) :]
         pad = ((0, 0), ((kh - 1) // 2,) * 2, ((kw - 1) // 2,) * 2)
         return conv(x, kernel, bias, padding=pad, dtype=self.dtype), new_cache
 
@@ -96,8 +97,9 @@ class SpatialNorm3D(nn.Module):
     def __call__(self, f, zq):
         t, h, w = f.shape[1:4]
         if t > 1 and t % 2 == 1:
-            zq = jnp.concatenate([nearest_resize(zq[:, :1], (1, h, w)),
-                                  nearest_resize(zq[:, 1:], (t - 1, h, w))], axis=1)
+            zq = jnp.concatenate(
+                [nearest_resize(zq[:, :1], (1, h, w)), nearest_resize(zq[:, 1:], (t - 1, h, w))], axis=1
+            )
         else:
             zq = nearest_resize(zq, (t, h, w))
         c = f.shape[-1]

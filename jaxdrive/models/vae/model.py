@@ -76,46 +76,67 @@ class VAEConfig:
     mode: str = "chunked"
     encode_chunk_frames: int = 8
     decode_chunk_latents: int = 2
-    frame_wise_batch: int = 0       # frame_wise mode: frames of each clip per lax.map step (0: all at once)
-    clip_batch: int = 0             # clips (x views) each device codes per lax.map step (0: all at once)
+    frame_wise_batch: int = 0  # frame_wise mode: frames of each clip per lax.map step (0: all at once)
+    clip_batch: int = 0  # clips (x views) each device codes per lax.map step (0: all at once)
     tiling: bool = False
     tile_sample_height: int = 240
     tile_sample_width: int = 360
     tile_overlap_height: float = 1 / 6
     tile_overlap_width: float = 1 / 5
-    dtype: str = "float32"          # compute dtype; params are always float32
+    dtype: str = "float32"  # compute dtype; params are always float32
 
     def __post_init__(self):
         object.__setattr__(self, "block_out_channels", tuple(int(c) for c in self.block_out_channels))
-        for name in ("in_channels", "out_channels", "layers_per_block", "latent_channels",
-                     "norm_num_groups", "temporal_compression", "encode_chunk_frames",
-                     "decode_chunk_latents", "tile_sample_height", "tile_sample_width"):
+        for name in (
+            "in_channels",
+            "out_channels",
+            "layers_per_block",
+            "latent_channels",
+            "norm_num_groups",
+            "temporal_compression",
+            "encode_chunk_frames",
+            "decode_chunk_latents",
+            "tile_sample_height",
+            "tile_sample_width",
+        ):
             validate.check_positive_int(name, getattr(self, name))
         if not self.block_out_channels:
             raise ValueError("block_out_channels: expected at least one block, got ()")
         for c in self.block_out_channels:
             if c % self.norm_num_groups:
-                raise ValueError(f"block_out_channels: expected multiples of norm_num_groups "
-                                 f"{self.norm_num_groups}, got {list(self.block_out_channels)}")
+                raise ValueError(
+                    f"block_out_channels: expected multiples of norm_num_groups "
+                    f"{self.norm_num_groups}, got {list(self.block_out_channels)}"
+                )
         levels = math.log2(self.temporal_compression)
         if levels != int(levels) or levels > len(self.block_out_channels) - 1:
-            raise ValueError(f"temporal_compression: expected a power of 2 up to "
-                             f"{2 ** (len(self.block_out_channels) - 1)} (one level per downsampling "
-                             f"block), got {self.temporal_compression}")
-        if isinstance(self.frame_wise_batch, bool) or not isinstance(self.frame_wise_batch, int) \
-                or self.frame_wise_batch < 0:
-            raise ValueError(f"frame_wise_batch: expected frames per step >= 0 (0: all at once), "
-                             f"got {self.frame_wise_batch!r}")
+            raise ValueError(
+                f"temporal_compression: expected a power of 2 up to "
+                f"{2 ** (len(self.block_out_channels) - 1)} (one level per downsampling "
+                f"block), got {self.temporal_compression}"
+            )
+        if (
+            isinstance(self.frame_wise_batch, bool)
+            or not isinstance(self.frame_wise_batch, int)
+            or self.frame_wise_batch < 0
+        ):
+            raise ValueError(
+                f"frame_wise_batch: expected frames per step >= 0 (0: all at once), got {self.frame_wise_batch!r}"
+            )
         if isinstance(self.clip_batch, bool) or not isinstance(self.clip_batch, int) or self.clip_batch < 0:
-            raise ValueError(f"clip_batch: expected clips per device and step >= 0 (0: all at once), "
-                             f"got {self.clip_batch!r}")
+            raise ValueError(
+                f"clip_batch: expected clips per device and step >= 0 (0: all at once), got {self.clip_batch!r}"
+            )
         if self.encode_chunk_frames % self.temporal_compression:
-            raise ValueError(f"encode_chunk_frames: expected a multiple of temporal_compression "
-                             f"{self.temporal_compression}, got {self.encode_chunk_frames}")
+            raise ValueError(
+                f"encode_chunk_frames: expected a multiple of temporal_compression "
+                f"{self.temporal_compression}, got {self.encode_chunk_frames}"
+            )
         validate.check_choice("mode", self.mode, MODES)
         validate.check_choice("dtype", self.dtype, ("float32", "bfloat16", "float16"))
         validate.check_range("tile_overlap_height", self.tile_overlap_height, 0, 1, hi_open=True)
         validate.check_range("tile_overlap_width", self.tile_overlap_width, 0, 1, hi_open=True)
+
     @property
     def spatial_compression(self) -> int:
         return 2 ** (len(self.block_out_channels) - 1)
@@ -128,17 +149,27 @@ class VAEConfig:
         sample = getattr(self, f"tile_sample_{axis}")
         overlap = getattr(self, f"tile_overlap_{axis}")
         latent = int(sample / self.spatial_compression)
-        geo = dict(tile_sample=sample, tile_latent=latent,
-                   encode_stride=int(sample * (1 - overlap)), encode_blend=int(latent * overlap),
-                   encode_keep=latent - int(latent * overlap),
-                   decode_stride=int(latent * (1 - overlap)), decode_blend=int(sample * overlap),
-                   decode_keep=sample - int(sample * overlap))
+        geo = dict(
+            tile_sample=sample,
+            tile_latent=latent,
+            encode_stride=int(sample * (1 - overlap)),
+            encode_blend=int(latent * overlap),
+            encode_keep=latent - int(latent * overlap),
+            decode_stride=int(latent * (1 - overlap)),
+            decode_blend=int(sample * overlap),
+            decode_keep=sample - int(sample * overlap),
+        )
         s = self.spatial_compression
-        if (min(geo["tile_latent"], geo["encode_stride"], geo["decode_stride"]) < 1
-                or geo["encode_keep"] * s != geo["encode_stride"] or geo["decode_keep"] != geo["decode_stride"] * s):
-            raise ValueError(f"tile_overlap_{axis}: expected a tile size and overlap whose strides agree in "
-                             f"pixels and latents (spatial compression {s}), got tile_sample_{axis} = "
-                             f"{sample} and tile_overlap_{axis} = {overlap}")
+        if (
+            min(geo["tile_latent"], geo["encode_stride"], geo["decode_stride"]) < 1
+            or geo["encode_keep"] * s != geo["encode_stride"]
+            or geo["decode_keep"] != geo["decode_stride"] * s
+        ):
+            raise ValueError(
+                f"tile_overlap_{axis}: expected a tile size and overlap whose strides agree in "
+                f"pixels and latents (spatial compression {s}), got tile_sample_{axis} = "
+                f"{sample} and tile_overlap_{axis} = {overlap}"
+            )
         return geo
 
 
@@ -154,22 +185,27 @@ class Encoder3D(nn.Module):
         new = {}
         levels = int(math.log2(c.temporal_compression))
         h, new["conv_in"] = L.CausalConv3d(c.block_out_channels[0], dtype=dtype, name="conv_in")(
-            x, cache.get("conv_in"))
+            x, cache.get("conv_in")
+        )
         for i, width in enumerate(c.block_out_channels):
             for j in range(c.layers_per_block):
                 key = f"down_blocks_{i}/resnets_{j}"
-                h, new[key] = L.ResnetBlock3D(width, c.norm_num_groups, c.norm_eps, dtype=dtype,
-                                              name=key.replace("/", "_"))(h, cache=cache.get(key))
+                h, new[key] = L.ResnetBlock3D(
+                    width, c.norm_num_groups, c.norm_eps, dtype=dtype, name=key.replace("/", "_")
+                )(h, cache=cache.get(key))
             if i < len(c.block_out_channels) - 1:
-                h = L.Downsample3D(width, compress_time=i < levels, dtype=dtype,
-                                   name=f"down_blocks_{i}_downsamplers_0")(h)
+                h = L.Downsample3D(
+                    width, compress_time=i < levels, dtype=dtype, name=f"down_blocks_{i}_downsamplers_0"
+                )(h)
         for j in range(2):
             key = f"mid_block/resnets_{j}"
-            h, new[key] = L.ResnetBlock3D(c.block_out_channels[-1], c.norm_num_groups, c.norm_eps,
-                                          dtype=dtype, name=key.replace("/", "_"))(h, cache=cache.get(key))
+            h, new[key] = L.ResnetBlock3D(
+                c.block_out_channels[-1], c.norm_num_groups, c.norm_eps, dtype=dtype, name=key.replace("/", "_")
+            )(h, cache=cache.get(key))
         h = nn.silu(GroupNorm(c.norm_num_groups, 1e-6, name="norm_out")(h))
         h, new["conv_out"] = L.CausalConv3d(2 * c.latent_channels, dtype=dtype, name="conv_out")(
-            h, cache.get("conv_out"))
+            h, cache.get("conv_out")
+        )
         return h, new
 
 
@@ -188,8 +224,9 @@ class Decoder3D(nn.Module):
         levels = int(math.log2(c.temporal_compression))
         widths = c.block_out_channels[::-1]
         h, new["conv_in"] = L.CausalConv3d(widths[0], dtype=dtype, name="conv_in")(z, cache.get("conv_in"))
-        resnet = functools.partial(L.ResnetBlock3D, groups=c.norm_num_groups, eps=c.norm_eps,
-                                   spatial_norm=True, dtype=dtype)
+        resnet = functools.partial(
+            L.ResnetBlock3D, groups=c.norm_num_groups, eps=c.norm_eps, spatial_norm=True, dtype=dtype
+        )
         for j in range(2):
             key = f"mid_block/resnets_{j}"
             h, new[key] = resnet(widths[0], name=key.replace("/", "_"))(h, z, cache.get(key))
@@ -198,8 +235,9 @@ class Decoder3D(nn.Module):
                 key = f"up_blocks_{i}/resnets_{j}"
                 h, new[key] = resnet(width, name=key.replace("/", "_"))(h, z, cache.get(key))
             if i < len(widths) - 1:
-                h = L.Upsample3D(width, compress_time=i < levels, dtype=dtype,
-                                 name=f"up_blocks_{i}_upsamplers_0")(h, first_chunk=not cache)
+                h = L.Upsample3D(width, compress_time=i < levels, dtype=dtype, name=f"up_blocks_{i}_upsamplers_0")(
+                    h, first_chunk=not cache
+                )
         h = nn.silu(L.SpatialNorm3D(c.norm_num_groups, 1e-6, dtype, name="norm_out")(h, z))
         h, new["conv_out"] = L.CausalConv3d(c.out_channels, dtype=dtype, name="conv_out")(h, cache.get("conv_out"))
         return h, new
@@ -221,7 +259,7 @@ def _run_chunks(apply, x, size: int):
     y0, cache = apply(x[:, :first], None)
     if rest == 0:
         return y0
-    step = jax.eval_shape(apply, x[:, first:first + size], cache)[0].shape[1]
+    step = jax.eval_shape(apply, x[:, first : first + size], cache)[0].shape[1]
     out = jnp.zeros((y0.shape[0], y0.shape[1] + rest * step, *y0.shape[2:]), y0.dtype)
     out = jax.lax.dynamic_update_slice_in_dim(out, y0, 0, axis=1)
 
@@ -241,8 +279,10 @@ def _blend(a, b, extent: int, axis: int):
         return b
     w = jnp.asarray(np.arange(extent) / extent, b.dtype)
     w = w.reshape([-1 if d == axis else 1 for d in range(b.ndim)])
-    head = jax.lax.slice_in_dim(a, a.shape[axis] - extent, a.shape[axis], axis=axis) * (1 - w) \
+    head = (
+        jax.lax.slice_in_dim(a, a.shape[axis] - extent, a.shape[axis], axis=axis) * (1 - w)
         + jax.lax.slice_in_dim(b, 0, extent, axis=axis) * w
+    )
     return jnp.concatenate([head, jax.lax.slice_in_dim(b, extent, b.shape[axis], axis=axis)], axis=axis)
 
 
@@ -267,7 +307,7 @@ def tiled_apply(apply, x, geo_h: dict, geo_w: dict, kind: str, caches=None):
             groups.setdefault(shape, []).append((i, j))
     out, new_caches = {}, {}
     for (h, w), starts in groups.items():
-        tiles = jnp.stack([x[:, :, i:i + h, j:j + w] for i, j in starts])
+        tiles = jnp.stack([x[:, :, i : i + h, j : j + w] for i, j in starts])
         if caches is None:
             results = jax.lax.map(apply, tiles)
         else:
@@ -281,8 +321,7 @@ def tiled_apply(apply, x, geo_h: dict, geo_w: dict, kind: str, caches=None):
                 row[c] = _blend(grid[r - 1][c], row[c], geo_h[f"{kind}_blend"], axis=2)
             if c > 0:
                 row[c] = _blend(row[c - 1], row[c], geo_w[f"{kind}_blend"], axis=3)
-        mosaic.append(jnp.concatenate([t[:, :, :geo_h[f"{kind}_keep"], :geo_w[f"{kind}_keep"]] for t in row],
-                                      axis=3))
+        mosaic.append(jnp.concatenate([t[:, :, : geo_h[f"{kind}_keep"], : geo_w[f"{kind}_keep"]] for t in row], axis=3))
     video = jnp.concatenate(mosaic, axis=2)
     return video if caches is None else (video, new_caches)
 
@@ -337,12 +376,15 @@ class CausalVAE:
         if pixels:
             s = c.spatial_compression
             if x.shape[-3] % s or x.shape[-2] % s:
-                raise ValueError(f"{name}: expected height and width divisible by the spatial "
-                                 f"compression {s}, got {x.shape[-3]} x {x.shape[-2]}")
+                raise ValueError(
+                    f"{name}: expected height and width divisible by the spatial "
+                    f"compression {s}, got {x.shape[-3]} x {x.shape[-2]}"
+                )
             r = c.temporal_compression
             if mode != "frame_wise" and (frames - 1) % r:
-                raise ValueError(f"{name}: expected 1 + {r}k frames, got {frames} (pad or trim the clip, "
-                                 f"or use mode='frame_wise')")
+                raise ValueError(
+                    f"{name}: expected 1 + {r}k frames, got {frames} (pad or trim the clip, or use mode='frame_wise')"
+                )
             validate.check_range(name, x, -1.0, 1.0)
         if frames < 1:
             raise ValueError(f"{name}: expected at least one frame, got shape {list(x.shape)}")
@@ -374,8 +416,11 @@ class CausalVAE:
         """Encoder (``kind="encode"``: ``[N, F, H, W, Cin] -> [N, F', h, w, 2C]`` moments) or
         decoder (``"decode"``: ``[N, F', h, w, C] -> [N, F, H, W, Cout]``) in the given mode."""
         c = self.config
-        module, chunk, tile_key = ((Encoder3D(c), c.encode_chunk_frames, "tile_sample") if kind == "encode"
-                                   else (Decoder3D(c), c.decode_chunk_latents, "tile_latent"))
+        module, chunk, tile_key = (
+            (Encoder3D(c), c.encode_chunk_frames, "tile_sample")
+            if kind == "encode"
+            else (Decoder3D(c), c.decode_chunk_latents, "tile_latent")
+        )
         if mode == "frame_wise" and 0 < c.frame_wise_batch < x.shape[1]:
             return self._frame_groups(kind, params, x, tiled)
         if mode == "frame_wise":
@@ -396,11 +441,11 @@ class CausalVAE:
         k = self.config.frame_wise_batch
         n, frames = x.shape[:2]
         g = frames // k
-        each = lambda t: self._run(kind, params, t, "frame_wise", tiled)     # t [N, k, ...]: all at once
-        groups = jnp.moveaxis(x[:, :g * k], 1, 0).reshape(g, k, n, *x.shape[2:])
-        out = jax.lax.map(lambda t: jnp.moveaxis(each(jnp.moveaxis(t, 0, 1)), 1, 0), groups)   # [g, k, N, ...]
+        each = lambda t: self._run(kind, params, t, "frame_wise", tiled)  # t [N, k, ...]: all at once
+        groups = jnp.moveaxis(x[:, : g * k], 1, 0).reshape(g, k, n, *x.shape[2:])
+        out = jax.lax.map(lambda t: jnp.moveaxis(each(jnp.moveaxis(t, 0, 1)), 1, 0), groups)  # [g, k, N, ...]
         out = jnp.moveaxis(out.reshape(g * k, *out.shape[2:]), 0, 1)
-        return out if frames == g * k else jnp.concatenate([out, each(x[:, g * k:])], axis=1)
+        return out if frames == g * k else jnp.concatenate([out, each(x[:, g * k :])], axis=1)
 
     def _coded(self, kind: str, params, x, mode: str, tiled: bool):
         """:meth:`_run` on folded clips ``x [N, ...]``, ``clip_batch`` clips of every device per
@@ -413,9 +458,9 @@ class CausalVAE:
         n = x.shape[0]
         per = n // (shards * steps)
         each = lambda t: self._run(kind, params, t, mode, tiled)
-        batches = jnp.moveaxis(x.reshape(shards, steps, per, *x.shape[1:]), 1, 0)       # [steps, shards, per, ...]
+        batches = jnp.moveaxis(x.reshape(shards, steps, per, *x.shape[1:]), 1, 0)  # [steps, shards, per, ...]
         batches = batches.reshape(steps, shards * per, *x.shape[1:])
-        out = jax.lax.map(each, batches)                                                  # [steps, shards * per, ...]
+        out = jax.lax.map(each, batches)  # [steps, shards * per, ...]
         out = jnp.moveaxis(out.reshape(steps, shards, per, *out.shape[2:]), 0, 1)
         return out.reshape(n, *out.shape[3:])
 

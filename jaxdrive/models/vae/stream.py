@@ -59,25 +59,26 @@ class StreamDecoder:
         self.total = validate.check_positive_int("total_latent_frames", total_latent_frames)
         vae = codec.vae
         if vae is not None and vae.config.mode not in STREAMING_MODES:
-            raise ValueError(f"latents.vae_mode: expected one of {list(STREAMING_MODES)} for a streaming "
-                             f"decode (the 'whole' mode's GroupNorm takes its statistics over the whole "
-                             f"clip), got {vae.config.mode!r}")
+            raise ValueError(
+                f"latents.vae_mode: expected one of {list(STREAMING_MODES)} for a streaming "
+                f"decode (the 'whole' mode's GroupNorm takes its statistics over the whole "
+                f"clip), got {vae.config.mode!r}"
+            )
         self.codec = codec
         self.chunked = vae is not None and vae.config.mode == "chunked"
         if self.chunked:
             self._first, _ = chunk_plan(self.total, vae.config.decode_chunk_latents)
-        self.pushed = 0                   # latent frames received
+        self.pushed = 0  # latent frames received
         self._pending: list[np.ndarray] = []
         self._cache = None
-        self._shape: tuple[int, int, int, int, int] | None = None    # [B, V, h, w, C] of the first part
+        self._shape: tuple[int, int, int, int, int] | None = None  # [B, V, h, w, C] of the first part
         self._flushed = False
 
     def push(self, latents) -> np.ndarray:
         """Scaled ``latents [B, V, n, h, w, C]`` (the next ``n`` latent frames) -> the video frames
         ``[B, V, m, H, W, 3]`` (NumPy float32, clipped to [-1, 1]) that are final now."""
         if self._flushed:
-            raise ValueError("latents: expected no push after flush(), got a part of shape "
-                             f"{list(np.shape(latents))}")
+            raise ValueError(f"latents: expected no push after flush(), got a part of shape {list(np.shape(latents))}")
         self._check(latents)
         n = np.shape(latents)[2]
         self.pushed += n
@@ -93,8 +94,9 @@ class StreamDecoder:
         """The frames not returned yet (none: every chunk decodes as soon as it is complete);
         raises unless all ``total_latent_frames`` were pushed. The decoder is finished after it."""
         if self.pushed != self.total:
-            raise ValueError(f"total_latent_frames: expected all {self.total} latent frames pushed "
-                             f"before flush(), got {self.pushed}")
+            raise ValueError(
+                f"total_latent_frames: expected all {self.total} latent frames pushed before flush(), got {self.pushed}"
+            )
         self._flushed, self._cache = True, None
         return self._empty()
 
@@ -118,17 +120,20 @@ class StreamDecoder:
         b, v, n, h, w, c = shape
         if self._shape is None:
             if c != self.codec.channels:
-                raise ValueError(f"latents: expected {self.codec.channels} channels in the last axis, "
-                                 f"got shape {shape}")
+                raise ValueError(
+                    f"latents: expected {self.codec.channels} channels in the last axis, got shape {shape}"
+                )
             self._shape = (b, v, h, w, c)
         else:
             validate.check_shape("latents", latents, (*self._shape[:2], None, *self._shape[2:]))
         if n > self.total - self.pushed:
-            raise ValueError(f"latents: expected at most {self.total - self.pushed} more latent frames "
-                             f"(total_latent_frames = {self.total}, {self.pushed} pushed), got {n}")
+            raise ValueError(
+                f"latents: expected at most {self.total - self.pushed} more latent frames "
+                f"(total_latent_frames = {self.total}, {self.pushed} pushed), got {n}"
+            )
 
     def _empty(self) -> np.ndarray:
-        assert self._shape is not None      # set by the first push; flush() follows every frame pushed
+        assert self._shape is not None  # set by the first push; flush() follows every frame pushed
         b, v, h, w, _ = self._shape
         s = self.codec.spatial
         return np.zeros((b, v, 0, h * s, w * s, 3), np.float32)
