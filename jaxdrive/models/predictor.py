@@ -68,8 +68,8 @@ class Traffic:
     def advance(self, ego_next, agents_next) -> Traffic:
         """The history one step on: ``ego_next [B, 3]``, ``agents_next [B, N, 3]`` appended."""
         # flax.struct.dataclass adds .replace at runtime; its stub does not declare it
-        return self.replace(
-            ego=jnp.concatenate([self.ego[:, 1:], ego_next[:, None]], 1),  # type: ignore[attr-defined]
+        return self.replace(  # type: ignore[attr-defined]
+            ego=jnp.concatenate([self.ego[:, 1:], ego_next[:, None]], 1),
             agents=jnp.concatenate([self.agents[:, 1:], agents_next[:, None]], 1),
             seen=jnp.concatenate([self.seen[:, 1:], self.seen[:, -1:]], 1),
         )

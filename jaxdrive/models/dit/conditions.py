@@ -141,12 +141,8 @@ class Conditions:
         """A copy with every given per-frame field ``k`` replaced by ``fn(k, value)`` (windows,
         segments and coarse frames of a clip)."""
         # flax.struct.dataclass adds .replace at runtime; its stub does not declare it
-        return self.replace(
-            **{
-                k: fn(k, getattr(self, k))  # type: ignore[attr-defined]
-                for k in PER_FRAME
-                if getattr(self, k) is not None
-            }
+        return self.replace(  # type: ignore[attr-defined]
+            **{k: fn(k, getattr(self, k)) for k in PER_FRAME if getattr(self, k) is not None}
         )
 
     def with_drops(self, names, value: bool, batch: int) -> Conditions:

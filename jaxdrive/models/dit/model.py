@@ -222,8 +222,8 @@ class DiT(nn.Module):
         ctx = LayerContext()
         if cfg.layout == "full":
             # flax.struct.dataclass adds .replace at runtime; its stub does not declare it
-            ctx = ctx.replace(
-                t=t,  # type: ignore[attr-defined]
+            ctx = ctx.replace(  # type: ignore[attr-defined]
+                t=t,
                 t_text=temb(jnp.max(sig_tok, axis=1) * cfg.timestep_scale) + extra,
             )
             if cfg.positions == "rope":
@@ -231,11 +231,11 @@ class DiT(nn.Module):
         else:
             k = 6 if cfg.block == "stdit3" else 9
             # flax.struct.dataclass adds .replace at runtime; its stub does not declare it
-            ctx = ctx.replace(
+            ctx = ctx.replace(  # type: ignore[attr-defined]
                 t0=Dense(
                     k * cfg.width,
                     ("embed", None),
-                    dtype=dt,  # type: ignore[attr-defined]
+                    dtype=dt,
                     kernel_init=normal(0.02),
                     name="t_block",
                 )(jax.nn.silu(t))
