@@ -18,7 +18,6 @@ MOVED = {
     "jaxdrive.models.dit_controls": "jaxdrive.models.dit.controls",
     "jaxdrive.models.dit_inputs": "jaxdrive.models.dit.inputs",
     "jaxdrive.models.dit_presets": "jaxdrive.models.dit.presets",
-    "jaxdrive.models.conditions": "jaxdrive.models.dit.conditions",
     "jaxdrive.models.layout": "jaxdrive.models.dit.layout",
     "jaxdrive.models.vae_layers": "jaxdrive.models.vae.layers",
     "jaxdrive.models.vae_stream": "jaxdrive.models.vae.stream",
@@ -39,6 +38,18 @@ def test_an_old_path_warns_and_gives_the_new_homes_objects(old, new, monkeypatch
     namespace = {}
     exec(f"from {old} import *", namespace)
     assert public <= namespace.keys()
+
+
+def test_the_public_conditions_path_stays_without_a_warning():
+    """``jaxdrive.models.conditions`` is the path the design fixes: an alias, not deprecated."""
+    import warnings
+
+    home = importlib.import_module("jaxdrive.models.dit.conditions")
+    sys.modules.pop("jaxdrive.models.conditions", None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        alias = importlib.import_module("jaxdrive.models.conditions")
+    assert alias.Conditions is home.Conditions and alias.PER_FRAME is home.PER_FRAME
 
 
 @pytest.mark.parametrize(

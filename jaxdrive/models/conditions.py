@@ -1,17 +1,10 @@
-"""Deprecated: this module moved to :mod:`jaxdrive.models.dit.conditions`. It re-exports that module
-(private names too) and warns on import; it goes in the next release."""
+"""The public path of :class:`Conditions` and its helpers (the one the design fixes and the
+data pipeline builds): everything of :mod:`jaxdrive.models.dit.conditions`, where the code lives
+because the DiT and the conditions import each other. Not deprecated."""
 
-import warnings
-
-from jaxdrive.models.dit import conditions as _new
+from jaxdrive.models.dit import conditions as _home
 from jaxdrive.models.dit.conditions import *  # noqa: F403
-
-warnings.warn(
-    "jaxdrive.models.conditions moved to jaxdrive.models.dit.conditions (the old path goes in the next release)",
-    DeprecationWarning,
-    stacklevel=2,
-)
 
 
 def __getattr__(name: str):
-    return getattr(_new, name)
+    return getattr(_home, name)
