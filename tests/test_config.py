@@ -88,7 +88,7 @@ def test_the_cli_reports_a_bad_config_argument(config_file, tmp_path, capsys):
     from jaxdrive.cli import main
 
     assert main(["train", "--config", f"{config_file}:size=tiny,sise=2", "--workdir", str(tmp_path)]) == 2
-    assert "jaxdrive train: error: config argument: unknown key 'sise'" in capsys.readouterr().err
+    assert "jaxdrive train: error: --config argument: unknown key 'sise'" in capsys.readouterr().err
 
 
 def test_mixed_frame_rate_keys_parse_and_are_checked():
