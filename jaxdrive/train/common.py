@@ -104,10 +104,7 @@ class Stop:
         process must call it at the same point of its loop. A signal sent to one process only (a
         preempted host, not the whole pod) stops them all at the same step: alone it would save a
         checkpoint, a collective write, that the others never join, and hang there."""
-        processes = Processes()
-        if processes.count == 1:
-            return self.signum
-        got = [s for s in processes.gather(self.signum or 0) if s]
+        got = [s for s in Processes().gather(self.signum or 0) if s]  # one process: no collective
         return got[0] if got else None
 
     def __exit__(self, *exc):
