@@ -16,10 +16,16 @@ add_xla_flags(
     "--xla_cpu_collective_call_terminate_timeout_seconds=900",
 )
 deterministic_cpu()
+# LLVM's expensive passes off (JAX's own switch): the tests' programs are tiny, so XLA:CPU's
+# compile time is most of the suite's time and the optimised code would save little at run time.
+# The numbers are the same within tolerance; exact-equality tests compare two runs that both
+# compile this way. The subprocesses the tests launch inherit the variable.
+os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
 
 import jax  # noqa: E402  (its backend starts after the flags above)
 
 jax.config.update("jax_num_cpu_devices", 8)
+jax.config.update("jax_disable_most_optimizations", True)  # this process too (jax read its env before)
 
 from hypothesis import settings  # noqa: E402
 
@@ -33,6 +39,7 @@ settings.load_profile("jaxdrive")
 # build (the tiny DiT's sampler, a recipe's train step) compiles once per run, not once per process.
 # Numbers are the same either way; the cache only skips XLA's work. A size limit turns on JAX's
 # file lock around each entry, so a worker never reads an entry another is still writing.
+import contextlib  # noqa: E402
 import tempfile  # noqa: E402
 
 _owns_cache = not os.environ.get("JAXDRIVE_TEST_XLA_CACHE")  # the controller (or a run without xdist)
@@ -46,6 +53,41 @@ jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 
 import pytest  # noqa: E402
+
+# Session fixtures that train a model: a test that asks for one is slow (-m "not slow" skips it).
+TRAINED_FIXTURES = {"tiny_dit", "segmenter_run", "never_killed"}
+
+
+def pytest_collection_modifyitems(config, items):
+    """Tests that use a trained fixture are marked slow; and slow tests run first (a stable sort,
+    the same on every xdist worker), so the minutes-long ones start while the short ones fill in
+    around them instead of one of them starting last and running alone."""
+    for item in items:
+        if TRAINED_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.slow)
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+
+
+@pytest.fixture(autouse=True)
+def _optimized_xla(request, monkeypatch):
+    """``@pytest.mark.optimized_xla``: a test whose time goes into running its programs, not into
+    compiling them, gets XLA's full optimisation back (and so do the processes it starts)."""
+    if request.node.get_closest_marker("optimized_xla") is None:
+        yield
+        return
+    with optimized_xla():
+        monkeypatch.setenv("JAX_DISABLE_MOST_OPTIMIZATIONS", "0")
+        yield
+
+
+@contextlib.contextmanager
+def optimized_xla():
+    """In this context the process compiles with XLA's full optimisation."""
+    jax.config.update("jax_disable_most_optimizations", False)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_disable_most_optimizations", True)
 
 
 def pytest_unconfigure(config):
@@ -109,7 +151,11 @@ def segmenter_run(clips21, tmp_path_factory):
 
     config = Path(__file__).resolve().parents[1] / "configs" / "segmenter.py"
 
-    def build(folder):
+    def build(folder):  # 250 steps: running, not compiling, is its time
+        with optimized_xla():
+            train_segmenter(folder)
+
+    def train_segmenter(folder):
         assert (
             cli(
                 [

@@ -69,6 +69,7 @@ def weights(tmp_path_factory):
     return model, path
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("hw", [(64, 96), (320, 360)])  # resized up and down to 299
 def test_inception_features_match_pytorch_fid(weights, hw):
     from jaxdrive.eval.inception import load_fid_inception
@@ -150,6 +151,7 @@ def i3d_weights(tmp_path_factory):
     return net, path
 
 
+@pytest.mark.slow
 def test_i3d_logits_match_cd_fvd(i3d_weights, tmp_path):
     from jaxdrive.cli import main as cli
     from jaxdrive.eval.i3d import load_i3d
