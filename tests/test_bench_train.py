@@ -9,7 +9,9 @@ import pytest
 
 from jaxdrive.bench import flops as model_flops
 from jaxdrive.bench import train as bench
+from jaxdrive.bench.fit import largest_batch
 from jaxdrive.bench.report import trace_costs
+from jaxdrive.bench.train_steps import diffusers_config
 from jaxdrive.convert.diffusers_dit import config_from_diffusers
 from jaxdrive.models.dit import DiT
 from jaxdrive.models.dit.presets import preset
@@ -109,7 +111,7 @@ def _flops(cfg, **shapes):
 
 
 def test_full_layout_flops_are_6_params_tokens_plus_attention():
-    dcfg = bench.diffusers_config(preset("tiny-full"), frames=3, height=4, width=6)
+    dcfg = diffusers_config(preset("tiny-full"), frames=3, height=4, width=6)
     cfg = config_from_diffusers(dcfg)
     f = _flops(cfg, batch=2, frames=3, height=4, width=6)
     d, depth, seq = cfg.width, cfg.depth, 3 * 2 * 3 + cfg.text_len  # [text; video] per clip
@@ -124,7 +126,7 @@ def test_one_layer_flops_are_the_hand_count():
     video + 8 text = 26 tokens a clip. Matmuls: 12 * 64^2 weights (q, k, v, out 4 D^2; MLP 8 D^2),
     6 FLOPs per weight and token (forward 2, backward 4): 6 * 49152 * 26 * 2 = 15,335,424.
     Attention: QK^T and AV, 4 * 26^2 * 64 forward, x 3 with the backward, x 2 clips: 1,038,336."""
-    dcfg = bench.diffusers_config(preset("tiny-full").replace(depth=1), frames=3, height=4, width=6)
+    dcfg = diffusers_config(preset("tiny-full").replace(depth=1), frames=3, height=4, width=6)
     f = _flops(config_from_diffusers(dcfg), batch=2, frames=3, height=4, width=6)
     assert f["matmul_flops"] == 15_335_424 and f["attention_flops"] == 1_038_336
     assert f["flops"] == 16_373_760
@@ -215,15 +217,15 @@ def test_batch_search_predicts_from_two_probes_and_backs_off():
         calls.append(list(bs))
         return [footprint(b) for b in bs]
 
-    batch, seen = bench.largest_batch(probes, 36, 64)
+    batch, seen = largest_batch(probes, 36, 64)
     assert batch == 8 and calls[0] == [1, 2]  # line: 10 + 3b <= 36 -> 8; 8 needs 34
     assert seen[:2] == [(1, 13), (2, 16)] and seen[2] == (8, 34)
-    batch, seen = bench.largest_batch(probes, 37, 64)  # 9 needs 38 > 37: back to 8
+    batch, seen = largest_batch(probes, 37, 64)  # 9 needs 38 > 37: back to 8
     assert batch == 8 and [b for b, _ in seen] == [1, 2, 9, 8]
-    assert bench.largest_batch(probes, 100, 5)[0] == 5  # capped
-    assert bench.largest_batch(probes, 13, 1) == (1, [(1, 13)])
+    assert largest_batch(probes, 100, 5)[0] == 5  # capped
+    assert largest_batch(probes, 13, 1) == (1, [(1, 13)])
     with pytest.raises(ValueError, match="batch of 1"):
-        bench.largest_batch(probes, 12, 64)
+        largest_batch(probes, 12, 64)
 
 
 def test_trace_costs_sum_device_events_by_op(tmp_path):

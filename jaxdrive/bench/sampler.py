@@ -106,7 +106,8 @@ def model_rows(
     import numpy as np
     import torch
 
-    from jaxdrive.bench.train import cpu_count, diffusers_config
+    from jaxdrive.bench.cpus import cpu_count
+    from jaxdrive.bench.train_steps import diffusers_config
     from jaxdrive.convert.diffusers_dit import config_from_diffusers
     from jaxdrive.models.dit.inputs import example_inputs
     from jaxdrive.models.dit.model import DiT
