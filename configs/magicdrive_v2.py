@@ -26,7 +26,7 @@ bucket's batch per data-parallel group is the slowest bucket's token count over 
 at ``MAX_GROUP_BATCH``), a starting point to refine with ``jaxdrive bench buckets``; its
 probability is its batch, so that every bucket gets about the same number of batches an epoch
 (the paper repeats the scarce long clips to the same end; here every bucket's repeat is
-``auto``, :class:`jaxdrive.data.pipeline._BatchPlan`, so the tiny stages fill every bucket from a
+``auto``, :class:`jaxdrive.data.batch_plan.BatchPlan`, so the tiny stages fill every bucket from a
 dataset of three scenes). Sampling: rectified flow, 30 steps,
 classifier-free guidance 2 (``sample.cfg``, below).
 

@@ -184,7 +184,7 @@ def test_magicdrive_tiny_fills_every_bucket_from_three_scenes(three_scenes, stag
     )
     run = Run(config)
     want = {(b.batch_size, b.frames, b.height, b.width) for b in run.buckets}
-    with caplog.at_level("INFO", logger="jaxdrive.data.pipeline"):
+    with caplog.at_level("INFO", logger="jaxdrive.data.batch_plan"):
         it = iter(run.dataset())
         # two clips give each bucket exactly one batch an epoch: epoch 0 is the first len(buckets)
         batches = [next(it) for _ in range(2 * len(want))]

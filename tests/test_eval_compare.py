@@ -100,8 +100,8 @@ def test_eval_scores_strategies_and_writes_its_outputs(tiny_dit, tmp_path, capsy
 @pytest.mark.slow
 def test_eval_scores_a_folder_of_mp4s_against_the_dataset(clips21, segmenter_run, tmp_path, capsys):
     from jaxdrive.cli import main as cli
-    from jaxdrive.data.pipeline import sample_clip
     from jaxdrive.data.tfds_io import open_source
+    from jaxdrive.data.transforms import sample_clip
     from jaxdrive.media import write_mp4
 
     source = open_source(clips21, "train")

@@ -13,8 +13,8 @@ import pytest
 from jaxdrive.cli import main as cli
 from jaxdrive.config import load_config
 from jaxdrive.data.batches import model_inputs
-from jaxdrive.data.pipeline import collate, sample_clip, take_window
 from jaxdrive.data.tfds_io import dataset_info, open_source
+from jaxdrive.data.transforms import collate, sample_clip, take_window
 from jaxdrive.generate.rollout import rollout, window_starts
 from jaxdrive.generate.samples import dataset_inputs
 from jaxdrive.models.latents import LatentCodec

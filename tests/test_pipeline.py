@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 from test_tfds_io import random_clip
 
-from jaxdrive.data import pipeline, resize, schema, tfds_io
+from jaxdrive.data import pipeline, resize, schema, tfds_io, transforms
+from jaxdrive.data.batch_plan import BatchPlan
 from jaxdrive.data.buckets import Bucket, frame_offsets, frames_for, parse_buckets
 
 
@@ -72,7 +73,7 @@ def test_shapes_dtypes_ranges_from_tfds(tmp_path):
 
 def test_frames_stride_and_waypoints():
     clip = CLIPS[5]  # 14 frames
-    s = pipeline.sample_clip(clip, size=(12, 20), frames=5, stride=3, start=1)
+    s = transforms.sample_clip(clip, size=(12, 20), frames=5, stride=3, start=1)
     t = 1 + 3 * np.arange(5)
     np.testing.assert_allclose(s["video"], clip["video"][:, t] / 127.5 - 1, atol=1e-5)  # same size: identity
     np.testing.assert_array_equal(s["boxes"], clip["boxes"][t])
@@ -84,7 +85,7 @@ def test_frames_stride_and_waypoints():
     np.testing.assert_allclose(s["waypoints"], d @ rot.T, atol=1e-5)
     assert np.all(s["waypoints"][0] == 0)
     with pytest.raises(ValueError, match="need 13 source frames, but the clip has 14.*too long|need 17"):
-        pipeline.sample_clip(clip, size=(12, 20), frames=5, stride=4, start=0)
+        transforms.sample_clip(clip, size=(12, 20), frames=5, stride=4, start=0)
 
 
 def test_intrinsics_follow_resize_and_crop():
@@ -136,12 +137,12 @@ def test_repeating_buckets_resume_exactly_across_an_epoch_boundary(caplog):
     hold a clip more than once, and a state saved in epoch 1 resumes it exactly."""
     clips, buckets = CLIPS[:4], {(8, 8, 5): (2, 1.0, 2), (4, 6, 9): 3}
     kw = dict(seed=3, shard_index=0, shard_count=1, num_threads=2)
-    plan = pipeline._BatchPlan(
+    plan = BatchPlan(
         [9, 10, 11, 12], parse_buckets(buckets), stride=1, seed=3, shard_index=0, shard_count=1, num_epochs=None
     )
     first = len(plan._epoch(0))
     assert {b for b, *_ in plan._epoch(0)} == {0, 1} and first < 5  # both buckets; epoch 1 from batch 5 on
-    with caplog.at_level("INFO", logger="jaxdrive.data.pipeline"):
+    with caplog.at_level("INFO", logger="jaxdrive.data.batch_plan"):
         it = iter(pipeline.make_pipeline(clips, buckets, **kw))
         seen = [next(it) for _ in range(first + 1)]
         state = it.get_state()
@@ -243,7 +244,7 @@ def test_argument_errors():
     with pytest.raises(ValueError, match="shard_index: expected in"):
         pipeline.make_pipeline(CLIPS, {(8, 8, 5): 1}, shard_index=2, shard_count=2)
     with pytest.raises(ValueError, match="views: expected indices"):
-        pipeline.sample_clip(CLIPS[0], size=(8, 8), frames=5, views=["CAM_BACK"])
+        transforms.sample_clip(CLIPS[0], size=(8, 8), frames=5, views=["CAM_BACK"])
     assert frames_for(4) == 17 and schema.CAMERAS[0] == "CAM_FRONT"
 
 
@@ -261,7 +262,7 @@ def test_mixed_rate_clip_frames_times_and_fps():
         ((1, 3, 2), [0, 2, 4, 6, 8], 2),
     ]
     for (head, stride, tail), offsets, gen in cases:
-        s = pipeline.sample_clip(clip, size=(12, 20), frames=5, stride=stride, start=2, head=head, tail_stride=tail)
+        s = transforms.sample_clip(clip, size=(12, 20), frames=5, stride=stride, start=2, head=head, tail_stride=tail)
         t = 2 + np.asarray(offsets)
         np.testing.assert_allclose(s["video"], clip["video"][:, t] / 127.5 - 1, atol=1e-5)  # same size: identity
         np.testing.assert_array_equal(s["boxes"], clip["boxes"][t])
@@ -273,11 +274,11 @@ def test_mixed_rate_clip_frames_times_and_fps():
         match=r"5 frames at stride 2 \(2 frames\) then 6 from frame 0 need 21 source "
         r"frames, but the clip has 16",
     ):
-        pipeline.sample_clip(clip, size=(12, 20), frames=5, stride=2, head=2, tail_stride=6)
+        transforms.sample_clip(clip, size=(12, 20), frames=5, stride=2, head=2, tail_stride=6)
     with pytest.raises(ValueError, match=r"head: expected an integer >= 0, got -1"):
-        pipeline.sample_clip(clip, size=(12, 20), frames=5, head=-1)
+        transforms.sample_clip(clip, size=(12, 20), frames=5, head=-1)
     with pytest.raises(ValueError, match=r"tail_stride: expected an integer >= 1, got 0"):
-        pipeline.sample_clip(clip, size=(12, 20), frames=5, tail_stride=0)
+        transforms.sample_clip(clip, size=(12, 20), frames=5, tail_stride=0)
 
 
 def _rate_batches(n, seed=0, **kw):

@@ -292,7 +292,7 @@ def test_bad_predictor_configs_are_refused(data, tmp_path, sets, match):
 
 
 def _sample(clip, frames):
-    from jaxdrive.data.pipeline import sample_clip
+    from jaxdrive.data.transforms import sample_clip
 
     return sample_clip(clip, size=(16, 28), frames=frames)
 

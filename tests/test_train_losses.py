@@ -150,8 +150,8 @@ def test_a_step_with_every_pattern_and_jdc_anchors_is_finite(dataset):
 
 # ------------------------------------------------------------------------- LongDWM distillation
 def test_segment_waypoints_match_the_pipeline_from_that_frame(dataset):
-    from jaxdrive.data.pipeline import sample_clip
     from jaxdrive.data.tfds_io import open_source
+    from jaxdrive.data.transforms import sample_clip
 
     clip = open_source(dataset, "train")[0]
     whole = sample_clip(clip, size=(32, 56), frames=9, stride=1)

@@ -38,7 +38,7 @@ def config(data, *sets):
 
 
 def test_the_pipeline_warps_each_clip_from_its_first_frame_along_its_own_poses(data):
-    from jaxdrive.data.pipeline import clip_warp
+    from jaxdrive.data.transforms import clip_warp
     from jaxdrive.warp import warp_views
 
     run = Run(config(data, "data.warp_depth=15"))

@@ -87,8 +87,9 @@ def _models(config, views: int, steps: int):
 def _horizon(config, frames: int, views: int):
     """A synthetic clip of ``frames`` frames as model inputs (the controls of every frame)."""
     from jaxdrive.data.batches import model_inputs
-    from jaxdrive.data.pipeline import CONDITIONS, collate, sample_clip
+    from jaxdrive.data.pipeline import CONDITIONS
     from jaxdrive.data.synthetic import generate_clip
+    from jaxdrive.data.transforms import collate, sample_clip
 
     d = config.data
     clip = generate_clip(0, views=views, frames=frames, height=d.height, width=d.width)

@@ -97,7 +97,8 @@ def main(argv=None):
     parser.add_argument("--threads", type=int, nargs="+", default=[0, 4])
     parser.add_argument("--compression", choices=("bytes", "zlib"), default="bytes")
     args = parser.parse_args(argv)
-    logging.getLogger("jaxdrive.data.pipeline").setLevel(logging.WARNING)
+    for name in ("jaxdrive.data.pipeline", "jaxdrive.data.batch_plan"):  # the plan's per-epoch lines
+        logging.getLogger(name).setLevel(logging.WARNING)
     kw = dict(out=tuple(args.out), batch=args.batch, threads=args.threads, batches=args.batches, stride=args.stride)
     if args.data:
         return run(args.data, **kw)

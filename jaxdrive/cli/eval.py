@@ -328,8 +328,8 @@ def _eval_videos(args) -> int:
     import numpy as np
 
     from jaxdrive.data.class_masks import class_masks_of
-    from jaxdrive.data.pipeline import sample_clip
     from jaxdrive.data.tfds_io import open_source
+    from jaxdrive.data.transforms import sample_clip
     from jaxdrive.eval.compare import controllability, parse_buckets, repeat_baseline, repeat_name, score, write_outputs
     from jaxdrive.media import read_mp4
     from jaxdrive.validate import check_positive_int

@@ -116,8 +116,8 @@ def load_controls(path, split: str, *, max_agents: int) -> list[dict]:
     """The control fields (:data:`CONTROL_FIELDS`) and ``fps`` of every clip of the dataset
     ``path``'s ``split``, box slots padded or cut to ``max_agents``
     (:func:`jaxdrive.data.pipeline.pad_boxes`)."""
-    from jaxdrive.data.pipeline import pad_boxes
     from jaxdrive.data.tfds_io import open_source
+    from jaxdrive.data.transforms import pad_boxes
 
     source = open_source(path, split)
     clips = []

@@ -99,8 +99,9 @@ def dataset_inputs(
     the samples' ``ego_to_world [B, F, 4, 4]``, ``intrinsics [B, V, 3, 3]`` (of the sampled frame
     size) and ``cam_to_ego [B, V, 4, 4]`` (the warp baseline of ``jaxdrive eval --routes``)."""
     from jaxdrive.data.batches import model_inputs
-    from jaxdrive.data.pipeline import CONDITIONS, collate, sample_clip
+    from jaxdrive.data.pipeline import CONDITIONS
     from jaxdrive.data.tfds_io import open_source
+    from jaxdrive.data.transforms import collate, sample_clip
 
     d = spec.data
     source = None
@@ -188,8 +189,8 @@ def _window_prefix(spec: Sampling, record, frames: int, views, where: str) -> di
     """The first ``frames`` frames of a stored latent window as a sample (its latents cut to
     ``codec.latent_frames(frames)``), at the sampling stride: a distilled coarse model reads every
     ``(K - 1)``-th frame of the dense windows it was trained on (frame-wise latents)."""
-    from jaxdrive.data.pipeline import take_window
     from jaxdrive.data.schema import WINDOW_FIELDS
+    from jaxdrive.data.transforms import take_window
 
     codec = spec.codec
     step, rest = divmod(spec.frame_stride, spec.data.stride)

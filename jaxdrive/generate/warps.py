@@ -1,7 +1,7 @@
 """LongDWM's warped frames in sampling (sec. 3.4): every window of a model trained with
 ``controls.warp`` gets, as its ``warp`` condition, its first frame warped along the poses of the
 window's frames (relative to that first frame) at one depth, holes inpainted, encoded like the
-latents: what training gives it (:func:`jaxdrive.data.pipeline.clip_warp`). The window's first
+latents: what training gives it (:func:`jaxdrive.data.transforms.clip_warp`). The window's first
 frame is whatever the horizon holds there (a given frame, or one the strategy generated), decoded
 to pixels; the poses are the clip's recorded ones or a user's route.
 """

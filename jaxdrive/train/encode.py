@@ -75,7 +75,7 @@ def _too_short(source, data, longest: int) -> ValueError:
 
 def _windows(source, data, every: int, clips):
     """``sample_clip`` of every window of the ``clips`` (indices) of ``source``, in order."""
-    from jaxdrive.data.pipeline import sample_clip
+    from jaxdrive.data.transforms import sample_clip
 
     count = longest = 0
     for i in clips:

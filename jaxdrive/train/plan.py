@@ -141,7 +141,7 @@ def _zeros(shape, dtype=np.float32):
 
 
 def pipeline_batch(run, batch: int, height: int, width: int, frames: int) -> dict:
-    """A pipeline batch (:func:`jaxdrive.data.pipeline.collate`'s fields) of ``batch`` clips whose
+    """A pipeline batch (:func:`jaxdrive.data.transforms.collate`'s fields) of ``batch`` clips whose
     arrays are zero-stride views; the box count and BEV grid are nuScenes' (64 slots, 200 x 200)."""
     from jaxdrive.data.pipeline import CONDITIONS
 

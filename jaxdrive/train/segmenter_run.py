@@ -46,8 +46,8 @@ def check_segmenter_config(config: SegmenterRunConfig) -> None:
 def load_frames(path, split: str, *, size: tuple[int, int], views: int, stride: int) -> tuple[np.ndarray, np.ndarray]:
     """``(frames uint8 [N, H, W, 3], masks uint8 [N, H, W])``: every ``stride``-th frame of the
     first ``views`` views of every clip of ``split``, resized to ``size``, and their class ids."""
-    from jaxdrive.data.pipeline import sample_clip
     from jaxdrive.data.tfds_io import open_source
+    from jaxdrive.data.transforms import sample_clip
     from jaxdrive.media import to_uint8
 
     source = open_source(path, split)
