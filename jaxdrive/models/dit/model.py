@@ -59,24 +59,26 @@ from jaxdrive.models.dit.blocks import LayerContext, layer_class
 from jaxdrive.models.dit.conditions import Conditions
 from jaxdrive.models.dit.config import DiTConfig, check_config, layer_runs
 from jaxdrive.models.dit.controls import (
-    BoxEncoder,
-    CameraEncoder,
-    CaptionEncoder,
-    FrameTimeEncoder,
     MapEncoder,
     TimestepMLP,
-    TrajectoryEncoder,
-    WaypointEncoder,
     null_param,
     use_null,
 )
+from jaxdrive.models.dit.embed import (
+    additive_conditions,
+    clip_embeddings,
+    control_tokens,
+    patchify,
+    reference_input,
+    text_context,
+    unpatchify,
+)
 from jaxdrive.models.dit.inputs import example_inputs
-from jaxdrive.models.dit.layout import LayoutEncoder
 from jaxdrive.models.embeddings import rope_3d, sincos_2d, sincos_3d
 from jaxdrive.models.htft import HTFT
 from jaxdrive.models.layers import MLP, Dense, LayerNorm, modulate
 from jaxdrive.models.params import ZEROS, Init, abstract_params, count_params, host_params, normal, param
-from jaxdrive.models.tokens import TEXT, VIDEO, pool_frames, reshape
+from jaxdrive.models.tokens import TEXT, VIDEO, pool_frames
 from jaxdrive.parallel.rules import constrain
 
 POLICIES = {
@@ -84,25 +86,6 @@ POLICIES = {
     "dots": jax.checkpoint_policies.checkpoint_dots,
     "dots_no_batch": jax.checkpoint_policies.dots_with_no_batch_dims_saveable,
 }
-
-
-def patchify(x, patch):
-    """``[B, V, F', h, w, C]`` -> tokens ``[B, F' / pt, (h / ph) (w / pw), V, pt ph pw C]``."""
-    b, nv, nf, h, w, c = x.shape
-    pt, ph, pw = patch
-    x = reshape(x, (b, nv, nf // pt, pt, h // ph, ph, w // pw, pw, c))
-    x = jnp.transpose(x, (0, 2, 4, 6, 1, 3, 5, 7, 8))
-    return reshape(x, (b, nf // pt, (h // ph) * (w // pw), nv, pt * ph * pw * c))
-
-
-def unpatchify(tokens, patch, grid_hw, channels):
-    """Inverse of :func:`patchify`."""
-    b, ft, _, nv, _ = tokens.shape
-    pt, ph, pw = patch
-    gh, gw = grid_hw
-    x = reshape(tokens, (b, ft, gh, gw, nv, pt, ph, pw, channels))
-    x = jnp.transpose(x, (0, 4, 1, 5, 2, 6, 3, 7, 8))
-    return reshape(x, (b, nv, ft * pt, gh * ph, gw * pw, channels))
 
 
 class _Body(nn.Module):
@@ -210,14 +193,14 @@ class DiT(nn.Module):
             )
             hid = hid + jnp.asarray(pos, dt)[None, :, :, None]
         ref = reference_input(x, cond_latents, cond_mask) if cfg.controls.reference_frame else None
-        hid = hid + self._additive(cfg, x, c, drop, (h, w), grid, ref)
+        hid = hid + additive_conditions(self, cfg, x, c, drop, (h, w), grid, ref)
         hid = constrain(hid, VIDEO)
         self.sow("intermediates", "tokens", hid)
 
         # noise levels -> per-frame timestep embeddings (+ fps, + ofs)
         temb = TimestepMLP(cfg.time_freq_dim, cfg.t_dim, cfg.flip_sin_to_cos, cfg.freq_shift, dt, name="t_embedder")
         t = temb(sig_tok * cfg.timestep_scale)  # [B, Ft, Dt]
-        extra = self._clip_embeddings(cfg, b, c.fps, c.ofs, drop)
+        extra = clip_embeddings(self, cfg, b, c.fps, c.ofs, drop)
         t = t + extra[:, None]
         ctx = LayerContext()
         if cfg.layout == "full":
@@ -243,8 +226,8 @@ class DiT(nn.Module):
         self.sow("intermediates", "modulation", t if ctx.t0 is None else ctx.t0)
 
         # context: text and control tokens; warp tokens
-        text_ctx, tmask = self._text(cfg, b, text, text_mask, drop)
-        tok, tok_mask = self._control_tokens(cfg, b, nv, nf, (h, w), c, drop)
+        text_ctx, tmask = text_context(self, cfg, b, text, text_mask, drop)
+        tok, tok_mask = control_tokens(self, cfg, b, nv, nf, (h, w), c, drop)
         ctx = ctx.replace(tokens=tok, tokens_mask=tok_mask)
         if warp is not None:
             wt = Dense(cfg.width, ("channels", "embed"), dtype=dt, name="warp_embed")(
@@ -283,222 +266,6 @@ class DiT(nn.Module):
         return (out, feats) if return_features else out
 
     # ------------------------------------------------------------------ pieces
-
-    def _additive(self, cfg, x, cond: Conditions, drop, hw, grid, ref):
-        """Conditions added to the tokens (MiLA [2503.15875v1] eq. 2, ``h_fuse = h_f + h_c``) and the concat-mode
-        condition frames.
-
-        Reading of MiLA [2503.15875v1] eq. 1 (``h_c = MLP(FFT(c))`` over all cameras and waypoints fused): one
-        Fourier + MLP per condition, summed: the camera term per view, the waypoint term per frame.
-        This keeps each condition droppable on its own with its own learned null (MiLA [2503.15875v1] appendix B
-        drops conditions independently), which one MLP over the concatenation would not allow."""
-        c, dt, width = cfg.controls, cfg.compute_dtype, cfg.width
-        intrinsics, cam_to_ego, waypoints = cond.intrinsics, cond.cam_to_ego, cond.waypoints
-        cond_latents, cond_mask = cond.cond_latents, cond.cond_mask
-        b, nv, nf = x.shape[:3]
-        pt = cfg.patch[0]
-        add = jnp.zeros((), dt)
-        image_hw = (hw[0] * cfg.vae_spatial, hw[1] * cfg.vae_spatial)
-        if c.camera:
-            null = null_param(self, "camera_null", (width,), ("embed",))
-            if intrinsics is None:
-                cam = jnp.broadcast_to(null.astype(dt), (b, nv, width))
-            else:
-                cam = CameraEncoder(width, c.fourier_freqs, c.fourier_temperature, dt, name="camera_embed")(
-                    intrinsics, cam_to_ego, image_hw
-                )
-                cam = use_null(drop.get("camera"), cam, null)
-            add = add + cam[:, None, None]  # [B, 1, 1, V, D]
-        if c.waypoints:
-            null = null_param(self, "waypoints_null", (width,), ("embed",))
-            if waypoints is None:
-                wp = jnp.broadcast_to(null.astype(dt), (b, nf // pt, width))
-            else:
-                wp = WaypointEncoder(
-                    width, c.fourier_freqs, c.fourier_temperature, cfg.vae_temporal, dt, name="waypoints_embed"
-                )(jnp.asarray(waypoints, jnp.float32), nf)
-                wp = use_null(drop.get("waypoints"), pool_frames(wp, pt), null)
-            add = add + wp[:, :, None, None]  # [B, Ft, 1, 1, D]
-        if c.frame_time and cond.frame_times is not None:
-            ft = FrameTimeEncoder(
-                width, c.fourier_freqs, c.fourier_temperature, cfg.vae_temporal, dt, name="frame_time_embed"
-            )(cond.frame_times, nf)
-            ft = use_null(drop.get("frame_time"), pool_frames(ft, pt), jnp.zeros((), dt))
-            add = add + ft[:, :, None, None]  # [B, Ft, 1, 1, D]
-        if c.layout and cond.boxes is not None:
-            add = add + self._layout(cfg, cond, drop, hw, nf)
-        if ref is not None:
-            add = add + Dense(width, ("channels", "embed"), dtype=dt, kernel_init=ZEROS, name="reference_embed")(
-                constrain(patchify(ref, cfg.patch), VIDEO[:-1] + ("channels",))
-            )
-        if c.cond_frames == "concat":
-            if cond_latents is None:
-                cl, cm = jnp.zeros_like(x), jnp.zeros((b, nf), bool)
-            else:
-                cl, cm = jnp.asarray(cond_latents, jnp.float32), jnp.asarray(cond_mask, bool)
-            mb = jnp.broadcast_to(cm[:, None, :, None, None, None], x.shape[:-1] + (1,)).astype(jnp.float32)
-            cin = jnp.concatenate([cl * mb, mb], axis=-1)
-            add = add + Dense(width, ("channels", "embed"), dtype=dt, kernel_init=ZEROS, name="cond_embed")(
-                constrain(patchify(cin, cfg.patch), VIDEO[:-1] + ("channels",))
-            )
-        return add
-
-    def _layout(self, cfg, cond: Conditions, drop, hw, nf):
-        """The projected layout control (``controls.layout``, :mod:`jaxdrive.models.dit.layout`):
-        the canvas of the boxes and the BEV map in every camera on the latent grid ``hw``,
-        encoded, patchified, then a zero-initialised projection per token (the gate: a model
-        initialised from a run without the control starts unchanged) -> ``[B, Ft, S, V, D]``.
-        Dropped with the boxes (``drop["boxes"]``): a dropped row adds nothing, the model without
-        the control. The caller adds nothing when the boxes are absent."""
-        c, dt = cfg.controls, cfg.compute_dtype
-        image_hw = (hw[0] * cfg.vae_spatial, hw[1] * cfg.vae_spatial)
-        feats = LayoutEncoder(
-            c.num_classes,
-            c.map_channels,
-            c.layout_hidden,
-            c.layout_samples,
-            tuple(c.layout_bev_range),
-            cfg.vae_temporal,
-            dt,
-            name="layout_embed",
-        )(
-            cond.boxes,
-            cond.box_classes,
-            cond.box_valid,
-            cond.intrinsics,
-            cond.cam_to_ego,
-            cond.bev_map,
-            image_hw,
-            hw,
-            nf,
-        )  # [B, V, F', h, w, hidden]
-        tokens = constrain(patchify(feats, cfg.patch), VIDEO[:-1] + ("channels",))
-        out = Dense(cfg.width, ("channels", "embed"), dtype=dt, kernel_init=ZEROS, name="layout_gate")(tokens)
-        return use_null(drop.get("boxes"), out, jnp.zeros((), dt))
-
-    def _clip_embeddings(self, cfg, b, fps, ofs, drop):
-        """Per-clip additions to the timestep embedding: fps (Open-Sora) and ofs (CogVideoX 1.5)."""
-        extra = jnp.zeros((b, cfg.t_dim), cfg.compute_dtype)
-        if cfg.controls.fps:
-            null = null_param(self, "fps_null", (cfg.t_dim,), ("embed",))
-            if fps is None:
-                extra = extra + null.astype(extra.dtype)
-            else:
-                e = TimestepMLP(256, cfg.t_dim, dtype=cfg.compute_dtype, name="fps_embedder")(fps)
-                extra = extra + use_null(drop.get("fps"), e, null)
-        if cfg.ofs_embed_dim is not None:
-            o = jnp.full((b,), 2.0, jnp.float32) if ofs is None else jnp.asarray(ofs, jnp.float32)
-            extra = extra + TimestepMLP(
-                cfg.ofs_embed_dim,
-                cfg.ofs_embed_dim,
-                cfg.flip_sin_to_cos,
-                cfg.freq_shift,
-                cfg.compute_dtype,
-                name="ofs_embedder",
-            )(o)
-        return extra
-
-    def _text(self, cfg, b, text, text_mask, drop):
-        c = cfg.controls
-        if c.text is None:
-            return None, None
-        if text is not None:
-            mask = jnp.ones(np.shape(text)[:2], bool) if text_mask is None else jnp.asarray(text_mask, bool)
-            if c.text == "caption":
-                y = CaptionEncoder(
-                    cfg.text_dim,
-                    c.caption_vocab,
-                    cfg.text_len,
-                    c.caption_layers,
-                    cfg.local_attn_impl,
-                    cfg.compute_dtype,
-                    name="caption_encoder",
-                )(text, mask)
-            else:
-                y = jnp.asarray(text, cfg.compute_dtype)
-        if not c.text_null:
-            return y, (None if text_mask is None else mask)
-        # the learned null is text_len tokens (Open-Sora's y_embedding); given text is padded to
-        # text_len (padding masked) so that a dropped row and an absent text are the same input
-        null = null_param(self, "text_null", (cfg.text_len, cfg.text_dim), ("text_tokens", "text_embed"))
-        if text is None:
-            return (
-                jnp.broadcast_to(null.astype(cfg.compute_dtype), (b,) + null.shape),
-                jnp.ones((b, cfg.text_len), bool),
-            )
-        pad = cfg.text_len - y.shape[1]
-        y = jnp.pad(y, ((0, 0), (0, pad), (0, 0)))
-        mask = jnp.pad(mask, ((0, 0), (0, pad)))
-        return use_null(drop.get("text"), y, null), use_null(drop.get("text"), mask, jnp.ones((), bool))
-
-    def _control_tokens(self, cfg, b, nv, nf, hw, cond: Conditions, drop):
-        """Cross-attention tokens per (token frame, view): trajectory (1) and boxes (N)."""
-        c, dt, width, pt = cfg.controls, cfg.compute_dtype, cfg.width, cfg.patch[0]
-        intrinsics, cam_to_ego, ego_to_world = cond.intrinsics, cond.cam_to_ego, cond.ego_to_world
-        boxes, box_classes, box_valid = cond.boxes, cond.box_classes, cond.box_valid
-        ft = nf // pt
-        toks, masks = [], []
-        if c.trajectory:
-            null = null_param(self, "trajectory_null", (width,), ("embed",))
-            if ego_to_world is None:
-                tr = jnp.broadcast_to(null.astype(dt), (b, ft, width))
-            else:
-                tr = TrajectoryEncoder(
-                    width,
-                    cfg.heads,
-                    c.encoder_layers,
-                    c.fourier_freqs,
-                    c.fourier_temperature,
-                    cfg.vae_temporal,
-                    cfg.local_attn_impl,
-                    dt,
-                    name="trajectory_embed",
-                )(ego_to_world, nf)
-                tr = use_null(drop.get("trajectory"), pool_frames(tr, pt), null)
-            # over the batch axes, as the box tokens below: the two are concatenated per token
-            toks.append(
-                constrain(
-                    jnp.broadcast_to(tr[:, :, None, None], (b, ft, nv, 1, width)), ("batch", None, None, None, None)
-                )
-            )
-            masks.append(constrain(jnp.ones((b, ft, nv, 1), bool), ("batch", None, None, None)))
-        if c.boxes:
-            null = null_param(self, "boxes_null", (width,), ("embed",))
-            if boxes is None:
-                bt = jnp.broadcast_to(null.astype(dt), (b, ft, nv, 1, width))
-                bm = jnp.ones((b, ft, nv, 1), bool)
-            else:
-                image_hw = (hw[0] * cfg.vae_spatial, hw[1] * cfg.vae_spatial)
-                bt, bm = BoxEncoder(
-                    width,
-                    cfg.heads,
-                    c.encoder_layers,
-                    c.num_classes,
-                    cfg.box_freqs,
-                    c.fourier_temperature,
-                    cfg.vae_temporal,
-                    c.box_per_view,
-                    cfg.local_attn_impl,
-                    dt,
-                    cfg.box_range,
-                    name="boxes_embed",
-                )(boxes, box_classes, box_valid, nf, intrinsics, cam_to_ego, image_hw)
-                bt = pool_frames(bt, pt)
-                bm = jnp.any(bm.reshape(b, ft, pt, *bm.shape[2:]), axis=2)
-                # per-sample over the batch axes only: the encoder's reshapes over views may leave
-                # another layout, which the drop's per-sample select below cannot broadcast with
-                bt = constrain(jnp.broadcast_to(bt, (b, ft, nv) + bt.shape[3:]), ("batch", None, None, None, None))
-                bm = constrain(jnp.broadcast_to(bm, (b, ft, nv) + bm.shape[3:]), ("batch", None, None, None))
-                d = drop.get("boxes")
-                if d is not None:
-                    first = jnp.arange(bm.shape[-1]) == 0
-                    bt = use_null(d, bt, null)
-                    bm = use_null(d, bm, first)
-            toks.append(bt)
-            masks.append(bm)
-        if not toks:
-            return None, None
-        return jnp.concatenate(toks, axis=3), jnp.concatenate(masks, axis=3)
 
     def _map_branch(self, cfg, carry, ctx, bev_map, drop, nf, grid):
         """MagicDrive-V2's map ControlNet (sec. 4.2, Zhang et al. 2023): the map encoder's tokens
@@ -609,24 +376,6 @@ def _conv3x3(module, name, x, features, init):
         jnp.einsum("...c,cd->...d", xp[..., i : i + h, j : j + w, :], kernel[i, j]) for i in range(3) for j in range(3)
     )
     return y + param(module, f"{name}_bias", ZEROS, (features,), (None,))
-
-
-def reference_input(x, cond_latents, cond_mask):
-    """``[ref * given, given]`` for every frame of ``x [B, V, F', h, w, C]``: ``ref`` the latents of
-    the newest frame in ``cond_mask [B, F']`` (``controls.reference_frame``), ``given`` 1 where a
-    clip has a condition frame (0 and zeros for a clip without, or with no ``cond_latents``).
-    The out-dimension of the DiT equals ``C``, so ``[..., :-1]`` is the residual's base."""
-    b, nv, nf, h, w, c = x.shape
-    if cond_latents is None:
-        return jnp.zeros((b, nv, nf, h, w, c + 1), jnp.float32)
-    m = jnp.asarray(cond_mask, bool)
-    last = jnp.max(jnp.where(m, jnp.arange(nf)[None], -1), axis=1)  # [B]; -1: none given
-    # a one-hot sum over frames, not a gather: it keeps the batch sharding of an Explicit mesh
-    pick = (jnp.arange(nf)[None] == last[:, None]).astype(jnp.float32)[:, None, :, None, None, None]
-    ref = jnp.sum(jnp.asarray(cond_latents, jnp.float32) * pick, axis=2, keepdims=True)
-    like_x = jnp.zeros_like(x[..., :1])  # both halves take x's sharding before the concatenate
-    given = like_x + jnp.sum(pick, axis=2, keepdims=True)
-    return jnp.concatenate([like_x + ref, given], axis=-1)
 
 
 def param_count(cfg: DiTConfig) -> int:
