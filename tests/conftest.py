@@ -59,13 +59,19 @@ TRAINED_FIXTURES = {"tiny_dit", "segmenter_run", "never_killed"}
 
 
 def pytest_collection_modifyitems(config, items):
-    """Tests that use a trained fixture are marked slow; and slow tests run first (a stable sort,
-    the same on every xdist worker), so the minutes-long ones start while the short ones fill in
-    around them instead of one of them starting last and running alone."""
+    """Tests that use a trained fixture are marked slow; and the longest tests run first, by the
+    ``seconds`` their ``slow`` mark gives (measured on 2 cores; a stable sort, the same on every
+    xdist worker). With xdist's ``worksteal`` scheduling (pyproject's addopts) a worker that runs
+    out takes the other's last, shortest tests, so the run never ends on one long test alone."""
     for item in items:
         if TRAINED_FIXTURES & set(getattr(item, "fixturenames", ())):
             item.add_marker(pytest.mark.slow)
-    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+
+    def seconds(item):
+        mark = item.get_closest_marker("slow")
+        return 0 if mark is None else mark.kwargs.get("seconds", 1)
+
+    items.sort(key=seconds, reverse=True)
 
 
 @pytest.fixture(autouse=True)

@@ -23,7 +23,7 @@ from control_fixtures import STEPS, measured
 BOUNDS = {"boxes": 0.99, "layout": 0.4, "map": 0.2, "waypoints": 0.9, "trajectory": 0.97, "warp": 0.5, "camera": 0.5}
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=10)
 @pytest.mark.parametrize("pathway", controls.PATHWAYS)
 def test_the_true_control_beats_a_shuffled_one(pathway):
     row = measured(pathway)

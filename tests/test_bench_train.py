@@ -21,7 +21,7 @@ def _rows(out):
     return [json.loads(line) for line in out.splitlines() if line.startswith("{")]
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=14)
 def test_train_benchmark_prints_tokens_per_s_and_the_torch_ratio(capsys):
     pytest.importorskip("torch")
     pytest.importorskip("diffusers")
@@ -59,7 +59,7 @@ def test_train_benchmark_prints_tokens_per_s_and_the_torch_ratio(capsys):
     assert flops["value"] > 0 and next(r for r in rows if r["figure"] == "compile_time")["value"] > 0
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=6)
 def test_json_rows_hold_the_step_and_single_op_comparisons(capsys):
     pytest.importorskip("torch")
     pytest.importorskip("diffusers")
@@ -153,7 +153,7 @@ def test_peak_is_known_for_accelerators_and_given_on_cpu():
     assert model_flops.peak_tflops(Dev(), 1.5) == (1.5, "--peak-tflops")
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=14)
 def test_accelerator_settings_reach_the_model_and_the_measured_peak_gives_an_mfu(capsys, monkeypatch):
     seen, step = [], bench.jax_step
     monkeypatch.setattr(bench, "jax_step", lambda cfg, *a, **k: seen.append(cfg) or step(cfg, *a, **k))

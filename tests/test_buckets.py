@@ -111,7 +111,7 @@ def test_bad_buckets_fail_before_compiling(scenes, sets, match):
         Run(tiny(scenes, *sets))
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=83)
 def test_buckets_compile_once_each_and_resume_bit_exact(scenes, tmp_path):
     cfg = tiny(scenes, BUCKETS)
     run = Run(cfg)

@@ -21,7 +21,7 @@ def restore_cache():
     compile_cache.enable(previous or "off")
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=27)
 def test_a_second_run_reads_its_compiled_step_from_the_cache(clips21, tmp_path, restore_cache):
     from jaxdrive.train.run import train
 

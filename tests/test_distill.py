@@ -77,7 +77,7 @@ def test_bad_inputs():
         flow.distill_loss(jnp.ones((1, 2, 1, 1, 1)), jnp.ones((1, 3, 1, 1, 1)))
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=13)
 @settings(max_examples=20)  # every geometry is a new shape, i.e. new compilations
 @given(st.integers(2, 6), st.integers(1, 5), st.sampled_from(["mean", "start", "end"]))
 def test_segments_round_trip_for_any_geometry(segment_len, num_segments, boundary):

@@ -138,7 +138,7 @@ def _check_dropped_conditions_equal_the_null_path():
     assert max_rel(map_drop[1], zero_map[1]) > 1e-4
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=20)
 def test_mvdit_with_every_control_on_six_views():
     """One test for the checks that share the compiled all-controls model (compiling dominates;
     separate tests would compile it once per test worker): the output and feature shapes for
@@ -169,7 +169,7 @@ def _intermediates(cfg, params, lat, sig, text, kw):
     return out, inter["tokens"][0], inter["modulation"][0]
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=7)
 @pytest.mark.parametrize("cfg", [TINY, preset("tiny-full")], ids=["factorized", "full"])
 def test_one_frames_sigma_changes_only_that_frames_modulation(cfg):
     """One frame's sigma changes that frame's modulation and nothing upstream of it in any frame's
@@ -214,7 +214,7 @@ def _check_condition_frames_carry_sigma_zero():
     np.testing.assert_allclose(tokens, tokens2, atol=1e-6)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=9)
 def test_full_layout_with_controls_and_concat_condition_frames():
     cfg = preset(
         "tiny-full",
@@ -240,7 +240,7 @@ def test_full_layout_with_controls_and_concat_condition_frames():
     np.testing.assert_array_equal(fwd(params, lat, sig, text, other), out)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=8)
 def test_stdit2_layers_patch_spanning_two_frames_and_the_caption_encoder():
     from jaxdrive.data.text import tokenize_captions
 
@@ -284,7 +284,7 @@ def _unrolled_and_scanned(base, scanned):
     return params, stacked
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=12)
 @pytest.mark.parametrize("dtype", ["float32", "bfloat16"])
 def test_scan_and_remat_match_the_python_loop(dtype):
     # bfloat16: the float32 parameters promote a layer's output, so the scan carry changed type
@@ -308,7 +308,7 @@ def test_scan_and_remat_match_the_python_loop(dtype):
     assert max_rel(g2, g1) < tol
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=11)
 def test_a_scan_break_gives_a_layer_its_own_name_and_changes_nothing_else():
     """MiLA's paper config scans its layers but trains the last one by name in stage 1."""
     from jaxdrive.models.dit.config import layer_runs
@@ -417,7 +417,7 @@ def test_cogvideox_2b_preset_has_the_diffusers_parameter_count():
     assert param_count(preset("cogvideox-2b", depth=2)) == want
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=7)
 def test_dit_benchmark_prints_json_figures(capsys):
     from jaxdrive.cli import main
 
@@ -510,7 +510,7 @@ def test_residual_reference_frame_starts_by_repeating_the_newest_given_frame():
     np.testing.assert_array_equal(out[1], 0.0)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=8)
 def test_final_convolutions_start_as_a_no_op_and_are_3x3_convolutions():
     """U-ViT's final convolutions (``final_conv``): zero-initialised, the model's output is that of
     the same model without them; each is a "same" 3x3 convolution (checked against XLA's)."""
@@ -569,7 +569,7 @@ def test_latent_frames_take_the_time_of_their_newest_pixel_frame_relative_to_the
         latent_frame_times(t[:, :4], 3, 4)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=9)
 def test_frame_time_control_starts_as_a_no_op_and_reads_relative_times():
     """Zero-initialised: a model with the control equals the same parameters without it. Once its
     last layer is trained the output depends on the frame times, but not on a shift of all of them,
@@ -638,7 +638,7 @@ def test_frame_times_from_a_batch_and_bad_frame_times():
         ex["cond"].check(FT_OFF, lat, sig)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=6)
 def test_growing_temporal_blocks_leaves_a_spatial_only_models_outputs_unchanged():
     """MagicDrive-V2's stage 1 -> 2 growth: a spatial-only model (``temporal="off"``) loaded into
     one with zero-initialised temporal blocks (``temporal="zero_init"``) gives exactly its outputs,

@@ -68,7 +68,7 @@ def _loss_fn(cfg):
     return jax.jit(jax.value_and_grad(loss, argnums=(0, 1), has_aux=True))
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=30)
 @pytest.mark.parametrize("case", CASES)
 def test_sharded_matches_single_device(case):
     cfg, mesh_shape, views = CASES[case]
@@ -95,7 +95,7 @@ def test_sharded_matches_single_device(case):
     assert tree_max_rel(gp, gp_want) < 1e-4
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=9)
 def test_full_layout_on_a_one_device_explicit_mesh():
     """The [text; video] join with a seq axis of size 1 (a single-GPU run) matches no mesh."""
     cfg = preset("tiny-full")

@@ -22,7 +22,7 @@ def test_the_docs_hold_python_examples():
     assert EXAMPLES, "no ```python block under README.md or docs/: the examples test would run nothing"
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=35)
 @pytest.mark.parametrize("page, index, block", EXAMPLES, ids=[f"{p}:{i}" for p, i, _ in EXAMPLES])
 def test_python_examples_run(page, index, block, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)

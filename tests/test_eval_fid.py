@@ -69,7 +69,7 @@ def weights(tmp_path_factory):
     return model, path
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=6)
 @pytest.mark.parametrize("hw", [(64, 96), (320, 360)])  # resized up and down to 299
 def test_inception_features_match_pytorch_fid(weights, hw):
     from jaxdrive.eval.inception import load_fid_inception
@@ -151,7 +151,7 @@ def i3d_weights(tmp_path_factory):
     return net, path
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=12)
 def test_i3d_logits_match_cd_fvd(i3d_weights, tmp_path):
     from jaxdrive.cli import main as cli
     from jaxdrive.eval.i3d import load_i3d

@@ -50,7 +50,7 @@ def flat(tree):
     return {k: np.asarray(v) for k, v in flatten_dict(jax.device_get(tree), sep="/").items()}
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=10)
 def test_a_later_stage_loads_what_the_source_has_and_keeps_its_own_init_for_the_rest(dataset, source_run, caplog):
     workdir, saved = source_run
     # stage 2 adds a control (boxes: a new encoder, its null, ...) to the stage-1 model

@@ -111,7 +111,7 @@ def test_encoded_windows_are_the_codec_of_sample_clip(datasets):
     assert meta["source_path"] == str(clips_path.resolve())
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=11)
 def test_latent_batch_gives_the_video_batch_loss(datasets):
     clips_path, latents_path = datasets
     run = Run(config(latents_path))
@@ -266,7 +266,7 @@ def test_rollout_progress_counts_windows(datasets, capsys):
     np.testing.assert_array_equal(quiet, shown)  # the bar changes nothing else
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=23)
 def test_train_on_precomputed_latents(datasets, tmp_path):
     cfg = config(datasets[1], "train.steps=2", "train.checkpoint_every=2")
     out = train(cfg, tmp_path / "run", progress=False)
@@ -352,7 +352,7 @@ def test_encode_rejects_bad_arguments(datasets, tmp_path, sets, kwargs, match):
     assert not (tmp_path / "out").exists() and not list(tmp_path.iterdir())
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=6)
 def test_two_processes_write_the_one_process_dataset(datasets, tmp_path):
     """2 processes x 4 fake devices (launch/local.py), the batch over data = 8 across both: each
     encodes its clips and writes its shards; together they are the one-process dataset."""
@@ -407,7 +407,7 @@ def same_dense_clips(tmp_path_factory):
     return write_same_clips(tmp_path_factory.mktemp("dense") / "clips", seed=11, frames=9, copies=2)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=23)
 def test_distillation_on_precomputed_latents_matches_encoding_in_the_step(same_dense_clips, tmp_path):
     """LongDWM's fine-to-coarse distillation (configs/longdwm.py:size=tiny,role=distill, 9 dense
     frames, segments of 5): the windows hold the dense clip's frame-wise latents, which is what both

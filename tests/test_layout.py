@@ -37,7 +37,7 @@ def _front_camera(size=90, focal=90.0):
     return k[None, None], pose[None, None]
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=6)
 def test_layout_matches_the_synthetic_worlds_instance_ids():
     """Each box's drawn silhouette (nearest box in front) against its instance mask, one ray per
     stored pixel. Measured over seeds 0-2 (2 frames, 6 views, 64 x 112, no scenery): IoU 1.000
@@ -66,7 +66,7 @@ def test_layout_matches_the_synthetic_worlds_instance_ids():
     assert min(agree) > 0.999
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=11)
 def test_one_box_and_one_road_cell_worked_numbers():
     """A 2 m cube 10 m ahead of the ego at camera height: its near face lies at depth 9 m and
     spans 90 * 1 / 9 = 10 pixels either side of the centre, so pixels 35..54 (centres 35.5..54.5)
@@ -171,7 +171,7 @@ def test_layout_bad_input():
         camera_rays(kw["intrinsics"], kw["cam_to_ego"][:, :1], (64, 64), (8, 8))
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=14)
 def test_layout_gate_starts_closed_gradients_reach_the_encoder_and_guidance_drops_it():
     """At initialisation the zero gate leaves the output as without the layout (exactly); the
     gate's gradient is non-zero, and once the gate is open the gradients reach every
@@ -209,7 +209,7 @@ def test_layout_gate_starts_closed_gradients_reach_the_encoder_and_guidance_drop
     assert max_rel(dropped[0], live[0]) > 1e-4
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=7)
 def test_a_window_sampled_without_its_box_inputs_is_the_model_without_the_layout():
     """What ``jaxdrive eval --routes`` does for its "no boxes" row: the box inputs left out of a
     window's controls change the sample of a model whose layout gate is open. A drop set in the

@@ -66,7 +66,7 @@ def test_high_pass_removes_smooth_content_and_keeps_checkerboard():
     np.testing.assert_allclose(flow.high_pass(slow, 0.5), 0.0, atol=1e-5)  # radial freq 0.25 < 0.5
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=5)
 @given(st.floats(0.0, 1.0), st.integers(0, 1000))
 def test_structure_loss_is_parseval_energy_of_the_masked_spectrum(cutoff, seed):
     x, _, y = _data(seed, shape=(1, 2, 6, 10, 2))

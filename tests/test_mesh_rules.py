@@ -207,7 +207,7 @@ class _Block(nn.Module):
         return constrain(x, ("batch", "tokens", "embed"))
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=8)
 def test_params_sharded_by_rules_and_forward_matches():
     model = _Block()
     x = jax.random.normal(jax.random.key(1), (4, 8, 8))

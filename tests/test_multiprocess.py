@@ -100,7 +100,7 @@ def _gloo_available() -> bool:
     return hasattr(_jax, "make_gloo_tcp_collectives")
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=9)
 @pytest.mark.skipif(not _gloo_available(), reason="jaxlib built without gloo CPU collectives")
 def test_two_processes_match_one(tmp_path):
     script = tmp_path / "worker.py"

@@ -95,7 +95,7 @@ def test_paper_configs_take_their_argument(arg):
         load_config(f"{ROOT / 'configs' / name}.py:{arg.replace('stage=', 'stage=9').replace('role=', 'role=x')}")
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=143)
 def test_mila_tiny_stages_train_and_sample_coarse_to_refine(long_scenes, tmp_path, capsys):
     for stage in (1, 2):
         train(f"mila.py:size=tiny,stage={stage}", tmp_path / f"stage{stage}", long_scenes)
@@ -183,7 +183,7 @@ def test_mila_tiny_stages_train_and_sample_coarse_to_refine(long_scenes, tmp_pat
     assert "coarse-to-refine needs a model trained to correct JDC anchors" in capsys.readouterr().err
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=121)
 def test_longdwm_tiny_roles_train_and_sample_coarse_fine(long_scenes, tmp_path, capsys):
     coarse = train("longdwm.py:size=tiny,role=coarse", tmp_path / "coarse", long_scenes)
     fine = train("longdwm.py:size=tiny,role=fine", tmp_path / "fine", long_scenes, steps=2)
@@ -231,7 +231,7 @@ def test_longdwm_tiny_roles_train_and_sample_coarse_fine(long_scenes, tmp_path, 
     assert not (tmp_path / "bad").exists()
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=215)
 def test_magicdrive_tiny_stages_grow_from_images_and_train_on_their_buckets(tmp_path, capsys):
     """MagicDrive-V2 at size=tiny: stage 1 (spatial-only, images) -> 2 (temporal blocks grown,
     images and videos of two resolutions) -> 3 (three resolutions, seq = 4), each from the last
@@ -306,7 +306,7 @@ def test_magicdrive_tiny_stages_grow_from_images_and_train_on_their_buckets(tmp_
     assert "needs a model trained on several lengths" in capsys.readouterr().err
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=141)
 def test_stage_tiny_stages_train_htft_only_in_stage_2_and_stream(long_scenes, tmp_path, capsys):
     """STAGE at size=tiny: stage 1 (windows of recorded frames, no HTFT) -> 2 (HTFT added at zero,
     only its parameters trained, from stage 1); then ``--strategy streaming`` with the stage-2

@@ -77,7 +77,7 @@ def test_fsdp_divides_the_sharded_state(config):
         assert plans[n]["batch"] * n == pytest.approx(plans[1]["batch"], rel=0.01)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=37)
 def test_seq_divides_the_activations(config):
     """seq = 1, 2, 4, 8 (compiled): the step's temporaries are a part that seq splits (the DiT's
     activations: its tokens are split) plus a part it does not (the latents, noise and loss terms

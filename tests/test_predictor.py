@@ -86,7 +86,7 @@ def _traffic(ego, agents, seen):
     )
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=18)
 def test_constant_velocity_moves_each_pose_by_its_last_step_and_a_fresh_predictor_is_that_step():
     ego = np.array([[[0, 0, 0], [0.5, 0, 0.1], [1.5, 0.5, 0.2], [2.5, 1.0, 0.3]]])  # [1, T=4, 3]
     agents = np.zeros((1, 4, 2, 3))
@@ -110,7 +110,7 @@ def test_constant_velocity_moves_each_pose_by_its_last_step_and_a_fresh_predicto
     np.testing.assert_allclose(e2[0, :2] - cv_ego[0, :2], 0.5 * np.array([np.cos(0.3), np.sin(0.3)]), atol=1e-5)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=7)
 def test_a_720_step_rollout_keeps_the_tracks_and_stays_finite(clip):
     tr = clip_tracks(clip)
     hist = slice(40 - SMALL.history, 40)
@@ -139,7 +139,7 @@ def test_a_720_step_rollout_keeps_the_tracks_and_stays_finite(clip):
     )  # absent slots are not moved
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=12)
 def test_ade_and_fde_of_constant_velocity_under_constant_acceleration_match_the_worked_numbers():
     """x = 0.1 f^2 at 1 fps: constant velocity from frame r misses (r + k) by 0.1 (k^2 + k) m,
     whatever r: FDE 0.2 m at 1 s and 0.6 m at 2 s, ADE at 2 s (0.2 + 0.6) / 2 = 0.4 m."""
@@ -202,7 +202,7 @@ def predictor_run(data, tmp_path_factory):
     return work
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=10)
 def test_the_predictor_trains_resumes_and_scores_its_validation_split(predictor_run, data):
     from jaxdrive.cli import main as cli
     from jaxdrive.train.predictor_run import load_future_predictor
@@ -244,7 +244,7 @@ def test_the_predictor_trains_resumes_and_scores_its_validation_split(predictor_
     assert [r["step"] for r in rows] == [2, 4, 6, 8]  # resumed at 6, not restarted
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=20)
 def test_a_signal_saves_the_predictor_and_the_same_command_resumes(data, tmp_path):
     import os
     import signal
@@ -342,7 +342,7 @@ def test_controls_past_the_log_continue_the_clip_and_a_route_moves_only_the_ego(
     assert 0 < fast["route_drive"]["beyond_map_from"]["frame"] < 20 and np.isfinite(fast["bev_map"]).all()
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=26)
 def test_a_six_view_generation_runs_past_the_end_of_the_recorded_controls(tiny_dit, predictor_run, tmp_path, capsys):
     from PIL import Image
 

@@ -85,7 +85,7 @@ def test_padded_length(impl, mesh_name, with_mask, causal_block):
     _check(impl, _mesh(MESHES[mesh_name]), q, k, v, ct, mask, causal_block)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=8)
 @pytest.mark.parametrize("impl", IMPLS)
 @pytest.mark.parametrize("lq,lk", [(21, 45)])
 def test_cross_attention(impl, lq, lk):
@@ -93,7 +93,7 @@ def test_cross_attention(impl, lq, lk):
     _check(impl, _mesh(MESHES["data2_seq4"]), q, k, v, ct, mask, 6)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=7)
 @pytest.mark.parametrize("impl", IMPLS)
 def test_presharded_inputs_under_set_mesh(impl):
     mesh = _mesh(MESHES["fsdp2_seq2_tensor2"])
@@ -149,7 +149,7 @@ def test_bad_arguments(impl):
         IMPLS[impl](q, k[..., :4], v, mesh=mesh, scale=SCALE)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=6)
 def test_ulysses_with_small_local_blocks():
     """The local kernel really tiles the gathered sequence (several query and key blocks)."""
     from functools import partial
@@ -167,7 +167,7 @@ def test_ulysses_with_small_local_blocks():
     assert max(errs) <= TOL, errs
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=5)
 @pytest.mark.parametrize("impl", IMPLS)
 @pytest.mark.parametrize("lq,lk,causal_block", [(150, 150, None), (150, 150, 7), (70, 150, 5)])
 def test_several_pieces_per_chunk(impl, lq, lk, causal_block):

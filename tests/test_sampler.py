@@ -32,7 +32,7 @@ def test_lands_on_the_single_data_point(method, steps):
     np.testing.assert_allclose(out, x0, atol=1e-5)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=6)
 @pytest.mark.parametrize("method", ["euler", "heun"])
 def test_per_frame_tpd_schedule_with_conditions(method):
     x0, noise = _point_and_noise(1)

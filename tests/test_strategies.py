@@ -54,7 +54,7 @@ def run(name, models, length, *, given=2, views=2, tracker=None, **options):
     return parts, np.concatenate(parts, axis=2), first
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=6)
 def test_rollout_pins_the_given_frames_and_yields_each_window_as_it_is_done():
     m = tiny_model(5)
     tracker = Tracker()
@@ -65,7 +65,7 @@ def test_rollout_pins_the_given_frames_and_yields_each_window_as_it_is_done():
     assert np.isfinite(out).all() and out[:, :, 2:].std() > 0.1
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=5)
 def test_coarse_to_refine_corrects_its_anchors_and_without_anchors_is_rollout():
     m = tiny_model(5, jdc_anchor_rate=0.75, anchor_every=3)
     models = S.Models(m)
@@ -115,7 +115,7 @@ def test_refine_windows_start_their_anchors_at_the_jdc_level():
     np.testing.assert_array_equal(out[:, :, :2], first)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=9)
 def test_coarse_fine_keeps_the_coarse_keyframes_bit_for_bit_in_one_fine_call():
     coarse = tiny_model(4, stride=6)
     fine = dataclasses.replace(tiny_model(7), patterns=("prefix", "ends"))
@@ -147,7 +147,7 @@ def test_coarse_fine_keeps_the_coarse_keyframes_bit_for_bit_in_one_fine_call():
     np.testing.assert_array_equal(auto[:, :, keyframes], out[:, :, keyframes])
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=8)
 @pytest.mark.parametrize("name", ["rollout", "coarse-fine"])
 def test_every_window_strategy_keeps_its_sampled_frames_in_the_latents_range(name):
     """As streaming does: a sampled frame that becomes a later call's condition frame is clipped to
@@ -220,7 +220,7 @@ def test_strategies_reject_what_they_cannot_do_before_compiling():
 
 
 @pytest.mark.optimized_xla
-@pytest.mark.slow
+@pytest.mark.slow(seconds=119)
 def test_device_memory_is_flat_in_the_length_at_the_defaults(tmp_path):
     """721 frames (a minute at 12 fps) on 6 views need the device memory of 145 (within 10%), with
     no option: coarse-fine groups its segments (``segment_batch="auto"``) by the budget."""
@@ -269,7 +269,7 @@ def test_device_memory_is_flat_in_the_length_at_the_defaults(tmp_path):
     assert (tmp_path / "coarse-fine721" / "sample.mp4").stat().st_size > 0
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=6)
 def test_window_is_one_call_over_the_whole_length_and_seq_sharding_changes_nothing():
     """MagicDrive-V2's one-shot window: 13 latent frames (past the 5 it trained on) in one sampler
     call, the given frames pinned; the same numbers with its tokens over seq = 4 as on one device."""
@@ -293,7 +293,7 @@ def test_window_is_one_call_over_the_whole_length_and_seq_sharding_changes_nothi
     np.testing.assert_allclose(out[4], out[1], rtol=1e-4, atol=1e-4)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=9)
 def test_the_automatic_segment_batch_is_the_largest_group_that_fits_the_budget():
     from jaxdrive.generate.segments import choose_segment_batch
     from jaxdrive.generate.windows import Horizon

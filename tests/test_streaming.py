@@ -93,7 +93,7 @@ def reference_stream(m: WindowModel, first, controls, length, key, taps):
     return jnp.concatenate(frames, axis=2), feats
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=9)
 def test_the_buffer_holds_the_last_frames_features_at_every_step():
     m = model()
     length = 7
@@ -121,7 +121,7 @@ def test_the_buffer_holds_the_last_frames_features_at_every_step():
     assert float(jnp.abs(plain[:, :, 2:] - want[:, :, 2:]).max()) > 1e-3
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=6)
 def test_streaming_without_taps_is_frame_by_frame_rollout_of_the_window_sampler():
     m = model()
     length = 5
@@ -149,7 +149,7 @@ def test_streaming_without_taps_is_frame_by_frame_rollout_of_the_window_sampler(
     assert tracker.notes["stream"]["buffer_bytes"] == 0
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=6)
 def test_streamed_frames_are_kept_in_the_latents_range():
     """Each streamed frame is the next one's condition frame: a value no encoded frame can have is
     clipped to the codec's range before it is fed back (and the next frames are sampled from it)."""
@@ -192,7 +192,7 @@ def test_given_frames_are_observed_into_the_buffer_and_kept():
 
 
 @pytest.mark.optimized_xla
-@pytest.mark.slow
+@pytest.mark.slow(seconds=59)
 def test_streaming_memory_is_flat_and_it_compiles_once(tmp_path):
     """33 and 721 frames (a minute at 12 fps): the same device memory, one compiled program."""
     m = model(steps=1)
@@ -243,7 +243,7 @@ def test_condition_frame_augmentation_degrades_its_share_then_adds_noise():
     assert 8 <= changed.sum() <= 32
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=61)
 def test_training_sees_what_the_sampler_buffer_holds_and_stage_3_conditions_on_its_own_rollout():
     from jaxdrive.train import stream_step
 
@@ -303,7 +303,7 @@ def test_streaming_rejects_what_it_cannot_do():
         S.check_strategy("rollout", S.Models(model()), 6, 1)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=7)
 def test_guidance_evaluates_both_variants_with_the_same_past():
     m = dataclasses.replace(model(), guidance=3.0)
     first, controls = horizon_inputs(5, given=1)
@@ -317,7 +317,7 @@ def test_guidance_evaluates_both_variants_with_the_same_past():
     assert np.isfinite(guided).all() and float(np.abs(guided[:, :, 1:] - plain[:, :, 1:]).max()) > 1e-3
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=32)
 def test_a_scanned_stage_1_model_loads_into_stage_2_with_its_outputs_unchanged():
     """``configs/stage.py`` scans its layers (28 + 13 unrolled ones in each of the step's model
     passes made its compile take over 15 minutes): stage 2's HTFT layer splits stage 1's scanned run
@@ -354,7 +354,7 @@ def test_a_scanned_stage_1_model_loads_into_stage_2_with_its_outputs_unchanged()
         np.testing.assert_allclose(stage2.forward(p2, ex["latents"], ex["sigma"], cond), want, rtol=1e-6, atol=1e-6)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=15)
 def test_the_stage_3_step_holds_each_model_pass_once_whatever_the_depth():
     """The step's passes (self-rollout, feature pass, gradient window) loop in ``lax.scan`` and,
     with scanned layers (``configs/stage.py`` at paper size), hold each layer run once: the

@@ -34,7 +34,7 @@ def test_endpoints_exact(frames, omega):
     np.testing.assert_array_equal(out[1], np.ones(frames))
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=18)
 @given(st.floats(0.0, 1.0), st.floats(0.0, 1.0), st.integers(1, 48), st.floats(0.01, math.pi / 2))
 def test_each_frame_is_monotone_in_sigma(a, b, frames, omega):
     lo, hi = min(a, b), max(a, b)
@@ -43,7 +43,7 @@ def test_each_frame_is_monotone_in_sigma(a, b, frames, omega):
     assert bool(jnp.all((out >= 0) & (out <= 1)))
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=16)
 @given(st.floats(1e-4, 1 - 1e-4), st.integers(2, 48), st.floats(0.01, math.pi / 2))
 def test_earlier_frames_never_noisier(sigma, frames, omega):
     out = flow.tpd_sigmas(sigma, frames, omega)

@@ -41,7 +41,7 @@ def micro(batch):
 
 
 # ------------------------------------------------------------------------- STAGE's W_aux
-@pytest.mark.slow
+@pytest.mark.slow(seconds=9)
 def test_foreground_weighting_is_eq15_times_w_aux(dataset):
     one = ["data.frames=5", "mesh.data=1", "mesh.seq=1"]
     plain = Run(config(dataset, *one), devices=jax.devices()[:1])
@@ -102,7 +102,7 @@ PATTERNS = [
 ]
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=5)
 def test_jdc_anchors_enter_eq15_with_their_own_noise(dataset):
     """The loss is eq. 15 on x_t from jdc_training_anchors, with noise_eff as the target's noise;
     the anchor frames count (moving the target on them moves the loss)."""
@@ -137,7 +137,7 @@ def test_jdc_anchors_enter_eq15_with_their_own_noise(dataset):
         assert found
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=15)
 def test_a_step_with_every_pattern_and_jdc_anchors_is_finite(dataset):
     run = Run(config(dataset, *PATTERNS, "mesh.data=1", "mesh.seq=1"), devices=jax.devices()[:1])
     batch = one_batch(run)
@@ -168,7 +168,7 @@ def test_segment_waypoints_match_the_pipeline_from_that_frame(dataset):
     assert float(coarse.fps[0]) == 3.0
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=8)
 def test_teacher_segments_one_at_a_time_match_the_folded_batch():
     """The step's lax.map over segments = flow.split_segments + one batched call + eq. 8's
     coarse_from_segments (the paper's description)."""
@@ -229,7 +229,7 @@ def write_teacher(dataset, workdir):
     return save_run(config(dataset, "data.frames=5", "train.seed=7"), workdir)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=29)
 def test_distillation_trains_the_coarse_model_against_the_fine_one(dataset, tmp_path):
     saved = write_teacher(dataset, tmp_path / "fine")
     cfg = config(

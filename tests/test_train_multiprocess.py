@@ -110,7 +110,7 @@ def never_killed(same_clips, tmp_path_factory):
     return workdir
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=134)
 def test_sigkill_of_one_process_then_relaunch_is_bit_exact(same_clips, never_killed, tmp_path):
     workdir = tmp_path / "run"
     # 1. process 1 dies after step 3 (checkpoint 2 was started after step 2)
@@ -139,7 +139,7 @@ def test_sigkill_of_one_process_then_relaunch_is_bit_exact(same_clips, never_kil
         assert losses(workdir, key) == losses(never_killed, key), key  # bit for bit
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=86)
 @pytest.mark.parametrize("devices, mesh", [(8, ["mesh.data=2", "mesh.seq=4"]), (2, ["mesh.data=2", "mesh.seq=1"])])
 def test_a_two_process_checkpoint_resumes_on_one_process(same_clips, never_killed, tmp_path, devices, mesh):
     workdir = tmp_path / "run"
@@ -175,7 +175,7 @@ def _bad_records_per_process(data, steps: int, processes: int, monkeypatch) -> l
     return out
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=89)
 def test_sigterm_to_one_process_stops_both_at_one_step_and_bad_records_are_summed(tmp_path, monkeypatch):
     """A scheduler preempting one host sends SIGTERM to that process only. The processes agree on
     it after the step in flight, save one checkpoint together and stop (143); the relaunch resumes

@@ -92,7 +92,7 @@ def test_model_inputs_map_the_pipeline_drops(dataset):
     assert inputs["video"].shape == (2, 2, 5, 32, 56, 3)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=38)
 def test_sharded_step_matches_single_device(dataset):
     cfg = tiny(dataset, "train.steps=1")
     losses, grads = {}, {}
@@ -108,7 +108,7 @@ def test_sharded_step_matches_single_device(dataset):
     assert grads["mesh"] == pytest.approx(grads["single"], rel=1e-4)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=27)
 def test_resume_after_sigterm_is_bit_exact(dataset, tmp_path):
     cfg = tiny(dataset)
     whole = train(cfg, tmp_path / "whole", progress=False)
@@ -122,7 +122,7 @@ def test_resume_after_sigterm_is_bit_exact(dataset, tmp_path):
     assert [r["step"] for r in rows] == [1, 2, 3, 4] and all(np.isfinite(r["loss"]) for r in rows)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=11)
 def test_non_finite_losses_skip_and_stop_with_the_last_good_state(dataset, tmp_path, monkeypatch, caplog):
     cfg = tiny(dataset, "train.max_bad_steps=2", "train.steps=6", "train.checkpoint_every=100")
     original = Run.global_batch
@@ -204,7 +204,7 @@ def test_cli_rejects_unknown_keys_and_bad_meshes(dataset, tmp_path, capsys):
     assert "product is the device count 8" in capsys.readouterr().err
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=22)
 def test_cli_train_then_sample_writes_video_and_grid(dataset, tmp_path):
     work = tmp_path / "run"
     args = [
@@ -269,7 +269,7 @@ def test_every_config_loads_and_checks(name):
         assert config.flow.shift == 3.0 and load_config(ROOT / "configs" / "tiny.py").flow.shift == 1.0
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=86)
 def test_demo_runs_end_to_end(tmp_path, capsys):
     # no mesh given: the demo fits its batch of 2 to the 8 test devices (data 2 x seq 4)
     sets = [*SMALLER, "train.sample_steps=2", "train.checkpoint_every=100"]
@@ -315,7 +315,7 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
 
 
 @pytest.mark.optimized_xla
-@pytest.mark.slow
+@pytest.mark.slow(seconds=123)
 def test_demo_recipe_learns_a_continuation_not_noise(dataset, tmp_path):
     """A short run of the demo recipe (configs/tiny.py on 2 views, 5 frames): its first sampled
     window must have the spread of real latents (the 64-wide velocity model once gave 3x the
@@ -347,7 +347,7 @@ def test_demo_recipe_learns_a_continuation_not_noise(dataset, tmp_path):
     assert q["psnr"] > q["repeat_psnr"] - 3.0, q  # the issue's goal for the demo's first window
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=14)
 @pytest.mark.parametrize("choice", ["continue", "stop"])
 def test_a_checkpoint_that_cannot_be_written_keeps_the_earlier_ones(dataset, tmp_path, monkeypatch, choice, caplog):
     """Disk full at step 4's save (simulated): the message names it, checkpoint 2 stays readable, and
@@ -382,7 +382,7 @@ def test_a_checkpoint_that_cannot_be_written_keeps_the_earlier_ones(dataset, tmp
     ck.close()
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=38)
 def test_a_corrupt_shard_stops_the_run_or_is_skipped_and_counted(dataset, tmp_path):
     """Two of the three training clips in truncated shards: without data.skip_bad_records the run
     stops with a ValueError naming the first shard it meets; with it the run trains to the end, every

@@ -54,7 +54,7 @@ def test_init(tiny):
     assert boxed["encoder"]["conv_in"]["kernel"].names == ("kernel", "kernel", "kernel", "channels", "channels")
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=8)
 def test_init_is_seeded_by_the_key_and_the_same_under_jit(tiny):
     vae, _ = tiny
     fresh = vae.init(jax.random.PRNGKey(0))
@@ -72,7 +72,7 @@ def _video(shape, seed=0):
     return jnp.tanh(jax.random.normal(jax.random.PRNGKey(seed), shape))
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=9)
 def test_shapes_in_every_mode(tiny):
     vae, params = tiny
     x = _video((1, 17, 8, 12, 3))
@@ -112,7 +112,7 @@ def test_chunked_pass_is_causal(tiny):
     assert float(jnp.max(jnp.abs(vx[:, 9:] - vw[:, 9:]))) > 1e-3
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=14)
 def test_chunked_decode_memory_does_not_grow_with_length(tiny):
     """Scratch memory of the compiled chunked decoder for 61 latent frames (241 frames) is within
     10% of that for 9 (33 frames); the whole-clip pass grows (memory_analysis is deterministic)."""
@@ -137,7 +137,7 @@ def test_frame_wise_mode_encodes_each_frame_alone(tiny):
         np.testing.assert_allclose(z[:, f : f + 1], vae.encode(params, x[:, f : f + 1]), rtol=1e-5, atol=1e-6)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=8)
 @pytest.mark.parametrize("k", [1, 3])
 def test_frame_wise_mode_in_groups_of_frames_equals_all_at_once_and_holds_less(tiny, k):
     """``frame_wise_batch`` k: k frames of every clip per ``lax.map`` step (the chunked encode of
@@ -158,7 +158,7 @@ def test_frame_wise_mode_in_groups_of_frames_equals_all_at_once_and_holds_less(t
     assert temp(grouped) < 0.6 * temp(whole)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=15)
 @pytest.mark.parametrize("mode, k", [("chunked", 2), ("frame_wise", 1)])
 def test_clips_in_groups_equal_all_at_once_sharded_and_hold_less(tiny, mode, k):
     """``clip_batch`` k: k clips (views) of every device per ``lax.map`` step (the on-the-fly
@@ -185,7 +185,7 @@ def test_clips_in_groups_equal_all_at_once_sharded_and_hold_less(tiny, mode, k):
         VAEConfig(clip_batch=-1)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=5)
 def test_views_fold_into_the_batch_and_shard(tiny):
     """[B, V, F, H, W, 3] equals encoding each view alone; on a data=2 x fsdp=4 mesh, encode and
     decode give the single-device numbers with the folded batch sharded over both axes."""
@@ -329,7 +329,7 @@ def test_loss_terms_and_perceptual_hook(tiny):
         VAELossConfig(recon="l3")
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=10)
 def test_train_step_reduces_the_loss(tiny):
     vae, params = tiny
     params = jax.tree_util.tree_map(jnp.copy, params)  # the step donates its inputs

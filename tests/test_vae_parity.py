@@ -91,7 +91,7 @@ def _err(a, b):
 
 # (config, frames): one encode chunk; four with the remainder in the first; two (4 blocks, 8x space);
 # 2x temporal compression over two encode and four decode chunks
-@pytest.mark.slow
+@pytest.mark.slow(seconds=15)
 @pytest.mark.parametrize("name,frames", [("b3", 9), ("b3", 33), ("b4", 17), ("t2", 17)])
 def test_chunked_encode_decode_match_diffusers(tmp_dir, name, frames):
     model, vae, params, _ = _pair(name, str(tmp_dir))
@@ -108,7 +108,7 @@ def test_chunked_encode_decode_match_diffusers(tmp_dir, name, frames):
     assert _err(out, _to_np(video)) <= TOL
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=6)
 @pytest.mark.parametrize("name", sorted(CONFIGS))
 def test_whole_clip_matches_diffusers_encoder_and_decoder(tmp_dir, name):
     model, vae, params, _ = _pair(name, str(tmp_dir))
@@ -130,7 +130,7 @@ def test_whole_clip_matches_diffusers_encoder_and_decoder(tmp_dir, name):
     assert np.max(np.abs(_to_np(video) - _to_np(chunked))) > 100 * TOL
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=11)
 def test_tiled_encode_decode_match_diffusers(tmp_dir):
     model, _, _, path = _pair("b3", str(tmp_dir))
     tile = dict(tile_sample_height=16, tile_sample_width=16, tile_overlap_height=0.25, tile_overlap_width=0.25)

@@ -84,7 +84,7 @@ def test_the_steady_chunk_sees_the_earlier_latents_through_the_cache(params):
     assert last[0].shape[2] == 8 and np.abs(last[0] - last[1]).max() > 1e-3
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=13)
 def test_tiled_chunked_stream_equals_the_whole_tiled_decode(params):
     """With tiling on (16-pixel tiles, a quarter overlap) and 8 x 28 frames (tiles of 4 and 1
     latent columns), every tile keeps its own cache: the stream equals the whole-clip tiled
@@ -107,7 +107,7 @@ def test_tiled_chunked_stream_equals_the_whole_tiled_decode(params):
     np.testing.assert_allclose(np.concatenate(parts, axis=2), whole, rtol=0, atol=1e-5)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=5)
 def test_frame_wise_stream_equals_the_whole_clip_decode(params):
     codec = _codec(params, mode="frame_wise")
     z = _latents(5, seed=7)

@@ -64,7 +64,7 @@ def test_the_pipeline_warps_each_clip_from_its_first_frame_along_its_own_poses(d
     np.testing.assert_array_equal(cond.drop["warp"], [True, False])
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=16)
 def test_the_step_encodes_the_warped_clip_into_the_dit_and_learns_its_embedding(data):
     """The loss of a batch from the run's own pipeline depends on its warped clip, and the
     gradient reaches the warp embedding (the step: loss, gradients, optimizer)."""
@@ -196,7 +196,7 @@ def test_the_guide_warps_the_decoded_first_frame_along_the_window_poses_and_enco
         guide.window(z[:, :, 2:3], [4, 5, 6])
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=46)
 def test_a_warp_run_trains_and_samples_through_the_cli(data, tmp_path, capsys, monkeypatch):
     """``jaxdrive train`` with the warp control, then ``jaxdrive sample --strategy rollout``: its
     windows warp along the validation clip's recorded poses at the run's data.warp_depth."""

@@ -241,7 +241,7 @@ def test_invariant_to_box_order(perm):
     np.testing.assert_array_equal(got, ref)
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=11)
 def test_jit_matches_eager_and_gradient_is_stopped():
     boxes, valid, intr, cams = inputs([NEAR_BIG, FAR_SMALL, BEHIND_BIG], cams=[cam(), cam(0.8)])
     eager = foreground_weight_map(boxes, valid, intr, cams, map_hw=MAP_HW, image_hw=IMAGE_HW, k=2.0, c=0.7)
