@@ -16,16 +16,10 @@ add_xla_flags(
     "--xla_cpu_collective_call_terminate_timeout_seconds=900",
 )
 deterministic_cpu()
-# LLVM's expensive passes off (JAX's own switch): the tests' programs are tiny, so XLA:CPU's
-# compile time is most of the suite's time and the optimised code would save little at run time.
-# The numbers are the same within tolerance; exact-equality tests compare two runs that both
-# compile this way. The subprocesses the tests launch inherit the variable.
-os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
 
 import jax  # noqa: E402  (its backend starts after the flags above)
 
 jax.config.update("jax_num_cpu_devices", 8)
-jax.config.update("jax_disable_most_optimizations", True)  # this process too (jax read its env before)
 
 from hypothesis import settings  # noqa: E402
 
@@ -39,7 +33,6 @@ settings.load_profile("jaxdrive")
 # build (the tiny DiT's sampler, a recipe's train step) compiles once per run, not once per process.
 # Numbers are the same either way; the cache only skips XLA's work. A size limit turns on JAX's
 # file lock around each entry, so a worker never reads an entry another is still writing.
-import contextlib  # noqa: E402
 import tempfile  # noqa: E402
 
 _owns_cache = not os.environ.get("JAXDRIVE_TEST_XLA_CACHE")  # the controller (or a run without xdist)
@@ -72,28 +65,6 @@ def pytest_collection_modifyitems(config, items):
         return 0 if mark is None else mark.kwargs.get("seconds", 1)
 
     items.sort(key=seconds, reverse=True)
-
-
-@pytest.fixture(autouse=True)
-def _optimized_xla(request, monkeypatch):
-    """``@pytest.mark.optimized_xla``: a test whose time goes into running its programs, not into
-    compiling them, gets XLA's full optimisation back (and so do the processes it starts)."""
-    if request.node.get_closest_marker("optimized_xla") is None:
-        yield
-        return
-    with optimized_xla():
-        monkeypatch.setenv("JAX_DISABLE_MOST_OPTIMIZATIONS", "0")
-        yield
-
-
-@contextlib.contextmanager
-def optimized_xla():
-    """In this context the process compiles with XLA's full optimisation."""
-    jax.config.update("jax_disable_most_optimizations", False)
-    try:
-        yield
-    finally:
-        jax.config.update("jax_disable_most_optimizations", True)
 
 
 def pytest_unconfigure(config):
@@ -157,11 +128,7 @@ def segmenter_run(clips21, tmp_path_factory):
 
     config = Path(__file__).resolve().parents[1] / "configs" / "segmenter.py"
 
-    def build(folder):  # 250 steps: running, not compiling, is its time
-        with optimized_xla():
-            train_segmenter(folder)
-
-    def train_segmenter(folder):
+    def build(folder):
         assert (
             cli(
                 [

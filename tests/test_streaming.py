@@ -191,7 +191,6 @@ def test_given_frames_are_observed_into_the_buffer_and_kept():
     assert tracker.programs == 2  # one observing, one sampling program
 
 
-@pytest.mark.optimized_xla
 @pytest.mark.slow(seconds=59)
 def test_streaming_memory_is_flat_and_it_compiles_once(tmp_path):
     """33 and 721 frames (a minute at 12 fps): the same device memory, one compiled program."""
