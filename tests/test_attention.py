@@ -149,6 +149,7 @@ def test_auto_shards_over_seq_and_never_fails_where_xla_works():
     np.testing.assert_allclose(attention(q3, k3, v3, mesh=odd), attention(q3, k3, v3, impl="xla"), atol=1e-6)
 
 
+@pytest.mark.slow(seconds=3)
 def test_sharded_output_takes_the_input_sharding_so_any_use_differentiates():
     # slicing a size-1 head axis of the output once broke the shard_map transpose (cotangent typed
     # without the 'tensor' axis); the output now carries q's own sharding
@@ -169,6 +170,7 @@ def test_sharded_output_takes_the_input_sharding_so_any_use_differentiates():
     assert _rel(got, ref) <= 1e-5
 
 
+@pytest.mark.slow(seconds=4)
 @pytest.mark.parametrize("causal_block", [None, 7])
 def test_ring_tiles_chunks_longer_than_its_block(causal_block):
     # chunks of 38 tokens with block = 16: padded to 4 x 48 and attended tile by tile
@@ -191,6 +193,7 @@ def test_ring_tiles_chunks_longer_than_its_block(causal_block):
         assert _rel(got, want) <= 1e-5
 
 
+@pytest.mark.slow(seconds=5)
 @pytest.mark.parametrize("kw", [dict(), dict(mask=True), dict(causal_block=8), dict(mask=True, causal_block=8)])
 def test_splash_kernel_matches_dense_in_the_pallas_interpreter(kw):
     # the TPU kernel itself, run by the Pallas interpreter on CPU: padded lengths, segment-id
@@ -253,6 +256,7 @@ def test_one_device_kernels_take_sequence_sharded_inputs():
             assert _rel(out, ref) <= 1e-5
 
 
+@pytest.mark.slow(seconds=5)
 @pytest.mark.parametrize("impl", ["ring", "ulysses", "auto"])
 def test_a_mesh_given_outside_its_context_asks_to_enter_it(impl):
     # outside jax.set_mesh the sharded output's type names a mesh that later ops cannot place:

@@ -68,6 +68,7 @@ def test_dct_matrix_is_the_orthonormal_dct_ii():
     np.testing.assert_allclose(dct_matrix(11) @ dct_matrix(11).T, np.eye(11), atol=1e-6)
 
 
+@pytest.mark.slow(seconds=3)
 @given(st.floats(0.01, 1.0), st.integers(0, 1000))
 def test_lowpass_is_a_projection(keep, seed):
     x = jax.random.normal(jax.random.PRNGKey(seed), (1, 2, 6, 10, 3))

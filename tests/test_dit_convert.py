@@ -142,6 +142,7 @@ def test_file_errors_name_the_file(tmp_path):
         load_diffusers_transformer(tmp_path)
 
 
+@pytest.mark.slow(seconds=3)
 def test_scanned_import_matches(tmp_path):
     _save(tmp_path)
     dit, params = load_diffusers_transformer(tmp_path)

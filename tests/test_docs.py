@@ -45,6 +45,7 @@ def test_python_examples_run(page, index, block, tmp_path, monkeypatch):
     exec(compile(block, f"{page} python block {index}", "exec"), {})
 
 
+@pytest.mark.slow(seconds=4)
 def test_the_site_builds_without_a_warning(tmp_path):
     if importlib.util.find_spec("mkdocs") is None:
         pytest.skip('mkdocs is not installed: pip install -e ".[docs]" (the test extra includes it)')

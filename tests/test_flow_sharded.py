@@ -54,6 +54,7 @@ def test_losses_and_gradients_match_single_device(mesh):
     np.testing.assert_allclose(out[1], ref[1], rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.slow(seconds=3)
 def test_sampler_and_segments_match_single_device(mesh):
     x, noise, _, cond, anchor = _inputs()
 

@@ -112,6 +112,7 @@ def _anchor_case(g_values, shape=(3, 2, 64, 64, 4)):
     return x, noise, levels, anchor
 
 
+@pytest.mark.slow(seconds=4)
 def test_training_anchors_follow_the_samplers_law():
     """Train-time anchors and sample-time anchors (jdc_renoise of eq. 8's z) have one law: per
     element mean (1 - g) x and std g around it, independent of x; noise_eff is N(0, 1)."""

@@ -81,6 +81,7 @@ def test_the_packages_give_what_the_modules_gave(package, home, names):
     assert all(getattr(package, n) is getattr(home, n) for n in names)
 
 
+@pytest.mark.slow(seconds=4)
 def test_nothing_in_the_project_imports_an_old_path():
     """Imports in the package, the configs and the tests (the shims and this file aside), and the
     Python examples of the docs."""

@@ -102,6 +102,7 @@ def law(cond, anchors):
     return {(k, t): float(np.mean((n == k) & (a == t))) for k in range(cond.shape[1] + 1) for t in (False, True)}
 
 
+@pytest.mark.slow(seconds=3)
 @pytest.mark.parametrize("cond_frames, cond_random", [(2, True), (9, True), (2, False)])
 def test_prefix_only_reproduces_the_old_draw(cond_frames, cond_random):
     n = 4000
@@ -118,6 +119,7 @@ def test_prefix_only_reproduces_the_old_draw(cond_frames, cond_random):
         np.testing.assert_array_equal(cond.sum(1), cond_frames)
 
 
+@pytest.mark.slow(seconds=5)
 def test_pattern_and_anchor_rates_are_respected():
     n, frames = 4000, 6
     cond, anchors = flow.draw_condition_masks(

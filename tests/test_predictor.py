@@ -49,6 +49,7 @@ def test_tracks_round_trip_to_the_clip_fields_and_follow_ids_through_reordered_s
     np.testing.assert_allclose(clip_tracks(shuffled)["agents"], tr["agents"], atol=1e-9)
 
 
+@pytest.mark.slow(seconds=4)
 def test_the_stitched_map_recuts_the_recorded_maps_and_falls_back_off_the_map(clip):
     one = SceneMap.from_clip(clip["bev_map"][:1], clip["ego_to_world"][:1]).device()
     fallback = jnp.zeros(clip["bev_map"].shape[1:], jnp.uint8)
@@ -297,6 +298,7 @@ def _sample(clip, frames):
     return sample_clip(clip, size=(16, 28), frames=frames)
 
 
+@pytest.mark.slow(seconds=3)
 def test_controls_past_the_log_continue_the_clip_and_a_route_moves_only_the_ego(clip, tmp_path):
     from jaxdrive.generate.future import FuturePredictor, future_controls
     from jaxdrive.generate.route import load_route

@@ -61,6 +61,7 @@ def _check(impl, mesh, q, k, v, ct, mask, causal_block, **kw):
     return errs
 
 
+@pytest.mark.slow(seconds=4)
 @pytest.mark.parametrize("impl", IMPLS)
 @pytest.mark.parametrize("mesh_name", MESHES)
 @pytest.mark.parametrize("with_mask,causal_block", [(False, None), (True, 5)])
@@ -69,6 +70,7 @@ def test_matches_dense_on_meshes(impl, mesh_name, with_mask, causal_block):
     _check(impl, _mesh(MESHES[mesh_name]), q, k, v, ct, mask, causal_block)
 
 
+@pytest.mark.slow(seconds=4)
 @pytest.mark.parametrize("impl", IMPLS)
 @pytest.mark.parametrize("with_mask,causal_block", [(True, None), (False, 3)])
 def test_mask_and_causal_separately(impl, with_mask, causal_block):
@@ -76,6 +78,7 @@ def test_mask_and_causal_separately(impl, with_mask, causal_block):
     _check(impl, _mesh(MESHES["seq8"]), q, k, v, ct, mask, causal_block)
 
 
+@pytest.mark.slow(seconds=4)
 @pytest.mark.parametrize("impl", IMPLS)
 @pytest.mark.parametrize("mesh_name", ["seq8", "fsdp2_seq2_tensor2"])
 @pytest.mark.parametrize("with_mask,causal_block", [(False, None), (True, 4)])

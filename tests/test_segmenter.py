@@ -59,6 +59,7 @@ def test_iou_counts_and_miou_worked_numbers():
         confusion(pred[0], truth)
 
 
+@pytest.mark.slow(seconds=4)
 def test_segmenter_learns_the_classes_and_its_score_needs_the_right_boxes(segmenter_run, clips21):
     from jaxdrive.eval.segmenter import load_segmenter
     from jaxdrive.train.segmenter_run import load_frames

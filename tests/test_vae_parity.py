@@ -154,6 +154,7 @@ def test_tiled_encode_decode_match_diffusers(tmp_dir):
     assert _err(vae.decode(params, z, tiled=False), _to_np(video)) > 100 * TOL  # tiling was used
 
 
+@pytest.mark.slow(seconds=4)
 @pytest.mark.parametrize("frames", [5, 13])
 def test_even_latent_count_keeps_the_frame_correspondence(tmp_dir, frames):
     model, vae, params, _ = _pair("b3", str(tmp_dir))

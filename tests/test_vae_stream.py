@@ -53,6 +53,7 @@ def _stream(codec, z, pattern):
     return parts
 
 
+@pytest.mark.slow(seconds=5)
 @pytest.mark.parametrize("total", [1, 2, 3, 5, 8])
 def test_chunked_stream_equals_the_whole_clip_decode(params, total):
     codec = _codec(params)

@@ -103,6 +103,7 @@ def test_trajectory_rejects_bad_points(points, frames, times, match):
         trajectory_poses([[0, 0], [1, 1]], 5, degree=4)
 
 
+@pytest.mark.slow(seconds=3)
 def test_every_view_warps_with_its_own_extrinsics():
     """Two cameras, front and back, the ego 2 m forward: the front view zooms in (no holes), the
     back view zooms out (holes, filled)."""

@@ -146,6 +146,7 @@ class _Spy:
         return np.full(first.shape[:2] + (len(frames),) + first.shape[3:], self.scale * len(self.calls), np.float32)
 
 
+@pytest.mark.slow(seconds=3)
 def test_every_window_warps_its_own_first_frame_and_the_warp_steers_it():
     import jax
 

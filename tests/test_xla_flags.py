@@ -37,6 +37,7 @@ def test_the_tests_run_with_the_cpu_flags():
     assert CPU_DETERMINISTIC in os.environ["XLA_FLAGS"]
 
 
+@pytest.mark.slow(seconds=3)
 def test_a_compiled_train_loss_is_the_same_on_every_call(tmp_path):
     """The tiny config's loss, one jitted program called 24 times on the same inputs: with the
     YNNPACK fusions on, about 1 call in 30 came out different (up to 40%) on 2 cores."""
