@@ -54,8 +54,9 @@ TRAINED_FIXTURES = {"tiny_dit", "segmenter_run", "never_killed"}
 def pytest_collection_modifyitems(config, items):
     """Tests that use a trained fixture are marked slow; and the longest tests run first, by the
     ``seconds`` their ``slow`` mark gives (measured once on 2 cores, partly with XLA's optimisation
-    off: a rough figure that only orders the run; a stable sort, the same on every xdist worker). With xdist's ``worksteal`` scheduling (pyproject's addopts) a worker that runs
-    out takes the other's last, shortest tests, so the run never ends on one long test alone."""
+    off: a rough figure that only orders the run; a stable sort, the same on every xdist worker).
+    With xdist's ``worksteal`` scheduling (pyproject's addopts) a worker that runs out takes the
+    other's last, shortest tests, so the run never ends on one long test alone."""
     for item in items:
         if TRAINED_FIXTURES & set(getattr(item, "fixturenames", ())):
             item.add_marker(pytest.mark.slow)
