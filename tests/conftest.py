@@ -53,9 +53,9 @@ TRAINED_FIXTURES = {"tiny_dit", "segmenter_run", "never_killed"}
 
 def pytest_collection_modifyitems(config, items):
     """Tests that use a trained fixture are marked slow. The run keeps the files' order: sorting the
-    longest tests first under xdist's ``worksteal`` made the run longer (CI 2162 -> 2721 s; locally
-    about 4400 -> 4900 worker-seconds), because the heavy multi-threaded tests then ran side by side
-    on 2 cores instead of beside light ones."""
+    longest tests first under xdist's ``worksteal`` made it longer (2 cores, same tests: 46 min and
+    5369 worker-seconds against 43 min and 5088; CI 2162 -> 2721 s), the heavy multi-threaded tests
+    then running side by side instead of beside light ones."""
     for item in items:
         if TRAINED_FIXTURES & set(getattr(item, "fixturenames", ())):
             item.add_marker(pytest.mark.slow)
