@@ -1,12 +1,13 @@
 """A test whose xdist worker dies (the process itself, not a failed assertion) runs once more on a
 fresh worker.
 
-Why: jaxlib 0.10.2 segfaulted in 3 of 5 full runs of this suite, each
-time late in a long-lived worker, in XLA:CPU code: twice in `executable.serialize()` as JAX wrote
-a program to the persistent compilation cache, once in the compile. The same tests pass when run
-again in a fresh process (also writing every program to the cache). A second crash of the same
-test fails the run, and every crash is listed in the summary, so a test that really kills its
-process still fails.
+Why: jaxlib 0.10.2 segfaulted in 3 of 6 full runs of this suite, each time late in a long-lived
+worker, in XLA:CPU code: twice in `executable.serialize()` as JAX wrote a program to the persistent
+compilation cache, once in the compile. All three runs had the longest-first order that conftest
+has since dropped, so the crash may now be rarer; this is the backstop. The crashed tests passed
+when run again in a fresh process (also writing every program to the cache). A second crash of
+the same test fails the run, and every crash is listed in the summary, so a test that really
+kills its process still fails.
 """
 
 import pytest
