@@ -149,6 +149,53 @@ def test_checkpoints_fall_back_past_a_damaged_one_and_reshard(tmp_path, caplog):
     ck.close()
 
 
+def test_a_replicated_state_saves_without_compiling_and_either_format_restores(tmp_path):
+    """On CPU a replicated array is written from one replica: orbax's replica-parallel save would
+    compile one slice program per parameter shape. A checkpoint that orbax's standard save wrote
+    (replica-parallel, as on TPU) restores through Checkpoints bit-equal, and so does its own."""
+    import orbax.checkpoint as ocp
+
+    mesh = make_mesh(data=8)
+    replicated = NamedSharding(mesh, P())
+    # shapes no other test uses (so no slice program of them is in this process's jit cache), each
+    # with an axis that 8 replicas divide (orbax slices only those)
+    arrays = {"w": np.arange(24 * 40, dtype=np.float32).reshape(24, 40), "b": np.arange(56, dtype=np.int32)}
+    state = jax.device_put(arrays, replicated)
+    abstract = jax.tree_util.tree_map(
+        lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=replicated), jax.eval_shape(lambda: state)
+    )
+    lowered = []  # every new program is lowered, whether or not the compilation cache holds it
+
+    def listener(event, duration, **_):
+        if event == "/jax/core/compile/jaxpr_to_mlir_module_duration":
+            lowered.append(event)
+
+    ck = Checkpoints(tmp_path / "ours", keep=3, asynchronous=False)
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        ck.save(2, state, {}, {"step": 2})
+        ck.wait()
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    assert lowered == []
+    theirs = ocp.CheckpointManager(tmp_path / "theirs" / "checkpoints", item_names=("state", "data", "meta"))
+    theirs.save(
+        2,
+        args=ocp.args.Composite(
+            state=ocp.args.StandardSave(state), data=ocp.args.JsonSave({}), meta=ocp.args.JsonSave({"step": 2})
+        ),
+    )
+    theirs.wait_until_finished()
+    theirs.close()
+    for folder in ("ours", "theirs"):
+        got, _, meta = Checkpoints(tmp_path / folder, asynchronous=False).restore(2, abstract)
+        assert meta == {"step": 2}
+        for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(state)):
+            assert a.sharding == replicated
+            np.testing.assert_array_equal(a, b)
+    ck.close()
+
+
 def _damage(step_dir, how):
     state = step_dir / "state"
     if how == "truncated array file":
