@@ -247,7 +247,8 @@ def rollout_program(config: PredictorConfig):
 
 
 def init_params(config: PredictorConfig, key, *, bev_size=(64, 64)):
-    """Fresh parameters for ``bev_size`` maps (the dataset's BEV grid)."""
+    """Fresh parameters for ``bev_size`` maps (the dataset's BEV grid), initialised in one jitted
+    program (run eagerly, each layer's initialiser and forward op would compile on its own)."""
     t, n = config.history, config.max_agents
     traffic = Traffic(
         ego=jnp.zeros((1, t, 3)),
@@ -258,4 +259,5 @@ def init_params(config: PredictorConfig, key, *, bev_size=(64, 64)):
         classes=jnp.zeros((1, n), jnp.int32),
         ids=jnp.zeros((1, n), jnp.int32),
     )
-    return Predictor(config).init(key, traffic, jnp.zeros((1, *bev_size, len(BEV_CLASSES))))["params"]
+    bev = jnp.zeros((1, *bev_size, len(BEV_CLASSES)))
+    return jax.jit(lambda k: Predictor(config).init(k, traffic, bev)["params"])(key)

@@ -74,7 +74,10 @@ class Segmenter(nn.Module):
 
 
 def init_params(config: SegmenterConfig, key, size: tuple[int, int] = (32, 56)):
-    return Segmenter(config).init(key, jnp.zeros((1, *size, 3), jnp.float32))["params"]
+    """Fresh parameters for ``size`` frames, initialised in one jitted program (run eagerly, each
+    layer's initialiser and forward op would compile on its own)."""
+    frames = jnp.zeros((1, *size, 3), jnp.float32)
+    return jax.jit(lambda k: Segmenter(config).init(k, frames)["params"])(key)
 
 
 @functools.partial(jax.jit, static_argnums=0)
