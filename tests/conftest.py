@@ -16,10 +16,18 @@ add_xla_flags(
     "--xla_cpu_collective_call_terminate_timeout_seconds=900",
 )
 deterministic_cpu()
+# Most of XLA's optimisation off (JAX's own switch: LLVM at -O0, its expensive passes skipped):
+# the tests' programs are tiny, so compiling them is most of the suite's time, and -O0 halves it
+# (the all-controls DiT test: 26 -> 14 s). A test whose time goes into running programs, not
+# compiling them, takes it back with @pytest.mark.optimized_xla. Numbers agree within the tests'
+# tolerances; exact-equality tests compare two runs compiled the same way. The subprocesses the
+# tests launch (the CLI, launch/local.py) inherit the variable.
+os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
 
 import jax  # noqa: E402  (its backend starts after the flags above)
 
 jax.config.update("jax_num_cpu_devices", 8)
+jax.config.update("jax_disable_most_optimizations", os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] == "1")
 
 from hypothesis import settings  # noqa: E402
 
@@ -33,6 +41,7 @@ settings.load_profile("jaxdrive")
 # build (the tiny DiT's sampler, a recipe's train step) compiles once per run, not once per process.
 # Numbers are the same either way; the cache only skips XLA's work. A size limit turns on JAX's
 # file lock around each entry, so a worker never reads an entry another is still writing.
+import contextlib  # noqa: E402
 import tempfile  # noqa: E402
 
 _owns_cache = not os.environ.get("JAXDRIVE_TEST_XLA_CACHE")  # the controller (or a run without xdist)
@@ -59,6 +68,29 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if TRAINED_FIXTURES & set(getattr(item, "fixturenames", ())):
             item.add_marker(pytest.mark.slow)
+
+
+@pytest.fixture(autouse=True)
+def _optimized_xla(request, monkeypatch):
+    """``@pytest.mark.optimized_xla``: the test (and the processes it starts) compiles with XLA's
+    full optimisation."""
+    if request.node.get_closest_marker("optimized_xla") is None:
+        yield
+        return
+    with optimized_xla():
+        monkeypatch.setenv("JAX_DISABLE_MOST_OPTIMIZATIONS", "0")
+        yield
+
+
+@contextlib.contextmanager
+def optimized_xla():
+    """In this context this process compiles with XLA's full optimisation."""
+    before = jax.config.read("jax_disable_most_optimizations")
+    jax.config.update("jax_disable_most_optimizations", False)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_disable_most_optimizations", before)
 
 
 # A worker that crashes gets its test run once more (tests/crash_rerun.py says why).
@@ -126,7 +158,11 @@ def segmenter_run(clips21, tmp_path_factory):
 
     config = Path(__file__).resolve().parents[1] / "configs" / "segmenter.py"
 
-    def build(folder):
+    def build(folder):  # 250 steps: running, not compiling, is its time
+        with optimized_xla():
+            train(folder)
+
+    def train(folder):
         assert (
             cli(
                 [

@@ -151,6 +151,7 @@ def i3d_weights(tmp_path_factory):
     return net, path
 
 
+@pytest.mark.optimized_xla
 @pytest.mark.slow(seconds=12)
 def test_i3d_logits_match_cd_fvd(i3d_weights, tmp_path):
     from jaxdrive.cli import main as cli

@@ -219,6 +219,7 @@ def test_strategies_reject_what_they_cannot_do_before_compiling():
         S.check_strategy("rollout", S.Models(m), 2, 2)
 
 
+@pytest.mark.optimized_xla
 @pytest.mark.slow(seconds=119)
 def test_device_memory_is_flat_in_the_length_at_the_defaults(tmp_path):
     """721 frames (a minute at 12 fps) on 6 views need the device memory of 145 (within 10%), with

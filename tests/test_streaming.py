@@ -191,6 +191,7 @@ def test_given_frames_are_observed_into_the_buffer_and_kept():
     assert tracker.programs == 2  # one observing, one sampling program
 
 
+@pytest.mark.optimized_xla
 @pytest.mark.slow(seconds=59)
 def test_streaming_memory_is_flat_and_it_compiles_once(tmp_path):
     """33 and 721 frames (a minute at 12 fps): the same device memory, one compiled program."""
@@ -353,6 +354,7 @@ def test_a_scanned_stage_1_model_loads_into_stage_2_with_its_outputs_unchanged()
         np.testing.assert_allclose(stage2.forward(p2, ex["latents"], ex["sigma"], cond), want, rtol=1e-6, atol=1e-6)
 
 
+@pytest.mark.optimized_xla
 @pytest.mark.slow(seconds=15)
 def test_the_stage_3_step_holds_each_model_pass_once_whatever_the_depth():
     """The step's passes (self-rollout, feature pass, gradient window) loop in ``lax.scan`` and,

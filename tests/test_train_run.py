@@ -314,6 +314,7 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     assert (tmp_path / "demo" / "samples" / "routes" / "routes.png").stat().st_size > 0
 
 
+@pytest.mark.optimized_xla
 @pytest.mark.slow(seconds=123)
 def test_demo_recipe_learns_a_continuation_not_noise(dataset, tmp_path):
     """A short run of the demo recipe (configs/tiny.py on 2 views, 5 frames): its first sampled
