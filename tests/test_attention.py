@@ -7,16 +7,13 @@ import pytest
 
 from jaxdrive.attention import attention
 
+from dit_fixtures import max_rel
+
 
 def _qkvd(b=2, lq=40, lk=40, h=3, d=8, seed=0):
     """q, k, v and an output cotangent, drawn with NumPy (eager jax.random compiles per shape)."""
     rng = np.random.default_rng(seed)
     return tuple(jnp.asarray(rng.standard_normal((b, n, h, d), np.float32)) for n in (lq, lk, lk, lq))
-
-
-def _rel(a, b):
-    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    return float(np.max(np.abs(a - b)) / np.max(np.abs(b)))
 
 
 def test_reference_matches_jax_dot_product_attention():
@@ -64,9 +61,9 @@ def test_blockwise_matches_dense_forward_and_gradients(layout):
     ref_out, ref_vjp = jax.vjp(jax.jit(lambda *a: attention(*a, impl="xla", **kw)), q, k, v)
     run = jax.jit(lambda *a: attention(*a, impl="blockwise", block_q=16, block_k=8, **kw))
     out, vjp = jax.vjp(run, q, k, v)
-    assert _rel(out, ref_out) <= 1e-5
+    assert max_rel(out, ref_out) <= 1e-5
     for got, want in zip(vjp(do), ref_vjp(do)):
-        assert _rel(got, want) <= 1e-5
+        assert max_rel(got, want) <= 1e-5
 
 
 def test_fully_masked_rows_are_zero_not_nan():
@@ -139,7 +136,7 @@ def test_auto_shards_over_seq_and_never_fails_where_xla_works():
     ref = attention(q, k, v, impl="xla", causal_block=4)
     with jax.set_mesh(mesh):  # the context mesh is picked up
         out = jax.jit(lambda *a: attention(*a, causal_block=4))(q, k, v)
-    assert _rel(out, ref) <= 1e-5
+    assert max_rel(out, ref) <= 1e-5
     # 3 heads cannot be split over tensor = 2: auto falls back to one device instead of failing
     q3, k3, v3, _ = _qkvd(b=2, lq=16, lk=16, h=3)
     odd = jax.make_mesh((1, 1, 4, 2), ("data", "fsdp", "seq", "tensor"), axis_types=(AxisType.Explicit,) * 4)
@@ -164,7 +161,7 @@ def test_sharded_output_takes_the_input_sharding_so_any_use_differentiates():
     with jax.set_mesh(mesh):
         xs = jax.device_put(x, NamedSharding(mesh, P(None, "seq", None)))
         got = jax.jit(jax.grad(lambda x: loss(x, "ring", mesh)))(xs)
-    assert _rel(got, ref) <= 1e-5
+    assert max_rel(got, ref) <= 1e-5
 
 
 @pytest.mark.slow(seconds=4)
@@ -187,9 +184,9 @@ def test_ring_tiles_chunks_longer_than_its_block(causal_block):
         lambda *a: ring_attention(*a, mesh=mesh, scale=8**-0.5, kv_mask=mask, causal_block=causal_block, block=16)
     )
     out, vjp = jax.vjp(run, q, k, v)
-    assert _rel(out, ref) <= 1e-5
+    assert max_rel(out, ref) <= 1e-5
     for got, want in zip(vjp(do), ref_vjp(do)):
-        assert _rel(got, want) <= 1e-5
+        assert max_rel(got, want) <= 1e-5
 
 
 @pytest.mark.slow(seconds=5)
@@ -213,9 +210,9 @@ def test_splash_kernel_matches_dense_in_the_pallas_interpreter(kw):
         k,
         v,
     )
-    assert _rel(out, ref) <= 1e-5
+    assert max_rel(out, ref) <= 1e-5
     for got, want in zip(vjp(do), ref_vjp(do)):
-        assert bool(jnp.all(jnp.isfinite(got))) and _rel(got, want) <= 1e-5
+        assert bool(jnp.all(jnp.isfinite(got))) and max_rel(got, want) <= 1e-5
     if mask is not None:
         np.testing.assert_array_equal(out[1], 0.0)
 
@@ -254,7 +251,7 @@ def test_one_device_kernels_take_sequence_sharded_inputs():
                 fn = lambda *a: attention(*a, impl=impl, causal_block=8, block_q=8, block_k=8)
                 out = jax.jit(fn)(put(q), put(k), put(v))
                 assert out.sharding.spec == P(None, "seq", None, None)
-            assert _rel(out, ref) <= 1e-5
+            assert max_rel(out, ref) <= 1e-5
 
 
 @pytest.mark.slow(seconds=5)
@@ -281,7 +278,7 @@ def test_a_mesh_given_outside_its_context_asks_to_enter_it(impl):
         jax.grad(loss)(q)
     ref = jax.jit(jax.grad(lambda q: jnp.sum(jnp.sin(attention(q, k, v, impl="xla", causal_block=8)))))(q)
     with jax.set_mesh(mesh):
-        assert _rel(jax.grad(loss)(q), ref) <= 1e-5
+        assert max_rel(jax.grad(loss)(q), ref) <= 1e-5
 
 
 def test_blockwise_takes_operands_of_other_shardings_forward_and_backward():
@@ -302,4 +299,4 @@ def test_blockwise_takes_operands_of_other_shardings_forward_and_backward():
         out, grads = jax.jit(jax.value_and_grad(loss("blockwise"), argnums=(0, 1, 2)))(heads(q), heads(k), heads(v), m)
     assert abs(float(out) - float(ref)) <= 1e-4 * abs(float(ref))
     for g, r in zip(grads, ref_grads):
-        assert _rel(g, r) <= 1e-5
+        assert max_rel(g, r) <= 1e-5

@@ -17,6 +17,8 @@ from jaxdrive.attention import softmax_blocks as sb
 from jaxdrive.attention.ring import ring_attention
 from jaxdrive.attention.ulysses import ulysses_attention
 
+from dit_fixtures import max_rel
+
 NAMES = ("data", "fsdp", "seq", "tensor")
 MESHES = {"seq8": (1, 1, 8, 1), "data2_seq4": (2, 1, 4, 1), "fsdp2_seq2_tensor2": (1, 2, 2, 2)}
 IMPLS = {"ring": ring_attention, "ulysses": ulysses_attention}
@@ -40,11 +42,6 @@ def _inputs(seed, b, lq, lk, h, d, with_mask):
     return q, k, v, ct, mask
 
 
-def _rel(a, b):
-    a, b = np.asarray(a), np.asarray(b)
-    return float(np.max(np.abs(a - b)) / np.max(np.abs(b)))
-
-
 def _check(impl, mesh, q, k, v, ct, mask, causal_block, **kw):
     fn = jax.jit(
         lambda q, k, v: IMPLS[impl](q, k, v, mesh=mesh, scale=SCALE, kv_mask=mask, causal_block=causal_block, **kw)
@@ -53,7 +50,7 @@ def _check(impl, mesh, q, k, v, ct, mask, causal_block, **kw):
     out, vjp = jax.vjp(fn, q, k, v)
     want, vjp_ref = jax.vjp(jax.jit(ref), *(jnp.asarray(np.asarray(x)) for x in (q, k, v)))  # unsharded
     assert out.shape == q.shape and out.dtype == q.dtype
-    errs = [_rel(out, want)] + [_rel(g, r) for g, r in zip(vjp(ct), vjp_ref(ct))]
+    errs = [max_rel(out, want)] + [max_rel(g, r) for g, r in zip(vjp(ct), vjp_ref(ct))]
     assert all(np.isfinite(e) for e in errs), errs
     assert max(errs) <= TOL, dict(zip(["o", "dq", "dk", "dv"], errs))
     if mask is not None:  # the fully masked batch row is exactly 0
@@ -166,7 +163,7 @@ def test_ulysses_with_small_local_blocks():
     ref = lambda q, k, v: sb.attend_block(q, k, v, scale=SCALE, kv_mask=mask, causal_block=5)[0]
     out, vjp = jax.vjp(jax.jit(fn), q, k, v)
     want, vjp_ref = jax.vjp(ref, q, k, v)
-    errs = [_rel(out, want)] + [_rel(g, r) for g, r in zip(vjp(ct), vjp_ref(ct))]
+    errs = [max_rel(out, want)] + [max_rel(g, r) for g, r in zip(vjp(ct), vjp_ref(ct))]
     assert max(errs) <= TOL, errs
 
 
@@ -212,6 +209,6 @@ def test_bfloat16_inputs(impl):
     want, vjp_ref = jax.vjp(ref, *(x.astype(jnp.float32) for x in low))
     grads = vjp(ct.astype(jnp.bfloat16))
     assert out.dtype == jnp.bfloat16 and all(g.dtype == jnp.bfloat16 for g in grads)
-    errs = [_rel(out.astype(jnp.float32), want)]
-    errs += [_rel(g.astype(jnp.float32), r) for g, r in zip(grads, vjp_ref(ct))]
+    errs = [max_rel(out.astype(jnp.float32), want)]
+    errs += [max_rel(g.astype(jnp.float32), r) for g, r in zip(grads, vjp_ref(ct))]
     assert max(errs) <= 1e-2, errs  # bf16 rounds at 2^-8 ~ 4e-3

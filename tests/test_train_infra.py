@@ -188,7 +188,9 @@ def test_a_replicated_state_saves_without_compiling_and_either_format_restores(t
     theirs.wait_until_finished()
     theirs.close()
     for folder in ("ours", "theirs"):
-        got, _, meta = Checkpoints(tmp_path / folder, asynchronous=False).restore(2, abstract)
+        reader = Checkpoints(tmp_path / folder, asynchronous=False)
+        got, _, meta = reader.restore(2, abstract)
+        reader.close()
         assert meta == {"step": 2}
         for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(state)):
             assert a.sharding == replicated

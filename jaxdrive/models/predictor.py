@@ -248,7 +248,13 @@ def rollout_program(config: PredictorConfig):
 
 def init_params(config: PredictorConfig, key, *, bev_size=(64, 64)):
     """Fresh parameters for ``bev_size`` maps (the dataset's BEV grid), initialised in one jitted
-    program (run eagerly, each layer's initialiser and forward op would compile on its own)."""
+    program (run eagerly, each layer's initialiser and forward op would compile on its own),
+    compiled once per config and size."""
+    return _init_params(config, key, tuple(bev_size))
+
+
+@functools.partial(jax.jit, static_argnums=(0, 2))
+def _init_params(config: PredictorConfig, key, bev_size: tuple[int, ...]):
     t, n = config.history, config.max_agents
     traffic = Traffic(
         ego=jnp.zeros((1, t, 3)),
@@ -259,5 +265,4 @@ def init_params(config: PredictorConfig, key, *, bev_size=(64, 64)):
         classes=jnp.zeros((1, n), jnp.int32),
         ids=jnp.zeros((1, n), jnp.int32),
     )
-    bev = jnp.zeros((1, *bev_size, len(BEV_CLASSES)))
-    return jax.jit(lambda k: Predictor(config).init(k, traffic, bev)["params"])(key)
+    return Predictor(config).init(key, traffic, jnp.zeros((1, *bev_size, len(BEV_CLASSES))))["params"]

@@ -75,9 +75,14 @@ class Segmenter(nn.Module):
 
 def init_params(config: SegmenterConfig, key, size: tuple[int, int] = (32, 56)):
     """Fresh parameters for ``size`` frames, initialised in one jitted program (run eagerly, each
-    layer's initialiser and forward op would compile on its own)."""
-    frames = jnp.zeros((1, *size, 3), jnp.float32)
-    return jax.jit(lambda k: Segmenter(config).init(k, frames)["params"])(key)
+    layer's initialiser and forward op would compile on its own), compiled once per config and
+    size."""
+    return _init_params(config, key, tuple(size))
+
+
+@functools.partial(jax.jit, static_argnums=(0, 2))
+def _init_params(config: SegmenterConfig, key, size: tuple[int, ...]):
+    return Segmenter(config).init(key, jnp.zeros((1, *size, 3), jnp.float32))["params"]
 
 
 @functools.partial(jax.jit, static_argnums=0)
