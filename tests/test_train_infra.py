@@ -15,7 +15,7 @@ from jax.sharding import PartitionSpec as P
 from jaxdrive.config import DataConfig, OptimConfig, load_config, override
 from jaxdrive.parallel import make_mesh
 from jaxdrive.train.checkpoint import Checkpoints
-from jaxdrive.train.optim import learning_rate, make_optimizer, trainable_labels
+from jaxdrive.train.optim import global_norm, learning_rate, make_optimizer, square_sums, trainable_labels
 from jaxdrive.train.state import apply_gradients, create_state
 
 
@@ -100,6 +100,75 @@ def test_non_finite_steps_are_skipped_and_counted():
     assert float(s3.params["w"][0, 0]) < 1.0
     # EMA moves by (1 - decay) towards the new parameters
     np.testing.assert_allclose(s3.ema["w"], 0.9 * 1.0 + 0.1 * s3.params["w"], rtol=1e-6)
+
+
+def _grad_tree(seed=0, scale=1.0):
+    rng = np.random.default_rng(seed)
+    shapes = {"blocks_0": {"kernel": (3, 5), "bias": (5,)}, "blocks_1": {"kernel": (5, 5)}, "final": {"bias": (7,)}}
+    return jax.tree_util.tree_map(
+        lambda s: jnp.asarray(rng.normal(size=s) * scale, jnp.float32), shapes, is_leaf=lambda s: isinstance(s, tuple)
+    )
+
+
+@pytest.mark.parametrize("trainable", [(), ("blocks_1/.*", "^final")])
+def test_one_gradient_norm_serves_the_check_the_clipping_and_the_metric(trainable):
+    """square_sums / global_norm give optax.tree.norm bit for bit, and the optimizer clipping with
+    the sums it is handed (masked to the trained parameters inside the partition) updates bit for
+    bit as optax's own clip_by_global_norm, which computes them again."""
+    params, grads = _grad_tree(0), _grad_tree(1, scale=3.0)
+    sums = square_sums(grads)
+    assert np.asarray(global_norm(sums)).tobytes() == np.asarray(optax.tree.norm(grads)).tobytes()
+    cfg = OptimConfig(lr=0.1, warmup_steps=0, schedule="constant", clip_norm=0.5, trainable=trainable)
+    opt = make_optimizer(cfg, 10, params)
+    inner = optax.chain(
+        optax.clip_by_global_norm(0.5),
+        optax.adamw(
+            0.1,
+            weight_decay=cfg.weight_decay,
+            b1=cfg.b1,
+            b2=cfg.b2,
+            eps=cfg.eps,
+            mask=jax.tree_util.tree_map(lambda p: p.ndim >= 2, params),
+        ),
+    )
+    reference = (
+        optax.multi_transform({"train": inner, "freeze": optax.set_to_zero()}, trainable_labels(params, trainable))
+        if trainable
+        else inner
+    )
+    want, _ = jax.jit(reference.update)(grads, reference.init(params), params)
+    got, _ = jax.jit(lambda g, s, p, q: opt.update(g, s, p, square_sums=q))(grads, opt.init(params), params, sums)
+    again, _ = jax.jit(opt.update)(grads, opt.init(params), params)  # no sums given: computed inside
+    for w, g, a in zip(*(jax.tree_util.tree_leaves(t) for t in (want, got, again)), strict=True):
+        np.testing.assert_array_equal(g, w)
+        np.testing.assert_array_equal(a, w)
+    # the trained parameters' norm clips them, not the frozen ones' too
+    if trainable:
+        trained = {"blocks_1": grads["blocks_1"], "final": grads["final"]}
+        assert float(optax.tree.norm(trained)) < float(global_norm(sums))
+
+
+def test_a_step_reduces_each_gradient_once():
+    """The finiteness check, the clipping and grad_norm share one sum of squares per gradient (a
+    small model's train step had three reductions per parameter array, a quarter of its program)."""
+    params = _grad_tree(0)
+    opt = make_optimizer(OptimConfig(lr=0.1, warmup_steps=0, schedule="constant", clip_norm=1.0), 10, params)
+    state = create_state(params, opt, 0)
+    text = jax.jit(lambda s, g: apply_gradients(s, g, jnp.float32(1.0), opt, 0.9, s.rng)).lower(state, params).as_text()
+    assert text.count("stablehlo.reduce") == len(jax.tree_util.tree_leaves(params))
+
+
+def test_a_gradient_norm_past_float32_range_skips_the_step():
+    """Every gradient finite, but their squares overflow float32: the norm is infinite, and the step
+    is skipped as a non-finite one (clipping by an infinite norm would zero the gradients)."""
+    params = {"w": jnp.ones((2, 2))}
+    opt = make_optimizer(OptimConfig(lr=0.1, warmup_steps=0, schedule="constant"), 10, params)
+    state = create_state(params, opt, 0)
+    huge = {"w": jnp.full((2, 2), 1e20, jnp.float32)}
+    assert np.isfinite(np.asarray(huge["w"])).all() and not np.isfinite(float(global_norm(square_sums(huge))))
+    after = apply_gradients(state, huge, jnp.float32(1.0), opt, 0.9, state.rng)
+    assert (int(after.bad_steps), int(after.skipped)) == (1, 1)
+    np.testing.assert_array_equal(after.params["w"], state.params["w"])
 
 
 def _state_after(steps):

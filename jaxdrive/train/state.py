@@ -3,8 +3,10 @@
 ``TrainState`` holds the float32 parameters, the optimizer state, the EMA parameters, the step,
 the random key (as raw ``uint32`` key data, so that checkpoints hold plain arrays) and two
 counters of non-finite steps. :func:`apply_gradients` is the one place where an update is
-applied: a step whose loss or gradients are not finite leaves parameters, optimizer state and EMA
-unchanged and is counted (``bad_steps`` in a row, ``skipped`` in all).
+applied: a step whose loss or gradients' global norm is not finite leaves parameters, optimizer
+state and EMA unchanged and is counted (``bad_steps`` in a row, ``skipped`` in all). The norm is
+the one the clipping uses: one reduction per gradient serves the check, the clipping and the
+``grad_norm`` metric.
 """
 
 from __future__ import annotations
@@ -13,6 +15,8 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 import optax
+
+from jaxdrive.train.optim import global_norm, square_sums
 
 
 @flax.struct.dataclass
@@ -43,19 +47,21 @@ def create_state(params, optimizer: optax.GradientTransformation, seed: int, *, 
     )
 
 
-def all_finite(tree) -> jax.Array:
-    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree)]))
-
-
 def apply_gradients(
-    state: TrainState, grads, loss, optimizer: optax.GradientTransformation, ema_decay: float, rng
+    state: TrainState, grads, loss, optimizer: optax.GradientTransformation, ema_decay: float, rng, *, sums=None
 ) -> TrainState:
     """The next state after one update with ``grads`` (or the same state, counted, when ``loss``
-    or ``grads`` are not finite). ``rng`` is the key data the next step starts from."""
-    ok = jnp.isfinite(loss) & all_finite(grads)
+    or the gradients' global norm is not finite: a NaN or an infinity in any gradient makes it so,
+    and so does a norm past float32's range, ~1.8e19). ``rng`` is the key data the next step
+    starts from. ``sums``: the gradients' :func:`jaxdrive.train.optim.square_sums` when the caller
+    has them (for its ``grad_norm`` metric); the check and the optimizer's clipping
+    (:func:`jaxdrive.train.optim.make_optimizer`) reuse them, so each gradient is reduced once."""
+    sums = square_sums(grads) if sums is None else sums
+    ok = jnp.isfinite(loss) & jnp.isfinite(global_norm(sums))
+    optimizer = optax.with_extra_args_support(optimizer)  # any optax optimizer; ours reads square_sums
 
     def update(state):
-        updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
+        updates, opt_state = optimizer.update(grads, state.opt_state, state.params, square_sums=sums)
         params = optax.apply_updates(state.params, updates)
         ema = state.ema
         if ema is not None:
