@@ -158,7 +158,7 @@ def segmenter_run(clips21, tmp_path_factory):
 
     config = Path(__file__).resolve().parents[1] / "configs" / "segmenter.py"
 
-    def build(folder):  # 250 steps: running, not compiling, is its time
+    def build(folder):  # 300 steps: running, not compiling, is its time
         with optimized_xla():
             train(folder)
 
