@@ -254,7 +254,8 @@ def test_training_sees_what_the_sampler_buffer_holds_and_stage_3_conditions_on_i
     first, controls = horizon_inputs(nf, given=1)
     x = jnp.asarray(np.random.default_rng(1).normal(size=(1, 2, nf, H, W, C)), jnp.float32)
     key, sigma = jax.random.key(7), jnp.asarray([0.6])
-    store = stream_step.past_features(training, m.params, x, x, controls, sigma, key)
+    # jitted, as the train step runs them (op by op they compile hundreds of small programs)
+    store = jax.jit(functools.partial(stream_step.past_features, training))(m.params, x, x, controls, sigma, key)
     buf = ST.new_buffer(dataclasses.replace(m, steps=1), 1, 2, (H, W))
     for p in range(1, nf - 1):  # the sampler's observation of recorded frames at the one level
         buf = ST.observe_frame(
@@ -271,7 +272,7 @@ def test_training_sees_what_the_sampler_buffer_holds_and_stage_3_conditions_on_i
         )
         np.testing.assert_allclose(store[0][:, p], buf["data"][0][0, :, (p - 1) % BUFFER], atol=2e-5, err_msg=str(p))
     # stage 3: the condition frames are the model's own streaming rollout, not the recording
-    rolled = stream_step.self_rollout(training, m.params, x, controls, key)
+    rolled = jax.jit(functools.partial(stream_step.self_rollout, training))(m.params, x, controls, key)
     assert rolled.shape == (1, 2, nf - 1, H, W, C)
     np.testing.assert_array_equal(rolled[:, :, 0], x[:, :, 0])
     # (the training codec's latents lie in [-1, 1]: its rollout clips as the sampler of that codec does)
@@ -283,8 +284,10 @@ def test_training_sees_what_the_sampler_buffer_holds_and_stage_3_conditions_on_i
     assert np.abs(rolled[:, :, 1:]).max() <= 1.0
     assert float(jnp.abs(rolled[:, :, 1:] - x[:, :, 1 : nf - 1]).min()) > 0
     # and the loss of a window is finite and has gradients for HTFT
-    loss, grads = jax.value_and_grad(
-        lambda p: stream_step.stream_loss_fn(training, p, x, {"cond": controls}, jax.random.key(0))[0]
+    loss, grads = jax.jit(
+        jax.value_and_grad(
+            lambda p: stream_step.stream_loss_fn(training, p, x, {"cond": controls}, jax.random.key(0))[0]
+        )
     )(m.params)
     assert np.isfinite(float(loss)) and float(jnp.abs(grads["htft_0"]["linear_out"]["kernel"]).max()) > 0
 
