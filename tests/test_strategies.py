@@ -359,3 +359,27 @@ def test_device_memory_budgets_parse_and_reject_what_is_no_size():
     assert device_budget("1GiB") == (2**30, "device_memory", True)
     budget, source, strict = device_budget()  # a CPU: its share, a preference
     assert 0 < budget <= host_memory_bytes() / 4 and source.startswith("CPU") and not strict
+
+
+def test_live_device_bytes_count_each_replica_once_and_create_no_array():
+    """A CPU reports no device memory, so the trackers add up the live arrays: a sharded array's
+    shards, a replicated one's full copy on every device. A count makes no new array (reading
+    ``addressable_shards`` did, which doubled every later count)."""
+    from jax.sharding import NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    from jaxdrive.parallel.memory import live_device_bytes, shard_bytes
+    from jaxdrive.parallel.mesh import make_mesh
+
+    mesh = make_mesh(data=2, seq=4)
+    before = live_device_bytes()
+    sharded = jax.device_put(np.ones((8, 16), np.float32), NamedSharding(mesh, P("data", "seq")))
+    replicated = jax.device_put(np.ones((8, 16), np.float32), NamedSharding(mesh, P()))
+    half = jax.device_put(np.ones((6, 10), jnp.bfloat16), NamedSharding(mesh, P("data")))
+    one = jax.device_put(np.ones(5, np.int32), jax.devices()[3])
+    assert (shard_bytes(sharded), shard_bytes(replicated), shard_bytes(half), shard_bytes(one)) == (64, 512, 60, 20)
+    arrays = len(jax.live_arrays())
+    added = live_device_bytes() - before
+    assert added == 8 * 16 * 4 + 8 * 8 * 16 * 4 + 8 * 3 * 10 * 2 + 5 * 4
+    assert live_device_bytes() - before == added and len(jax.live_arrays()) == arrays
+    del sharded, replicated, half, one

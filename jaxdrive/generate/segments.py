@@ -21,7 +21,7 @@ import numpy as np
 from jaxdrive import flow
 from jaxdrive.generate.windows import Horizon, WindowModel, abstract_on_mesh, window_controls
 from jaxdrive.models.dit.conditions import Conditions
-from jaxdrive.parallel.memory import device_budget, footprint_bytes
+from jaxdrive.parallel.memory import device_budget, footprint_bytes, shard_bytes
 from jaxdrive.parallel.mesh import batch_shards
 from jaxdrive.validate import check_positive_int
 
@@ -84,7 +84,7 @@ def choose_segment_batch(
     groups = sorted(set(range(unit, segments + 1, unit)) | {segments})
     # the fine params already on a device are arguments of the call: free memory counts them once
     params_bytes = sum(
-        x.addressable_shards[0].data.nbytes if isinstance(x, jax.Array) else np.asarray(x).nbytes
+        shard_bytes(x) if isinstance(x, jax.Array) else np.asarray(x).nbytes
         for x in jax.tree_util.tree_leaves(fine.params)
     )
     budget, source, strict = device_budget(device_memory, counted_bytes=params_bytes)

@@ -13,6 +13,7 @@ runs a batched call about as fast as its members one by one (``jaxdrive bench lo
 
 from __future__ import annotations
 
+import math
 import os
 import re
 
@@ -32,6 +33,20 @@ UNITS = {
     "gib": 2**30,
     "tib": 2**40,
 }
+
+
+def shard_bytes(x: jax.Array) -> int:
+    """Bytes of ``x`` one of its devices holds (its shard), from its sharding: nothing is read.
+    Not ``x.addressable_shards[i].data.nbytes``: each shard's ``data`` is a new array that stays
+    alive with ``x``, so :func:`live_device_bytes` would count it again, and each count would take
+    longer than the last."""
+    return math.prod(x.sharding.shard_shape(x.shape)) * x.dtype.itemsize
+
+
+def live_device_bytes() -> int:
+    """Bytes the live arrays of this process hold on its devices, each replica counted: the
+    device memory a CPU, which reports none (``memory_stats()``), is using."""
+    return int(sum(shard_bytes(x) * len(x.sharding.addressable_devices) for x in jax.live_arrays()))
 
 
 def footprint_bytes(compiled) -> int | None:
