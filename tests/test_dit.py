@@ -407,6 +407,31 @@ def test_presets_exist_and_tiny_counts_are_exact():
     assert param_count(cfg) == n
 
 
+def test_the_parameter_tree_is_traced_once_per_config_and_each_caller_gets_its_own(monkeypatch):
+    """A run asks for its DiT's parameter tree several times (its init, its checkpoint target,
+    each restore): the model is traced once per config and input shapes. The values drawn, the
+    boxes and the shapes are those of a fresh trace; a caller that edits its tree changes no
+    other caller's."""
+    import jaxdrive.models.dit.model as dit_model
+    from jaxdrive.models.params import abstract_params, host_params
+
+    traced = []
+    monkeypatch.setattr(dit_model, "abstract_params", lambda *a, **k: traced.append(1) or abstract_params(*a, **k))
+    cfg = preset("tiny", depth=1, head_dim=12)  # a config no other test traced in this process
+    first = DiT(cfg).abstract_params()
+    first.pop(next(iter(first)))
+    boxed = DiT(cfg).init_params(7, boxed=True)
+    second = DiT(cfg).abstract_params()
+    assert len(traced) == 1 and len(second) == len(first) + 1
+    DiT(cfg).abstract_params(frames=3)  # other input shapes: traced again
+    DiT(dataclasses.replace(cfg, head_dim=8)).abstract_params()  # another config too
+    assert len(traced) == 3
+    fresh = host_params(*abstract_params(DiT(cfg), **example_inputs(cfg)), 7, boxed=True)
+    assert jax.tree_util.tree_structure(boxed) == jax.tree_util.tree_structure(fresh)
+    for a, b in zip(jax.tree_util.tree_leaves(boxed), jax.tree_util.tree_leaves(fresh)):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_cogvideox_2b_preset_has_the_diffusers_parameter_count():
     # two of the 30 layers: the same structure, a fraction of the tracing time
     torch = pytest.importorskip("torch")

@@ -49,6 +49,7 @@ at the same layer and denoising step) with ``cond.features_mask [B, K]`` are fus
 from __future__ import annotations
 
 import functools
+from types import MappingProxyType
 
 import flax.linen as nn
 import jax
@@ -128,6 +129,17 @@ def _with_video(cfg, carry, video):
     return (video, carry[1]) if cfg.layout == "full" else video
 
 
+@functools.lru_cache(maxsize=16)
+def _traced_params(config: DiTConfig, shapes: tuple) -> tuple:
+    """``abstract_params`` of ``DiT(config)`` for :func:`example_inputs` ``shapes``: the model is
+    traced once per config, not once per call (a run's init, its checkpoint target and every
+    restore each asked for it, and a small DiT takes seconds to trace on a CPU). The tree holds
+    only shapes and dtypes, the same whatever mesh the caller is under."""
+    tree, recorded = abstract_params(DiT(config, parent=None), **example_inputs(config, **dict(shapes)))
+    plain = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype)  # no sharding from the caller's mesh
+    return jax.tree_util.tree_map(plain, tree), MappingProxyType(recorded)
+
+
 class DiT(nn.Module):
     """The diffusion transformer (see the module docstring). ``config``: a :class:`DiTConfig`."""
 
@@ -149,11 +161,13 @@ class DiT(nn.Module):
         (for :func:`jaxdrive.parallel.shard_params`). ``shapes`` go to :func:`example_inputs`
         (the parameter shapes do not depend on them). ``self.init(key, ...)`` (e.g. jitted with
         ``out_shardings`` from :func:`jaxdrive.parallel.param_shardings`) initialises on devices."""
-        return host_params(*abstract_params(self, **example_inputs(self.config, **shapes)), seed, boxed=boxed)
+        tree, recorded = _traced_params(self.config, tuple(sorted(shapes.items())))
+        return host_params(tree, recorded, seed, boxed=boxed)
 
     def abstract_params(self, **shapes):
         """The boxed params tree with ``jax.ShapeDtypeStruct`` leaves (``jax.eval_shape``)."""
-        return abstract_params(self, **example_inputs(self.config, **shapes))[0]
+        tree = _traced_params(self.config, tuple(sorted(shapes.items())))[0]
+        return jax.tree_util.tree_map(lambda x: x, tree)  # the caller's own containers
 
     # ------------------------------------------------------------------ the network
 
