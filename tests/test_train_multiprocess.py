@@ -24,6 +24,7 @@ import pytest
 from jaxdrive.train.checkpoint import Checkpoints
 from jaxdrive.train.metrics import read_metrics
 
+from conftest import shared
 from shard_faults import shard_files, truncate
 from train_fixtures import write_same_clips
 
@@ -45,9 +46,11 @@ SETS = [
 ]
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def same_clips(tmp_path_factory):
-    return write_same_clips(tmp_path_factory.mktemp("same") / "data", seed=7, frames=5, copies=4)
+    """One folder for the whole test run (``conftest.shared``): ``never_killed`` trains on it."""
+    build = lambda folder: write_same_clips(folder / "data", seed=7, frames=5, copies=4)
+    return shared(tmp_path_factory, "same_clips", build) / "data"
 
 
 def launch(data, workdir, *, kill: str | None = None, processes: int = 2, devices: int = 4, sets=()):
@@ -100,12 +103,16 @@ def losses(workdir, key="loss"):
     return [r[key] for r in read_metrics(workdir)]
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def never_killed(same_clips, tmp_path_factory):
-    """The 2 x 4 run of ``STEPS`` steps, checkpointed every 2, that nothing interrupts."""
-    workdir = tmp_path_factory.mktemp("never_killed") / "run"
-    proc = launch(same_clips, workdir)
-    assert proc.returncode == 0, output(proc)
+    """The 2 x 4 run of ``STEPS`` steps, checkpointed every 2, that nothing interrupts: launched
+    once per test run, whichever xdist workers its tests land on (``conftest.shared``)."""
+
+    def build(folder):
+        proc = launch(same_clips, folder / "run")
+        assert proc.returncode == 0, output(proc)
+
+    workdir = shared(tmp_path_factory, "never_killed", build) / "run"
     assert [r["step"] for r in read_metrics(workdir)] == list(range(1, STEPS + 1))
     return workdir
 
