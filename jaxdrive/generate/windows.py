@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import weakref
 from collections.abc import Mapping
 from typing import Any
 
@@ -31,7 +30,7 @@ from jaxdrive.flow.jdc import DEFAULT_ALPHA1, DEFAULT_ANCHOR_SLOPE
 from jaxdrive.generate.guidance import check_controls, check_scale, sampler_guidance
 from jaxdrive.models.dit.conditions import Conditions
 from jaxdrive.models.dit.model import DiT
-from jaxdrive.parallel.memory import live_device_bytes
+from jaxdrive.parallel.memory import live_device_bytes, temp_bytes
 from jaxdrive.parallel.mesh import batch_axes, batch_shards
 from jaxdrive.validate import check_positive_int
 
@@ -206,19 +205,8 @@ class Tracker:
         if stats:
             self.peak_bytes = max(self.peak_bytes, sum(s["peak_bytes_in_use"] for s in stats))
             return
-        temp = _temp_bytes(compiled) if compiled is not None else 0
+        temp = temp_bytes(compiled) if compiled is not None else 0
         self.peak_bytes = max(self.peak_bytes, live_device_bytes() + temp)
-
-
-_TEMP_BYTES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # compiled program -> its temporaries
-
-
-def _temp_bytes(compiled) -> int:
-    """The temporaries of a compiled program (XLA's ``memory_analysis``), read once per program."""
-    if compiled not in _TEMP_BYTES:
-        analysis = compiled.memory_analysis()
-        _TEMP_BYTES[compiled] = int(getattr(analysis, "temp_size_in_bytes", 0) if analysis is not None else 0)
-    return _TEMP_BYTES[compiled]
 
 
 def _placement(mesh, shape):

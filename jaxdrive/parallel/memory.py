@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import weakref
 
 import jax
 
@@ -49,11 +50,28 @@ def live_device_bytes() -> int:
     return int(sum(shard_bytes(x) * len(x.sharding.addressable_devices) for x in jax.live_arrays()))
 
 
+_ANALYSES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # compiled program -> its analysis
+
+
+def memory_analysis(compiled):
+    """``compiled.memory_analysis()`` (None where the backend has none), read once per program:
+    a long sample asks after each of its calls."""
+    if compiled not in _ANALYSES:
+        _ANALYSES[compiled] = compiled.memory_analysis()
+    return _ANALYSES[compiled]
+
+
+def temp_bytes(compiled) -> int:
+    """The temporary memory a compiled program holds on one device while it runs (0 without an
+    analysis)."""
+    return int(getattr(memory_analysis(compiled), "temp_size_in_bytes", 0) or 0)
+
+
 def footprint_bytes(compiled) -> int | None:
     """Everything a compiled program holds on one device while it runs: its arguments, outputs and
     temporary memory, less the outputs that alias (donated) arguments (``memory_analysis()``), or
     None where the backend has no analysis."""
-    a = compiled.memory_analysis()
+    a = memory_analysis(compiled)
     if a is None:
         return None
     return int(a.argument_size_in_bytes + a.output_size_in_bytes + a.temp_size_in_bytes - a.alias_size_in_bytes)
