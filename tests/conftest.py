@@ -8,7 +8,7 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # thread can miss the default deadline, and XLA then aborts the process instead of waiting.
 # And XLA:CPU's YNNPACK fusions off: with them a program sometimes gives other numbers on a second
 # call with the same inputs (jaxdrive.xla_flags), which made exact-equality tests flaky.
-from jaxdrive.xla_flags import add_xla_flags, deterministic_cpu, fast_compiling_cpu  # noqa: E402  (imports jax; no backend yet)
+from jaxdrive.xla_flags import CPU_FAST_COMPILE, add_xla_flags, deterministic_cpu, fast_compiling_cpu  # noqa: E402  (imports jax; no backend yet)
 
 add_xla_flags(
     "--xla_force_host_platform_device_count=8",
@@ -82,13 +82,23 @@ def _optimized_xla(request, monkeypatch):
         yield
         return
     with optimized_xla():
-        monkeypatch.setenv("JAX_DISABLE_MOST_OPTIMIZATIONS", "0")
+        for name, value in optimized_env().items():
+            monkeypatch.setenv(name, value)
         yield
+
+
+def optimized_env() -> dict[str, str]:
+    """The environment of a process that compiles with XLA's full optimisation and XLA:CPU's
+    newer fusion emitters, whose kernels run faster (the segmenter's 300 steps: 97 s against 122)."""
+    flags = os.environ["XLA_FLAGS"].replace(CPU_FAST_COMPILE, "")
+    return {**os.environ, "JAX_DISABLE_MOST_OPTIMIZATIONS": "0", "XLA_FLAGS": " ".join(flags.split())}
 
 
 @contextlib.contextmanager
 def optimized_xla():
-    """In this context this process compiles with XLA's full optimisation."""
+    """In this context this process compiles with XLA's full optimisation (the fusion emitters stay
+    the older ones: XLA reads its flags once per process; :func:`optimized_env` starts one that
+    has both)."""
     before = jax.config.read("jax_disable_most_optimizations")
     jax.config.update("jax_disable_most_optimizations", False)
     try:
@@ -156,31 +166,18 @@ def tiny_dit(clips21, tmp_path_factory):
 @pytest.fixture(scope="session")
 def segmenter_run(clips21, tmp_path_factory):
     """The segmentation evaluator (``configs/segmenter.py:size=test``) trained on ``clips21``."""
+    import subprocess
+    import sys
     from pathlib import Path
-
-    from jaxdrive.cli import main as cli
 
     config = Path(__file__).resolve().parents[1] / "configs" / "segmenter.py"
 
-    def build(folder):  # 300 steps: running, not compiling, is its time
-        with optimized_xla():
-            train(folder)
-
-    def train(folder):
-        assert (
-            cli(
-                [
-                    "train",
-                    "--config",
-                    f"{config}:size=test",
-                    "--workdir",
-                    str(folder / "run"),
-                    "--set",
-                    f"data.path={clips21}",
-                    "--no-progress",
-                ]
-            )
-            == 0
+    def build(folder):  # 300 steps: running, not compiling, is its time, so a process optimised for it
+        argv = ["train", "--config", f"{config}:size=test", "--workdir", str(folder / "run")]
+        argv += ["--set", f"data.path={clips21}", "--no-progress"]
+        done = subprocess.run(
+            [sys.executable, "-m", "jaxdrive.cli", *argv], env=optimized_env(), capture_output=True, text=True
         )
+        assert done.returncode == 0, done.stderr[-4000:]
 
     return shared(tmp_path_factory, "segmenter", build) / "run"

@@ -40,6 +40,15 @@ def test_the_tests_run_with_the_cpu_flags():
     assert CPU_FAST_COMPILE in os.environ["XLA_FLAGS"]
 
 
+@pytest.mark.optimized_xla
+def test_an_optimized_test_starts_processes_with_the_newer_fusion_emitters():
+    """What an ``optimized_xla`` test launches runs its kernels fast: full optimisation, the MLIR
+    fusion emitters, and still the same numbers on every call."""
+    flags = os.environ["XLA_FLAGS"].split()
+    assert CPU_FAST_COMPILE not in flags and CPU_DETERMINISTIC in flags
+    assert os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] == "0"
+
+
 @pytest.mark.slow(seconds=3)
 def test_a_compiled_train_loss_is_the_same_on_every_call(tmp_path):
     """The tiny config's loss, one jitted program called 24 times on the same inputs: with the
