@@ -53,21 +53,20 @@ def _jaxlib_version() -> tuple[int, ...]:
         return (0,)
 
 
-def deterministic_cpu() -> bool:
-    """Add :data:`CPU_DETERMINISTIC` where the installed jaxlib knows the flag (XLA aborts on an
-    unknown one) and ``JAXDRIVE_CPU_FLAGS`` is not ``0``. Returns whether the flag was added or
-    already set."""
+def _add_cpu_flag(flag: str) -> bool:
+    """Add an XLA:CPU ``flag`` that jaxlib 0.10 knows (XLA aborts on an unknown one) unless
+    ``JAXDRIVE_CPU_FLAGS`` is ``0``. Returns whether the flag was added or already set."""
     if _jaxlib_version() < (0, 10) or os.environ.get("JAXDRIVE_CPU_FLAGS") == "0":
         return False
-    add_xla_flags(CPU_DETERMINISTIC)
+    add_xla_flags(flag)
     return True
+
+
+def deterministic_cpu() -> bool:
+    """Add :data:`CPU_DETERMINISTIC` (the same numbers on every call), as :func:`_add_cpu_flag` does."""
+    return _add_cpu_flag(CPU_DETERMINISTIC)
 
 
 def fast_compiling_cpu() -> bool:
-    """Add :data:`CPU_FAST_COMPILE` where the installed jaxlib knows the flag (0.10; XLA aborts on
-    an unknown one) and ``JAXDRIVE_CPU_FLAGS`` is not ``0``. Returns whether the flag was added or
-    already set."""
-    if _jaxlib_version() < (0, 10) or os.environ.get("JAXDRIVE_CPU_FLAGS") == "0":
-        return False
-    add_xla_flags(CPU_FAST_COMPILE)
-    return True
+    """Add :data:`CPU_FAST_COMPILE` (faster compiles, slower kernels), as :func:`_add_cpu_flag` does."""
+    return _add_cpu_flag(CPU_FAST_COMPILE)
