@@ -28,6 +28,7 @@ from strategy_fixtures import C, H, W, horizon_inputs
 def tiny_model(window: int, **kw) -> WindowModel:
     cfg = preset(
         "tiny",
+        depth=1,  # the strategies' windows, not the model's depth, are under test
         in_channels=C,
         vae_spatial=4,
         vae_temporal=1,

@@ -74,7 +74,7 @@ def assert_same_state(a, b):
 
 
 def tiny_run(workdir, data, *sets):
-    """A 6-view tiny DiT (``configs/tiny.py``, boxes on, 5-frame windows) trained 1 step on
+    """A 6-view one-layer tiny DiT (``configs/tiny.py``, boxes on, 5-frame windows) trained 1 step on
     ``data`` in ``workdir``, on the 8 test devices (data 2 x seq 4); returns ``workdir``."""
     from pathlib import Path
 
@@ -93,6 +93,7 @@ def tiny_run(workdir, data, *sets):
     for s in (
         f"data.path={data}",
         "model.controls.boxes=true",
+        "model.depth=1",  # its users test sampling, eval and routes, not the depth
         "data.frames=5",
         "data.views=6",
         "data.batch_size=2",
