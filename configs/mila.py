@@ -128,9 +128,6 @@ def get_config(arg=None) -> Config:
     if a.stage == 3:
         flow = dataclasses.replace(f, jdc_anchor_rate=0.75)  # MiLA's tail anchor, 75% of clips
     optim = config.optim
-    if a.stage == 1:
-        depth = config.model.depth
-        optim = dataclasses.replace(
-            optim, trainable=tuple(p.replace("{last}", str(depth - 1)) for p in STAGE1_TRAINABLE)
-        )
+    if a.stage == 1:  # "{last}": the run's last layer (jaxdrive.train.optim.trainable_labels)
+        optim = dataclasses.replace(optim, trainable=STAGE1_TRAINABLE)
     return dataclasses.replace(config, data=data, flow=flow, optim=optim, sample=SampleConfig(cfg=GUIDANCE))

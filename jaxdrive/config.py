@@ -153,7 +153,7 @@ class OptimConfig:
     clip_norm: float = 1.0  # 0: no clipping
     grad_accum: int = 1  # micro-batches per update (data.batch_size split; a lax.scan in the step)
     ema_decay: float = 0.9999  # 0: no EMA
-    trainable: tuple[str, ...] = ()  # regexes over "a/b/kernel" paths; empty: all
+    trainable: tuple[str, ...] = ()  # regexes over "a/b/kernel" paths ("{last}": the last layer); empty: all
 
 
 @dataclasses.dataclass(frozen=True)

@@ -97,11 +97,10 @@ def test_paper_configs_take_their_argument(arg):
 
 @pytest.mark.slow(seconds=143)
 def test_mila_tiny_stages_train_and_sample_coarse_to_refine(long_scenes, tmp_path, capsys):
-    # stage 1 keeps the tiny model's two layers: its trainable set names the last one (test above);
-    # stages 2 and 3 need no second layer for what is tested here
-    train("mila.py:size=tiny,stage=1", tmp_path / "stage1", long_scenes)
-    train("mila.py:size=tiny,stage=2", tmp_path / "stage2", long_scenes, "model.depth=1")
-    run = train("mila.py:size=tiny,stage=3", tmp_path / "stage3", long_scenes, "model.depth=1", steps=2)
+    one = "model.depth=1"  # one layer (stage 1's trainable set names it: "{last}"); the stages need no second
+    for stage in (1, 2):
+        train(f"mila.py:size=tiny,stage={stage}", tmp_path / f"stage{stage}", long_scenes, one)
+    run = train("mila.py:size=tiny,stage=3", tmp_path / "stage3", long_scenes, one, steps=2)
     out = tmp_path / "c2r"
     assert (
         cli(

@@ -81,6 +81,26 @@ def test_partial_training_updates_only_the_matched_parameters():
         trainable_labels(params, ("htft",))
 
 
+def test_last_in_a_pattern_names_the_highest_layer_the_parameters_have():
+    """``{last}`` resolves against the parameters, not the config: a depth set after the config was
+    built (``--set model.depth=1``) moves it. Scanned stacks (``layers_0_40``) are not layers."""
+    leaf = {"kernel": jnp.ones((2, 2))}
+    two = {"layers_0": leaf, "layers_1": leaf, "final": leaf}
+    assert trainable_labels(two, ("layers_{last}/",)) == {
+        "layers_0": {"kernel": "freeze"},
+        "layers_1": {"kernel": "train"},
+        "final": {"kernel": "freeze"},
+    }
+    one = {"layers_0": leaf, "final": leaf}
+    assert trainable_labels(one, ("layers_{last}/",))["layers_0"] == {"kernel": "train"}
+    scanned = {"layers_0_40": leaf, "layers_41": leaf, "layers_10x": leaf}
+    labels = trainable_labels(scanned, ("layers_{last}/",))
+    assert labels["layers_41"] == {"kernel": "train"} and labels["layers_0_40"] == {"kernel": "freeze"}
+    message = r"optim.trainable: '\{last\}' names the last DiT layer .*got 'layers_\{last\}/'"
+    with pytest.raises(ValueError, match=message):
+        trainable_labels({"layers_0_1": leaf}, ("layers_{last}/",))
+
+
 def test_non_finite_steps_are_skipped_and_counted():
     params = {"w": jnp.ones((2, 2))}
     opt = make_optimizer(OptimConfig(lr=0.1, warmup_steps=0, schedule="constant"), 10, params)

@@ -77,14 +77,36 @@ def clip_by_global_norm(max_norm: float) -> optax.GradientTransformationExtraArg
     return optax.GradientTransformationExtraArgs(optax.init_empty_state, update)
 
 
+LAST_LAYER = "{last}"
+
+
+def _resolve_last(patterns, paths) -> tuple[str, ...]:
+    """``patterns`` with :data:`LAST_LAYER` replaced by the highest ``N`` of a ``layers_N/`` path
+    (a scanned stack, ``layers_0_40``, is not one layer)."""
+    if not any(LAST_LAYER in p for p in patterns):
+        return tuple(patterns)
+    layers = [int(m[1]) for path in paths if (m := re.match(r"layers_(\d+)/", path))]
+    if not layers:
+        bad = next(p for p in patterns if LAST_LAYER in p)
+        raise ValueError(
+            f"optim.trainable: '{LAST_LAYER}' names the last DiT layer (layers_N, the highest N), "
+            f"expected parameters with such a layer (a scanned stack needs model.scan_breaks ending "
+            f"at the last layer), got {bad!r} over paths such as {paths[:3]}"
+        )
+    return tuple(p.replace(LAST_LAYER, str(max(layers))) for p in patterns)
+
+
 def trainable_labels(params, patterns) -> object:
     """``"train"`` / ``"freeze"`` per parameter: trainable when its path matches any pattern (all
-    are trainable without patterns). A pattern that matches nothing raises ``ValueError``."""
+    are trainable without patterns). ``{last}`` in a pattern is the DiT's last layer's index,
+    read from the parameters (:func:`_resolve_last`), so a depth changed after the config was
+    built moves it. A pattern that matches nothing raises ``ValueError``."""
     if not patterns:
         return jax.tree_util.tree_map(lambda _: "train", params)
-    compiled = [re.compile(p) for p in patterns]
     name = lambda path: jax.tree_util.keystr(path, simple=True, separator="/")  # "a/b/kernel"
     paths = [name(p) for p, _ in jax.tree_util.tree_flatten_with_path(params)[0]]
+    patterns = _resolve_last(patterns, paths)
+    compiled = [re.compile(p) for p in patterns]
     for pattern, rx in zip(patterns, compiled):
         if not any(rx.search(path) for path in paths):
             raise ValueError(
