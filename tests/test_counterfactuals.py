@@ -186,6 +186,7 @@ def routes21(tmp_path_factory):
     )
 
 
+@pytest.mark.optimized_xla  # its time is running the sampler and the scores, not compiling
 @pytest.mark.slow(seconds=58)
 def test_eval_scores_every_route_against_its_render(tiny_dit, routes21, tmp_path, capsys):
     import json

@@ -46,6 +46,7 @@ def test_scores_are_perfect_for_the_recorded_clip_and_fall_for_another():
     assert other["2-17"]["psnr"] < 20 and other["2-17"]["fid"] > 0.05 and other["2-17"]["fvd"] > 0.05
 
 
+@pytest.mark.optimized_xla  # its time is running the sampler and the scores, not compiling
 @pytest.mark.slow(seconds=19)
 def test_eval_scores_strategies_and_writes_its_outputs(tiny_dit, tmp_path, capsys):
     from jaxdrive.cli import main as cli
@@ -201,6 +202,7 @@ def test_eval_merges_strategies_of_different_runs_into_one_table(tmp_path, capsy
         assert message in capsys.readouterr().err, message
 
 
+@pytest.mark.optimized_xla  # its time is running the sampler and the scores, not compiling
 @pytest.mark.slow(seconds=33)
 def test_eval_sweeps_guidance_scales_into_one_table_that_merges(tiny_dit, tmp_path, capsys, monkeypatch):
     """``--cfg 1,2`` scores the strategy at each scale (rows ``rollout@cfgS``), with the route
