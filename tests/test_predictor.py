@@ -87,7 +87,7 @@ def _traffic(ego, agents, seen):
     )
 
 
-@pytest.mark.slow(seconds=18)
+@pytest.mark.slow(seconds=3)
 def test_constant_velocity_moves_each_pose_by_its_last_step_and_a_fresh_predictor_is_that_step():
     ego = np.array([[[0, 0, 0], [0.5, 0, 0.1], [1.5, 0.5, 0.2], [2.5, 1.0, 0.3]]])  # [1, T=4, 3]
     agents = np.zeros((1, 4, 2, 3))
@@ -96,18 +96,18 @@ def test_constant_velocity_moves_each_pose_by_its_last_step_and_a_fresh_predicto
     seen = np.ones((1, 4, 2), bool)
     seen[0, 2, 1] = False  # agent 1 missed the step before the last: it stands
     tr = _traffic(ego, agents, seen)
-    cv_ego, cv_agents = constant_velocity(tr)
+    cv_ego, cv_agents = jax.jit(constant_velocity)(tr)  # jitted: eagerly each jnp call compiles alone
     np.testing.assert_allclose(cv_ego[0], [3.5, 1.5, 0.3], atol=1e-6)  # worked: + (1.0, 0.5), heading kept
     np.testing.assert_allclose(cv_agents[0], [[10, 4, 1], [7, 5, 0]], atol=1e-6)
     params = init_params(SMALL, jax.random.key(0), bev_size=(32, 32))
-    model = Predictor(SMALL)
-    e, a = predict_step(model, params, tr, jnp.zeros((1, 32, 32, 8)))
+    step = jax.jit(lambda p: predict_step(Predictor(SMALL), p, tr, np.zeros((1, 32, 32, 8), np.float32)))
+    e, a = step(params)
     np.testing.assert_allclose(e, cv_ego, atol=1e-6)
     np.testing.assert_allclose(a, cv_agents, atol=1e-6)
     # a trained head moves the prediction: the corrections are read, in the ego frame
     bumped = jax.tree_util.tree_map(lambda x: x, params)
-    bumped["head"]["bias"] = jnp.array([1.0, 0.0, 0.0])
-    e2, _ = predict_step(model, bumped, tr, jnp.zeros((1, 32, 32, 8)))
+    bumped["head"]["bias"] = np.array([1.0, 0.0, 0.0], np.float32)
+    e2, _ = step(bumped)
     np.testing.assert_allclose(e2[0, :2] - cv_ego[0, :2], 0.5 * np.array([np.cos(0.3), np.sin(0.3)]), atol=1e-5)
 
 
