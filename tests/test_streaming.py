@@ -351,10 +351,12 @@ def test_a_scanned_stage_1_model_loads_into_stage_2_with_its_outputs_unchanged()
     assert {"layers_0_2", "layers_2_4"} <= set(p2) and all(k.startswith("htft_") for k in report.kept)
     assert report.unused == ()
     ex = example_inputs(cfg, batch=1, views=2, frames=3, height=H, width=W)
-    want = stage1.forward(p1, ex["latents"], ex["sigma"], ex["cond"])
-    past = jnp.ones((1, 2, (H // 2) * (W // 2), 2, cfg.width))
-    for cond in (ex["cond"], ex["cond"].replace(features={1: past}, features_mask=jnp.ones((1, 2), bool))):
-        np.testing.assert_allclose(stage2.forward(p2, ex["latents"], ex["sigma"], cond), want, rtol=1e-6, atol=1e-6)
+    # jitted: eagerly, every op of the forward compiles on its own
+    want = jax.jit(stage1.forward)(p1, ex["latents"], ex["sigma"], ex["cond"])
+    past = np.ones((1, 2, (H // 2) * (W // 2), 2, cfg.width), np.float32)
+    forward2 = jax.jit(stage2.forward)
+    for cond in (ex["cond"], ex["cond"].replace(features={1: past}, features_mask=np.ones((1, 2), bool))):
+        np.testing.assert_allclose(forward2(p2, ex["latents"], ex["sigma"], cond), want, rtol=1e-6, atol=1e-6)
 
 
 @pytest.mark.optimized_xla
