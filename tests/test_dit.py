@@ -318,9 +318,8 @@ def test_a_scan_break_gives_a_layer_its_own_name_and_changes_nothing_else():
     assert layer_runs(broken) == [(0, 2), (2, 3)] and layer_runs(base) == [(0, 3)]
     params, stacked = _unrolled_and_scanned(base, broken)  # layers_0_2 scanned, layers_2 alone
     lat, sig, text, kw = split_inputs(example_inputs(base, **dict(SCAN_SHAPES)))
-    # jitted: eagerly, every op of each forward compiles on its own
-    a = jax.jit(DiT(base).forward)(params, lat, sig, conditions(text, kw))
-    b = jax.jit(DiT(broken).forward)(stacked, lat, sig, conditions(text, kw))
+    a = forward_fn(base)(params, lat, sig, text, kw)  # jitted: eagerly each op would compile alone
+    b = forward_fn(broken)(stacked, lat, sig, text, kw)
     np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6)
     for bad in [(0,), (3,)]:
         with pytest.raises(ValueError, match=rf"scan_breaks: expected layer indices in \(0, 3\), got {bad[0]}"):
