@@ -100,7 +100,7 @@ def test_segmenter_config_refuses_frame_sizes_its_levels_cannot_halve(clips21, t
     assert "data.height: expected a positive multiple of 2 ** segmenter.levels = 4, got 30" in capsys.readouterr().err
 
 
-@pytest.mark.optimized_xla  # its time is running the sampler and the scores, not compiling
+@pytest.mark.optimized_xla  # its time is running the sampler and the segmenter, not compiling
 @pytest.mark.slow(seconds=20)
 def test_eval_measures_controllability_and_the_shuffled_boxes_control_scores_lower(
     tiny_dit, segmenter_run, tmp_path, capsys
