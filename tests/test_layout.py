@@ -25,6 +25,11 @@ from control_fixtures import measured
 from dit_fixtures import conditions, forward_fn, max_rel, params_for, perturb, split_inputs
 
 LAYOUT = preset("tiny", depth=1, controls=dict(layout=True))
+# jitted, as the model runs them (the grids and class count static): called eagerly, each of their
+# operations compiled its own program per shape, 162 in the worked-numbers test alone
+rays = jax.jit(camera_rays, static_argnums=(2, 3, 4))
+hits = jax.jit(box_hits)
+canvas_of = jax.jit(layout_canvas, static_argnums=(5, 6), static_argnames=("num_classes", "bev_range", "samples"))
 SHAPES = (("batch", 2), ("views", 2), ("frames", 2), ("height", 8), ("width", 8))
 
 
@@ -47,8 +52,8 @@ def test_layout_matches_the_synthetic_worlds_instance_ids():
     ious, agree = [], []
     for seed in (0, 1, 2):
         clip = generate_clip(seed, views=6, frames=2, height=64, width=112, scenery=False)
-        origin, dirs = camera_rays(clip["intrinsics"][None], clip["cam_to_ego"][None], (64, 112), (64, 112))
-        _, owner = box_hits(clip["boxes"][None], clip["box_valid"][None], origin, dirs)
+        origin, dirs = rays(clip["intrinsics"][None], clip["cam_to_ego"][None], (64, 112), (64, 112))
+        _, owner = hits(clip["boxes"][None], clip["box_valid"][None], origin, dirs)
         owner = np.asarray(owner[0])  # [F, V, H, W]
         ids = np.where(
             owner >= 0,
@@ -73,9 +78,9 @@ def test_one_box_and_one_road_cell_worked_numbers():
     in both directions: 400 pixels, as :mod:`jaxdrive.geometry` projects its corners. Turned by
     90 degrees a 4 x 2 m box spans 90 * 2 / 9 = 20 pixels either side: columns 25..64."""
     k, pose = _front_camera()
-    origin, dirs = camera_rays(k, pose, (90, 90), (90, 90))
+    origin, dirs = rays(k, pose, (90, 90), (90, 90))
     box = np.array([[[[11.0, 0.0, 1.5, 2.0, 2.0, 2.0, 0.0]]]], np.float32)
-    depth, owner = box_hits(box, np.ones((1, 1, 1), bool), origin, dirs)
+    depth, owner = hits(box, np.ones((1, 1, 1), bool), origin, dirs)
     mask = np.asarray(owner[0, 0, 0]) == 0
     rows, cols = np.nonzero(mask)
     assert mask.sum() == 400 and (rows.min(), rows.max(), cols.min(), cols.max()) == (35, 54, 35, 54)
@@ -83,7 +88,7 @@ def test_one_box_and_one_road_cell_worked_numbers():
     px, _ = geometry.project_to_image(geometry.ego_to_camera(geometry.box_corners(box[0, 0]), pose[0]), k[0])
     np.testing.assert_allclose([px[..., 0].min(), px[..., 0].max()], [35.0, 55.0], atol=1e-4)
     turned = np.array([[[[11.0, 0.0, 1.5, 4.0, 2.0, 2.0, np.pi / 2]]]], np.float32)
-    _, owner = box_hits(turned, np.ones((1, 1, 1), bool), origin, dirs)
+    _, owner = hits(turned, np.ones((1, 1, 1), bool), origin, dirs)
     cols = np.nonzero(np.asarray(owner[0, 0, 0]) == 0)[1]
     assert (cols.min(), cols.max()) == (25, 64)
 
@@ -93,7 +98,7 @@ def test_one_box_and_one_road_cell_worked_numbers():
     # (x = 11.8) and 58 (x = 11.0), columns 45..57 and 45..58: 27 pixels.
     bev = np.zeros((1, 1, 64, 64, 8), np.float32)
     bev[0, 0, 24, 32, 1] = 1.0
-    canvas = layout_canvas(
+    canvas = canvas_of(
         box,
         np.full((1, 1, 1), 3, np.int32),
         np.zeros((1, 1, 1), bool),
@@ -108,7 +113,7 @@ def test_one_box_and_one_road_cell_worked_numbers():
     assert road.sum() == 27 and road[58, 45] == 1 and road[57, 57] == 1 and road[57, 58] == 0
     assert set(np.nonzero(road)[0]) == {57, 58}
     # with the box there (class 3): one-hot class, near channel 1 / 9, and the box hides the road
-    canvas = layout_canvas(
+    canvas = canvas_of(
         box,
         np.full((1, 1, 1), 3, np.int32),
         np.ones((1, 1, 1), bool),
