@@ -8,6 +8,7 @@ import functools
 import json
 from types import SimpleNamespace
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -20,7 +21,7 @@ from jaxdrive.models.dit import DiT
 from jaxdrive.models.dit.presets import preset
 from jaxdrive.models.latents import LatentCodec
 
-from strategy_fixtures import C, H, W, horizon_inputs, moved_params
+from strategy_fixtures import C, H, W, horizon_inputs
 
 
 @functools.cache
@@ -38,7 +39,11 @@ def tiny_model(window: int, **kw) -> WindowModel:
         controls=dict(text=None, waypoints=True, fps=True, cond_frames="replace", reference_frame="residual"),
     )
     dit = DiT(cfg)
-    params = moved_params(dit, window)
+    params = jax.tree_util.tree_map(
+        jnp.asarray, nn.unbox(dit.init_params(0, batch=1, views=2, frames=window, height=H, width=W))
+    )
+    keys = iter(jax.random.split(jax.random.key(1), len(jax.tree_util.tree_leaves(params))))
+    params = jax.tree_util.tree_map(lambda p: p + 0.05 * jax.random.normal(next(keys), p.shape), params)
     return WindowModel(dit, params, window=window, cond_frames=2, steps=2, **kw)
 
 

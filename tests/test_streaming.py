@@ -23,7 +23,7 @@ from jaxdrive.models.dit import DiT
 from jaxdrive.models.dit.presets import preset
 from jaxdrive.models.latents import LatentCodec
 
-from strategy_fixtures import C, H, W, horizon_inputs, moved_params
+from strategy_fixtures import C, H, W, horizon_inputs
 
 TAPS, BUFFER = (-1, -2, -4), 4
 
@@ -41,8 +41,12 @@ def model(htft: bool = True, steps: int = 3) -> WindowModel:
         controls=dict(waypoints=True, fps=True, cond_frames="replace", reference_frame="residual"),
     )
     dit = DiT(cfg)
+    params = jax.tree_util.tree_map(
+        jnp.asarray, nn.unbox(dit.init_params(0, batch=1, views=2, frames=3, height=H, width=W))
+    )
+    keys = iter(jax.random.split(jax.random.key(1), len(jax.tree_util.tree_leaves(params))))
     # every parameter moved off its initialisation: HTFT's zero output layer too, so the past matters
-    params = moved_params(dit, 3)
+    params = jax.tree_util.tree_map(lambda p: p + 0.05 * jax.random.normal(next(keys), p.shape), params)
     return WindowModel(
         dit,
         params,

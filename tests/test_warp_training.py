@@ -106,11 +106,15 @@ def test_what_rules_the_warp_out_is_refused(data, sets, match):
 
 # ------------------------------------------------------------------ sampling
 def _warp_model():
+    import flax.linen as nn
+    import jax
+    import jax.numpy as jnp
+
     from jaxdrive.generate.windows import WindowModel
     from jaxdrive.models.dit import DiT
     from jaxdrive.models.dit.presets import preset
 
-    from strategy_fixtures import C, moved_params
+    from strategy_fixtures import C, H, W
 
     cfg = preset(
         "tiny",
@@ -122,8 +126,12 @@ def _warp_model():
         controls=dict(waypoints=True, fps=True, warp=True, cond_frames="replace"),
     )
     dit = DiT(cfg)
+    params = jax.tree_util.tree_map(
+        jnp.asarray, nn.unbox(dit.init_params(0, batch=1, views=2, frames=4, height=H, width=W))
+    )
+    keys = iter(jax.random.split(jax.random.key(1), len(jax.tree_util.tree_leaves(params))))
     # every parameter off its initialisation (the warp embedding and the output layer start at zero)
-    params = moved_params(dit, 4)
+    params = jax.tree_util.tree_map(lambda p: p + 0.05 * jax.random.normal(next(keys), p.shape), params)
     return WindowModel(dit, params, window=4, cond_frames=2, steps=2)
 
 
