@@ -18,7 +18,8 @@ add_xla_flags(
 deterministic_cpu()
 # XLA:CPU's older fusion emitters: the suite's time is compiling, and with them the tiny train step
 # compiles in 11 s instead of 19 (jaxdrive.xla_flags). Numbers agree within the tests' tolerances;
-# exact-equality tests compare two runs compiled the same way.
+# exact-equality tests compare two runs compiled the same way. And each program's LLVM module
+# compiled whole: splitting it for threads costs more than it gives on cores the workers fill.
 fast_compiling_cpu()
 # Most of XLA's optimisation off (JAX's own switch: LLVM at -O0, its expensive passes skipped):
 # the tests' programs are tiny, so compiling them is most of the suite's time, and -O0 halves it

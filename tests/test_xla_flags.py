@@ -12,7 +12,14 @@ from jaxdrive.config import load_config
 from jaxdrive.data.batches import model_inputs
 from jaxdrive.train import flow_step
 from jaxdrive.train.run import Run
-from jaxdrive.xla_flags import CPU_DETERMINISTIC, CPU_FAST_COMPILE, add_xla_flags, deterministic_cpu, fast_compiling_cpu
+from jaxdrive.xla_flags import (
+    CPU_DETERMINISTIC,
+    CPU_FAST_COMPILE,
+    CPU_SERIAL_CODEGEN,
+    add_xla_flags,
+    deterministic_cpu,
+    fast_compiling_cpu,
+)
 
 from train_fixtures import write_synthetic
 
@@ -32,12 +39,12 @@ def test_flags_are_appended_once_and_the_users_value_kept(monkeypatch):
     monkeypatch.setenv("JAXDRIVE_CPU_FLAGS", "0")  # a jaxlib that no longer knows the flag
     assert not deterministic_cpu() and not fast_compiling_cpu() and "XLA_FLAGS" not in os.environ
     monkeypatch.delenv("JAXDRIVE_CPU_FLAGS")
-    assert fast_compiling_cpu() and os.environ["XLA_FLAGS"] == CPU_FAST_COMPILE
+    assert fast_compiling_cpu() and os.environ["XLA_FLAGS"] == f"{CPU_FAST_COMPILE} {CPU_SERIAL_CODEGEN}"
 
 
 def test_the_tests_run_with_the_cpu_flags():
     assert CPU_DETERMINISTIC in os.environ["XLA_FLAGS"]
-    assert CPU_FAST_COMPILE in os.environ["XLA_FLAGS"]
+    assert CPU_FAST_COMPILE in os.environ["XLA_FLAGS"] and CPU_SERIAL_CODEGEN in os.environ["XLA_FLAGS"]
 
 
 @pytest.mark.optimized_xla
