@@ -9,6 +9,8 @@ import sys
 
 import pytest
 
+from conftest import shared
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 PAGES = [ROOT / "README.md"] + sorted((ROOT / "docs").rglob("*.md"))
 EXAMPLES = [
@@ -24,12 +26,16 @@ def test_the_docs_hold_python_examples():
 
 @pytest.mark.slow(seconds=35)
 @pytest.mark.parametrize("page, index, block", EXAMPLES, ids=[f"{p}:{i}" for p, i, _ in EXAMPLES])
-def test_python_examples_run(page, index, block, tmp_path, monkeypatch):
+def test_python_examples_run(page, index, block, tmp_path, tmp_path_factory, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    if "data/synth" in block:  # the data example reads the dataset the docs' command writes
+    if "data/synth" in block:  # the examples read the dataset the docs' command writes: once a run (30 s)
         from jaxdrive.cli import main
 
-        assert main(["data", "synth", "--out", "data/synth", "--scenes", "16", "--frames", "33"]) == 0
+        def build(folder):
+            assert main(["data", "synth", "--out", str(folder / "synth"), "--scenes", "16", "--frames", "33"]) == 0
+
+        (tmp_path / "data").mkdir()
+        (tmp_path / "data" / "synth").symlink_to(shared(tmp_path_factory, "docs_synth", build) / "synth")
     if "configs/" in block:  # examples run from a checkout, where configs/ is at hand
         (tmp_path / "configs").symlink_to(ROOT / "configs")
     if "CogVideoX-2b/vae" in block:  # the import example reads a diffusers VAE: a tiny random one
