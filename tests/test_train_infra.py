@@ -342,3 +342,32 @@ def test_a_checkpoint_of_another_model_is_a_value_error_saying_what_differs(tmp_
     ):
         ck.restore_latest(other)
     ck.close()
+
+
+def test_a_sampler_reads_the_weights_alone(tmp_path, caplog):
+    """``restore_latest_weights``: the EMA (or the parameters) of the newest readable checkpoint,
+    equal to the full restore's, without reading the optimizer's state: an abstract state whose
+    optimizer state the checkpoint does not hold still gives the weights, where the full restore
+    finds no checkpoint it can read."""
+    ck = Checkpoints(tmp_path, keep=3)
+    for step in (1, 2):
+        ck.save(step, _state_after(step), {}, {"step": step})
+    ck.wait()
+    abstract = jax.eval_shape(lambda: _state_after(0))
+    _, full, _, _ = ck.restore_latest(abstract)
+    for ema, want in ((True, full.ema), (False, full.params)):
+        step, weights = ck.restore_latest_weights(abstract, ema=ema)
+        assert step == 2 and jax.tree_util.tree_structure(weights) == jax.tree_util.tree_structure(want)
+        for a, b in zip(jax.tree_util.tree_leaves(weights), jax.tree_util.tree_leaves(want)):
+            np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(full.ema["w"], full.params["w"])  # the two choices differ
+    step, weights = ck.restore_latest_weights(abstract.replace(ema=None))  # a run without EMA: its parameters
+    np.testing.assert_array_equal(weights["w"], full.params["w"])
+    other_optimizer = abstract.replace(opt_state={"other": jax.ShapeDtypeStruct((3,), jnp.float32)})
+    with caplog.at_level(logging.WARNING, logger="jaxdrive.train.checkpoint"):
+        assert ck.restore_latest(other_optimizer) is None  # read, it is not in either checkpoint
+        assert len(ck.skipped) == 2
+        step, weights = ck.restore_latest_weights(other_optimizer)
+    assert step == 2 and ck.skipped == []
+    np.testing.assert_array_equal(weights["w"], full.ema["w"])
+    ck.close()

@@ -120,12 +120,11 @@ def load_trained(workdir, cls, section: str, init, *, option: str, what: str):
     params = jax.eval_shape(lambda: init(config))
     optimizer = make_optimizer(config.optim, config.train.steps, params)
     abstract = jax.eval_shape(lambda: create_state(init(config), optimizer, 0, ema=config.optim.ema_decay > 0))
-    restored = meta.restore_latest(abstract)
+    restored = meta.restore_latest_weights(abstract)
     meta.close()
     if restored is None:
         raise ValueError(
             f"{option}: expected checkpoints of this {what} ({getattr(config, section)}), got none "
             f"that load under {Path(workdir) / 'checkpoints'}: {meta.skipped[-1] if meta.skipped else ''}"
         )
-    state = restored[1]
-    return config, (state.ema if state.ema is not None else state.params)
+    return config, restored[1]

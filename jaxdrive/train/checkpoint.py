@@ -66,13 +66,19 @@ class Checkpoints:
     def wait(self) -> None:
         self.manager.wait_until_finished()
 
-    def restore(self, step: int, abstract_state):
-        """``(state, data_state, meta)`` of checkpoint ``step``, placed as ``abstract_state`` says."""
+    def restore(self, step: int, abstract_state, *, fields: tuple[str, ...] | None = None):
+        """``(state, data_state, meta)`` of checkpoint ``step``, placed as ``abstract_state`` says.
+        ``fields``: read only these fields of the state (e.g. ``("ema",)``); the state is then a
+        dict of them, and the other arrays are not read from disk."""
+        if fields is not None:
+            abstract_state = {name: getattr(abstract_state, name) for name in fields}
         out = self.manager.restore(
             step,
             args=ocp.args.Composite(
                 state=ocp.args.PyTreeRestore(
-                    abstract_state, restore_args=ocp.checkpoint_utils.construct_restore_args(abstract_state)
+                    abstract_state,
+                    restore_args=ocp.checkpoint_utils.construct_restore_args(abstract_state),
+                    partial_restore=fields is not None,
                 ),
                 data=ocp.args.JsonRestore(),
                 meta=ocp.args.JsonRestore(),
@@ -103,13 +109,13 @@ class Checkpoints:
         lines += [f"{k}: in the checkpoint, not in this model" for k in sorted(have.keys() - want.keys())]
         return lines
 
-    def restore_latest(self, abstract_state):
+    def restore_latest(self, abstract_state, *, fields: tuple[str, ...] | None = None):
         """The newest readable checkpoint as ``(step, state, data_state, meta)``, or None when
         there is none. Unreadable newer ones (a truncated array file, a missing metadata file, an
         empty step folder) are skipped, each with a warning in the log and its message in
         ``skipped``. A readable checkpoint of another model (parameter names or shapes differ) is a
         ``ValueError`` saying what differs, not something to fall back past: the workdir belongs to
-        another config."""
+        another config. ``fields``: as :meth:`restore`."""
         self.skipped = []
         for step in reversed(self.steps()):
             try:
@@ -125,10 +131,19 @@ class Checkpoints:
                     f"trained with"
                 )
             try:
-                return (step, *self.restore(step, abstract_state))
+                return (step, *self.restore(step, abstract_state, fields=fields))
             except Exception as e:  # orbax raises many types for a damaged checkpoint
                 self._damaged(step, e)
         return None
+
+    def restore_latest_weights(self, abstract_state, *, ema: bool = True):
+        """``(step, params)`` of the newest readable checkpoint (as :meth:`restore_latest`), or None:
+        the EMA when ``ema`` and the state keeps one, else the parameters. Only that tree is read:
+        a sampler or a run it initialises needs neither the other copy nor the optimizer's
+        moments, three quarters of an AdamW state with an EMA."""
+        name = "ema" if ema and abstract_state.ema is not None else "params"
+        restored = self.restore_latest(abstract_state, fields=(name,))
+        return None if restored is None else (restored[0], restored[1][name])
 
     def _damaged(self, step: int, error: Exception) -> None:
         self.skipped.append(

@@ -92,13 +92,12 @@ def source_params(path, *, mesh, ema: bool = True, target_model=None) -> dict:
     abstract, _ = abstract_train_state(src.model, src.optim, src.train.steps, mesh, seed=src.train.seed)
     ckpts = Checkpoints(p, keep=src.train.keep_checkpoints, asynchronous=False, option="train.init_from")
     try:
-        restored = ckpts.restore_latest(abstract)
+        restored = ckpts.restore_latest_weights(abstract, ema=ema)
     finally:
         ckpts.close()
     if restored is None:
         raise ValueError(f"train.init_from: expected checkpoints under {p / 'checkpoints'}, found none")
-    state = restored[1]
-    return state.ema if ema and state.ema is not None else state.params
+    return restored[1]
 
 
 # a scanned run of layers ``start .. end - 1`` (``nn.scan``, params stacked on a leading axis):

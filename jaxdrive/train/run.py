@@ -585,9 +585,8 @@ def restore_latest_params(abstract, workdir, *, keep: int, ema: bool = True, opt
     abstract train state ``abstract`` (:func:`abstract_train_state`; EMA when kept); errors name
     ``option``."""
     ckpts = Checkpoints(workdir, keep=keep, asynchronous=False, option=option)
-    restored = ckpts.restore_latest(abstract)
+    restored = ckpts.restore_latest_weights(abstract, ema=ema)
     ckpts.close()
     if restored is None:
         raise ValueError(f"{option}: expected checkpoints under {Path(workdir) / 'checkpoints'}, found none")
-    step, state = restored[0], restored[1]
-    return step, (state.ema if ema and state.ema is not None else state.params)
+    return restored
