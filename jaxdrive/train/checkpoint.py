@@ -139,8 +139,8 @@ class Checkpoints:
     def restore_latest_weights(self, abstract_state, *, ema: bool = True):
         """``(step, params)`` of the newest readable checkpoint (as :meth:`restore_latest`), or None:
         the EMA when ``ema`` and the state keeps one, else the parameters. Only that tree is read:
-        a sampler or a run it initialises needs neither the other copy nor the optimizer's
-        moments, three quarters of an AdamW state with an EMA."""
+        a sampler, or a run that starts from these weights (``train.init_from``), needs neither
+        the other copy nor the optimizer's moments, three quarters of an AdamW state with an EMA."""
         name = "ema" if ema and abstract_state.ema is not None else "params"
         restored = self.restore_latest(abstract_state, fields=(name,))
         return None if restored is None else (restored[0], restored[1][name])
