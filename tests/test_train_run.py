@@ -319,7 +319,9 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
 def test_demo_recipe_learns_a_continuation_not_noise(dataset, tmp_path):
     """A short run of the demo recipe (configs/tiny.py on 2 views, 5 frames): its first sampled
     window must have the spread of real latents (the 64-wide velocity model once gave 3x the
-    data's standard deviation, saturated colour noise) and beat noise on PSNR by a margin."""
+    data's standard deviation, saturated colour noise) and beat noise on PSNR by a margin.
+    On one device, as the demo runs on a CPU: 8 fake devices on 2 cores made it slower (101 CPU-s
+    against 85), for the same figures (final loss 0.3285, PSNR 22.63 against noise's 17.45)."""
     from jaxdrive.eval.frames import clip_quality
     from jaxdrive.generate.samples import generate
 
@@ -333,11 +335,10 @@ def test_demo_recipe_learns_a_continuation_not_noise(dataset, tmp_path):
             "train.checkpoint_every=0",
             "train.log_every=50",
             "optim.warmup_steps=10",
-            "mesh.data=2",
-            "mesh.seq=4",
         ],
     )
-    out = train(config, tmp_path / "run", progress=False)
+    out = train(config, tmp_path / "run", progress=False, devices=jax.devices()[:1])
+    assert out["run"].mesh.devices.size == 1
     g = generate(out["run"].sampling(), out["state"].ema, frames=5, guidance=1.0, steps=10)
     data = out["run"].codec.encode(None, g.recorded)
     ratio = float(np.std(g.latents[:, :, g.cond_frames :]) / np.std(np.asarray(data)[:, :, g.cond_frames :]))

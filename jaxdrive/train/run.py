@@ -427,8 +427,9 @@ def _compile_together(step_fn, compiled: set, *args) -> None:
 
 
 @deprecated_log
-def train(config: Config, workdir, *, on_step=None, progress: bool = True) -> dict:
+def train(config: Config, workdir, *, on_step=None, progress: bool = True, devices=None) -> dict:
     """Train (or resume) in ``workdir``; returns ``{"step", "status", "loss", ...}``.
+    ``devices``: the devices the config's mesh spans (default: all of them, :class:`Run`).
     ``status``: ``"done"``, ``"interrupted"`` (a signal), ``"diverged"`` (non-finite losses) or
     ``"save_failed"`` (a checkpoint could not be written: stopped by ``train.on_save_error="stop"``,
     or the final one).
@@ -446,7 +447,7 @@ def train(config: Config, workdir, *, on_step=None, progress: bool = True) -> di
     started = time.perf_counter()
     cache_dir, cache_before = compile_cache.enable(config.train.compile_cache), compile_cache.counts()
     workdir = Path(workdir)
-    run = Run(config)
+    run = Run(config, devices=devices)
     cfg = config
     it = iter(run.dataset())
     ckpts = Checkpoints(workdir, keep=cfg.train.keep_checkpoints)
