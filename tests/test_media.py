@@ -66,3 +66,31 @@ def test_metrics_jsonl_and_tensorboard(tmp_path):
     assert rows[1]["tokens_per_s"] == pytest.approx(rows[1]["steps_per_s"] * 100)
     assert json.loads((tmp_path / "metrics.jsonl").read_text().splitlines()[0])["loss"] == 0.5
     assert list((tmp_path / "tensorboard").glob("events.out.tfevents.*"))
+
+
+def test_the_metrics_writer_does_not_import_torch(tmp_path):
+    """tensorboardX imports torch whenever it is installed (the test extra installs it): a run's
+    writer keeps it out, still writes its scalars, and leaves torch importable afterwards."""
+    import subprocess
+    import sys
+
+    script = f"""
+import importlib.util, sys
+from jaxdrive.train.metrics import MetricsWriter
+w = MetricsWriter({str(tmp_path)!r}, total_steps=2, progress=False)
+w.write(1, {{"loss": 0.5}})
+w.close()
+print("torch imported:", "torch" in sys.modules)
+if importlib.util.find_spec("torch") is not None:
+    import torch
+    print("torch after:", torch.__name__)
+"""
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "torch imported: False" in done.stdout
+    import importlib.util
+
+    if importlib.util.find_spec("torch") is not None:
+        assert "torch after: torch" in done.stdout
+    events = b"".join(p.read_bytes() for p in (tmp_path / "tensorboard").glob("events.out.tfevents.*"))
+    assert b"loss" in events
