@@ -3,8 +3,9 @@
 Each worker builds ``make_mesh(data=2, seq=4)`` over the 8 global devices, assembles a global
 batch from its host-local rows with ``host_local_to_global``, runs a jitted reduction, a jitted
 matmul, a cross-process contraction and ring attention (forward and input gradient), and writes
-its results; the test recomputes the same in
-this process and compares.
+its results; the test recomputes the same in this process and compares. Each worker also places
+host parameters with ``shard_params`` on a data x tensor mesh: every device holds its slice, and
+no array is gathered across processes to check that they agree.
 """
 
 import os
@@ -55,11 +56,25 @@ WORKER = textwrap.dedent("""
     wg = host_local_to_global(w, mesh, (None, None))
     assert xg.shape == x.shape and wg.shape == w.shape
     total, y, gram, att, datt = compute(mesh, xg, wg)
+    # host parameters placed shard by shard, with no cross-process gather: each device holds its slice
+    import flax.linen as nn
+    from jaxdrive.parallel import shard_params
+    tp = make_mesh(data=2, tensor=4)
+    host = {"w": nn.LogicallyPartitioned(np.arange(6 * 8, dtype=np.float32).reshape(6, 8), ("embed", "mlp")),
+            "b": np.linspace(-1, 1, 8, dtype=np.float32)}
+    from jax.experimental import multihost_utils
+    gathers, real_assert_equal = [], multihost_utils.assert_equal
+    multihost_utils.assert_equal = lambda *a, **k: gathers.append(a) or real_assert_equal(*a, **k)
+    placed = shard_params(host, tp)
+    multihost_utils.assert_equal = real_assert_equal
+    params_ok = not gathers and placed["w"].sharding.spec == jax.sharding.PartitionSpec("fsdp", "tensor") and all(
+        np.array_equal(np.asarray(s.data), host["w"].value[s.index]) for s in placed["w"].addressable_shards
+    ) and all(np.array_equal(np.asarray(s.data), host["b"]) for s in placed["b"].addressable_shards)
     back = global_to_host_local({"x": xg, "y": y, "att": att, "datt": datt})
     np.savez(out, rows=np.asarray(rows), local=local, x_back=back["x"], y=back["y"],
              att=back["att"], datt=back["datt"],
              total=np.asarray(total.addressable_data(0)), gram=np.asarray(gram.addressable_data(0)),
-             hybrid_ok=hybrid_ok)
+             hybrid_ok=hybrid_ok, params_ok=params_ok)
     jax.distributed.shutdown()
 """)
 
@@ -144,6 +159,7 @@ def test_two_processes_match_one(tmp_path):
     for i in range(2):
         r = np.load(tmp_path / f"out{i}.npz")
         assert bool(r["hybrid_ok"]), "make_hybrid_mesh: data axis should run across processes"
+        assert bool(r["params_ok"]), "shard_params: a device holds other values than its slice of the host parameters"
         rows = np.concatenate([np.arange(s, s + 4) for s in r["rows"]])
         seen.extend(rows.tolist())
         np.testing.assert_array_equal(r["x_back"], r["local"])

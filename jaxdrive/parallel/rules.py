@@ -40,6 +40,7 @@ from collections.abc import Mapping, Sequence
 
 import flax.linen as nn
 import jax
+import numpy as np
 from flax.core import meta
 from jax.sharding import AxisType, NamedSharding, PartitionSpec
 
@@ -203,10 +204,25 @@ def param_shardings(params, mesh, rules: Mapping[str, Axes] = PARAM_RULES):
 
 
 def shard_params(params, mesh, rules: Mapping[str, Axes] = PARAM_RULES):
-    """``params`` unboxed and placed with :func:`param_shardings` (plain ``jax.Array`` leaves)."""
+    """``params`` unboxed and placed with :func:`param_shardings` (plain ``jax.Array`` leaves).
+
+    Host (NumPy) leaves must hold the same values in every process (parameters drawn from one
+    seed, :meth:`jaxdrive.models.dit.DiT.init_params`): with several processes each places only
+    the shards of its own devices (``jax.make_array_from_callback``). ``jax.device_put`` would
+    first check that the processes agree by gathering every array from all of them: the whole
+    model over the network once per host (on 2 processes of the tiny config, 1 s of 105 gathers)."""
     shardings = param_shardings(params, mesh, rules)
     values = jax.tree_util.tree_map(lambda x: x.value if _is_box(x) else x, params, is_leaf=_is_box)
-    return jax.device_put(values, shardings)
+    if jax.process_count() == 1:
+        return jax.device_put(values, shardings)
+    return jax.tree_util.tree_map(_place_host_value, values, shardings)
+
+
+def _place_host_value(x, sharding):
+    if isinstance(x, jax.Array):  # already on devices (e.g. restored): jax.device_put reshards it
+        return jax.device_put(x, sharding)
+    x = np.asarray(x)
+    return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
 
 
 def reshard_like(v: jax.Array, x: jax.Array) -> jax.Array:
