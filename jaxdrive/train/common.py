@@ -37,6 +37,14 @@ def mesh_from_config(config: Config, devices=None):
     return make_mesh(**sizes, devices=devices)
 
 
+def param_trace_shapes(model) -> dict:
+    """The input shapes a DiT config's parameters are traced with (``DiT.init_params`` /
+    ``abstract_params``). Parameter shapes do not depend on the inputs' (cross-view attention
+    needs two views); tracing every caller with the same ones lets the traced tree, cached per
+    config and shapes, serve a run's init and its checkpoint target alike."""
+    return {"views": 2 if model.multiview == "cross_view" else 1}
+
+
 def abstract_train_state(model, optim_config, total_steps: int, mesh, *, seed: int = 0):
     """``(abstract state, optimizer)`` of a :class:`jaxdrive.models.dit.model.DiT` config ``model``:
     the state's ``jax.ShapeDtypeStruct`` leaves with their shardings on ``mesh``, from
@@ -44,8 +52,7 @@ def abstract_train_state(model, optim_config, total_steps: int, mesh, *, seed: i
     parameters a fresh state would double host and device memory)."""
     from jaxdrive.models.dit.model import DiT
 
-    # parameter shapes do not depend on the input shapes (cross-view attention needs two views)
-    boxed = DiT(model).abstract_params(views=2 if model.multiview == "cross_view" else 1)
+    boxed = DiT(model).abstract_params(**param_trace_shapes(model))
     params = jax.tree_util.tree_map(
         lambda x, sh: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sh), nn.unbox(boxed), param_shardings(boxed, mesh)
     )

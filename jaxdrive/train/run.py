@@ -46,6 +46,7 @@ from jaxdrive.train.common import (  # noqa: F401
     batch_shards,
     load_run_config,
     mesh_from_config,
+    param_trace_shapes,
 )
 from jaxdrive.train.encode import check_dataset
 from jaxdrive.train.metrics import MetricsWriter
@@ -283,16 +284,9 @@ class Run:
     # ------------------------------------------------------------------ state
     def boxed_params(self):
         """The model's initial parameters in ``nn.LogicallyPartitioned`` boxes, drawn on the host
-        (``train.seed``)."""
-        d, dit = self.config.data, self.training.dit
-        shapes = dict(
-            batch=1,
-            views=d.views,
-            frames=self.latent_frames,
-            height=d.height // self.codec.spatial,
-            width=d.width // self.codec.spatial,
-        )
-        return dit.init_params(self.config.train.seed, boxed=True, **shapes)
+        (``train.seed``), from the model traced as :meth:`abstract_state` traces it."""
+        dit = self.training.dit
+        return dit.init_params(self.config.train.seed, boxed=True, **param_trace_shapes(dit.config))
 
     @deprecated_log
     def init_state(self):
