@@ -68,6 +68,7 @@ def test_metrics_jsonl_and_tensorboard(tmp_path):
     assert list((tmp_path / "tensorboard").glob("events.out.tfevents.*"))
 
 
+@pytest.mark.slow(seconds=3)
 def test_the_metrics_writer_does_not_import_torch(tmp_path):
     """tensorboardX imports torch whenever it is installed (the test extra installs it): a run's
     writer keeps it out, still writes its scalars, and leaves torch importable afterwards."""
