@@ -37,20 +37,12 @@ def mesh_from_config(config: Config, devices=None):
     return make_mesh(**sizes, devices=devices)
 
 
-def param_trace_shapes(model) -> dict:
-    """The input shapes a DiT config's parameters are traced with (``DiT.init_params`` /
-    ``abstract_params``). Parameter shapes do not depend on the inputs' (cross-view attention
-    needs two views); tracing every caller with the same ones lets the traced tree, cached per
-    config and shapes, serve a run's init and its checkpoint target alike."""
-    return {"views": 2 if model.multiview == "cross_view" else 1}
-
-
 def abstract_train_state(model, optim_config, total_steps: int, mesh, *, seed: int = 0):
     """``(abstract state, optimizer)`` of a :class:`jaxdrive.models.dit.model.DiT` config ``model``:
     the state's ``jax.ShapeDtypeStruct`` leaves with their shardings on ``mesh``, from
     ``jax.eval_shape``: the target a checkpoint restores into, with no parameter allocated (at 1B+
     parameters a fresh state would double host and device memory)."""
-    from jaxdrive.models.dit.model import DiT
+    from jaxdrive.models.dit.model import DiT, param_trace_shapes
 
     boxed = DiT(model).abstract_params(**param_trace_shapes(model))
     params = jax.tree_util.tree_map(

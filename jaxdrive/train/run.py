@@ -34,6 +34,7 @@ from jax.sharding import PartitionSpec as P
 from jaxdrive.config import Config, check_sections, to_dict
 from jaxdrive.data.batches import TextEmbeddings, model_inputs, stack_micro_batches
 from jaxdrive.logs import deprecated_log
+from jaxdrive.models.dit.model import param_trace_shapes
 from jaxdrive.models.latents import LatentCodec
 from jaxdrive.parallel import Processes, host_local_to_global, shard_params, wait_for_all_processes
 from jaxdrive.train import flow_step
@@ -46,7 +47,6 @@ from jaxdrive.train.common import (  # noqa: F401
     batch_shards,
     load_run_config,
     mesh_from_config,
-    param_trace_shapes,
 )
 from jaxdrive.train.encode import check_dataset
 from jaxdrive.train.metrics import MetricsWriter

@@ -392,9 +392,17 @@ def _conv3x3(module, name, x, features, init):
     return y + param(module, f"{name}_bias", ZEROS, (features,), (None,))
 
 
+def param_trace_shapes(cfg: DiTConfig) -> dict:
+    """The input shapes to trace ``DiT(cfg)``'s parameters with (:meth:`DiT.init_params`,
+    :meth:`DiT.abstract_params`). Parameter shapes do not depend on the inputs' (cross-view
+    attention needs two views); callers that use these share one trace, cached per config and
+    shapes: a run's init and its checkpoint target alike."""
+    return {"views": 2 if cfg.multiview == "cross_view" else 1}
+
+
 def param_count(cfg: DiTConfig) -> int:
     """Number of parameters of ``DiT(cfg)``, from ``jax.eval_shape`` (nothing is allocated)."""
-    return count_params(DiT(cfg).abstract_params(views=2 if cfg.multiview == "cross_view" else 1))
+    return count_params(DiT(cfg).abstract_params(**param_trace_shapes(cfg)))
 
 
 __all__ = ["DiT", "DiTConfig", "example_inputs", "param_count", "patchify", "unpatchify"]
