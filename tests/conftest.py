@@ -10,9 +10,8 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # call with the same inputs (jaxdrive.xla_flags), which made exact-equality tests flaky.
 from jaxdrive.xla_flags import CPU_FAST_COMPILE, add_xla_flags, deterministic_cpu, fast_compiling_cpu  # noqa: E402  (imports jax; no backend yet)
 
-DEVICE_COUNT_FLAG = "--xla_force_host_platform_device_count=8"
 add_xla_flags(
-    DEVICE_COUNT_FLAG,
+    "--xla_force_host_platform_device_count=8",
     "--xla_cpu_collective_timeout_seconds=900",
     "--xla_cpu_collective_call_terminate_timeout_seconds=900",
 )
@@ -180,7 +179,8 @@ def segmenter_run(clips21, tmp_path_factory):
         env = {**os.environ, **optimized_env()}
         # and on one device: what it tests is the model it learns, not data parallelism, and 8 fake
         # devices on 2 cores made its steps slower (49 s against 39 s for the 300 steps)
-        env["XLA_FLAGS"] = env["XLA_FLAGS"].replace(DEVICE_COUNT_FLAG, "--xla_force_host_platform_device_count=1")
+        flags = [f for f in env["XLA_FLAGS"].split() if not f.startswith("--xla_force_host_platform_device_count=")]
+        env["XLA_FLAGS"] = " ".join([*flags, "--xla_force_host_platform_device_count=1"])
         done = subprocess.run(
             [sys.executable, "-m", "jaxdrive.cli", *argv],
             env=env,
