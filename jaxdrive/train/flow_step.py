@@ -47,8 +47,7 @@ from jaxdrive.models.dit.config import DiTConfig
 from jaxdrive.models.dit.model import DiT
 from jaxdrive.models.latents import LatentCodec
 from jaxdrive.train import distill_step
-from jaxdrive.train.optim import global_norm, square_sums
-from jaxdrive.train.state import TrainState, apply_gradients
+from jaxdrive.train.state import TrainState, apply_gradients_and_norm
 
 
 # ------------------------------------------------------------------------------ the loss
@@ -211,9 +210,10 @@ def train_step(training: FlowTraining, optimizer, ema_decay: float, state: Train
         (grads, metrics), _ = jax.lax.scan(micro, (zeros, m0), (batch, keys))
         grads = jax.tree_util.tree_map(lambda g: g / n, grads)
         metrics = {k: v / n for k, v in metrics.items()}
-    sums = square_sums(grads)
-    new = apply_gradients(state, grads, metrics["loss"], optimizer, ema_decay, jax.random.key_data(next_key), sums=sums)
-    metrics.update(grad_norm=global_norm(sums), skipped=new.skipped, bad_steps=new.bad_steps)
+    new, grad_norm = apply_gradients_and_norm(
+        state, grads, metrics["loss"], optimizer, ema_decay, jax.random.key_data(next_key)
+    )
+    metrics.update(grad_norm=grad_norm, skipped=new.skipped, bad_steps=new.bad_steps)
     return new, metrics
 
 

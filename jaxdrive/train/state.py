@@ -54,10 +54,17 @@ def apply_gradients(
     or the gradients' global norm is not finite: a NaN or an infinity in any gradient makes it so,
     and so does a norm past float32's range, ~1.8e19). ``rng`` is the key data the next step
     starts from. ``sums``: the gradients' :func:`jaxdrive.train.optim.square_sums` when the caller
-    has them (for its ``grad_norm`` metric); the check and the optimizer's clipping
-    (:func:`jaxdrive.train.optim.make_optimizer`) reuse them, so each gradient is reduced once."""
-    sums = square_sums(grads) if sums is None else sums
-    ok = jnp.isfinite(loss) & jnp.isfinite(global_norm(sums))
+    has them; the check and the optimizer's clipping (:func:`jaxdrive.train.optim.make_optimizer`)
+    reuse them, so each gradient is reduced once. :func:`apply_gradients_and_norm` also gives the
+    norm."""
+    return apply_gradients_and_norm(state, grads, loss, optimizer, ema_decay, rng, sums=sums)[0]
+
+
+def apply_gradients_and_norm(
+    state: TrainState, grads, loss, optimizer: optax.GradientTransformation, ema_decay: float, rng, *, sums=None
+) -> tuple[TrainState, jax.Array]:
+    """:func:`apply_gradients` and the gradients' global norm (the one its check and clipping use,
+    a train step's ``grad_norm`` metric), from one reduction per gradient."""
     optimizer = optax.with_extra_args_support(optimizer)  # any optax optimizer; ours reads square_sums
 
     def update(state, grads, sums):
@@ -72,19 +79,26 @@ def apply_gradients(
         del grads, sums
         return state.replace(bad_steps=state.bad_steps + 1, skipped=state.skipped + 1)
 
-    update = _elementwise_auto(update, state)
-    # one conditional, not a select per leaf: the same numbers, and far less for XLA to compile
-    new = jax.lax.cond(ok, update, skip, state, grads, sums)
-    return new.replace(step=state.step + 1, rng=rng)
+    def check_and_update(state, grads, loss, sums):
+        sums = square_sums(grads) if sums is None else sums
+        norm = global_norm(sums)
+        ok = jnp.isfinite(loss) & jnp.isfinite(norm)
+        # one conditional, not a select per leaf: the same numbers, and far less for XLA to compile
+        return jax.lax.cond(ok, update, skip, state, grads, sums), norm
+
+    new, norm = _elementwise_auto(check_and_update, state)(state, grads, loss, sums)
+    return new.replace(step=state.step + 1, rng=rng), norm
 
 
 def _elementwise_auto(fn, state: TrainState):
-    """``fn(state, ...) -> state`` run with the mesh's axes Auto (``jax.sharding.auto_axes``), its
-    output resharded as ``state`` is. The update is elementwise per leaf: under Explicit axes JAX
-    annotates every one of its operations with its sharding (one ``Sharding`` op per operation,
-    a third of a small model's train step), which XLA then propagates; the same numbers."""
+    """``fn(state, ...) -> (state, scalar)`` run with the mesh's axes Auto
+    (``jax.sharding.auto_axes``), its state resharded as ``state`` is and its scalar replicated.
+    The norm, the check and the update are per-leaf reductions and elementwise operations: under
+    Explicit axes JAX annotates every one of them with its sharding (one ``Sharding`` op per
+    operation, a third of a small model's train step, and one per leaf on the conditional's
+    results), which XLA then propagates; the same numbers."""
     mesh = jax.sharding.get_abstract_mesh()
     if mesh.empty or not mesh.explicit_axes:
         return fn
     specs = jax.tree_util.tree_map(lambda x: jax.typeof(x).sharding.spec, state)
-    return jax.sharding.auto_axes(fn, out_sharding=specs)
+    return jax.sharding.auto_axes(fn, out_sharding=(specs, jax.sharding.PartitionSpec()))
