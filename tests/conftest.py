@@ -29,7 +29,16 @@ fast_compiling_cpu()
 # tests launch (the CLI, launch/local.py) inherit the variable.
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
 
+import gc  # noqa: E402
+
 import jax  # noqa: E402  (its backend starts after the flags above)
+
+from jaxdrive.gc_thresholds import THRESHOLDS  # noqa: E402
+
+# Python's cyclic collector less often, as the jaxdrive command runs it: tracing is most of the
+# suite's Python time, and the default thresholds collect every 700 allocations
+# (jaxdrive.gc_thresholds; the xdist workers import this file too).
+gc.set_threshold(*THRESHOLDS)
 
 jax.config.update("jax_num_cpu_devices", 8)
 jax.config.update("jax_disable_most_optimizations", os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] == "1")

@@ -13,6 +13,7 @@ import jaxdrive
 from jaxdrive.cli import bench, convert, data, plan, train
 from jaxdrive.cli import eval as eval_cli
 from jaxdrive.cli.options import as_flags
+from jaxdrive.gc_thresholds import relaxed_gc
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -86,7 +87,8 @@ def main(argv=None) -> int:
         return 0
     if rest and args.command != "bench":
         parser.error(f"unrecognized arguments: {' '.join(rest)}")
-    with stderr_logging(quiet=args.quiet):
+    # the collector less often while the command traces and compiles (jaxdrive.gc_thresholds)
+    with stderr_logging(quiet=args.quiet), relaxed_gc():
         try:
             return args.run(args, rest)
         except ValueError as e:  # bad input: one line that names the option, not a traceback
