@@ -11,6 +11,8 @@ import pytest
 from jaxdrive import compile_cache
 from jaxdrive.config import load_config
 
+from train_fixtures import MACHINERY
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -33,6 +35,7 @@ def test_a_second_run_reads_its_compiled_step_from_the_cache(clips21, tmp_path, 
             "data.views=2",
             "data.frames=5",
             "model.depth=1",
+            *MACHINERY,
             "train.steps=1",
             "train.checkpoint_every=0",
             "mesh.data=2",

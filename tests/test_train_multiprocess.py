@@ -26,7 +26,7 @@ from jaxdrive.train.metrics import read_metrics
 
 from conftest import shared
 from shard_faults import shard_files, truncate
-from train_fixtures import write_same_clips
+from train_fixtures import MACHINERY, write_same_clips
 
 ROOT = Path(__file__).resolve().parents[1]
 STEPS = 6
@@ -36,6 +36,7 @@ SETS = [
     "data.batch_size=2",
     "data.drop_prob=0.0",
     "model.depth=1",
+    *MACHINERY,
     f"train.steps={STEPS}",
     "train.log_every=1",
     "train.checkpoint_every=2",

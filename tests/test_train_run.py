@@ -19,7 +19,7 @@ from jaxdrive.train import flow_step
 from jaxdrive.train.metrics import read_metrics
 from jaxdrive.train.run import Run, train
 
-from train_fixtures import assert_same_state, train_with_a_stop, write_synthetic
+from train_fixtures import MACHINERY, assert_same_state, train_with_a_stop, write_synthetic
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "configs" / "tiny.py"
@@ -110,7 +110,7 @@ def test_sharded_step_matches_single_device(dataset):
 
 @pytest.mark.slow(seconds=27)
 def test_resume_after_sigterm_is_bit_exact(dataset, tmp_path):
-    cfg = tiny(dataset)
+    cfg = tiny(dataset, *MACHINERY)
     whole = train(cfg, tmp_path / "whole", progress=False)
     assert whole["status"] == "done" and whole["step"] == 4
 
@@ -124,7 +124,7 @@ def test_resume_after_sigterm_is_bit_exact(dataset, tmp_path):
 
 @pytest.mark.slow(seconds=11)
 def test_non_finite_losses_skip_and_stop_with_the_last_good_state(dataset, tmp_path, monkeypatch, caplog):
-    cfg = tiny(dataset, "train.max_bad_steps=2", "train.steps=6", "train.checkpoint_every=100")
+    cfg = tiny(dataset, *MACHINERY, "train.max_bad_steps=2", "train.steps=6", "train.checkpoint_every=100")
     original = Run.global_batch
     calls = []
 
@@ -355,7 +355,7 @@ def test_a_checkpoint_that_cannot_be_written_keeps_the_earlier_ones(dataset, tmp
     the run goes on to step 6 or stops at 4, as train.on_save_error says."""
     from jaxdrive.train.checkpoint import Checkpoints
 
-    cfg = tiny(dataset, "train.steps=6", "train.checkpoint_every=2", f"train.on_save_error={choice}")
+    cfg = tiny(dataset, *MACHINERY, "train.steps=6", "train.checkpoint_every=2", f"train.on_save_error={choice}")
     save = Checkpoints.save
 
     def full_disk(self, step, *args, **kwargs):
@@ -401,11 +401,11 @@ def test_a_corrupt_shard_stops_the_run_or_is_skipped_and_counted(dataset, tmp_pa
     shards = shard_files(data)
     for shard in shards[1:]:
         truncate(shard)
-    cfg = tiny(data)
+    cfg = tiny(data, *MACHINERY)
     with pytest.raises(ValueError, match="|".join(re.escape(f"{s}: record 0 (clip") for s in shards[1:])):
         train(cfg, tmp_path / "strict", progress=False)
 
-    cfg = tiny(data, "data.skip_bad_records=true")  # the step of the other tests: compiled once per module
+    cfg = tiny(data, *MACHINERY, "data.skip_bad_records=true")  # the resume test's step: compiled once
     it = iter(Run(cfg).dataset())
     expected = np.cumsum([int(next(it)["bad_records"]) for _ in range(4)])
     assert expected[-1] >= 4  # >= 1 unreadable clip in every batch of 2
