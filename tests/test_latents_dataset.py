@@ -22,7 +22,7 @@ from jaxdrive.train import flow_step
 from jaxdrive.train.metrics import read_metrics
 from jaxdrive.train.run import Run, train
 
-from train_fixtures import save_run, write_same_clips, write_synthetic
+from train_fixtures import MACHINERY, save_run, write_same_clips, write_synthetic
 
 TINY = Path(__file__).resolve().parents[1] / "configs" / "tiny.py"
 SMALLER = [
@@ -268,7 +268,7 @@ def test_rollout_progress_counts_windows(datasets, capsys):
 
 @pytest.mark.slow(seconds=23)
 def test_train_on_precomputed_latents(datasets, tmp_path):
-    cfg = config(datasets[1], "train.steps=2", "train.checkpoint_every=2")
+    cfg = config(datasets[1], *MACHINERY, "train.steps=2", "train.checkpoint_every=2")
     out = train(cfg, tmp_path / "run", progress=False)
     assert out["status"] == "done" and out["step"] == 2
     assert (tmp_path / "run" / "checkpoints" / "2").is_dir()

@@ -221,7 +221,7 @@ def test_cli_train_then_sample_writes_video_and_grid(dataset, tmp_path):
         "data=2,seq=4",
         "--no-progress",
     ]
-    for s in [f"data.path={dataset}", *SMALLER]:
+    for s in [f"data.path={dataset}", *SMALLER, *MACHINERY]:
         args += ["--set", s]
     assert cli(args) == 0
     rows = [json.loads(line) for line in (work / "metrics.jsonl").read_text().splitlines()]
