@@ -29,8 +29,9 @@ THRESHOLDS = (50_000, 20, 20)
 def relaxed_gc(thresholds: tuple[int, int, int] = THRESHOLDS):
     """``gc.set_threshold(*thresholds)`` while the block runs (the module docstring says why), the
     previous thresholds afterwards, also when the block raises."""
-    if len(thresholds) != 3 or not all(isinstance(t, int) and t > 0 for t in thresholds):
-        raise ValueError(f"thresholds: expected three positive ints, got {thresholds!r}")
+    ok = isinstance(thresholds, tuple) and len(thresholds) == 3
+    if not ok or not all(isinstance(t, int) and not isinstance(t, bool) and t > 0 for t in thresholds):
+        raise ValueError(f"thresholds: expected a tuple of three positive ints, got {thresholds!r}")
     before = gc.get_threshold()
     gc.set_threshold(*thresholds)
     try:

@@ -29,9 +29,9 @@ def test_the_block_runs_with_the_thresholds_and_the_old_ones_come_back_after_an_
     assert THRESHOLDS[0] > default_thresholds[0]
 
 
-@pytest.mark.parametrize("bad", [(1000, 3), (0, 10, 10), (1000.0, 10, 10)])
+@pytest.mark.parametrize("bad", [(1000, 3), (0, 10, 10), (1000.0, 10, 10), (True, 10, 10), 700, [700, 10, 10]])
 def test_bad_thresholds_are_refused(bad, default_thresholds):
-    with pytest.raises(ValueError, match=r"thresholds: expected three positive ints, got"), relaxed_gc(bad):
+    with pytest.raises(ValueError, match=r"thresholds: expected a tuple of three positive ints, got"), relaxed_gc(bad):
         pass
     assert gc.get_threshold() == default_thresholds
 

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 # configs/tiny.py without the parts that only add compile time to a test of the run's machinery
-# (signals, resume, checkpoints, processes, the compilation cache): U-ViT's final convolutions and
-# the caption encoder. The tiny step with depth 1 on data 2 x seq 4: 4.7 s of compiling and 14 CPU-s
-# for a 6-step run, against 2.5 s and 8 CPU-s without them. The DiT's tests cover both parts.
+# (signals, resume, checkpoints, processes, the compilation cache, buckets, a command's path):
+# U-ViT's final convolutions and the caption encoder. The tiny step with depth 1 on data 2 x seq 4:
+# 4.7 s of compiling and 14 CPU-s for a 6-step run, against 2.5 s and 8 CPU-s without them. The
+# DiT's tests cover both parts.
 MACHINERY = ["model.final_conv=0", "model.controls.text=none"]
 
 
