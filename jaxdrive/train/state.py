@@ -48,20 +48,19 @@ def create_state(params, optimizer: optax.GradientTransformation, seed: int, *, 
 
 
 def apply_gradients(
-    state: TrainState, grads, loss, optimizer: optax.GradientTransformation, ema_decay: float, rng, *, sums=None
+    state: TrainState, grads, loss, optimizer: optax.GradientTransformation, ema_decay: float, rng
 ) -> TrainState:
     """The next state after one update with ``grads`` (or the same state, counted, when ``loss``
     or the gradients' global norm is not finite: a NaN or an infinity in any gradient makes it so,
     and so does a norm past float32's range, ~1.8e19). ``rng`` is the key data the next step
-    starts from. ``sums``: the gradients' :func:`jaxdrive.train.optim.square_sums` when the caller
-    has them; the check and the optimizer's clipping (:func:`jaxdrive.train.optim.make_optimizer`)
-    reuse them, so each gradient is reduced once. :func:`apply_gradients_and_norm` also gives the
-    norm."""
-    return apply_gradients_and_norm(state, grads, loss, optimizer, ema_decay, rng, sums=sums)[0]
+    starts from. The gradients' :func:`jaxdrive.train.optim.square_sums` serve both the check and
+    the optimizer's clipping (:func:`jaxdrive.train.optim.make_optimizer`), so each gradient is
+    reduced once. :func:`apply_gradients_and_norm` also gives the norm."""
+    return apply_gradients_and_norm(state, grads, loss, optimizer, ema_decay, rng)[0]
 
 
 def apply_gradients_and_norm(
-    state: TrainState, grads, loss, optimizer: optax.GradientTransformation, ema_decay: float, rng, *, sums=None
+    state: TrainState, grads, loss, optimizer: optax.GradientTransformation, ema_decay: float, rng
 ) -> tuple[TrainState, jax.Array]:
     """:func:`apply_gradients` and the gradients' global norm (the one its check and clipping use,
     a train step's ``grad_norm`` metric), from one reduction per gradient."""
@@ -79,18 +78,18 @@ def apply_gradients_and_norm(
         del grads, sums
         return state.replace(bad_steps=state.bad_steps + 1, skipped=state.skipped + 1)
 
-    def check_and_update(state, grads, loss, sums):
-        sums = square_sums(grads) if sums is None else sums
+    def check_and_update(state, grads, loss):
+        sums = square_sums(grads)
         norm = global_norm(sums)
         ok = jnp.isfinite(loss) & jnp.isfinite(norm)
         # one conditional, not a select per leaf: the same numbers, and far less for XLA to compile
         return jax.lax.cond(ok, update, skip, state, grads, sums), norm
 
-    new, norm = _elementwise_auto(check_and_update, state)(state, grads, loss, sums)
+    new, norm = _with_auto_axes(check_and_update, state)(state, grads, loss)
     return new.replace(step=state.step + 1, rng=rng), norm
 
 
-def _elementwise_auto(fn, state: TrainState):
+def _with_auto_axes(fn, state: TrainState):
     """``fn(state, ...) -> (state, scalar)`` run with the mesh's axes Auto
     (``jax.sharding.auto_axes``), its state resharded as ``state`` is and its scalar replicated.
     The norm, the check and the update are per-leaf reductions and elementwise operations: under
