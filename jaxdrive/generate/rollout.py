@@ -17,10 +17,10 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
-from tqdm import tqdm
 
 from jaxdrive.generate.windows import WindowModel, window_starts
 from jaxdrive.models.dit.model import DiT
+from jaxdrive.progress import Progress
 from jaxdrive.validate import check_positive_int
 
 
@@ -47,8 +47,9 @@ def rollout(
 ):
     """Latents ``[B, V, total_frames, h, w, C]`` (NumPy) generated window by window (module
     docstring): the ``rollout`` strategy of :mod:`jaxdrive.generate.strategies` on a dataset
-    batch; ``progress``: a progress bar over the windows (on process 0); ``mesh``: where the
-    windows run (their batch over ``data``/``fsdp``).
+    batch; ``progress``: the progress over the windows, on process 0 (a tqdm bar when stderr is a
+    terminal, else a ``jaxdrive.progress`` log line per window: :mod:`jaxdrive.progress`);
+    ``mesh``: where the windows run (their batch over ``data``/``fsdp``).
 
     ``inputs``: :func:`jaxdrive.data.batches.model_inputs` of clips that cover the whole
     length (per-frame controls in ``cond`` for every frame; ``video`` needs only the first ``cond_frames``
@@ -88,13 +89,9 @@ def rollout(
         value_range=codec.value_range,
     )
     parts = rollout_strategy(Models(model), controls, first, total_frames, key=key, mesh=mesh, overlap=overlap)
-    bar = tqdm(
-        parts,
-        total=len(window_starts(total_frames, window, overlap)),
-        unit="window",
-        disable=not progress or jax.process_index() != 0,
-    )
-    return np.concatenate([first[:, :, :0]] + list(bar), axis=2)
+    total = len(window_starts(total_frames, window, overlap))
+    with Progress(total, unit="window", enabled=progress and jax.process_index() == 0) as bar:
+        return np.concatenate([first[:, :, :0]] + list(bar.iterate(parts)), axis=2)
 
 
 def to_numpy_video(codec, codec_params, latents) -> np.ndarray:

@@ -35,11 +35,11 @@ import jax
 import numpy as np
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
-from tqdm import tqdm
 
 from jaxdrive.config import check_sections
 from jaxdrive.models.latents import LatentCodec
 from jaxdrive.parallel import Processes, global_to_host_local, host_local_to_global
+from jaxdrive.progress import Progress
 from jaxdrive.train.common import batch_axes, batch_shards, mesh_from_config
 from jaxdrive.validate import check_positive_int
 
@@ -138,8 +138,10 @@ def encode_dataset(
     docstring); returns the dataset path. ``splits``: the splits to encode (default: all of the
     dataset's); ``every``: source frames between window starts; ``batch``: windows per encoder call
     (all processes together), a multiple of the mesh's batch axes data x fsdp (the mesh of
-    ``config.mesh`` over ``devices``, default all); ``progress``: a progress bar over this process's
-    windows (with a total and an ETA when the dataset records its clips' frame counts).
+    ``config.mesh`` over ``devices``, default all); ``progress``: the progress over this process's
+    windows (with a total and an ETA when the dataset records its clips' frame counts): a tqdm bar
+    when stderr is a terminal, else a ``jaxdrive.progress`` log line at every twentieth of them
+    (:mod:`jaxdrive.progress`).
 
     With several processes (:func:`jaxdrive.parallel.initialize_distributed`) each encodes a
     contiguous range of every split's clips and writes its windows as its own shards of the one
@@ -187,7 +189,9 @@ def encode_dataset(
     counts = [_window_count(src, d, every, mine[s]) for s, src in sources.items()]
     total = None if None in counts else sum(counts)
     video_shape = (d.views, d.frames, d.height, d.width, 3)
-    with tqdm(total=total, unit="window", desc="encode", disable=not progress) as bar:
+    # a plain line (stderr not a terminal) at every twentieth of the windows, or every 1000
+    lines = max(1, total // 20) if total else 1000
+    with Progress(total, unit="window", desc="encode", enabled=progress, every=lines) as bar:
         path = write_dataset(
             out,
             {

@@ -1,6 +1,8 @@
 """Where a run reports: ``DIR/metrics.jsonl`` (one JSON object per logged step, at least ``step``
-and ``loss``), TensorBoard event files under ``DIR/tensorboard`` and a progress bar with step/s,
-loss, tokens/s and the ETA. Only process 0 writes."""
+and ``loss``), TensorBoard event files under ``DIR/tensorboard`` and the progress, with step/s,
+loss, tokens/s and the ETA: a tqdm bar when stderr is a terminal, else one line per logged step
+(``step 50/600  loss 0.05217  0.823 step/s  ETA 11:09``, :mod:`jaxdrive.progress`). Only process 0
+writes."""
 
 from __future__ import annotations
 
@@ -10,6 +12,8 @@ import time
 from pathlib import Path
 
 import jax
+
+from jaxdrive.progress import Progress
 
 
 def _summary_writer(logdir: Path):
@@ -32,8 +36,19 @@ def _summary_writer(logdir: Path):
 
 
 class MetricsWriter:
+    """A run's reports (module docstring) in ``workdir``: :meth:`write` once per logged step.
+    ``progress``: show the progress (on ``progress_stream``, default ``sys.stderr``: the tqdm bar
+    when it is a terminal, one ``jaxdrive.progress`` log line per :meth:`write` otherwise)."""
+
     def __init__(
-        self, workdir, *, total_steps: int, start_step: int = 0, tokens_per_step: int = 0, progress: bool = True
+        self,
+        workdir,
+        *,
+        total_steps: int,
+        start_step: int = 0,
+        tokens_per_step: int = 0,
+        progress: bool = True,
+        progress_stream=None,
     ):
         self.enabled = jax.process_index() == 0
         self.workdir = Path(workdir)
@@ -46,9 +61,9 @@ class MetricsWriter:
         self._jsonl = open(self.workdir / "metrics.jsonl", "a", buffering=1)
         self._tb = _summary_writer(self.workdir / "tensorboard")
         if progress:
-            from tqdm import tqdm
-
-            self._bar = tqdm(total=total_steps, initial=start_step, unit="step", dynamic_ncols=True)
+            self._bar = Progress(
+                total_steps, initial=start_step, unit="step", stream=progress_stream, dynamic_ncols=True
+            )
 
     def write(self, step: int, metrics: dict, tokens: int | None = None) -> dict:
         """Log ``metrics`` (scalars) at ``step``; adds ``steps_per_s`` and ``tokens_per_s`` since the
@@ -68,9 +83,7 @@ class MetricsWriter:
             if key != "step" and isinstance(value, float) and math.isfinite(value):
                 self._tb.add_scalar(key, value, step)
         if self._bar is not None:
-            self._bar.update(step - self._bar.n)
-            shown = {k: row[k] for k in ("loss", "steps_per_s", "tokens_per_s") if k in row}
-            self._bar.set_postfix({k: f"{v:.4g}" for k, v in shown.items()})
+            self._bar.update_to(step, _shown(row, terminal=self._bar.terminal))
         return row
 
     def close(self) -> None:
@@ -80,6 +93,18 @@ class MetricsWriter:
             self._tb.close()
         if self._jsonl is not None:
             self._jsonl.close()
+
+
+def _shown(row: dict, *, terminal: bool) -> dict:
+    """What the progress shows of ``row``: on the bar loss, steps_per_s and tokens_per_s, as
+    before; a plain line has its own step/s (:class:`jaxdrive.progress.Progress`), so it shows
+    the loss and, when tokens are counted, ``tokens/s``."""
+    if terminal:
+        return {k: f"{row[k]:.4g}" for k in ("loss", "steps_per_s", "tokens_per_s") if k in row}
+    shown = {"loss": row["loss"]} if "loss" in row else {}
+    if row.get("tokens_per_s"):
+        shown["tokens/s"] = row["tokens_per_s"]
+    return shown
 
 
 def _scalar(value):
