@@ -27,7 +27,7 @@ from collections.abc import Callable, Mapping
 import jax.numpy as jnp
 
 from jaxdrive.models.dit.conditions import BATCH_DROPS
-from jaxdrive.validate import check_range
+from jaxdrive.validate import check_range, check_shape
 
 CONTROLS = {"boxes": BATCH_DROPS["boxes"], "route": BATCH_DROPS["trajectory"]}
 
@@ -77,16 +77,41 @@ def check_controls(
     return tuple(out)
 
 
-def sampler_guidance(cond, names, batch: int, scale: float, controls=()) -> dict:
+def _row_drops(drop, batch: int) -> dict:
+    """The per-clip drops ``drop`` as ``{condition: [batch] bool}``: a mapping of ``[batch]`` bool
+    arrays (``Conditions.drop``, checked: a ``ValueError`` names ``drop[name]``), or condition
+    names (none of them dropped for any clip)."""
+    if not isinstance(drop, Mapping):
+        return {n: jnp.full((batch,), False, bool) for n in drop}
+    for name, value in drop.items():
+        check_shape(f"drop[{name!r}]", value, [batch])
+        if jnp.result_type(value) != jnp.bool_:
+            raise ValueError(f"drop[{name!r}]: expected dtype bool, got {jnp.result_type(value)}")
+    return {n: jnp.asarray(v) for n, v in drop.items()}
+
+
+def sampler_guidance(cond, drop, batch: int, scale: float, controls=()) -> dict:
     """:func:`jaxdrive.flow.sample`'s guidance arguments for the conditions ``cond`` (no drops
-    set) of ``batch`` clips: ``names`` are the conditions with a learned null (the drops the model
-    trained with), ``scale`` the plain scale and ``controls`` ``((control, scale), ...)`` as
-    :func:`check_controls` returns. Without guidance ``{"cond": cond}`` (one forward per step)."""
-    names = list(names)
+    set) of ``batch`` clips: ``drop`` names the conditions with a learned null (the drops the model
+    trained with), ``scale`` is the plain scale and ``controls`` ``((control, scale), ...)`` as
+    :func:`check_controls` returns. Without guidance ``{"cond": ...}`` (one forward per step).
+
+    ``drop`` is ``Conditions.drop`` (``{condition: [batch] bool}``; a wrong shape or dtype is a
+    ``ValueError`` naming ``drop[name]``) or a sequence of names (no clip drops any). Its values
+    are each clip's own drops, with the meaning the DiT gives them: a clip whose value is True is
+    sampled without that condition (its learned null) in every branch, the conditional one
+    included, so guidance does not change that clip for that condition (its control's term
+    ``v_c - v_{c without k}`` is zero) and the clip comes out as with that condition left out. A
+    clip whose value is False keeps it in the conditional branch and is guided against its null.
+    This reading and not "True: guide this clip", because ``drop`` means it everywhere else (the
+    data pipeline's per-clip drops, :meth:`Conditions.from_batch`), and the samplers' callers
+    pass all False ("nothing dropped; CFG adds the nulls"), whose samples stay bit for bit.
+    """
+    rows = _row_drops(drop, batch)
+    names = list(rows)
     if not names or (scale == 1.0 and not controls):
-        return {"cond": cond}
-    on = cond.with_drops(names, False, batch)
-    out = {"cond": on, "guidance_scale": scale}
+        return {"cond": cond.replace(drop=rows) if isinstance(drop, Mapping) and rows else cond}
+    out = {"cond": cond.replace(drop=rows), "guidance_scale": scale}
     if scale != 1.0:
         out["null_cond"] = cond.with_drops(names, True, batch)
     if controls:
@@ -98,7 +123,8 @@ def sampler_guidance(cond, names, batch: int, scale: float, controls=()) -> dict
                     f"control_guidance: expected conditions of the {control} control among the "
                     f"ones with a null ({names}), got none"
                 )
-            per[control] = (s, on.replace(drop={n: jnp.full((batch,), n in off, bool) for n in names}))
+            nulled = {n: jnp.full((batch,), True, bool) if n in off else rows[n] for n in names}
+            per[control] = (s, cond.replace(drop=nulled))
         out["control_guidance"] = per
     return out
 

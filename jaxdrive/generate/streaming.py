@@ -140,11 +140,11 @@ def stream_frame(
     w, C]`` each) under the window's ``controls`` (:func:`window_controls`), and the buffer with its
     features pushed (``buffer`` None or no ``taps``: HTFT off, returns None); the frame is clipped to
     ``model.value_range`` (:meth:`WindowModel.in_range`). Guidance as
-    :func:`jaxdrive.generate.windows.sample_window` (``controls.drop`` names what it drops)."""
+    :func:`jaxdrive.generate.windows.sample_window` (``controls.drop``: the conditions it drops,
+    and each clip's own drops)."""
     m = model.dit.config
-    names = list(controls.drop or {})
     x_cond, mask, cond = window_inputs(model, anchor, prev, controls)
-    guidance = sampler_guidance(cond, names, x_cond.shape[0], model.guidance, model.control_guidance)
+    guidance = sampler_guidance(cond, controls.drop or {}, x_cond.shape[0], model.guidance, model.control_guidance)
     schedule = flow.frame_schedule(flow.sampling_sigmas(model.steps, shift=model.shift), mask)
     noise = noise_like(key, x_cond)
     x0 = jnp.where(mask[:, None, :, None, None, None], x_cond, noise)
@@ -182,8 +182,10 @@ def observe_frame(
 ):
     """A known ``frame``'s features pushed into ``buffer``: at each level of ``sigmas`` (default
     the sampling schedule's levels before the last) the window ``[anchor, prev, frame noised to
-    that level]`` through the model, fusing the buffer's taps as a generated frame would."""
+    that level]`` through the model, fusing the buffer's taps as a generated frame would (with
+    each clip's drops of ``controls.drop``, as the conditional branch of a generated frame's guidance)."""
     x_cond, mask, cond = window_inputs(model, anchor, prev, controls)
+    cond = cond.replace(drop=controls.drop)
     if sigmas is None:
         sigmas = flow.sampling_sigmas(model.steps, shift=model.shift)[:-1]
     noise = noise_like(key, frame)

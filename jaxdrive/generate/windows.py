@@ -342,16 +342,19 @@ def sample_window(model: WindowModel, params, x_cond, cond_mask, controls: Condi
     :func:`jaxdrive.flow.jdc_renoise` (MiLA [2503.15875v1] eq. 8-12) and are denoised jointly with the frames
     between them (their output is the corrected anchor). The per-frame schedule is
     :func:`jaxdrive.flow.frame_schedule`'s (TPD when the model trained with it, MiLA [2503.15875v1] eq. 13-14).
-    ``controls.drop`` names the conditions guidance drops (against learned nulls: all at once for
-    ``model.guidance``, one control at a time for ``model.control_guidance``,
-    :mod:`jaxdrive.generate.guidance`). The sampled frames come out clipped to the latents'
+    ``controls.drop`` (``{condition: [B] bool}``) names the conditions guidance drops (against
+    learned nulls: all at once for ``model.guidance``, one control at a time for
+    ``model.control_guidance``) and its values are each clip's own drops: a clip whose value is
+    True is sampled without that condition in every branch, so guidance leaves that clip's
+    condition out rather than pushing along it (:func:`jaxdrive.generate.guidance.sampler_guidance`;
+    all False: every clip guided). The sampled frames come out clipped to the latents'
     range (:meth:`WindowModel.in_range`); the given frames bit for bit as ``x_cond``."""
     m = model.dit.config
-    names = list(controls.drop or {})
+    drop = controls.drop or {}
     cond = controls.replace(drop=None)
     if m.controls.cond_frames is not None:
         cond = cond.replace(cond_latents=x_cond, cond_mask=cond_mask)
-    guidance = sampler_guidance(cond, names, x_cond.shape[0], model.guidance, model.control_guidance)
+    guidance = sampler_guidance(cond, drop, x_cond.shape[0], model.guidance, model.control_guidance)
     schedule = flow.frame_schedule(
         flow.sampling_sigmas(model.steps, shift=model.shift),
         cond_mask,
