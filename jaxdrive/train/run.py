@@ -52,6 +52,7 @@ from jaxdrive.train.encode import check_dataset
 from jaxdrive.train.metrics import MetricsWriter
 from jaxdrive.train.optim import make_optimizer
 from jaxdrive.train.state import create_state
+from jaxdrive.train.workdir_lock import job_workdir_lock
 
 logger = logging.getLogger(__name__)
 
@@ -435,134 +436,144 @@ def train(config: Config, workdir, *, on_step=None, progress: bool = True, devic
     included) and ``compile_cache`` what the persistent cache gave (:mod:`jaxdrive.compile_cache`).
     Progress (a resume, the first step's time, written samples) is logged at INFO, what stops or
     endangers the run (non-finite losses, a checkpoint not written, a signal) at WARNING
-    (:mod:`jaxdrive.logs`); ``log=`` is deprecated (:func:`jaxdrive.logs.deprecated_log`)."""
+    (:mod:`jaxdrive.logs`); ``log=`` is deprecated (:func:`jaxdrive.logs.deprecated_log`).
+    Once the config is checked the run holds ``workdir``'s lock to its end (process 0 for the job,
+    :mod:`jaxdrive.train.workdir_lock`): a ``workdir`` another live run holds is refused with a
+    :class:`~jaxdrive.train.workdir_lock.WorkdirLocked` (a ``ValueError``) naming it; a killed run's
+    lock is taken over with a warning."""
     from jaxdrive import compile_cache
 
     started = time.perf_counter()
     cache_dir, cache_before = compile_cache.enable(config.train.compile_cache), compile_cache.counts()
     workdir = Path(workdir)
     run = Run(config, devices=devices)
-    cfg = config
-    it = iter(run.dataset())
-    ckpts = Checkpoints(workdir, keep=cfg.train.keep_checkpoints)
-    start = 0
-    abstract, optimizer = run.abstract_state()
-    restored = ckpts.restore_latest(abstract)
-    if restored is not None:
-        start, state, data_state, meta = restored
-        it.set_state(data_state)
-        shardings = jax.tree_util.tree_map(lambda x: x.sharding, abstract)
-        logger.info("resuming from checkpoint %s (step %d)", ckpts.directory / str(start), start)
-    else:
-        state, optimizer, shardings = run.init_state()
-        meta = {}
-    skipping = cfg.data.skip_bad_records
-    bad_records = _BadRecords(meta.get("bad_records", 0))
+    with job_workdir_lock(workdir):  # from here to the last checkpoint's commit
+        cfg = config
+        it = iter(run.dataset())
+        ckpts = Checkpoints(workdir, keep=cfg.train.keep_checkpoints)
+        start = 0
+        abstract, optimizer = run.abstract_state()
+        restored = ckpts.restore_latest(abstract)
+        if restored is not None:
+            start, state, data_state, meta = restored
+            it.set_state(data_state)
+            shardings = jax.tree_util.tree_map(lambda x: x.sharding, abstract)
+            logger.info("resuming from checkpoint %s (step %d)", ckpts.directory / str(start), start)
+        else:
+            state, optimizer, shardings = run.init_state()
+            meta = {}
+        skipping = cfg.data.skip_bad_records
+        bad_records = _BadRecords(meta.get("bad_records", 0))
 
-    def counts() -> dict:  # what metrics rows and checkpoint metadata add
-        return {"bad_records": bad_records.sync()} if skipping else {}
+        def counts() -> dict:  # what metrics rows and checkpoint metadata add
+            return {"bad_records": bad_records.sync()} if skipping else {}
 
-    if jax.process_index() == 0:
-        workdir.mkdir(parents=True, exist_ok=True)
-        (workdir / CONFIG_FILE).write_text(json.dumps(to_dict(cfg), indent=1))
-    step_fn, frozen = run.step_fn(optimizer, shardings), run.frozen_params()
-    writer = MetricsWriter(
-        workdir, total_steps=run.total_steps, start_step=start, tokens_per_step=run.tokens_per_step, progress=progress
-    )
-    status, step, row, tokens, first_step = "done", start, {}, 0, None
-    compiled_shapes = set()
-    with Stop() as stop, jax.set_mesh(run.mesh):
-        while step < run.total_steps:
-            micro = [next(it) for _ in range(cfg.optim.grad_accum)]
-            bad_records.add(micro)
-            batch = run.global_batch(micro)
-            tokens += run.batch_tokens(batch)  # buckets differ in tokens per step
-            _compile_together(step_fn, compiled_shapes, state, frozen, batch)
-            state, metrics = step_fn(state, frozen, batch)  # compiled once per bucket shape
-            step += 1
-            bad = int(metrics["bad_steps"])
-            if first_step is None:
-                first_step = time.perf_counter() - started
-                logger.info(
-                    "first step done %.1f s after the start; %s",
-                    first_step,
-                    compile_cache.describe(cache_dir, cache_before),
-                )
-            if step % cfg.train.log_every == 0 or step == run.total_steps or bad:
-                # skipped (all steps so far) and the last step whose update was applied
-                row = writer.write(
-                    step, {**jax.device_get(metrics), "last_good_step": step - bad, **counts()}, tokens=tokens
-                )
-                tokens = 0
-            if on_step is not None:
-                on_step(step, metrics)
-            if bad >= cfg.train.max_bad_steps:
-                status = "diverged"
-                _save(ckpts, step, state, it, cfg, status=status, **counts())
-                logger.warning(
-                    "stopping: %d non-finite losses in a row at step %d (train.max_bad_steps = %d); "
-                    "checkpoint %s holds the last good parameters",
-                    bad,
-                    step,
-                    cfg.train.max_bad_steps,
-                    ckpts.directory / str(step),
-                )
-                break
-            if cfg.train.checkpoint_every and step % cfg.train.checkpoint_every == 0:
-                if not _save(ckpts, step, state, it, cfg, **counts()) and cfg.train.on_save_error == "stop":
-                    status = "save_failed"
+        if jax.process_index() == 0:
+            workdir.mkdir(parents=True, exist_ok=True)
+            (workdir / CONFIG_FILE).write_text(json.dumps(to_dict(cfg), indent=1))
+        step_fn, frozen = run.step_fn(optimizer, shardings), run.frozen_params()
+        writer = MetricsWriter(
+            workdir,
+            total_steps=run.total_steps,
+            start_step=start,
+            tokens_per_step=run.tokens_per_step,
+            progress=progress,
+        )
+        status, step, row, tokens, first_step = "done", start, {}, 0, None
+        compiled_shapes = set()
+        with Stop() as stop, jax.set_mesh(run.mesh):
+            while step < run.total_steps:
+                micro = [next(it) for _ in range(cfg.optim.grad_accum)]
+                bad_records.add(micro)
+                batch = run.global_batch(micro)
+                tokens += run.batch_tokens(batch)  # buckets differ in tokens per step
+                _compile_together(step_fn, compiled_shapes, state, frozen, batch)
+                state, metrics = step_fn(state, frozen, batch)  # compiled once per bucket shape
+                step += 1
+                bad = int(metrics["bad_steps"])
+                if first_step is None:
+                    first_step = time.perf_counter() - started
+                    logger.info(
+                        "first step done %.1f s after the start; %s",
+                        first_step,
+                        compile_cache.describe(cache_dir, cache_before),
+                    )
+                if step % cfg.train.log_every == 0 or step == run.total_steps or bad:
+                    # skipped (all steps so far) and the last step whose update was applied
+                    row = writer.write(
+                        step, {**jax.device_get(metrics), "last_good_step": step - bad, **counts()}, tokens=tokens
+                    )
+                    tokens = 0
+                if on_step is not None:
+                    on_step(step, metrics)
+                if bad >= cfg.train.max_bad_steps:
+                    status = "diverged"
+                    _save(ckpts, step, state, it, cfg, status=status, **counts())
                     logger.warning(
-                        "stopping at step %d (train.on_save_error = 'stop'); the last checkpoint is the newest of %s",
+                        "stopping: %d non-finite losses in a row at step %d (train.max_bad_steps = %d); "
+                        "checkpoint %s holds the last good parameters",
+                        bad,
                         step,
-                        _kept(ckpts),
+                        cfg.train.max_bad_steps,
+                        ckpts.directory / str(step),
                     )
                     break
-            if cfg.train.sample_every and step % cfg.train.sample_every == 0:
-                from jaxdrive.generate.samples import write_samples
+                if cfg.train.checkpoint_every and step % cfg.train.checkpoint_every == 0:
+                    if not _save(ckpts, step, state, it, cfg, **counts()) and cfg.train.on_save_error == "stop":
+                        status = "save_failed"
+                        logger.warning(
+                            "stopping at step %d (train.on_save_error = 'stop'); "
+                            "the last checkpoint is the newest of %s",
+                            step,
+                            _kept(ckpts),
+                        )
+                        break
+                if cfg.train.sample_every and step % cfg.train.sample_every == 0:
+                    from jaxdrive.generate.samples import write_samples
 
-                write_samples(run.sampling(), state, workdir / "samples" / f"step_{step:07d}")
-            signum = stop.agreed()  # one process's signal stops every process
-            if signum is not None:
-                status = "interrupted"
-                _save(ckpts, step, state, it, cfg, status=status, **counts())
-                logger.warning(
-                    "signal %s: saved checkpoint %s; run the same command to resume",
-                    signal.Signals(signum).name,
-                    ckpts.directory / str(step),
-                )
-                break
-        else:
-            if not _save(ckpts, step, state, it, cfg, status=status, **counts()):
-                status = "save_failed"
-    try:
-        with Stop():  # a late SIGTERM (the launcher stopping the others) waits for the commit
-            ckpts.close()  # waits for the last asynchronous write
-    except Exception as e:
-        status = "save_failed"
-        logger.warning(
-            "the last checkpoint could not be written (%s: %s); checkpoints kept: %s",
-            type(e).__name__,
-            str(e)[:200],
-            _kept(ckpts),
-        )
-    writer.close()
-    # programs the step compiled: one per bucket shape met since this process started
-    compiled = step_fn._cache_size() if hasattr(step_fn, "_cache_size") else None
-    now = compile_cache.counts()
-    return {
-        "step": step,
-        "status": status,
-        "loss": row.get("loss"),
-        "state": state,
-        "run": run,
-        "bad_records": bad_records.total if skipping else None,  # summed by the last save
-        "compiled_steps": compiled,
-        "first_step_seconds": first_step,
-        "compile_cache": {
-            "folder": None if cache_dir is None else str(cache_dir),
-            **{k: now[k] - cache_before[k] for k in now},
-        },
-    }
+                    write_samples(run.sampling(), state, workdir / "samples" / f"step_{step:07d}")
+                signum = stop.agreed()  # one process's signal stops every process
+                if signum is not None:
+                    status = "interrupted"
+                    _save(ckpts, step, state, it, cfg, status=status, **counts())
+                    logger.warning(
+                        "signal %s: saved checkpoint %s; run the same command to resume",
+                        signal.Signals(signum).name,
+                        ckpts.directory / str(step),
+                    )
+                    break
+            else:
+                if not _save(ckpts, step, state, it, cfg, status=status, **counts()):
+                    status = "save_failed"
+        try:
+            with Stop():  # a late SIGTERM (the launcher stopping the others) waits for the commit
+                ckpts.close()  # waits for the last asynchronous write
+        except Exception as e:
+            status = "save_failed"
+            logger.warning(
+                "the last checkpoint could not be written (%s: %s); checkpoints kept: %s",
+                type(e).__name__,
+                str(e)[:200],
+                _kept(ckpts),
+            )
+        writer.close()
+        # programs the step compiled: one per bucket shape met since this process started
+        compiled = step_fn._cache_size() if hasattr(step_fn, "_cache_size") else None
+        now = compile_cache.counts()
+        return {
+            "step": step,
+            "status": status,
+            "loss": row.get("loss"),
+            "state": state,
+            "run": run,
+            "bad_records": bad_records.total if skipping else None,  # summed by the last save
+            "compiled_steps": compiled,
+            "first_step_seconds": first_step,
+            "compile_cache": {
+                "folder": None if cache_dir is None else str(cache_dir),
+                **{k: now[k] - cache_before[k] for k in now},
+            },
+        }
 
 
 @deprecated_log
