@@ -269,6 +269,16 @@ class DiTConfig:
 
 def check_config(cfg: DiTConfig) -> DiTConfig:
     """Validate ``cfg``; raises ``ValueError`` naming the field, the expected and the actual value."""
+    _check_choices(cfg)
+    _check_sizes(cfg)
+    _check_width(cfg)
+    _check_conditioning(cfg)
+    _check_layer_indices(cfg)
+    return cfg
+
+
+def _check_choices(cfg: DiTConfig) -> None:
+    """The named options (layout, block, dtype, ...) and the prediction target."""
     check_choice("layout", cfg.layout, LAYOUTS)
     check_choice("block", cfg.block, BLOCKS)
     check_choice("temporal", cfg.temporal, TEMPORAL)
@@ -289,6 +299,10 @@ def check_config(cfg: DiTConfig) -> DiTConfig:
     check_choice("prediction", cfg.prediction, PREDICTIONS)
     if not 0.0 < cfg.prediction_min_sigma <= 1.0:
         raise ValueError(f"prediction_min_sigma: expected a level in (0, 1], got {cfg.prediction_min_sigma}")
+
+
+def _check_sizes(cfg: DiTConfig) -> None:
+    """The counts and sizes: positive integers, the box and layout ranges, the patch."""
     for name in (
         "depth",
         "heads",
@@ -335,6 +349,10 @@ def check_config(cfg: DiTConfig) -> DiTConfig:
         raise ValueError(f"patch: expected (pt, ph, pw), got {cfg.patch!r}")
     for p in cfg.patch:
         check_positive_int("patch", p)
+
+
+def _check_width(cfg: DiTConfig) -> None:
+    """What the patch, the positions and the prediction need of the width and the head size."""
     if cfg.prediction == "velocity" and cfg.patch_dim > cfg.width:
         raise ValueError(
             f"prediction: a token of patch x in_channels = {cfg.patch_dim} numbers is wider than the "
@@ -350,6 +368,10 @@ def check_config(cfg: DiTConfig) -> DiTConfig:
         raise ValueError(f"heads * head_dim: 3D sin-cos positions need a width divisible by 16, got {cfg.width}")
     if cfg.layout == "factorized" and cfg.width % 4:
         raise ValueError(f"heads * head_dim: 2D sin-cos positions need a width divisible by 4, got {cfg.width}")
+
+
+def _check_conditioning(cfg: DiTConfig) -> None:
+    """The reference frame, the full layout's text and the map ControlNet against the rest."""
     check_choice("controls.reference_frame", cfg.controls.reference_frame, REFERENCE_FRAME)
     if cfg.controls.reference_frame and cfg.controls.cond_frames is None:
         raise ValueError(
@@ -370,6 +392,10 @@ def check_config(cfg: DiTConfig) -> DiTConfig:
         raise ValueError("controls.text: the full layout attends over [text; video] and needs a text control, got None")
     if cfg.controls.map and not 1 <= cfg.controls.map_blocks <= cfg.depth:
         raise ValueError(f"controls.map_blocks: expected 1 .. depth = {cfg.depth}, got {cfg.controls.map_blocks}")
+
+
+def _check_layer_indices(cfg: DiTConfig) -> None:
+    """The layers named by ``scan_breaks`` and ``htft_layers``, HTFT, ofs and cross-view settings."""
     for i in cfg.scan_breaks:
         if not 0 < i < cfg.depth:
             raise ValueError(f"scan_breaks: expected layer indices in (0, {cfg.depth}), got {i}")
@@ -386,7 +412,6 @@ def check_config(cfg: DiTConfig) -> DiTConfig:
         raise ValueError(f"ofs_embed_dim: expected the time embedding size {cfg.t_dim}, got {cfg.ofs_embed_dim}")
     if cfg.multiview == "cross_view" and (not cfg.neighbor_offsets or 0 in cfg.neighbor_offsets):
         raise ValueError(f"neighbor_offsets: expected non-zero view offsets, got {cfg.neighbor_offsets}")
-    return cfg
 
 
 def layer_runs(cfg) -> list[tuple[int, int]]:

@@ -129,6 +129,19 @@ def _with_video(cfg, carry, video):
     return (video, carry[1]) if cfg.layout == "full" else video
 
 
+def _with_given_frames(cfg: DiTConfig, latents, sigma, cond: Conditions) -> tuple[jax.Array, jax.Array]:
+    """``(x [B, V, F', h, w, C] float32, sigma [B, F'])``: with ``controls.cond_frames ==
+    "replace"`` the given frames (``cond.cond_mask``) take ``cond.cond_latents`` and level 0."""
+    x = constrain(jnp.asarray(latents, jnp.float32), ("batch", "views", "frames", None, None, None))
+    b, nf = x.shape[0], x.shape[2]
+    sig = jnp.broadcast_to(jnp.asarray(sigma, jnp.float32).reshape(b, -1), (b, nf))
+    if cond.cond_latents is not None and cfg.controls.cond_frames == "replace":
+        m = jnp.asarray(cond.cond_mask, bool)
+        x = jnp.where(m[:, None, :, None, None, None], jnp.asarray(cond.cond_latents, jnp.float32), x)
+        sig = jnp.where(m, 0.0, sig)
+    return x, sig
+
+
 @functools.lru_cache(maxsize=16)
 def _traced_params(config: DiTConfig, shapes: tuple) -> tuple:
     """``abstract_params`` of ``DiT(config)`` for :func:`example_inputs` ``shapes``: the model is
@@ -179,23 +192,31 @@ class DiT(nn.Module):
         given). ``deterministic=False`` enables HTFT's dropout (rng ``"dropout"``).
         """
         cfg = check_config(self.config)
-        cond = (Conditions() if cond is None else cond).check(cfg, latents, sigma)
-        c = cond
-        text, text_mask, cond_latents, cond_mask, warp = c.text, c.text_mask, c.cond_latents, c.cond_mask, c.warp
+        c = (Conditions() if cond is None else cond).check(cfg, latents, sigma)
         drop = {k: jnp.asarray(v, bool) for k, v in (c.drop or {}).items()}
-        dt = cfg.compute_dtype
-        x = constrain(jnp.asarray(latents, jnp.float32), ("batch", "views", "frames", None, None, None))
-        b, nv, nf, h, w, _ = x.shape
-        pt, ph, pw = cfg.patch
-        grid = (h // ph, w // pw)
-        sig = jnp.broadcast_to(jnp.asarray(sigma, jnp.float32).reshape(b, -1), (b, nf))
-        if cond_latents is not None and cfg.controls.cond_frames == "replace":
-            m = jnp.asarray(cond_mask, bool)
-            x = jnp.where(m[:, None, :, None, None, None], jnp.asarray(cond_latents, jnp.float32), x)
-            sig = jnp.where(m, 0.0, sig)
-        sig_tok = pool_frames(sig, pt)  # [B, Ft]
+        x, sig = _with_given_frames(cfg, latents, sigma, c)
+        _, nv, nf, h, w, _ = x.shape
+        grid = (h // cfg.patch[1], w // cfg.patch[2])
+        ref = reference_input(x, c.cond_latents, c.cond_mask) if cfg.controls.reference_frame else None
+        hid = self._video_tokens(cfg, x, c, drop, grid, ref)
+        t, ctx = self._noise_level_context(cfg, pool_frames(sig, cfg.patch[0]), c, drop, nf, grid)
+        carry, ctx = self._token_context(cfg, hid, ctx, c, drop, nv, nf, (h, w))
+        residuals = None
+        if cfg.controls.map and c.bev_map is not None:
+            residuals = self._map_branch(cfg, carry, ctx, c.bev_map, drop, nf, grid)
+        carry, feats = self._stack(cfg, carry, ctx, residuals, c.features, c.features_mask, deterministic)
+        out = self._output(cfg, _video(cfg, carry), t, x, ref, grid)
+        return (out, feats) if return_features else out
 
-        # tokens: patch embedding, positions, additive conditions (MiLA [2503.15875v1] eq. 2: h_fuse = h_f + h_c)
+    # ------------------------------------------------------------------ steps of the network
+
+    def _video_tokens(
+        self, cfg: DiTConfig, x: jax.Array, c: Conditions, drop: dict, grid: tuple[int, int], ref
+    ) -> jax.Array:
+        """The video tokens ``[B, Ft, S, V, D]``: patch embedding, positions and the additive
+        conditions (MiLA [2503.15875v1] eq. 2: h_fuse = h_f + h_c)."""
+        dt = cfg.compute_dtype
+        nf, h, w = x.shape[2:5]
         tokens = constrain(patchify(x, cfg.patch), VIDEO[:-1] + ("channels",))
         hid = Dense(cfg.width, ("channels", "embed"), dtype=dt, name="patch_embed")(tokens)
         if cfg.layout == "factorized":
@@ -203,18 +224,24 @@ class DiT(nn.Module):
             hid = hid + jnp.asarray(pos, dt)[None, None, :, None]
         elif cfg.positions == "sincos":
             pos = sincos_3d(
-                nf // pt, *grid, cfg.width, cfg.spatial_interpolation_scale, cfg.temporal_interpolation_scale
+                nf // cfg.patch[0], *grid, cfg.width, cfg.spatial_interpolation_scale, cfg.temporal_interpolation_scale
             )
             hid = hid + jnp.asarray(pos, dt)[None, :, :, None]
-        ref = reference_input(x, cond_latents, cond_mask) if cfg.controls.reference_frame else None
         hid = hid + additive_conditions(self, cfg, x, c, drop, (h, w), grid, ref)
         hid = constrain(hid, VIDEO)
         self.sow("intermediates", "tokens", hid)
+        return hid
 
-        # noise levels -> per-frame timestep embeddings (+ fps, + ofs)
+    def _noise_level_context(
+        self, cfg: DiTConfig, sig_tok: jax.Array, c: Conditions, drop: dict, nf: int, grid: tuple[int, int]
+    ) -> tuple[jax.Array, LayerContext]:
+        """The token frames' levels ``sig_tok [B, Ft]`` as per-frame timestep embeddings ``t [B,
+        Ft, Dt]`` (+ fps, + ofs), and the layer context holding the modulation they drive (the
+        full layout's text level and 3D RoPE, or adaLN-single's ``t0``)."""
+        dt, pt = cfg.compute_dtype, cfg.patch[0]
         temb = TimestepMLP(cfg.time_freq_dim, cfg.t_dim, cfg.flip_sin_to_cos, cfg.freq_shift, dt, name="t_embedder")
         t = temb(sig_tok * cfg.timestep_scale)  # [B, Ft, Dt]
-        extra = clip_embeddings(self, cfg, b, c.fps, c.ofs, drop)
+        extra = clip_embeddings(self, cfg, sig_tok.shape[0], c.fps, c.ofs, drop)
         t = t + extra[:, None]
         ctx = LayerContext()
         if cfg.layout == "full":
@@ -238,19 +265,24 @@ class DiT(nn.Module):
                 )(jax.nn.silu(t))
             )
         self.sow("intermediates", "modulation", t if ctx.t0 is None else ctx.t0)
+        return t, ctx
 
-        # context: text and control tokens; warp tokens
-        text_ctx, tmask = text_context(self, cfg, b, text, text_mask, drop)
-        tok, tok_mask = control_tokens(self, cfg, b, nv, nf, (h, w), c, drop)
+    def _token_context(
+        self, cfg: DiTConfig, hid: jax.Array, ctx, c: Conditions, drop: dict, nv: int, nf: int, hw: tuple[int, int]
+    ):
+        """The layers' carry (the video tokens ``hid``; with the projected text in the full
+        layout) and ``ctx`` with what they attend to: text, control and warp tokens."""
+        dt, b = cfg.compute_dtype, hid.shape[0]
+        text_ctx, tmask = text_context(self, cfg, b, c.text, c.text_mask, drop)
+        tok, tok_mask = control_tokens(self, cfg, b, nv, nf, hw, c, drop)
         ctx = ctx.replace(tokens=tok, tokens_mask=tok_mask)
-        if warp is not None:
+        if c.warp is not None:
             wt = Dense(cfg.width, ("channels", "embed"), dtype=dt, name="warp_embed")(
-                constrain(patchify(jnp.asarray(warp, jnp.float32), cfg.patch), VIDEO[:-1] + ("channels",))
+                constrain(patchify(jnp.asarray(c.warp, jnp.float32), cfg.patch), VIDEO[:-1] + ("channels",))
             )
             ctx = ctx.replace(
                 warp=use_null(drop.get("warp"), wt, null_param(self, "warp_null", (cfg.width,), ("embed",)))
             )
-
         carry: jax.Array | tuple[jax.Array, jax.Array] = hid  # (video, text) in the full layout
         if cfg.layout == "full":
             carry = (
@@ -263,12 +295,12 @@ class DiT(nn.Module):
                 text=MLP(cfg.width, cfg.width, dtype=dt, in_name="text_embed", name="text_proj")(text_ctx),
                 text_mask=tmask,
             )
+        return carry, ctx
 
-        residuals = None
-        if cfg.controls.map and c.bev_map is not None:
-            residuals = self._map_branch(cfg, carry, ctx, c.bev_map, drop, nf, grid)
-        carry, feats = self._stack(cfg, carry, ctx, residuals, c.features, c.features_mask, deterministic)
-        out = self._final(cfg, _video(cfg, carry), t)
+    def _output(self, cfg: DiTConfig, video, t, x, ref, grid: tuple[int, int]) -> jax.Array:
+        """The network output ``[B, V, F', h, w, C_out]`` of the last layer's ``video`` tokens:
+        the final layer, unpatchified, U-ViT's convolutions and the given frame's residual."""
+        out = self._final(cfg, video, t)
         # the head is per frame: frames over seq keep a long window's output split across the mesh
         out = constrain(out, ("batch", "out_frames", None, "views", None))
         out = unpatchify(out, cfg.patch, grid, cfg.out_dim).astype(jnp.float32)
@@ -277,7 +309,7 @@ class DiT(nn.Module):
         if cfg.controls.reference_frame == "residual":
             assert ref is not None  # made above: reference_frame is set
             out = out + ref[..., :-1]  # the change from the newest given frame
-        return (out, feats) if return_features else out
+        return out
 
     # ------------------------------------------------------------------ pieces
 
