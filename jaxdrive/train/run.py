@@ -21,11 +21,13 @@ stopped and resumed run ends with the same parameters as one that never stopped.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import signal
 import time
 from pathlib import Path
+from typing import Any
 
 import jax
 import numpy as np
@@ -421,6 +423,35 @@ def _compile_together(step_fn, compiled: set, *args) -> None:
         wait_for_all_processes(f"jaxdrive.train: step compiled for batch shape {len(compiled)}")
 
 
+@dataclasses.dataclass
+class _Loop:
+    """What the parts of one :func:`train` call share: the run, where it writes, its data
+    iterator, and the state, step and outcome that the loop moves on."""
+
+    run: Run
+    workdir: Path
+    ckpts: Checkpoints
+    it: Any
+    state: Any
+    step: int
+    bad_records: _BadRecords
+    started: float  # time.perf_counter() when train() was called
+    cache: tuple  # (the compilation cache's folder, its counts when train() was called)
+    writer: MetricsWriter | None = None
+    status: str = "done"
+    row: dict = dataclasses.field(default_factory=dict)
+    first_step: float | None = None
+
+    def counts(self) -> dict:
+        """What metrics rows and checkpoint metadata add (a sum over processes: every process
+        calls it at the same point of the loop)."""
+        return {"bad_records": self.bad_records.sync()} if self.run.config.data.skip_bad_records else {}
+
+    def save(self, **extra) -> bool:
+        """:func:`_save` of the current step and state."""
+        return _save(self.ckpts, self.step, self.state, self.it, self.run.config, **extra)
+
+
 @deprecated_log
 def train(config: Config, workdir, *, on_step=None, progress: bool = True, devices=None) -> dict:
     """Train (or resume) in ``workdir``; returns ``{"step", "status", "loss", ...}``.
@@ -444,136 +475,195 @@ def train(config: Config, workdir, *, on_step=None, progress: bool = True, devic
     from jaxdrive import compile_cache
 
     started = time.perf_counter()
-    cache_dir, cache_before = compile_cache.enable(config.train.compile_cache), compile_cache.counts()
+    cache = compile_cache.enable(config.train.compile_cache), compile_cache.counts()
     workdir = Path(workdir)
     run = Run(config, devices=devices)
     with job_workdir_lock(workdir):  # from here to the last checkpoint's commit
-        cfg = config
-        it = iter(run.dataset())
-        ckpts = Checkpoints(workdir, keep=cfg.train.keep_checkpoints)
-        start = 0
-        abstract, optimizer = run.abstract_state()
-        restored = ckpts.restore_latest(abstract)
-        if restored is not None:
-            start, state, data_state, meta = restored
-            it.set_state(data_state)
-            shardings = jax.tree_util.tree_map(lambda x: x.sharding, abstract)
-            logger.info("resuming from checkpoint %s (step %d)", ckpts.directory / str(start), start)
-        else:
-            state, optimizer, shardings = run.init_state()
-            meta = {}
-        skipping = cfg.data.skip_bad_records
-        bad_records = _BadRecords(meta.get("bad_records", 0))
-
-        def counts() -> dict:  # what metrics rows and checkpoint metadata add
-            return {"bad_records": bad_records.sync()} if skipping else {}
-
+        loop, optimizer, shardings = _start(run, workdir, started, cache)
         if jax.process_index() == 0:
             workdir.mkdir(parents=True, exist_ok=True)
-            (workdir / CONFIG_FILE).write_text(json.dumps(to_dict(cfg), indent=1))
+            (workdir / CONFIG_FILE).write_text(json.dumps(to_dict(config), indent=1))
         step_fn, frozen = run.step_fn(optimizer, shardings), run.frozen_params()
-        writer = MetricsWriter(
+        loop.writer = MetricsWriter(
             workdir,
             total_steps=run.total_steps,
-            start_step=start,
+            start_step=loop.step,
             tokens_per_step=run.tokens_per_step,
             progress=progress,
         )
-        status, step, row, tokens, first_step = "done", start, {}, 0, None
-        compiled_shapes = set()
         with Stop() as stop, jax.set_mesh(run.mesh):
-            while step < run.total_steps:
-                micro = [next(it) for _ in range(cfg.optim.grad_accum)]
-                bad_records.add(micro)
-                batch = run.global_batch(micro)
-                tokens += run.batch_tokens(batch)  # buckets differ in tokens per step
-                _compile_together(step_fn, compiled_shapes, state, frozen, batch)
-                state, metrics = step_fn(state, frozen, batch)  # compiled once per bucket shape
-                step += 1
-                bad = int(metrics["bad_steps"])
-                if first_step is None:
-                    first_step = time.perf_counter() - started
-                    logger.info(
-                        "first step done %.1f s after the start; %s",
-                        first_step,
-                        compile_cache.describe(cache_dir, cache_before),
-                    )
-                if step % cfg.train.log_every == 0 or step == run.total_steps or bad:
-                    # skipped (all steps so far) and the last step whose update was applied
-                    row = writer.write(
-                        step, {**jax.device_get(metrics), "last_good_step": step - bad, **counts()}, tokens=tokens
-                    )
-                    tokens = 0
-                if on_step is not None:
-                    on_step(step, metrics)
-                if bad >= cfg.train.max_bad_steps:
-                    status = "diverged"
-                    _save(ckpts, step, state, it, cfg, status=status, **counts())
-                    logger.warning(
-                        "stopping: %d non-finite losses in a row at step %d (train.max_bad_steps = %d); "
-                        "checkpoint %s holds the last good parameters",
-                        bad,
-                        step,
-                        cfg.train.max_bad_steps,
-                        ckpts.directory / str(step),
-                    )
-                    break
-                if cfg.train.checkpoint_every and step % cfg.train.checkpoint_every == 0:
-                    if not _save(ckpts, step, state, it, cfg, **counts()) and cfg.train.on_save_error == "stop":
-                        status = "save_failed"
-                        logger.warning(
-                            "stopping at step %d (train.on_save_error = 'stop'); "
-                            "the last checkpoint is the newest of %s",
-                            step,
-                            _kept(ckpts),
-                        )
-                        break
-                if cfg.train.sample_every and step % cfg.train.sample_every == 0:
-                    from jaxdrive.generate.samples import write_samples
+            _steps(loop, step_fn, frozen, stop, on_step)
+        _finish(loop)
+        return _summary(loop, step_fn)
 
-                    write_samples(run.sampling(), state, workdir / "samples" / f"step_{step:07d}")
-                signum = stop.agreed()  # one process's signal stops every process
-                if signum is not None:
-                    status = "interrupted"
-                    _save(ckpts, step, state, it, cfg, status=status, **counts())
-                    logger.warning(
-                        "signal %s: saved checkpoint %s; run the same command to resume",
-                        signal.Signals(signum).name,
-                        ckpts.directory / str(step),
-                    )
-                    break
-            else:
-                if not _save(ckpts, step, state, it, cfg, status=status, **counts()):
-                    status = "save_failed"
-        try:
-            with Stop():  # a late SIGTERM (the launcher stopping the others) waits for the commit
-                ckpts.close()  # waits for the last asynchronous write
-        except Exception as e:
-            status = "save_failed"
-            logger.warning(
-                "the last checkpoint could not be written (%s: %s); checkpoints kept: %s",
-                type(e).__name__,
-                str(e)[:200],
-                _kept(ckpts),
-            )
-        writer.close()
-        # programs the step compiled: one per bucket shape met since this process started
-        compiled = step_fn._cache_size() if hasattr(step_fn, "_cache_size") else None
-        now = compile_cache.counts()
-        return {
-            "step": step,
-            "status": status,
-            "loss": row.get("loss"),
-            "state": state,
-            "run": run,
-            "bad_records": bad_records.total if skipping else None,  # summed by the last save
-            "compiled_steps": compiled,
-            "first_step_seconds": first_step,
-            "compile_cache": {
-                "folder": None if cache_dir is None else str(cache_dir),
-                **{k: now[k] - cache_before[k] for k in now},
-            },
-        }
+
+def _start(run: Run, workdir: Path, started: float, cache: tuple):
+    """``(loop, optimizer, shardings)`` at the run's start: resumed from the newest readable
+    checkpoint of ``workdir`` (the data iterator where it was), else a fresh state at step 0."""
+    it = iter(run.dataset())
+    ckpts = Checkpoints(workdir, keep=run.config.train.keep_checkpoints)
+    abstract, optimizer = run.abstract_state()
+    restored = ckpts.restore_latest(abstract)
+    if restored is not None:
+        start, state, data_state, meta = restored
+        it.set_state(data_state)
+        shardings = jax.tree_util.tree_map(lambda x: x.sharding, abstract)
+        logger.info("resuming from checkpoint %s (step %d)", ckpts.directory / str(start), start)
+    else:
+        state, optimizer, shardings = run.init_state()
+        start, meta = 0, {}
+    bad_records = _BadRecords(meta.get("bad_records", 0))
+    return _Loop(run, workdir, ckpts, it, state, start, bad_records, started, cache), optimizer, shardings
+
+
+def _steps(loop: _Loop, step_fn, frozen, stop: Stop, on_step) -> None:
+    """The loop from ``loop.step`` to ``train.steps``, then the final checkpoint; a stop on the
+    way (:func:`_stops`) ends it with its own checkpoint."""
+    tokens, compiled_shapes = 0, set()
+    while loop.step < loop.run.total_steps:
+        metrics, bad, batch_tokens = _step(loop, step_fn, frozen, compiled_shapes)
+        tokens = _log(loop, metrics, bad, tokens + batch_tokens)
+        if on_step is not None:
+            on_step(loop.step, metrics)
+        if _stops(loop, bad, stop):
+            return
+    if not loop.save(status=loop.status, **loop.counts()):
+        loop.status = "save_failed"
+
+
+def _step(loop: _Loop, step_fn, frozen, compiled_shapes: set) -> tuple[dict, int, int]:
+    """One update from the next ``optim.grad_accum`` micro-batches: ``(metrics, non-finite steps
+    in a row, the batch's video tokens)``. The first logs the time since :func:`train` began."""
+    run = loop.run
+    micro = [next(loop.it) for _ in range(run.config.optim.grad_accum)]
+    loop.bad_records.add(micro)
+    batch = run.global_batch(micro)
+    tokens = run.batch_tokens(batch)  # buckets differ in tokens per step
+    _compile_together(step_fn, compiled_shapes, loop.state, frozen, batch)
+    loop.state, metrics = step_fn(loop.state, frozen, batch)  # compiled once per bucket shape
+    loop.step += 1
+    bad = int(metrics["bad_steps"])
+    if loop.first_step is None:
+        from jaxdrive import compile_cache
+
+        loop.first_step = time.perf_counter() - loop.started
+        logger.info("first step done %.1f s after the start; %s", loop.first_step, compile_cache.describe(*loop.cache))
+    return metrics, bad, tokens
+
+
+def _log(loop: _Loop, metrics, bad: int, tokens: int) -> int:
+    """A metrics row every ``train.log_every`` steps, at the last step and at a non-finite one;
+    returns the video tokens not yet in a row."""
+    step, run = loop.step, loop.run
+    if not (step % run.config.train.log_every == 0 or step == run.total_steps or bad):
+        return tokens
+    # skipped (all steps so far) and the last step whose update was applied
+    loop.row = loop.writer.write(
+        step, {**jax.device_get(metrics), "last_good_step": step - bad, **loop.counts()}, tokens=tokens
+    )
+    return 0
+
+
+def _stops(loop: _Loop, bad: int, stop: Stop) -> bool:
+    """What follows a step: a stop on ``train.max_bad_steps`` non-finite losses, the checkpoint and
+    samples that are due, a stop on a failed save (``train.on_save_error="stop"``) or a signal.
+    True when the run stops (``loop.status`` says why)."""
+    cfg, step = loop.run.config.train, loop.step
+    if bad >= cfg.max_bad_steps:
+        return _diverged(loop, bad)
+    if cfg.checkpoint_every and step % cfg.checkpoint_every == 0 and _save_stops(loop):
+        return True
+    if cfg.sample_every and step % cfg.sample_every == 0:
+        from jaxdrive.generate.samples import write_samples
+
+        write_samples(loop.run.sampling(), loop.state, loop.workdir / "samples" / f"step_{step:07d}")
+    return _interrupted(loop, stop)
+
+
+def _diverged(loop: _Loop, bad: int) -> bool:
+    """Stop on non-finite losses, with a checkpoint of the last good state."""
+    loop.status = "diverged"
+    loop.save(status=loop.status, **loop.counts())
+    logger.warning(
+        "stopping: %d non-finite losses in a row at step %d (train.max_bad_steps = %d); "
+        "checkpoint %s holds the last good parameters",
+        bad,
+        loop.step,
+        loop.run.config.train.max_bad_steps,
+        loop.ckpts.directory / str(loop.step),
+    )
+    return True
+
+
+def _save_stops(loop: _Loop) -> bool:
+    """The checkpoint every ``train.checkpoint_every`` steps; True (status ``"save_failed"``) when
+    it fails and ``train.on_save_error`` is ``"stop"``."""
+    if loop.save(**loop.counts()) or loop.run.config.train.on_save_error != "stop":
+        return False
+    loop.status = "save_failed"
+    logger.warning(
+        "stopping at step %d (train.on_save_error = 'stop'); the last checkpoint is the newest of %s",
+        loop.step,
+        _kept(loop.ckpts),
+    )
+    return True
+
+
+def _interrupted(loop: _Loop, stop: Stop) -> bool:
+    """Stop, with a checkpoint, when any process got SIGTERM / SIGINT."""
+    signum = stop.agreed()  # one process's signal stops every process
+    if signum is None:
+        return False
+    loop.status = "interrupted"
+    loop.save(status=loop.status, **loop.counts())
+    logger.warning(
+        "signal %s: saved checkpoint %s; run the same command to resume",
+        signal.Signals(signum).name,
+        loop.ckpts.directory / str(loop.step),
+    )
+    return True
+
+
+def _finish(loop: _Loop) -> None:
+    """Wait for the last checkpoint's write (status ``"save_failed"`` when it fails), close the
+    metrics."""
+    try:
+        with Stop():  # a late SIGTERM (the launcher stopping the others) waits for the commit
+            loop.ckpts.close()  # waits for the last asynchronous write
+    except Exception as e:
+        loop.status = "save_failed"
+        logger.warning(
+            "the last checkpoint could not be written (%s: %s); checkpoints kept: %s",
+            type(e).__name__,
+            str(e)[:200],
+            _kept(loop.ckpts),
+        )
+    loop.writer.close()
+
+
+def _summary(loop: _Loop, step_fn) -> dict:
+    """What :func:`train` returns."""
+    from jaxdrive import compile_cache
+
+    cache_dir, cache_before = loop.cache
+    # programs the step compiled: one per bucket shape met since this process started
+    compiled = step_fn._cache_size() if hasattr(step_fn, "_cache_size") else None
+    now = compile_cache.counts()
+    skipping = loop.run.config.data.skip_bad_records
+    return {
+        "step": loop.step,
+        "status": loop.status,
+        "loss": loop.row.get("loss"),
+        "state": loop.state,
+        "run": loop.run,
+        "bad_records": loop.bad_records.total if skipping else None,  # summed by the last save
+        "compiled_steps": compiled,
+        "first_step_seconds": loop.first_step,
+        "compile_cache": {
+            "folder": None if cache_dir is None else str(cache_dir),
+            **{k: now[k] - cache_before[k] for k in now},
+        },
+    }
 
 
 @deprecated_log
