@@ -216,9 +216,9 @@ def test_layout_gate_starts_closed_gradients_reach_the_encoder_and_guidance_drop
 @pytest.mark.slow(seconds=7)
 def test_a_window_sampled_without_its_box_inputs_is_the_model_without_the_layout():
     """What ``jaxdrive eval --routes`` does for its "no boxes" row: the box inputs left out of a
-    window's controls change the sample of a model whose layout gate is open. A drop set in the
-    controls does not: the samplers read ``controls.drop`` as the names that guidance may drop
-    (the bug that made the row equal the recorded-route row)."""
+    window's controls change the sample of a model whose layout gate is open, and a boxes drop set
+    in the controls gives the same sample (the samplers honour ``controls.drop``'s values; they
+    once read only its names, the bug that made the row equal the recorded-route row)."""
     from jaxdrive.generate.windows import WindowModel, sample_window
 
     lat, sig, text, kw = split_inputs(example_inputs(LAYOUT, **dict(SHAPES)))
@@ -231,7 +231,10 @@ def test_a_window_sampled_without_its_box_inputs_is_the_model_without_the_layout
     sample = lambda c: np.asarray(sample_window(model, params, lat, mask, c, jax.random.key(0)))
     full = sample(controls)
     assert max_rel(sample(controls.replace(boxes=None, box_classes=None, box_valid=None)), full) > 1e-4
-    np.testing.assert_array_equal(sample(controls.with_drops(["boxes"], True, lat.shape[0])), full)
+    np.testing.assert_array_equal(
+        sample(controls.with_drops(["boxes"], True, lat.shape[0])),
+        sample(controls.replace(boxes=None, box_classes=None, box_valid=None)),
+    )
 
 
 def test_the_layout_pathway_learns_where_the_boxes_are():

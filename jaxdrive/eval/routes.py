@@ -202,8 +202,7 @@ def evaluate_routes(
         }
     if without_boxes:
         # the box inputs left out, which the DiT reads as dropped (the learned null of box
-        # cross-attention, nothing from the layout): the samplers take ``cond.drop`` as the names
-        # guidance may drop and ignore its values, so a drop set here was never applied
+        # cross-attention, nothing from the layout); the same sample as a boxes drop of True
         cond = base["cond"].replace(boxes=None, box_classes=None, box_valid=None)
         name = strategies[0]
         r = run(base, names=[name], cond=cond)[name]

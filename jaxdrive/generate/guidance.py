@@ -112,8 +112,12 @@ def sampler_guidance(cond, drop, batch: int, scale: float, controls=()) -> dict:
     if not names or (scale == 1.0 and not controls):
         return {"cond": cond.replace(drop=rows) if isinstance(drop, Mapping) and rows else cond}
     out = {"cond": cond.replace(drop=rows), "guidance_scale": scale}
+    # every branch's drops derive from the caller's arrays, so that they keep their sharding: the
+    # sampler stacks the branches, and under an Explicit mesh a replicated and a batch-sharded
+    # drop cannot be concatenated
+    nulls = {n: jnp.logical_or(v, True) for n, v in rows.items()}
     if scale != 1.0:
-        out["null_cond"] = cond.with_drops(names, True, batch)
+        out["null_cond"] = cond.replace(drop=nulls)
     if controls:
         per = {}
         for control, s in controls:
@@ -123,7 +127,7 @@ def sampler_guidance(cond, drop, batch: int, scale: float, controls=()) -> dict:
                     f"control_guidance: expected conditions of the {control} control among the "
                     f"ones with a null ({names}), got none"
                 )
-            nulled = {n: jnp.full((batch,), True, bool) if n in off else rows[n] for n in names}
+            nulled = {n: nulls[n] if n in off else rows[n] for n in names}
             per[control] = (s, cond.replace(drop=nulled))
         out["control_guidance"] = per
     return out
