@@ -222,10 +222,8 @@ def _off_road_file(tmp_path):
 
 
 def test_an_off_road_route_file_is_refused_before_anything_compiles_unless_allowed(tmp_path, monkeypatch):
-    import argparse
-
     import jaxdrive.generate.future as future
-    from jaxdrive.cli.sample import _controls_hook
+    from jaxdrive.world_model import controls_hook
 
     path = _off_road_file(tmp_path)
     sample, clip = _town([200.0])
@@ -234,9 +232,9 @@ def test_an_off_road_route_file_is_refused_before_anything_compiles_unless_allow
     monkeypatch.setattr(future, "_cut_all", lambda *a: cuts.append(1) or real_cut(*a))  # the first jitted call
 
     def hook(allow):
-        args = argparse.Namespace(route=str(path), frames=FRAMES, controls="recorded", allow_off_road=allow)
+        plan = dict(route=str(path), frames=FRAMES, controls="recorded", allow_off_road=allow)
         drives = []
-        return _controls_hook(args, (100.0, 100.0), None, 1, {}, drives), drives
+        return controls_hook(plan, (100.0, 100.0), None, 1, {}, drives), drives
 
     refused, _ = hook(False)
     with pytest.raises(

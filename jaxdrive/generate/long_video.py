@@ -64,6 +64,47 @@ def sample_long(
     scene: dict | None = None,
     **options,
 ) -> dict:
+    """:func:`long_video` writing its files under ``out``; returns the report."""
+    report, _, _ = long_video(
+        strategy,
+        models,
+        codec,
+        controls,
+        first,
+        length,
+        out,
+        key=key,
+        mesh=mesh,
+        fps=fps,
+        recorded=recorded,
+        route=route,
+        control_source=control_source,
+        scene=scene,
+        **options,
+    )
+    return report
+
+
+def long_video(
+    strategy: str,
+    models: Models,
+    codec,
+    controls: Conditions,
+    first,
+    length: int,
+    out=None,
+    *,
+    key,
+    mesh=None,
+    fps: float = 12.0,
+    recorded=None,
+    route: str | None = None,
+    control_source: dict | None = None,
+    scene: dict | None = None,
+    keep: int | None = None,
+    keep_video: bool = False,
+    **options,
+):
     """Run ``strategy`` for ``length`` latent frames and write the files of the module docstring;
     returns the report (a dict). ``recorded``: the dataset's own pixel frames ``[V, F, H, W, 3]``
     of the first clip (for the frame grid), when it covers the horizon; ``options`` go to the
@@ -73,11 +114,14 @@ def sample_long(
     ``bev_map``, ``ego_to_world``, ``boxes``, ``box_valid`` per frame, ``predicted_from`` (the
     first frame not recorded) and optionally ``route_drive`` (for the report): each frame-grid row
     then starts with its BEV map, the ego's path drawn on it (:func:`jaxdrive.media.bev_image`).
-    ``log=`` is deprecated (:func:`jaxdrive.logs.deprecated_log`)."""
+    ``log=`` is deprecated (:func:`jaxdrive.logs.deprecated_log`). Returns ``(report, latents,
+    video)``: ``out`` None writes nothing; ``keep``: the first clips kept (the rest padded a batch
+    to the mesh's batch shards); ``keep_video``: also the decoded video of those clips ``[clips,
+    V, F, H, W, 3]`` (else None: a minute of paper-size video is tens of GB on the host)."""
     tracker = Tracker()
     start = time.perf_counter()
     parts = run_strategy(strategy, models, controls, first, length, key=key, tracker=tracker, mesh=mesh, **options)
-    out = Path(out)
+    out = None if out is None else Path(out)
     frames = codec.pixel_frames(length)
     picks = np.unique(np.linspace(0, frames - 1, min(GRID_FRAMES, frames)).round().astype(int))
     decoder = codec.stream_decoder(length)
@@ -88,8 +132,8 @@ def sample_long(
 
         given = codec.pixel_frames(np.shape(first)[2])
         scores = FrameScores(np.asarray(recorded)[:, :frames], cond_frames=given)
-    writer = None
-    if jax.process_index() == 0:
+    writer, videos = None, []
+    if jax.process_index() == 0 and out is not None:
         from jaxdrive.media import Mp4Writer
 
         writer = Mp4Writer(out / "sample.mp4", fps=fps)
@@ -98,6 +142,8 @@ def sample_long(
         nonlocal written
         if video is None or not video.shape[2]:
             return
+        if keep_video:
+            videos.append(np.asarray(video[:keep]))
         clip = np.asarray(video[0])  # [V, n, H, W, 3]
         for p in picks[(picks >= written) & (picks < written + clip.shape[1])]:
             grid[int(p)] = np.array(clip[:, p - written])  # a copy, not a view of the part
@@ -117,7 +163,7 @@ def sample_long(
         if writer is not None:
             writer.close()
     seconds = time.perf_counter() - start
-    latents = np.concatenate(latents, axis=2)
+    latents = np.concatenate(latents, axis=2)[:keep]
     report = {
         "strategy": strategy,
         "frames": int(frames),
@@ -152,6 +198,9 @@ def sample_long(
         window = codec.pixel_frames((models.fine or models.main).window)
         quality = scores.result(window=window, every=max(int(round(fps)), 1))
         report["quality"] = {k: v for k, v in quality.items() if k != "per_frame"}
+    kept = np.concatenate(videos, axis=2) if keep_video else None
+    if out is None:
+        return report, latents, kept
     if jax.process_index() == 0:
         from jaxdrive.media import write_frame_grid
 
@@ -186,7 +235,7 @@ def sample_long(
                 a["repeat_psnr"],
                 a["repeat_ssim"],
             )
-    return report
+    return report, latents, kept
 
 
 def _bev_panels(scene: dict, picks, routed: bool) -> np.ndarray:

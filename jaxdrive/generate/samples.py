@@ -79,6 +79,7 @@ def dataset_inputs(
     shuffle_boxes: bool = False,
     indices=None,
     poses: bool = False,
+    records=None,
 ):
     """Model inputs of ``clips`` dataset clips of ``frames`` pixel frames (no condition dropped):
     the first frames give the condition latents, every frame its controls. A precomputed dataset
@@ -97,15 +98,17 @@ def dataset_inputs(
     and ``inputs["box_class_masks"]`` are the class masks of the boxes each clip got. ``indices``:
     the split's clips to take (default ``0 .. clips - 1``). ``poses``: also ``inputs["poses"]``,
     the samples' ``ego_to_world [B, F, 4, 4]``, ``intrinsics [B, V, 3, 3]`` (of the sampled frame
-    size) and ``cam_to_ego [B, V, 4, 4]`` (the warp baseline of ``jaxdrive eval --routes``)."""
+    size) and ``cam_to_ego [B, V, 4, 4]`` (the warp baseline of ``jaxdrive eval --routes``).
+    ``records``: clip records (as the dataset stores them) to take the clips from instead of a
+    split of ``data.path``."""
     from jaxdrive.data.batches import model_inputs
     from jaxdrive.data.pipeline import CONDITIONS
     from jaxdrive.data.tfds_io import open_source
     from jaxdrive.data.transforms import collate, sample_clip
 
     d = spec.data
-    source = None
-    for name in [split] if split else ["validation", d.split]:
+    source = None if records is None else _Records(records)
+    for name in [] if records is not None else [split] if split else ["validation", d.split]:
         try:
             source = open_source(d.path, name)
             break
@@ -177,12 +180,29 @@ def dataset_inputs(
         kept = {k: np.asarray(batch[k][0]) for k in ("bev_map", "ego_to_world", "boxes", "box_valid")}
         kept["predicted_from"] = int(samples[0].get("predicted_from", frames))
     batch.pop("predicted_from", None)
-    batch["drop"] = {n: np.zeros((clips,), bool) for n in CONDITIONS}  # nothing dropped; CFG adds the nulls
+    batch["drop"] = {n: np.zeros((len(samples),), bool) for n in CONDITIONS}  # nothing dropped; CFG adds the nulls
     inputs = model_inputs(batch, spec.model, spec.text_embeddings)
     if kept is not None:
         inputs["scene"] = kept
     inputs.update(extra)
     return inputs
+
+
+class _Records:
+    """Clip records given by the caller, read as a split (:func:`dataset_inputs`)."""
+
+    split = "given"
+
+    def __init__(self, records):
+        self.records = list(records)
+        if not self.records:
+            raise ValueError("records: expected at least one clip record, got none")
+
+    def __len__(self):
+        return len(self.records)
+
+    def __getitem__(self, i):
+        return self.records[i]
 
 
 def _window_prefix(spec: Sampling, record, frames: int, views, where: str) -> dict:

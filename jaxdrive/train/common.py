@@ -109,3 +109,44 @@ class Stop:
     def __exit__(self, *exc):
         for s, h in self._old.items():
             signal.signal(s, h)
+
+
+def model_frames(config: Config, codec) -> tuple[int, int]:
+    """``(latent frames, source-frame stride)`` the run's model sees: the latents of
+    ``data.frames`` at ``data.stride``, or for LongDWM's distilled coarse model one latent frame
+    per segment of ``flow.distill_segment_len`` frames (LongDWM [2506.01546v1] eq. 7-8)."""
+    d, f = config.data, config.flow
+    if f.distill_teacher:
+        return (d.frames - 1) // (f.distill_segment_len - 1) + 1, d.stride * (f.distill_segment_len - 1)
+    return codec.latent_frames(d.frames), d.stride
+
+
+def sampling_spec(config: Config, mesh, codec):
+    """The :class:`jaxdrive.generate.samples.Sampling` of a run's model from its config alone (no
+    train state, no optimizer, no teacher): the model at the run's compute dtype, its window and
+    frame stride, the text embeddings of an ``embeddings`` model. :meth:`jaxdrive.train.run.Run.sampling`
+    and :class:`jaxdrive.world_model.WorldModel` both build it here."""
+    from jaxdrive.data.batches import TextEmbeddings
+    from jaxdrive.generate.samples import Sampling
+    from jaxdrive.generate.streaming import WINDOW
+
+    c = config
+    model = c.model if c.train.compute_dtype == c.model.dtype else c.model.replace(dtype=c.train.compute_dtype)
+    text = None
+    if model.controls.text == "embeddings" and c.data.text_embeddings:
+        text = TextEmbeddings(c.data.text_embeddings)
+    frames, stride = model_frames(c, codec)
+    return Sampling(
+        model,
+        codec,
+        mesh,
+        c.data,
+        c.flow,
+        text_embeddings=text,
+        window=WINDOW if c.stream.enabled else frames,
+        stride=stride,
+        precomputed=c.latents.precomputed,
+        steps=c.train.sample_steps,
+        stream=c.stream,
+        guidance=c.sample.cfg,
+    )

@@ -49,6 +49,8 @@ from jaxdrive.train.common import (  # noqa: F401
     batch_shards,
     load_run_config,
     mesh_from_config,
+    model_frames,
+    sampling_spec,
 )
 from jaxdrive.train.encode import check_dataset
 from jaxdrive.train.metrics import MetricsWriter
@@ -185,11 +187,7 @@ class Run:
         teacher = self._teacher_model() if config.flow.distill_teacher else None
         self.training = flow_step.FlowTraining(model, config.flow, self.codec, teacher, config.stream)
         # frames the trained model sees, and the source-frame stride between them
-        self.latent_frames = self.codec.latent_frames(d.frames)
-        self.frame_stride = d.stride
-        if teacher is not None:
-            self.latent_frames = (d.frames - 1) // (config.flow.distill_segment_len - 1) + 1
-            self.frame_stride = d.stride * (config.flow.distill_segment_len - 1)
+        self.latent_frames, self.frame_stride = model_frames(config, self.codec)
         from jaxdrive.train.stream_step import check_stream
 
         check_stream(config, self.latent_frames)
@@ -263,26 +261,11 @@ class Run:
 
     def sampling(self):
         """The :class:`jaxdrive.generate.samples.Sampling` of this run's model (its window and
-        frame stride, a distilled coarse model's included)."""
-        from jaxdrive.generate.samples import Sampling
+        frame stride, a distilled coarse model's included; :func:`jaxdrive.train.common.sampling_spec`)."""
+        from dataclasses import replace
 
-        c = self.config
-        from jaxdrive.generate.streaming import WINDOW
-
-        return Sampling(
-            self.training.model,
-            self.codec,
-            self.mesh,
-            c.data,
-            c.flow,
-            text_embeddings=self.text,
-            window=WINDOW if c.stream.enabled else self.latent_frames,
-            stride=self.frame_stride,
-            precomputed=c.latents.precomputed,
-            steps=c.train.sample_steps,
-            stream=c.stream,
-            guidance=c.sample.cfg,
-        )
+        spec = sampling_spec(self.config, self.mesh, self.codec)
+        return replace(spec, model=self.training.model, text_embeddings=self.text)
 
     # ------------------------------------------------------------------ state
     def boxed_params(self):
