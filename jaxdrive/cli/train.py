@@ -195,21 +195,23 @@ def _demo(args, rest) -> int:
         return 1
     rows = read_metrics(workdir)
     plot = plot_losses(workdir / "loss.png", [r["step"] for r in rows], [r["loss"] for r in rows])
-    from jaxdrive.generate.samples import write_samples
+    from jaxdrive.world_model import WorldModel
 
     print(
         f"[3/3] sampling a {args.frames}-frame, {config.data.views}-view clip "
-        f"({args.frames // config.data.frames + 1} windows of {config.data.frames})"
+        f"(rollout: windows of {config.data.frames} frames, jaxdrive.WorldModel)"
     )
-    paths = write_samples(
-        out["run"].sampling(),
-        out["state"],
-        workdir / "samples" / "demo",
-        frames=args.frames,
-        steps=config.train.sample_steps,
-        guidance=args.cfg,
-        progress=not args.no_progress,
+    model = WorldModel.from_run(workdir)  # as a user loads it: the EMA weights of the last checkpoint
+    out_dir = workdir / "samples" / "demo"
+    g = model.generate(
+        frames=args.frames, strategy="rollout", cfg=args.cfg, steps=config.train.sample_steps, out=out_dir
     )
+    paths = {
+        "quality": g.report["quality"],
+        "video": out_dir / "sample.mp4",
+        "grid": out_dir / "frames.png",
+        "quality_json": out_dir / "quality.json",
+    }
     print(quality_lines(paths["quality"]))
     grid = _demo_routes(workdir, data, routes, validation, args, config)
     print(
