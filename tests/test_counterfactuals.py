@@ -296,3 +296,20 @@ def test_drivable_clips_says_which_clips_drive_each_route():
                 counterfactual_clip(i, "lane-right", views=1, frames=17, height=32, width=56)
     with pytest.raises(ValueError, match=r"lane-right.*validation clip \d"):
         drivable_clips(["lane-right"], 0, 6, skip_undrivable=False, views=1, frames=17, height=32, width=56)
+
+
+def test_a_dataset_written_with_its_drivable_clips_drives_no_route_twice(tmp_path, monkeypatch):
+    """The demo chooses its routes by :func:`drivable_clips`; handing the result over skips the
+    second drive of every route before rendering (``drivable=``), and the dataset is the same."""
+    from jaxdrive.data import synthetic
+    from jaxdrive.data.synthetic import drivable_clips, read_counterfactuals, write_synthetic_dataset
+
+    kw = dict(train=1, validation=1, counterfactuals=["stop"], views=1, frames=17, height=32, width=56)
+    rows = drivable_clips(["stop"], 1, 1, views=1, frames=17, height=32, width=56)
+    monkeypatch.setattr(synthetic, "drivable_clips", lambda *a, **k: pytest.fail("drove the routes again"))
+    path = write_synthetic_dataset(tmp_path / "given", drivable=rows, **kw)
+    assert read_counterfactuals(path)["routes"]["stop"]["clips"] == rows["stop"]
+    with pytest.raises(
+        ValueError, match=r"^drivable: expected the clips of the routes \['stop'\], got routes \['slower'\]"
+    ):
+        write_synthetic_dataset(tmp_path / "wrong", drivable={"slower": [0]}, **kw)

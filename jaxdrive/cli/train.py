@@ -180,6 +180,7 @@ def _demo(args, rest) -> int:
             width=2 * d.width,
             counterfactuals=routes,
             skip_undrivable=True,
+            drivable={r: rows[r] for r in routes},  # driven once, above
         )
     from jaxdrive.media import plot_losses
     from jaxdrive.train.metrics import read_metrics

@@ -414,6 +414,7 @@ def write_synthetic_dataset(
     counterfactuals=(),
     counterfactual_start: int = COUNTERFACTUAL_START,
     skip_undrivable: bool = False,
+    drivable: dict | None = None,
     **clip_kwargs,
 ):
     """A TFDS dataset of ``train`` (+ ``validation``) synthetic scenes under ``out``, one seed per
@@ -428,6 +429,8 @@ def write_synthetic_dataset(
     before anything is rendered: a route some validation clip cannot drive is a ``ValueError``
     naming the route and the clip, and nothing is written; with ``skip_undrivable`` that clip is
     left out of that route's split instead (a route no clip can drive is still an error).
+    ``drivable``: what :func:`drivable_clips` returned for these routes and validation clips, when
+    the caller has it (the demo chooses its routes by it): the routes are then not driven twice.
     """
     from jaxdrive.data.tfds_io import write_dataset
 
@@ -440,9 +443,17 @@ def write_synthetic_dataset(
             f"counterfactual_start: expected a frame in [1, {frames - 1}] for clips of {frames} "
             f"frames, got {counterfactual_start!r}"
         )
-    drivable = drivable_clips(
-        names, seed + train, validation, start=int(counterfactual_start), skip_undrivable=skip_undrivable, **clip_kwargs
-    )
+    if drivable is None:
+        drivable = drivable_clips(
+            names,
+            seed + train,
+            validation,
+            start=int(counterfactual_start),
+            skip_undrivable=skip_undrivable,
+            **clip_kwargs,
+        )
+    elif sorted(drivable) != sorted(names):
+        raise ValueError(f"drivable: expected the clips of the routes {names}, got routes {sorted(drivable)}")
     for name, rows in drivable.items():
         if not rows:
             raise ValueError(

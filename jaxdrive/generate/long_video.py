@@ -46,43 +46,9 @@ GRID_FRAMES = 6
 
 
 @deprecated_log
-def sample_long(
-    strategy: str,
-    models: Models,
-    codec,
-    controls: Conditions,
-    first,
-    length: int,
-    out,
-    *,
-    key,
-    mesh=None,
-    fps: float = 12.0,
-    recorded=None,
-    route: str | None = None,
-    control_source: dict | None = None,
-    scene: dict | None = None,
-    **options,
-) -> dict:
-    """:func:`long_video` writing its files under ``out``; returns the report."""
-    report, _, _ = long_video(
-        strategy,
-        models,
-        codec,
-        controls,
-        first,
-        length,
-        out,
-        key=key,
-        mesh=mesh,
-        fps=fps,
-        recorded=recorded,
-        route=route,
-        control_source=control_source,
-        scene=scene,
-        **options,
-    )
-    return report
+def sample_long(strategy: str, models: Models, codec, controls: Conditions, first, length: int, out, **kwargs) -> dict:
+    """:func:`long_video` writing its files under ``out`` (``kwargs`` as there); returns the report."""
+    return long_video(strategy, models, codec, controls, first, length, out, **kwargs)[0]
 
 
 def long_video(
