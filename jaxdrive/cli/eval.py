@@ -26,19 +26,7 @@ from pathlib import Path
 
 def _eval(args, rest) -> int:
     if args.merge:
-        from jaxdrive.eval.compare import merge, write_outputs
-
-        dirs = [d for d in args.merge.split(",") if d]
-        if args.workdir or args.videos or len(dirs) < 2:
-            raise ValueError(
-                f"--merge: expected at least 2 output folders of jaxdrive eval, without --workdir or "
-                f"--videos, got {args.merge!r}"
-            )
-        results, meta, ceiling, effects = merge(dirs)
-        paths = write_outputs(results, Path(args.out), meta=meta, ceiling=ceiling, effects=effects or None)
-        print(paths["table"])
-        print(f"wrote {paths['json']}, {paths['md']}, {paths['plot']}")
-        return 0
+        return _merge(args)
     if bool(args.videos) == bool(args.workdir):
         raise ValueError(
             f"--workdir / --videos: expected one of them (a run to sample, or a folder of generated "
@@ -49,15 +37,32 @@ def _eval(args, rest) -> int:
     start_jax()
     if args.videos:
         return _eval_videos(args)
-    import jax
-    import numpy as np
+    return _eval_runs(args)
 
+
+def _merge(args) -> int:
+    """``--merge OUT1,OUT2,...``: the tables of several evaluations as one."""
+    from jaxdrive.eval.compare import merge, write_outputs
+
+    dirs = [d for d in args.merge.split(",") if d]
+    if args.workdir or args.videos or len(dirs) < 2:
+        raise ValueError(
+            f"--merge: expected at least 2 output folders of jaxdrive eval, without --workdir or "
+            f"--videos, got {args.merge!r}"
+        )
+    results, meta, ceiling, effects = merge(dirs)
+    paths = write_outputs(results, Path(args.out), meta=meta, ceiling=ceiling, effects=effects or None)
+    print(paths["table"])
+    print(f"wrote {paths['json']}, {paths['md']}, {paths['plot']}")
+    return 0
+
+
+def _eval_runs(args) -> int:
+    """``--workdir``: the strategies of one run (or a coarse and a fine run), on the same clips."""
     from jaxdrive.cli.options import parse_scales
-    from jaxdrive.cli.sample import first_latents, load_runs
-    from jaxdrive.eval.compare import parse_buckets, repeat_baseline, repeat_name, run_strategies, write_outputs
-    from jaxdrive.generate.guidance import describe
-    from jaxdrive.generate.samples import dataset_inputs
-    from jaxdrive.generate.strategies import NEEDS_FINE, STRATEGIES, Models, check_strategy
+    from jaxdrive.cli.sample import load_runs
+    from jaxdrive.eval.compare import parse_buckets
+    from jaxdrive.generate.strategies import NEEDS_FINE, STRATEGIES, check_strategy
     from jaxdrive.validate import check_positive_int
 
     names = [s.strip() for s in args.strategies.split(",") if s.strip()]
@@ -134,6 +139,51 @@ def _eval(args, rest) -> int:
             clips,
             scales[0],
         )
+    return _eval_recorded(
+        args,
+        names,
+        run,
+        horizon_spec,
+        load_main,
+        load_fine,
+        codec,
+        given,
+        length,
+        buckets,
+        features,
+        segmenter,
+        clips,
+        scales,
+    )
+
+
+def _eval_recorded(
+    args,
+    names,
+    run,
+    horizon_spec,
+    load_main,
+    load_fine,
+    codec,
+    given,
+    length,
+    buckets,
+    features,
+    segmenter,
+    clips,
+    scales,
+) -> int:
+    """Every strategy (at every ``--cfg`` scale) on the recorded clips, beside ``repeat``."""
+    import jax
+    import numpy as np
+
+    from jaxdrive.cli.sample import first_latents
+    from jaxdrive.eval.compare import repeat_baseline, repeat_name, run_strategies, write_outputs
+    from jaxdrive.generate.guidance import describe
+    from jaxdrive.generate.samples import dataset_inputs
+    from jaxdrive.generate.strategies import Models
+
+    given_pixels = codec.pixel_frames(given)
     try:
         inputs = dataset_inputs(
             horizon_spec,
@@ -192,22 +242,15 @@ def _eval(args, rest) -> int:
         results,
         out,
         ceiling=ceiling,
-        meta={
-            "workdir": str(args.workdir),
-            "fine_workdir": args.fine_workdir,
-            "clips": clips,
-            "frames": args.frames,
-            "given_frames": given_pixels,
-            "views": int(recorded.shape[1]),
-            "inception": args.inception,
-            "i3d": args.i3d,
-            "segmenter": args.segmenter,
-            "shuffle_boxes": bool(args.shuffle_boxes),
-            "split": args.split,
-            "cfg": [models.main.guidance if s is None else s for s in scales],
-            "cfg_boxes": args.cfg_boxes,
-            "cfg_route": args.cfg_route,
-        },
+        meta=_meta(
+            args,
+            clips,
+            given_pixels,
+            int(recorded.shape[1]),
+            shuffle_boxes=bool(args.shuffle_boxes),
+            split=args.split,
+            cfg=[models.main.guidance if s is None else s for s in scales],
+        ),
     )
     print(paths["table"])
     print(f"wrote {paths['json']}, {paths['md']}, {paths['plot']}")
@@ -298,28 +341,40 @@ def _eval_routes(
         results,
         Path(args.out),
         effects=effects,
-        meta={
-            "workdir": str(args.workdir),
-            "fine_workdir": args.fine_workdir,
-            "clips": clips,
-            "frames": args.frames,
-            "given_frames": given_pixels,
-            "views": spec.data.views,
-            "inception": args.inception,
-            "i3d": args.i3d,
-            "segmenter": args.segmenter,
-            "shuffle_boxes": False,
-            "split": "validation",
-            "routes": args.routes,
-            "route_clips": plan["indices"],
-            "cfg": [models.main.guidance],
-            "cfg_boxes": args.cfg_boxes,
-            "cfg_route": args.cfg_route,
-        },
+        meta=_meta(
+            args,
+            clips,
+            given_pixels,
+            spec.data.views,
+            shuffle_boxes=False,
+            split="validation",
+            routes=args.routes,
+            route_clips=plan["indices"],
+            cfg=[models.main.guidance],
+        ),
     )
     print(paths["table"])
     print(f"wrote {paths['json']}, {paths['md']}, {paths['plot']}, {grid}")
     return 0
+
+
+def _meta(args, clips: int, given_pixels: int, views: int, **extra) -> dict:
+    """``eval.json``'s ``meta`` of an evaluation of ``--workdir`` (the keys in their order)."""
+    keys = ("shuffle_boxes", "split", "routes", "route_clips", "cfg")
+    return {
+        "workdir": str(args.workdir),
+        "fine_workdir": args.fine_workdir,
+        "clips": clips,
+        "frames": args.frames,
+        "given_frames": given_pixels,
+        "views": views,
+        "inception": args.inception,
+        "i3d": args.i3d,
+        "segmenter": args.segmenter,
+        **{k: extra[k] for k in keys if k in extra},
+        "cfg_boxes": args.cfg_boxes,
+        "cfg_route": args.cfg_route,
+    }
 
 
 def _eval_videos(args) -> int:
