@@ -30,7 +30,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxdrive.config import Config, override
+from jaxdrive.config import Config, check_sections, override
 from jaxdrive.generate.samples import Sampling
 from jaxdrive.generate.strategies import NEEDS_FINE, STRATEGIES, Models, check_strategy, check_taps
 from jaxdrive.generate.windows import WindowModel
@@ -73,16 +73,16 @@ class Generation:
     out: Path | None = None
 
 
-def _check_run_dir(workdir, option: str) -> Path:
-    """``workdir`` as a run folder with its config and at least one checkpoint, else a
-    ``ValueError`` naming ``option``, the path and what is missing."""
+def _check_run_dir(workdir, option: str, *, checkpoint: bool = True) -> Path:
+    """``workdir`` as a run folder with its config and (``checkpoint``) at least one checkpoint,
+    else a ``ValueError`` naming ``option``, the path and what is missing."""
     path = Path(workdir)
     if not path.is_dir():
         raise ValueError(f"{option}: expected a run directory, got {str(path)!r} (not a directory)")
     if not (path / CONFIG_FILE).is_file():
         raise ValueError(f"{option}: expected a run directory with {CONFIG_FILE}, got {str(path)!r} (no {CONFIG_FILE})")
     ckpts = path / "checkpoints"
-    if not ckpts.is_dir() or not any(p.name.isdigit() for p in ckpts.iterdir()):
+    if checkpoint and (not ckpts.is_dir() or not any(p.name.isdigit() for p in ckpts.iterdir())):
         raise ValueError(
             f"{option}: expected a run directory with a checkpoint, got {str(path)!r} (nothing under {ckpts})"
         )
@@ -113,10 +113,21 @@ class WorldModel:
     the DiT's config, codec, mesh, dataset, flow settings), its parameters, the checkpoint step they
     come from, and optionally the fine model of LongDWM's coarse-fine strategy (``fine``)."""
 
-    def __init__(self, config: Config, spec: Sampling, params, *, step: int, workdir=None, fine=None):
+    def __init__(
+        self,
+        config: Config,
+        spec: Sampling,
+        params,
+        *,
+        step: int,
+        workdir=None,
+        fine=None,
+        ema: bool = True,
+        option: str = "workdir",
+    ):
         self.config, self.spec, self.params, self.step = config, spec, params, int(step)
         self.workdir = None if workdir is None else Path(workdir)
-        self.fine = fine
+        self.fine, self.ema, self.option = fine, ema, option
 
     @classmethod
     def from_run(
@@ -129,6 +140,7 @@ class WorldModel:
         overrides: Sequence[str] = (),
         devices=None,
         option: str = "workdir",
+        weights: bool = True,
     ) -> WorldModel:
         """The newest readable checkpoint of the run in ``workdir`` (its EMA weights unless ``ema``
         is False), its codec and config. ``fine_workdir``: the fine model's run (coarse-fine; an
@@ -136,18 +148,26 @@ class WorldModel:
         ``"data=2,seq=4"`` (default: the run's own mesh when it spans this host's devices, else
         one device); ``overrides``: ``a.b=value`` config changes (sampling settings such as
         ``train.sample_steps``). A folder without the run's config or a checkpoint is a
-        ``ValueError`` naming the path and what is missing."""
-        path = _check_run_dir(workdir, option)
+        ``ValueError`` naming the path and what is missing. ``weights=False`` reads the config
+        alone (the parameters are None: what :meth:`check` needs; :meth:`with_weights` reads them)."""
+        path = _check_run_dir(workdir, option, checkpoint=weights)
         config = load_run_config(path)
         for s in overrides:
             config = override(config, s)
+        check_sections(config)  # each section's values, named by their keys (sample.cfg, ...)
         config, mesh_ = _with_mesh(config, mesh, devices)
         codec = LatentCodec.from_config(config.latents)
         spec = sampling_spec(config, mesh_, codec)
         fine = None
         if fine_workdir is not None:
             fine = cls.from_run(
-                fine_workdir, ema=ema, mesh=mesh, overrides=overrides, devices=devices, option="fine_workdir"
+                fine_workdir,
+                ema=ema,
+                mesh=mesh,
+                overrides=overrides,
+                devices=devices,
+                option="fine_workdir",
+                weights=weights,
             )
             for name in ("channels", "spatial", "temporal"):
                 a, b = getattr(codec, name), getattr(fine.spec.codec, name)
@@ -156,10 +176,19 @@ class WorldModel:
         from jaxdrive import compile_cache
 
         compile_cache.enable(config.train.compile_cache)  # the run's own setting (default: on)
-        abstract, _ = abstract_train_state(spec.model, config.optim, config.train.steps, mesh_, seed=config.train.seed)
-        step, params = restore_latest_params(abstract, path, keep=config.train.keep_checkpoints, ema=ema, option=option)
-        logger.info("loaded %s step %d (%s weights)", path, step, "EMA" if ema else "trained")
-        return cls(config, spec, params, step=step, workdir=path, fine=fine)
+        model = cls(config, spec, None, step=-1, workdir=path, fine=fine, ema=ema, option=option)
+        return model.with_weights() if weights else model
+
+    def with_weights(self) -> WorldModel:
+        """This model with the newest readable checkpoint of its run (its fine model's too)."""
+        path, c = _check_run_dir(self.workdir, self.option), self.config
+        abstract, _ = abstract_train_state(self.spec.model, c.optim, c.train.steps, self.mesh, seed=c.train.seed)
+        step, params = restore_latest_params(
+            abstract, path, keep=c.train.keep_checkpoints, ema=self.ema, option=self.option
+        )
+        logger.info("loaded %s step %d (%s weights)", path, step, "EMA" if self.ema else "trained")
+        fine = self.fine.with_weights() if self.fine is not None and self.fine.params is None else self.fine
+        return WorldModel(c, self.spec, params, step=step, workdir=path, fine=fine, ema=self.ema, option=self.option)
 
     @property
     def mesh(self):
@@ -229,9 +258,24 @@ class WorldModel:
         files of :func:`jaxdrive.generate.long_video.sample_long` there."""
         from jaxdrive.generate.long_video import long_video
 
-        _source(source)  # a split, a record or records, before anything is read
-        plan = self._plan(strategy, frames, clips, cond_frames, options, controls, predictor, route, allow_off_road)
-        models = self.models(steps=steps, cfg=cfg, cfg_boxes=cfg_boxes, cfg_route=cfg_route)  # checks guidance
+        plan = self.check(
+            source,
+            frames=frames,
+            strategy=strategy,
+            route=route,
+            cfg=cfg,
+            cfg_boxes=cfg_boxes,
+            cfg_route=cfg_route,
+            clips=clips,
+            cond_frames=cond_frames,
+            predictor=predictor,
+            controls=controls,
+            allow_off_road=allow_off_road,
+            **options,
+        )
+        if self.params is None:
+            raise ValueError("params: expected a model with its weights (from_run, or with_weights()), got none")
+        models = self.models(steps=steps, cfg=cfg, cfg_boxes=cfg_boxes, cfg_route=cfg_route)
         run_options = self._strategy_options(strategy, models, options)
         spec = plan["spec"]
         padded = -(-clips // plan["shards"]) * plan["shards"]
@@ -280,6 +324,30 @@ class WorldModel:
             None if recorded is None else recorded[:clips],
             None if out is None else Path(out),
         )
+
+    def check(
+        self,
+        source=None,
+        *,
+        frames: int,
+        strategy: str = "rollout",
+        route=None,
+        cfg=None,
+        cfg_boxes=None,
+        cfg_route=None,
+        clips: int = 1,
+        cond_frames=None,
+        predictor=None,
+        controls: str = "recorded",
+        allow_off_road: bool = False,
+        **options,
+    ) -> dict:
+        """Every check of :meth:`generate` that reads neither data nor weights: a ``ValueError``
+        naming the argument (works on a model loaded with ``weights=False``)."""
+        _source(source)
+        plan = self._plan(strategy, frames, clips, cond_frames, options, controls, predictor, route, allow_off_road)
+        self.guidance_controls(cfg=cfg, cfg_boxes=cfg_boxes, cfg_route=cfg_route)
+        return plan
 
     # ---------------------------------------------------------------- the steps of generate
     def _plan(self, strategy, frames, clips, cond_frames, options, controls, predictor, route, allow_off_road):

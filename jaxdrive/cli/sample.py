@@ -50,12 +50,13 @@ def sample_strategy(args) -> int:
         "taps": parse_taps(args.taps),
         "device_memory": args.device_memory,
     }
-    model = load_model(args)
+    if args.controls == "predicted" and not args.predictor:
+        raise ValueError("--controls: 'predicted' needs --predictor RUN (a run of configs/predictor.py), got none")
+    model = load_model(args, weights=False)
     sizes = dict(zip(model.mesh.axis_names, model.mesh.axis_sizes))
     clips = sizes.get("data", 1) * sizes.get("fsdp", 1) if args.clips is None else args.clips
     out = Path(args.out or Path(args.workdir) / "samples" / args.strategy)
-    g = model.generate(
-        None,  # the validation split, else the training one
+    request = dict(
         frames=args.frames,
         strategy=args.strategy,
         route=args.route,
@@ -70,11 +71,11 @@ def sample_strategy(args) -> int:
         predictor=args.predictor,
         controls=args.controls,
         allow_off_road=args.allow_off_road,
-        out=out,
-        keep_video=False,
         **{k: v for k, v in options.items() if v is not None},
     )
-    report = g.report
+    model.check(None, **{k: v for k, v in request.items() if k not in ("key", "views", "steps")})
+    # None: the validation split, else the training one; the weights are read after every check
+    report = model.with_weights().generate(None, **request, out=out, keep_video=False).report
     print(
         f"report: {out / 'report.json'} ({report['sequential_sampler_calls']} sequential sampler calls, "
         f"{report['seconds']:.1f} s, peak device memory {report['peak_device_bytes'] / 2**20:.1f} MiB)"
@@ -82,9 +83,9 @@ def sample_strategy(args) -> int:
     return 0
 
 
-def load_model(args):
+def load_model(args, *, weights: bool = True):
     """The :class:`jaxdrive.world_model.WorldModel` of ``--workdir`` (and ``--fine-workdir``),
-    ``--mesh`` and ``--set`` (EMA weights unless ``--no-ema``)."""
+    ``--mesh`` and ``--set`` (EMA weights unless ``--no-ema``; ``weights=False``: none yet)."""
     from jaxdrive.world_model import WorldModel
 
     return WorldModel.from_run(
@@ -93,6 +94,7 @@ def load_model(args):
         fine_workdir=args.fine_workdir or None,
         mesh=args.mesh,
         overrides=args.set or [],
+        weights=weights,
     )
 
 
@@ -105,7 +107,7 @@ def load_runs(args):
     ``--cfg-route``, checked against both runs here."""
     from jaxdrive.generate.strategies import Models
 
-    model = load_model(args)
+    model = load_model(args, weights=False)
     guidance = dict(steps=args.steps, cfg=args.cfg, cfg_boxes=args.cfg_boxes, cfg_route=args.cfg_route)
     fine = model.fine
     shapes = Models(model.window_model(params=False, **guidance), fine and fine.window_model(params=False, **guidance))
@@ -114,8 +116,10 @@ def load_runs(args):
         raise ValueError(
             f"--frames: expected 1 + {horizon.codec.temporal}k frames for the causal VAE, got {args.frames}"
         )
-    load_main = lambda: model.window_model(**guidance)
-    load_fine = (lambda: fine.window_model(**guidance)) if fine is not None else None
+    loaded: list = []  # the weights, read once when the first loader asks (every check comes before)
+    weighted = lambda: loaded[0] if loaded else loaded.append(model.with_weights()) or loaded[0]
+    load_main = lambda: weighted().window_model(**guidance)
+    load_fine = (lambda: weighted().fine.window_model(**guidance)) if fine is not None else None
     spec = model.spec
     return (
         model,
