@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from jaxdrive.cli import eval as eval_cli
-from jaxdrive.cli.options import add_config, add_progress, add_sampling, config_with_mesh, load_config, start_jax
+from jaxdrive.cli.options import add_config, add_progress, add_sampling, load_config, start_jax
 
 REPO_CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -56,27 +56,19 @@ def _sample(args, rest) -> int:
         raise ValueError(f"--controls: expected only with --strategy, got {args.controls!r}")
     if args.allow_off_road:
         raise ValueError("--allow-off-road: expected only with --strategy and --route, got it without them")
-    from jaxdrive.config import override
-    from jaxdrive.generate.samples import write_samples
-    from jaxdrive.train.run import Run, load_run_config, restore_params
-
-    config = load_run_config(args.workdir)
-    for s in args.set or []:
-        config = override(config, s)
-    config = config_with_mesh(config, args.mesh) if args.mesh else config
-    from jaxdrive import compile_cache
-
-    compile_cache.enable(config.train.compile_cache)
-    run = Run(config)
     from jaxdrive.cli.options import guidance_options
+    from jaxdrive.cli.sample import load_model
+    from jaxdrive.generate.samples import write_samples
 
-    controls = guidance_options(args, [run.sampling()])  # before anything compiles
-    step, params = restore_params(run, args.workdir, ema=not args.no_ema)
+    model = load_model(args, weights=False)
+    controls = guidance_options(args, [model.spec])  # before a weight is read or anything compiles
+    model = model.with_weights()
+    step, params = model.step, model.params
     views = None if args.views is None else [int(v) for v in args.views]
     out_dir = Path(args.out or Path(args.workdir) / "samples" / f"sample_{step:07d}")
     t = time.perf_counter()
     paths = write_samples(
-        run.sampling(),
+        model.spec,
         params,
         out_dir,
         frames=args.frames,
