@@ -177,11 +177,11 @@ def _eval_recorded(
     import jax
     import numpy as np
 
-    from jaxdrive.cli.sample import first_latents
     from jaxdrive.eval.compare import repeat_baseline, repeat_name, run_strategies, write_outputs
     from jaxdrive.generate.guidance import describe
     from jaxdrive.generate.samples import dataset_inputs
     from jaxdrive.generate.strategies import Models
+    from jaxdrive.world_model import first_latents
 
     given_pixels = codec.pixel_frames(given)
     try:
@@ -278,11 +278,11 @@ def _eval_routes(
     (:mod:`jaxdrive.eval.routes`)."""
     import jax
 
-    from jaxdrive.cli.sample import first_latents
     from jaxdrive.eval.compare import write_outputs
     from jaxdrive.eval.routes import evaluate_routes, route_clips
     from jaxdrive.generate.samples import dataset_inputs
     from jaxdrive.generate.strategies import Models
+    from jaxdrive.world_model import first_latents
 
     if spec.precomputed:
         raise ValueError(

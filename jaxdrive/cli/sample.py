@@ -14,8 +14,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from jaxdrive.world_model import first_latents  # noqa: F401  (jaxdrive eval's, re-exported)
-
 
 def parse_taps(text):
     """``--taps``: ``"-1,-5,-10"`` -> ``(-1, -5, -10)``; ``"none"`` -> ``()``; None stays None."""
