@@ -105,7 +105,7 @@ def test_auto_on_one_device_equals_xla_for_short_sequences():
             dict(impl="ulysses", mesh=jax.make_mesh((8,), ("data",))),
             r"mesh: impl 'ulysses' needs a mesh with a 'seq' axis, got \('data',\)",
         ),
-        (dict(impl="cudnn"), "impl: 'cudnn' needs a GPU backend"),
+        (dict(impl="cudnn"), "impl: 'cudnn' needs GPU devices"),
     ],
 )
 def test_bad_arguments(kwargs, match):
@@ -217,9 +217,58 @@ def test_splash_kernel_matches_dense_in_the_pallas_interpreter(kw):
         np.testing.assert_array_equal(out[1], 0.0)
 
 
+@pytest.mark.slow(seconds=10)
+@pytest.mark.parametrize("causal_block", [None, 8])
+def test_splash_runs_per_device_in_shard_map_on_a_sharded_mesh(causal_block):
+    # a Mosaic kernel cannot be partitioned by XLA: on a mesh whose batch is sharded (data x fsdp)
+    # and heads split (tensor) each device must call it on its own examples; the interpreter runs
+    # the same code path on 8 fake CPU devices. Forward and gradients against dense attention,
+    # the output typed like q
+    from jax.sharding import AxisType, NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    from jaxdrive.attention.splash import splash_attention
+
+    mesh = jax.make_mesh((2, 2, 1, 2), ("data", "fsdp", "seq", "tensor"), axis_types=(AxisType.Explicit,) * 4)
+    q, k, v, do = _qkvd(b=4, lq=136, lk=136, h=2, d=64)
+    mask = jnp.ones((4, 136), bool).at[1, 100:].set(False)
+    ref, ref_vjp = jax.vjp(
+        jax.jit(lambda *a: attention(*a, impl="xla", kv_mask=mask, causal_block=causal_block)), q, k, v
+    )
+    spec = P(("data", "fsdp"), None, "tensor", None)
+    with jax.set_mesh(mesh):
+        put = lambda x, s=spec: jax.device_put(x, NamedSharding(mesh, s))
+        sq, sk, sv, sdo = map(put, (q, k, v, do))
+        smask = put(mask, P(("data", "fsdp"), None))
+        run = jax.jit(
+            lambda *a: splash_attention(
+                *a, scale=64**-0.5, kv_mask=smask, causal_block=causal_block, tile=128, interpret=True
+            )
+        )
+        out, vjp = jax.vjp(run, sq, sk, sv)
+        grads = vjp(sdo)
+    assert out.sharding.spec == spec
+    assert max_rel(out, ref) <= 1e-5
+    for got, want in zip(grads, ref_vjp(do)):
+        assert max_rel(got, want) <= 1e-5
+
+
+def test_auto_asks_the_mesh_devices_not_the_backend():
+    # a TPU step compiled ahead of time on a CPU host: "auto" must see the mesh's TPUs
+    from jaxdrive.attention import dispatch
+    from jaxdrive.parallel.mesh import mesh_platform
+
+    mesh = jax.make_mesh((1, 1, 1, 1), ("data", "fsdp", "seq", "tensor"), devices=jax.devices()[:1])
+    tpu = mesh.abstract_mesh.update(abstract_device=jax.sharding.AbstractDevice("TPU v5e", 1, "tpu"))
+    assert mesh_platform(mesh) == "cpu" and mesh_platform(tpu) == "tpu"
+    q, k, v, _ = _qkvd()
+    assert dispatch._auto(q, k, v, tpu, None, None) == "splash"
+    assert dispatch._auto(q, k, v, mesh.abstract_mesh, None, None) == "xla"
+
+
 def test_splash_needs_a_tpu():
     q, k, v, _ = _qkvd()
-    with pytest.raises(ValueError, match="impl: 'splash' needs a TPU backend, got cpu"):
+    with pytest.raises(ValueError, match="impl: 'splash' needs TPU devices .the mesh.s, else the backend.s., got cpu"):
         attention(q, k, v, impl="splash")
 
 

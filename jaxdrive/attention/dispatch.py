@@ -10,7 +10,12 @@ Implementations (``impl``):
 - ``"ulysses"``: all-to-all from sequence- to head-sharding over ``seq``, a local blockwise kernel,
   and back (:mod:`jaxdrive.attention.ulysses`).
 - ``"cudnn"``: ``jax.nn.dot_product_attention(..., implementation="cudnn")`` on GPUs (fp16/bf16).
-- ``"splash"``: JAX's Pallas splash kernel on TPUs (:mod:`jaxdrive.attention.splash`).
+- ``"splash"``: JAX's Pallas splash kernel on TPUs (:mod:`jaxdrive.attention.splash`), inside
+  ``shard_map`` over the batch and heads on a mesh.
+
+"TPU" and "GPU" are the platform of the mesh's devices (:func:`jaxdrive.parallel.mesh.mesh_platform`),
+not the backend the host process started: a step compiled ahead of time for TPU topology devices
+on a CPU host gets the TPU kernel.
 - ``"auto"``: ``"ring"`` when the mesh shards ``seq``; else ``"splash"`` on TPU or ``"cudnn"``
   where it applies; else ``"blockwise"`` for long sequences and ``"xla"`` for short ones. It
   never fails where ``"xla"`` works, given that a ``mesh`` passed in is the context mesh.
@@ -33,7 +38,7 @@ from jaxdrive.attention.blockwise import blockwise_attention
 from jaxdrive.attention.ring import ring_attention
 from jaxdrive.attention.seq_shard import layout
 from jaxdrive.attention.ulysses import ulysses_attention
-from jaxdrive.parallel.mesh import context_mesh, spec_of
+from jaxdrive.parallel.mesh import context_mesh, mesh_platform, spec_of
 from jaxdrive.validate import check_choice, check_positive_int
 
 IMPLS = ("auto", "xla", "blockwise", "ring", "ulysses", "cudnn", "splash")
@@ -83,8 +88,8 @@ def _seq_size(mesh) -> int:
     return 1 if mesh is None or "seq" not in mesh.axis_names else int(mesh.shape["seq"])
 
 
-def _cudnn_applies(q, kv_mask, causal_block) -> bool:
-    return jax.default_backend() == "gpu" and q.dtype in (jnp.float16, jnp.bfloat16) and causal_block is None
+def _cudnn_applies(q, kv_mask, causal_block, mesh) -> bool:
+    return mesh_platform(mesh) == "gpu" and q.dtype in (jnp.float16, jnp.bfloat16) and causal_block is None
 
 
 def _ring_applies(q, k, v, mesh, kv_mask, causal_block) -> bool:
@@ -98,9 +103,9 @@ def _ring_applies(q, k, v, mesh, kv_mask, causal_block) -> bool:
 def _auto(q, k, v, mesh, kv_mask, causal_block) -> str:
     if _seq_size(mesh) > 1 and _ring_applies(q, k, v, mesh, kv_mask, causal_block):
         return "ring"
-    if splash.available():
+    if splash.available(mesh):
         return "splash"
-    if _cudnn_applies(q, kv_mask, causal_block):
+    if _cudnn_applies(q, kv_mask, causal_block, mesh):
         return "cudnn"
     return "blockwise" if q.shape[1] * k.shape[1] > AUTO_BLOCKWISE_PAIRS else "xla"
 
@@ -201,17 +206,19 @@ def attention(
             q, k, v, scale=scale, kv_mask=kv_mask, causal_block=causal_block, block_q=block_q, block_k=block_k
         )
     if impl == "cudnn":
-        if not _cudnn_applies(q, kv_mask, causal_block):
+        if not _cudnn_applies(q, kv_mask, causal_block, mesh):
             raise ValueError(
-                f"impl: 'cudnn' needs a GPU backend, fp16/bf16 inputs and no causal_block, "
-                f"got backend {jax.default_backend()}, dtype {q.dtype}, "
+                f"impl: 'cudnn' needs GPU devices, fp16/bf16 inputs and no causal_block, "
+                f"got {mesh_platform(mesh)} devices, dtype {q.dtype}, "
                 f"causal_block {causal_block}"
             )
         return _cudnn(q, k, v, scale, kv_mask)
     if impl == "splash":
-        if not splash.available():
-            raise ValueError(f"impl: 'splash' needs a TPU backend, got {jax.default_backend()}")
-        return splash.splash_attention(q, k, v, scale=scale, kv_mask=kv_mask, causal_block=causal_block)
+        if not splash.available(mesh):
+            raise ValueError(
+                f"impl: 'splash' needs TPU devices (the mesh's, else the backend's), got {mesh_platform(mesh)}"
+            )
+        return splash.splash_attention(q, k, v, scale=scale, kv_mask=kv_mask, causal_block=causal_block, mesh=mesh)
     if mesh is None or "seq" not in mesh.axis_names:
         raise ValueError(
             f"mesh: impl {impl!r} needs a mesh with a 'seq' axis, got "

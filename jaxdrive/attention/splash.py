@@ -14,24 +14,36 @@ onto it:
   return 0 like every jaxdrive attention (the kernel's finite mask value would otherwise average
   the masked keys).
 
+On a mesh the kernel runs inside ``shard_map``: a Mosaic kernel is one custom call that XLA
+cannot partition, so each device calls it on its own examples (the batch split over ``data`` x
+``fsdp``) and heads (split over ``tensor``), with the whole sequence (a ``seq``-sharded input is
+gathered first; on a ``seq`` mesh ``"auto"`` picks the ring kernel instead). An axis that does not
+divide the batch or the heads is left unsplit there. The output keeps q's sharding.
+
 ``interpret=True`` runs the same kernel through the Pallas interpreter on any backend: that is
-how the CPU tests check it against dense attention.
+how the CPU tests check it against dense attention, sharded on fake CPU devices too.
 """
 
 from __future__ import annotations
 
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import PartitionSpec as P
 
 from jaxdrive.attention.softmax_blocks import pad_sequence
+from jaxdrive.parallel.mesh import BATCH_AXES, context_mesh, mesh_platform, spec_of
+
+HEAD_AXIS = "tensor"
 
 
-def available() -> bool:
-    """Splash compiles for TPUs only (elsewhere it runs through the interpreter, for tests)."""
-    return jax.default_backend() == "tpu"
+def available(mesh=None) -> bool:
+    """Splash compiles for TPUs only (elsewhere it runs through the interpreter, for tests): the
+    devices of ``mesh`` (default the context mesh, else the default backend) are TPUs."""
+    return mesh_platform(mesh) == "tpu"
 
 
 @functools.cache
@@ -84,15 +96,14 @@ def _has_key(kv_mask, lq: int, causal_block):
     return seen[:, last] > 0
 
 
-def splash_attention(q, k, v, *, scale, kv_mask=None, causal_block=None, tile: int = 512, interpret: bool = False):
-    """Softmax attention ``[B, Lq, H, D]`` through the splash kernel (see the module docstring)."""
+def _local(q, k, v, mask, *, scale, causal_block, tile, interpret):
+    """The kernel on one device's ``[b, L, h, D]`` arrays (``mask [b, Lk]``, bool)."""
     from jax.experimental.pallas.ops.tpu.splash_attention import splash_attention_kernel as splash
 
     b, lq, h, _ = q.shape
     lk = k.shape[1]
     tile_q, tile_k = min(tile, -(-lq // 128) * 128), min(tile, -(-lk // 128) * 128)
     lq_pad, lk_pad = -(-lq // tile_q) * tile_q, -(-lk // tile_k) * tile_k
-    mask = jnp.ones((b, lk), bool) if kv_mask is None else jnp.asarray(kv_mask, bool)
     heads_first = lambda x: jnp.swapaxes(x, 1, 2)  # [B, L, H, D] -> [B, H, L, D]
     qh = heads_first(pad_sequence(q * jnp.asarray(scale, q.dtype), lq_pad))
     kh, vh = heads_first(pad_sequence(k, lk_pad)), heads_first(pad_sequence(v, lk_pad))
@@ -103,3 +114,33 @@ def splash_attention(q, k, v, *, scale, kv_mask=None, causal_block=None, tile: i
     out = jax.vmap(lambda q, k, v, s: kernel(q, k, v, segment_ids=s))(qh, kh, vh, segments)
     out = jnp.swapaxes(out, 1, 2)[:, :lq]
     return jnp.where(_has_key(mask, lq, causal_block)[:, :, None, None], out, 0).astype(q.dtype)
+
+
+def _split(mesh, b: int, h: int):
+    """``(batch axes, head axis)`` of ``mesh`` that divide ``b`` examples and ``h`` heads."""
+    sizes = dict(zip(mesh.axis_names, mesh.axis_sizes))
+    batch = tuple(a for a in BATCH_AXES if a in sizes)
+    if b % math.prod(sizes[a] for a in batch):
+        batch = ()
+    head = HEAD_AXIS if HEAD_AXIS in sizes and h % sizes[HEAD_AXIS] == 0 else None
+    return batch, head
+
+
+def splash_attention(
+    q, k, v, *, scale, kv_mask=None, causal_block=None, tile: int = 512, interpret: bool = False, mesh=None
+):
+    """Softmax attention ``[B, Lq, H, D]`` through the splash kernel (see the module docstring);
+    ``mesh`` defaults to the context mesh (none: one call over the whole arrays)."""
+    mask = jnp.ones(k.shape[:2], bool) if kv_mask is None else jnp.asarray(kv_mask, bool)
+    local = functools.partial(_local, scale=scale, causal_block=causal_block, tile=tile, interpret=interpret)
+    mesh = context_mesh() if mesh is None else mesh
+    if mesh is None or math.prod(mesh.axis_sizes) == 1:
+        return local(q, k, v, mask)
+    batch, head = _split(mesh, q.shape[0], q.shape[2])
+    qkv_spec, mask_spec = P(batch or None, None, head, None), P(batch or None, None)
+    like = spec_of(q)
+    named = lambda spec: jax.sharding.NamedSharding(mesh, spec)
+    q, k, v, mask = jax.reshard((q, k, v, mask), (named(qkv_spec),) * 3 + (named(mask_spec),))
+    fn = jax.shard_map(local, mesh=mesh, in_specs=(qkv_spec,) * 3 + (mask_spec,), out_specs=qkv_spec, check_vma=False)
+    out = fn(q, k, v, mask)
+    return out if tuple(like) == tuple(qkv_spec) else jax.reshard(out, named(P(*like)))

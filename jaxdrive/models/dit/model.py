@@ -147,7 +147,10 @@ def _traced_params(config: DiTConfig, shapes: tuple) -> tuple:
     """``abstract_params`` of ``DiT(config)`` for :func:`example_inputs` ``shapes``: the model is
     traced once per config, not once per call (a run's init, its checkpoint target and every
     restore each asked for it, and a small DiT takes seconds to trace on a CPU). The tree holds
-    only shapes and dtypes, the same whatever mesh the caller is under."""
+    only shapes and dtypes, the same whatever mesh the caller is under. The trace attends with
+    "xla": the parameters are the same for every kernel, and one traced without a mesh cannot run
+    a TPU-only or sequence-sharded kernel (a step compiled for TPU devices asks for splash)."""
+    config = config.replace(attn_impl="xla")
     tree, recorded = abstract_params(DiT(config, parent=None), **example_inputs(config, **dict(shapes)))
     plain = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype)  # no sharding from the caller's mesh
     return jax.tree_util.tree_map(plain, tree), MappingProxyType(recorded)
