@@ -76,14 +76,32 @@ def make_mesh(
     """A mesh of shape ``(data, fsdp, seq, tensor)`` over ``devices`` (default ``jax.devices()``).
 
     The product of the sizes must equal ``len(devices)``; one size may be ``-1`` (the rest).
-    Device order follows ``jax.make_mesh`` (topology-aware on TPU / GPU).
+    Device order follows ``jax.make_mesh`` (topology-aware on TPU / GPU). Devices of several TPU
+    slices (a multi-slice job) get :func:`make_hybrid_mesh` with the ``data`` axis across the
+    slices, so that only the gradient all-reduce crosses the slow network: ``data`` must then be a
+    multiple of the slice count.
     """
     types = _axis_types(axis_types)
     devices = list(jax.devices() if devices is None else devices)
     if not devices:
         raise ValueError("devices: expected at least one device, got none")
     shape = _resolve_sizes({"data": data, "fsdp": fsdp, "seq": seq, "tensor": tensor}, len(devices), "make_mesh")
+    slices = tpu_slices(devices)
+    if slices > 1:
+        if shape[0] % slices:
+            raise ValueError(
+                f"data: expected a multiple of the {slices} TPU slices the devices span (the data axis runs "
+                f"across slices), got data={shape[0]}"
+            )
+        ici = dict(zip(MESH_AXES, shape), data=shape[0] // slices)
+        return make_hybrid_mesh(ici, {"data": slices}, devices, axis_types=types)
     return jax.make_mesh(shape, MESH_AXES, axis_types=types, devices=devices)
+
+
+def tpu_slices(devices: Sequence[jax.Device]) -> int:
+    """How many TPU slices ``devices`` span (1 for one slice and for devices of other platforms)."""
+    attr, n = _granules(devices)
+    return n if attr == "slice_index" else 1
 
 
 def _granules(devices: Sequence[jax.Device]) -> tuple[str, int]:
@@ -169,6 +187,22 @@ def explicit_mesh():
     if mesh is None or not any(t == AxisType.Explicit for t in mesh.axis_types):
         return None
     return mesh
+
+
+def mesh_platform(mesh=None) -> str:
+    """The platform (``"tpu"``, ``"gpu"``, ``"cpu"``) of the devices a program runs on: those of
+    ``mesh`` (a ``Mesh``: its devices; an ``AbstractMesh``: its abstract device), else of the
+    context mesh, else JAX's default backend. Choices that depend on the hardware (the attention
+    kernel, the dtype policy) ask this, not ``jax.default_backend()``: a program compiled ahead of
+    time for TPU topology devices on a CPU host runs on TPUs, whatever backend the host started."""
+    mesh = context_mesh() if mesh is None else mesh
+    if mesh is not None:
+        if isinstance(mesh, Mesh) and mesh.devices.size:
+            return str(mesh.devices.flat[0].platform)
+        device = getattr(mesh, "abstract_device", None)
+        if device is not None:
+            return str(device.platform)
+    return jax.default_backend()
 
 
 BATCH_AXES = ("data", "fsdp")  # the mesh axes a batch of examples is split over (rules.py's "batch" rule)
