@@ -195,7 +195,7 @@ def test_largest_fit_searches_frames_at_each_resolution(config, monkeypatch):
 
     def total(probe, sizes, devices=None, codec=None):
         d = probe.data
-        return {"per_device": {"total": d.frames * d.height * d.width}}
+        return {"per_device": {"total": d.frames * d.height * d.width}, "exhausted": None}
 
     monkeypatch.setattr(plan, "plan_memory", total)
     fit = plan.largest_fit(config, {"fsdp": 2}, 20 * 32 * 64, scales=(1.0, 0.5))

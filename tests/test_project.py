@@ -51,6 +51,13 @@ def test_ci_runs_the_readme_test_command():
     assert readme_cmd in ci.splitlines()
 
 
+def test_the_suite_installs_the_tpu_compiler():
+    # tests/test_tpu_compile.py compiles for TPU topologies through libtpu (the tpu extra)
+    readme_cmd = re.search(r"```bash\n(?:.*\n)*?(pip install -e .*pytest.*)\n```", README).group(1)
+    assert re.match(r'pip install -e "\.\[[^]]*\btpu\b[^]]*\]"', readme_cmd), readme_cmd
+    assert re.search(r'^tpu = \["jax\[tpu\]', (ROOT / "pyproject.toml").read_text(), flags=re.M)
+
+
 def test_readme_starts_with_the_demo_then_the_tests():
     blocks = re.findall(r"```bash\n(.*?)```", README, flags=re.S)
     assert blocks[0].strip().endswith("pip install -e . && jaxdrive demo")

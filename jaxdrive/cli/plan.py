@@ -1,5 +1,6 @@
-"""``jaxdrive plan``: will a config's train step fit, per device, on a mesh (fake CPU devices; nothing
-is allocated, :mod:`jaxdrive.train.plan`)."""
+"""``jaxdrive plan``: will a config's train step fit, per device, on a mesh (fake CPU devices, or a
+TPU topology's compile-only chips with ``--topology``; nothing is allocated,
+:mod:`jaxdrive.train.plan`)."""
 
 from __future__ import annotations
 
@@ -53,16 +54,28 @@ def _plan(args, rest) -> int:
         raise ValueError(f"--scales: expected positive numbers separated by commas, e.g. 0.5,1,2, got {args.scales!r}")
     if args.devices is not None and args.devices < 1:
         raise ValueError(f"--devices: expected a positive integer, got {args.devices}")
-    sizes = parse_mesh(args.mesh, args.devices)
+    if args.slices < 1:
+        raise ValueError(f"--slices: expected a positive integer, got {args.slices}")
+    target = dict(topology=args.topology, slices=args.slices)
+    if args.topology is None:
+        if args.slices != 1:
+            raise ValueError(f"--slices: expected 1 without --topology (slices of a TPU topology), got {args.slices}")
+        sizes = parse_mesh(args.mesh, args.devices)
+        _start_cpu_devices(math.prod(sizes.values()))
+        mesh: str | dict = sizes
+    else:
+        if args.devices is not None:
+            raise ValueError(
+                f"--devices: expected none with --topology (its chips are the devices), got {args.devices}"
+            )
+        _start_cpu_devices(1)  # the host runs nothing: the TPU devices are the topology's, compile-only
+        mesh = args.mesh
     config = load_config(args.config, args.set or [])
-    _start_cpu_devices(math.prod(sizes.values()))
-    out = {
-        "config": args.config,
-        "sets": args.set or [],
-        **plan_memory(config, sizes, device_memory=memory, compile_step=not args.no_compile),
-    }
+    plan = plan_memory(config, mesh, device_memory=memory, compile_step=not args.no_compile, **target)
+    out = {"config": args.config, "sets": args.set or [], **plan}
+    memory = plan["device_memory"]  # a topology's chip memory when none was given
     if memory is not None and not (args.no_fit or args.no_compile):
-        out["fit"] = largest_fit(config, sizes, memory, scales=scales)
+        out["fit"] = largest_fit(config, plan["mesh"], memory, scales=scales, **target)
     if args.json:
         print(json.dumps(out))
         return 0
@@ -78,12 +91,17 @@ def table(out: dict) -> str:
     row = f"{mesh:20s} {out['bucket']:14s} {out['batch']:5d} " + " ".join(f"{gib(pd[k]):>9s}" for _, k, _ in COLUMNS)
     compiled = "not compiled" if out["compile_seconds"] is None else f"compiled in {out['compile_seconds']} s"
     lines = [
-        f"{out['config']}: per-device GiB of one train step on {out['devices']} fake CPU devices "
-        f"(latents: {out['codec']}; {compiled})",
+        f"{out['config']}: per-device GiB of one train step on {out['target']} (latents: {out['codec']}; {compiled})",
         head,
         row,
     ]
-    if out["fits"] is not None:
+    if out.get("exhausted"):
+        needs = pd["total"]
+        lines.append(
+            f"does not fit: needs {gib(needs) + ' GiB' if needs is not None else 'more than the chip has'} "
+            f"(the compiler: {out['exhausted']})"
+        )
+    elif out["fits"] is not None:
         verdict = "fits" if out["fits"] else "does NOT fit"
         lines.append(f"{verdict} in {gib(out['device_memory'])} GiB per device")
     if "fit" in out:
@@ -106,9 +124,19 @@ def add_commands(sub) -> None:
         "--mesh",
         required=True,
         help="mesh axis sizes, e.g. data=2,fsdp=4,seq=8,tensor=1 (missing "
-        "axes are 1; the product is the fake device count)",
+        "axes are 1; the product is the fake device count, or with --topology its chips x slices, one axis -1 "
+        "for the rest)",
     )
     plan.add_argument("--devices", type=int, help="device count the mesh must multiply to (allows one -1 axis)")
+    plan.add_argument(
+        "--topology",
+        help="compile for a Cloud TPU slice instead of fake CPU devices (XLA:TPU on this host, no TPU needed; "
+        'pip install -e ".[tpu]"): an accelerator type, e.g. v5e-4, v5e-256, v5p-64, v6e-64, v4-8 '
+        "(v5p and v4 count TensorCores, two a chip); its chip memory is the default --device-memory",
+    )
+    plan.add_argument(
+        "--slices", type=int, default=1, help="with --topology: that many slices (the data axis runs across them)"
+    )
     plan.add_argument(
         "--device-memory",
         help="memory per device, e.g. 80GiB, 16GB, 512MiB: says whether it "

@@ -208,13 +208,15 @@ def planned_bucket(run):
     )
 
 
-def accelerator_attention(config, sizes: dict):
+def accelerator_attention(config, sizes: dict, devices=None):
     """``config`` with the attention an accelerator runs: where ``model.attn_impl`` is "auto" and
     ``seq`` does not split the tokens, "blockwise" (O(L) memory, as the cuDNN / splash kernels that
     "auto" picks on a GPU / TPU), not the dense XLA attention "auto" picks on a CPU for sequences
     under 4096^2 pairs, whose scores ``remat="dots"`` would keep for every layer. On a ``seq`` mesh
-    "auto" is the ring kernel everywhere."""
-    if config.model.attn_impl != "auto" or sizes.get("seq", 1) > 1:
+    "auto" is the ring kernel everywhere; on accelerator ``devices`` (a TPU topology's) "auto"
+    stays: it picks the accelerator's own kernel."""
+    platform = "cpu" if not devices else devices[0].platform
+    if config.model.attn_impl != "auto" or sizes.get("seq", 1) > 1 or platform != "cpu":
         return config
     return dataclasses.replace(config, model=config.model.replace(attn_impl="blockwise"))
 
@@ -225,33 +227,123 @@ def _with_mesh(config, sizes: dict):
     return dataclasses.replace(config, mesh=MeshConfig(**sizes))
 
 
-def plan_memory(
-    config, mesh, *, device_memory: int | None = None, devices=None, codec=None, compile_step: bool = True
-) -> dict:
-    """Per-device bytes of ``config``'s train step on ``mesh`` (``{"fsdp": 4, ...}`` or
-    ``"fsdp=4,..."``; its product devices of ``devices``, default ``jax.devices()``): see the
-    module docstring. Returns ``{"mesh", "devices", "bucket", "batch", "tokens", "codec",
-    "per_device": {...}, "compile_seconds", "device_memory", "fits"}``; ``per_device`` holds
-    ``params``, ``opt_state``, ``ema``, ``state_other`` (step, key, counters), ``replicated`` (the
-    bytes of the first three whose leaves the mesh does not split), ``frozen`` (a VAE's
-    parameters), ``batch``, and from the compiled step ``arguments``, ``outputs``, ``aliased``,
-    ``temp`` and ``total`` (None with ``compile_step=False``, which compiles nothing)."""
-    from jaxdrive.train.run import Run
+_SIZE = r"([0-9.]+)\s*([KMGT]i?B?|B|bytes)?"
+_UNITS = {"": 1, "B": 1, "BYTES": 1, "K": 1 << 10, "M": 1 << 20, "G": 1 << 30, "T": 1 << 40}
 
-    devices = list(jax.devices() if devices is None else devices)
-    sizes = parse_mesh(mesh, None, name="mesh")
-    n = math.prod(sizes.values())
-    if n > len(devices):
-        raise ValueError(f"mesh: expected at most {len(devices)} devices (those there are), got {sizes} (product {n})")
+
+def _bytes(number: str, unit: str | None) -> int:
+    unit = (unit or "").upper().replace("IB", "").rstrip("B") or ""
+    return int(float(number) * _UNITS.get(unit, 1))
+
+
+def out_of_memory(error) -> dict | None:
+    """``{"message", "needs"}`` when ``error`` is a compiler's RESOURCE_EXHAUSTED (XLA:TPU checks
+    that a program fits the chip's HBM when it compiles it): its first line, and the bytes it says
+    the program uses (None where it says no number); None for any other error."""
+    import re
+
+    text = str(error)
+    if "RESOURCE_EXHAUSTED" not in text and "Ran out of memory" not in text:
+        return None
+    line = next((x.strip() for x in text.splitlines() if "memory" in x.lower() or "RESOURCE_EXHAUSTED" in x), text)
+    used = re.search(r"Used\s+" + _SIZE + r"\s+of\s+" + _SIZE, text)
+    return {"message": line[:400], "needs": None if used is None else _bytes(used.group(1), used.group(2))}
+
+
+# HLO ops a plan counts in the optimised program (what tells a kernel or a collective is there)
+PROGRAM_OPS = {
+    "mosaic_kernels": 'custom_call_target="tpu_custom_call"',  # Pallas TPU kernels (splash)
+    "collective_permutes": " collective-permute(",  # ring attention's K/V rotation (and its -start form)
+    "all_gathers": " all-gather(",
+    "all_reduces": " all-reduce(",
+}
+
+
+def program_ops(hlo_text: str) -> dict:
+    """Counts of :data:`PROGRAM_OPS` in a compiled program's HLO text (async ``-start`` forms
+    included)."""
+    count = lambda needle: hlo_text.count(needle) + hlo_text.count(needle.replace("(", "-start("))
+    return {k: (hlo_text.count(v) if k == "mosaic_kernels" else count(v)) for k, v in PROGRAM_OPS.items()}
+
+
+def compile_target(mesh, devices=None, topology: str | None = None, slices: int = 1, device_memory=None):
+    """``(mesh sizes, devices, device_memory, target)`` of a compile-only plan: the devices of
+    ``topology`` (a Cloud TPU accelerator type, :mod:`jaxdrive.parallel.topology`; ``slices`` of
+    it), whose chip memory is the default ``device_memory`` and whose chip count the mesh must
+    equal (one axis may be -1), else ``devices`` (default ``jax.devices()``), of which the mesh
+    takes the first. ``target`` names them for a report. ValueErrors name the argument."""
+    from jaxdrive.parallel.topology import topology as find_topology
+    from jaxdrive.parallel.topology import topology_devices
+
     if device_memory is not None and (
         isinstance(device_memory, bool) or not isinstance(device_memory, (int, np.integer)) or device_memory <= 0
     ):
         raise ValueError(f"device_memory: expected a positive number of bytes, got {device_memory!r}")
+    if topology is None:
+        if slices != 1:
+            raise ValueError(f"slices: expected 1 without a topology, got {slices!r}")
+        devices = list(jax.devices() if devices is None else devices)
+        sizes = parse_mesh(mesh, None, name="mesh")
+        n = math.prod(sizes.values())
+        if n > len(devices):
+            raise ValueError(
+                f"mesh: expected at most {len(devices)} devices (those there are), got {sizes} (product {n})"
+            )
+        kind = devices[0].platform if devices else "cpu"
+        return sizes, devices[:n], device_memory, f"{n} {'fake CPU' if kind == 'cpu' else kind} devices"
+    if devices is not None:
+        raise ValueError(f"devices: expected None with topology={topology!r} (its devices are the topology's)")
+    top = find_topology(topology)  # an unknown name: the ValueError lists the known ones
+    chips = top.chips * slices if isinstance(slices, int) and not isinstance(slices, bool) and slices > 0 else None
+    if chips is None:
+        raise ValueError(f"slices: expected a positive integer, got {slices!r}")
+    try:
+        sizes = parse_mesh(mesh, chips, name="mesh")
+    except ValueError as e:
+        raise ValueError(f"{e}: {topology} x {slices} slice(s) has {chips} chips") from None
+    if slices > 1 and sizes["data"] % slices:
+        raise ValueError(
+            f"slices: expected a mesh whose data axis the {slices} slices split (data runs across slices), "
+            f"got data={sizes['data']}"
+        )
+    devices = topology_devices(topology, slices)
+    memory = top.chip_memory if device_memory is None else device_memory
+    where = f"{topology}{f' x {slices} slices' if slices > 1 else ''} ({chips} {devices[0].device_kind} chips, XLA:TPU)"
+    return sizes, devices, memory, where
+
+
+def plan_memory(
+    config,
+    mesh,
+    *,
+    device_memory: int | None = None,
+    devices=None,
+    topology: str | None = None,
+    slices: int = 1,
+    codec=None,
+    compile_step: bool = True,
+) -> dict:
+    """Per-device bytes of ``config``'s train step on ``mesh`` (``{"fsdp": 4, ...}`` or
+    ``"fsdp=4,..."``): see the module docstring. The devices are ``topology``'s (a Cloud TPU
+    accelerator type such as ``"v5p-64"``, ``slices`` of it: compiled by XLA:TPU on this host,
+    libtpu needed; the chip's memory is the default ``device_memory``), else the first of
+    ``devices`` (default ``jax.devices()``). Returns ``{"mesh", "devices", "target", "bucket",
+    "batch", "tokens", "codec", "per_device": {...}, "compile_seconds", "device_memory", "fits",
+    "exhausted"}``; ``per_device`` holds ``params``, ``opt_state``, ``ema``, ``state_other`` (step,
+    key, counters), ``replicated`` (the bytes of the first three whose leaves the mesh does not
+    split), ``frozen`` (a VAE's parameters), ``batch``, and from the compiled step ``arguments``,
+    ``outputs``, ``aliased``, ``temp`` and ``total`` (None with ``compile_step=False``, which
+    compiles nothing). A compile that the TPU compiler stops for want of memory is no error:
+    ``fits`` is False, ``exhausted`` the compiler's line and ``total`` the bytes it says it needs."""
+    from jaxdrive.train.run import Run
+
+    sizes, devices, device_memory, target = compile_target(mesh, devices, topology, slices, device_memory)
+    n = len(devices)
     what = None
     if codec is None:
         codec, what = abstract_codec(config.latents)
-    config = accelerator_attention(config, sizes)
-    run = Run(_with_mesh(config, sizes), devices=devices[:n], codec=codec, check_data=False)
+    config = accelerator_attention(config, sizes, devices)
+    run = Run(_with_mesh(config, sizes), devices=devices, codec=codec, check_data=False)
     state, optimizer = run.abstract_state()
     shardings = jax.tree_util.tree_map(lambda x: x.sharding, state)
     bucket = planned_bucket(run)
@@ -275,23 +367,38 @@ def plan_memory(
         "batch": device_bytes(batch),
         **dict.fromkeys(("arguments", "outputs", "aliased", "temp", "total")),
     }
-    seconds = None
+    seconds, exhausted, program = None, None, None
     if compile_step:
         t = time.perf_counter()
-        with jax.set_mesh(run.mesh):
-            compiled = run.step_fn(optimizer, shardings).lower(state, frozen, batch).compile()
+        try:
+            with jax.set_mesh(run.mesh):
+                compiled = run.step_fn(optimizer, shardings).lower(state, frozen, batch).compile()
+        except jax.errors.JaxRuntimeError as e:
+            exhausted = out_of_memory(e)
+            if exhausted is None:
+                raise
         seconds = round(time.perf_counter() - t, 1)
-        a = compiled.memory_analysis()
-        per_device.update(
-            arguments=int(a.argument_size_in_bytes),
-            outputs=int(a.output_size_in_bytes),
-            aliased=int(a.alias_size_in_bytes),
-            temp=int(a.temp_size_in_bytes),
-        )
-        per_device["total"] = resident_bytes(per_device) + transient_bytes(a)
+        if exhausted is None:
+            program = program_ops(compiled.as_text())
+            a = compiled.memory_analysis()
+            per_device.update(
+                arguments=int(a.argument_size_in_bytes),
+                outputs=int(a.output_size_in_bytes),
+                aliased=int(a.alias_size_in_bytes),
+                temp=int(a.temp_size_in_bytes),
+            )
+            per_device["total"] = resident_bytes(per_device) + transient_bytes(a)
+        else:
+            per_device["total"] = exhausted["needs"]
+    fits = None
+    if exhausted is not None:
+        fits = False  # the compiler knows the chip's memory: out of it means no fit, whatever device_memory says
+    elif device_memory is not None and compile_step:
+        fits = per_device["total"] <= device_memory
     return {
         "mesh": sizes,
         "devices": n,
+        "target": target,
         "bucket": "x".join(map(str, bucket.key)),
         "batch": bucket.batch_size,
         "tokens": run.tokens(bucket.batch_size, bucket.height, bucket.width, run.codec.latent_frames(bucket.frames)),
@@ -299,24 +406,37 @@ def plan_memory(
         "per_device": per_device,
         "compile_seconds": seconds,
         "device_memory": device_memory,
-        "fits": None if device_memory is None or not compile_step else per_device["total"] <= device_memory,
+        "fits": fits,
+        "exhausted": None if exhausted is None else exhausted["message"],
+        "program": program,
     }
 
 
-def largest_fit(config, mesh, device_memory: int, *, scales=(1.0,), devices=None, max_doublings: int = 6) -> dict:
+def largest_fit(
+    config,
+    mesh,
+    device_memory: int | None = None,
+    *,
+    scales=(1.0,),
+    devices=None,
+    topology: str | None = None,
+    slices: int = 1,
+    max_doublings: int = 6,
+) -> dict:
     """The longest clip at each resolution that fits ``device_memory`` bytes per device (module
-    docstring). Returns ``{"device_memory", "resolutions": [{"height", "width", "frames", "total",
-    "probes"}, ...], "largest": the entry with the most tokens}``; ``frames`` is None where not even
+    docstring; ``devices``, ``topology`` and ``slices`` as in :func:`plan_memory`, a topology's
+    chip memory the default ``device_memory``). Returns ``{"device_memory", "resolutions":
+    [{"height", "width", "frames", "total", "probes"}, ...], "largest": the entry with the most
+    tokens}``; ``frames`` is None where not even
     the shortest clip fits. Each probe's total is logged at DEBUG."""
     from jaxdrive.train.run import Run
 
-    if isinstance(device_memory, bool) or not isinstance(device_memory, (int, np.integer)) or device_memory <= 0:
-        raise ValueError(f"device_memory: expected a positive number of bytes, got {device_memory!r}")
+    sizes, devices, device_memory, _ = compile_target(mesh, devices, topology, slices, device_memory)
+    if device_memory is None:
+        raise ValueError("device_memory: expected a positive number of bytes (or a topology), got None")
     if not scales or any(not (isinstance(s, (int, float)) and math.isfinite(s) and s > 0) for s in scales):
         raise ValueError(f"scales: expected positive resolution scales, got {scales!r}")
     codec, _ = abstract_codec(config.latents)
-    sizes = parse_mesh(mesh, None, name="mesh")
-    devices = list(jax.devices() if devices is None else devices)[: math.prod(sizes.values())]
     run = Run(_with_mesh(config, sizes), devices=devices, codec=codec, check_data=False)
     bucket, temporal = planned_bucket(run), max(codec.temporal, 1)
     m = run.training.model
@@ -342,7 +462,8 @@ def largest_fit(config, mesh, device_memory: int, *, scales=(1.0,), devices=None
                     ),
                 )
                 try:
-                    totals[k] = plan_memory(probe, sizes, devices=devices, codec=codec)["per_device"]["total"]
+                    plan = plan_memory(probe, sizes, devices=devices, codec=codec)
+                    totals[k] = None if plan["exhausted"] else plan["per_device"]["total"]  # out of HBM: no fit
                 except ValueError:  # a clip length the config rules out (e.g. its anchor spacing)
                     totals[k] = None
                 logger.debug("  %dx%dx%d: %s", h, w, 1 + temporal * k, totals[k])

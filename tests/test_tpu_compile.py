@@ -1,0 +1,109 @@
+"""Compiled for a TPU on this CPU host: Cloud TPU topologies as compile-only devices (libtpu, the
+``tpu`` extra), the tiny train step through XLA:TPU with splash in ``shard_map`` on a sharded batch
+and with ring attention on a ``seq`` mesh, the planner's TPU figures and its bad inputs."""
+
+from pathlib import Path
+
+import pytest
+
+from jaxdrive.cli import main as cli
+from jaxdrive.config import load_config
+from jaxdrive.parallel.topology import TOPOLOGIES, topology, topology_devices
+from jaxdrive.train.plan import out_of_memory, plan_memory
+
+TINY = str(Path(__file__).resolve().parents[1] / "configs" / "tiny.py")
+GiB = 1 << 30
+
+
+def test_accelerator_types_map_to_chip_grids_and_memory():
+    # Cloud TPU's names: v5e / v6e count chips, v5p / v4 TensorCores (two a chip)
+    grid = lambda name: (topology(name).shape, topology(name).chips, topology(name).chip_memory // GiB)
+    assert grid("v5p-64") == ("2x4x4", 32, 95) and grid("v5e-256") == ("16x16", 256, 16)
+    assert grid("v4-8") == ("2x2x1", 4, 32) and grid("v6e-64") == ("8x8", 64, 32)
+    assert topology("v6e-64").jax_name == "v6e:8x8"
+    assert {"v5e-4", "v5p-8", "v5p-1024", "v6e-4", "v6e-256", "v4-8"} <= set(TOPOLOGIES)
+
+
+def test_topology_devices_are_the_slices_chips():
+    devices = topology_devices("v5p-8")
+    assert len(devices) == 4 and {d.platform for d in devices} == {"tpu"}
+    assert len(topology_devices("v4-8")) == 4  # megacore: one device a chip, as on a v4 VM
+    two = topology_devices("v5e-4", slices=2)
+    assert len(two) == 8 and sorted({d.slice_index for d in two}) == [0, 1]
+
+
+def test_a_multislice_mesh_puts_data_across_the_slices():
+    from jaxdrive.parallel.mesh import make_mesh
+
+    mesh = make_mesh(data=2, fsdp=4, devices=topology_devices("v5e-4", slices=2))
+    grid = mesh.devices  # [data, fsdp, seq, tensor]
+    assert {d.slice_index for d in grid[0].flat} == {0} and {d.slice_index for d in grid[1].flat} == {1}
+    with pytest.raises(ValueError, match="data: expected a multiple of the 2 TPU slices .* got data=1"):
+        make_mesh(fsdp=8, devices=topology_devices("v5e-4", slices=2))
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        (dict(mesh="fsdp=4", topology="v5q-4"), "topology: expected one of v5e-1, v5e-4, .*got 'v5q-4'"),
+        (dict(mesh="fsdp=8", topology="v5e-4"), "mesh: expected axis sizes whose product is the device count 4.*v5e-4"),
+        (dict(mesh="fsdp=4", topology="v5e-4", slices=2), "device count 8, got 'fsdp=4' \\(product 4\\)"),
+        (
+            dict(mesh="fsdp=8", topology="v5e-4", slices=2),
+            "data axis the 2 slices.*data=1",
+        ),
+        (dict(mesh="fsdp=4", topology="v5e-4", slices=0), "slices: expected a positive integer, got 0"),
+        (dict(mesh="fsdp=2", slices=2), "slices: expected 1 without a topology, got 2"),
+    ],
+)
+def test_bad_targets_name_the_argument_and_both_numbers(kwargs, match):
+    config = load_config(TINY)
+    mesh = kwargs.pop("mesh")
+    with pytest.raises(ValueError, match=match):
+        plan_memory(config, mesh, compile_step=False, **kwargs)
+
+
+def test_without_libtpu_the_command_says_what_to_install(monkeypatch, capsys):
+    import importlib.util
+
+    from jaxdrive.parallel import topology as top
+
+    top._devices.cache_clear()
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "libtpu" else real(name, *a))
+    assert cli(["plan", "--config", TINY, "--mesh", "fsdp=4", "--topology", "v5e-4", "--no-compile"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and 'pip install -e ".[tpu]"' in err
+    top._devices.cache_clear()
+
+
+def test_the_compilers_out_of_memory_is_a_verdict_with_the_bytes_it_needs():
+    error = RuntimeError(
+        "RESOURCE_EXHAUSTED: XLA:TPU compile permanent error. Ran out of memory in memory space hbm. "
+        "Used 20.51G of 15.48G hbm. Exceeded hbm capacity by 5.03G.\n\nTotal hbm usage >= 21.0G:"
+    )
+    found = out_of_memory(error)
+    assert found["needs"] == int(20.51 * GiB) and "Ran out of memory" in found["message"]
+    assert out_of_memory(RuntimeError("INVALID_ARGUMENT: something else")) is None
+
+
+@pytest.mark.slow(seconds=60)
+def test_tiny_step_compiles_for_a_v5e_with_splash_in_shard_map_on_a_sharded_batch():
+    # the batch over fsdp, the heads over tensor: each chip calls the Mosaic kernel on its own
+    # examples and heads (a kernel XLA cannot partition); "auto" picks splash from the mesh's TPUs
+    plan = plan_memory(load_config(TINY), "fsdp=2,tensor=2", topology="v5e-4")
+    assert plan["target"].startswith("v5e-4 (4 TPU v5 lite chips")
+    assert plan["program"]["mosaic_kernels"] > 0  # forward and backward splash kernels
+    pd = plan["per_device"]
+    assert pd["temp"] > 0 and pd["total"] >= pd["temp"] + pd["params"]
+    assert plan["device_memory"] == 16 * GiB and plan["fits"] is True
+
+
+@pytest.mark.slow(seconds=60)
+def test_tiny_step_compiles_for_a_v5e_with_ring_attention_on_a_seq_mesh():
+    # the tiny step with one layer, two views and no controls: 18 s of XLA:TPU instead of 47
+    smaller = ["model.depth=1", "model.final_conv=0", "data.views=2", "model.controls.text=none"]
+    plan = plan_memory(load_config(TINY, smaller), "fsdp=2,seq=2", topology="v5e-4")
+    ops = plan["program"]
+    assert ops["collective_permutes"] > 0 and ops["mosaic_kernels"] == 0  # K/V travel round the seq ring
+    assert plan["per_device"]["total"] > 0 and plan["fits"] is True
