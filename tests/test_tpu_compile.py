@@ -10,6 +10,7 @@ from jaxdrive.cli import main as cli
 from jaxdrive.config import load_config
 from jaxdrive.parallel.topology import TOPOLOGIES, topology, topology_devices
 from jaxdrive.train.plan import out_of_memory, plan_memory
+from jaxdrive.train.program import f32_dots, unlisted_f32_dots
 
 TINY = str(Path(__file__).resolve().parents[1] / "configs" / "tiny.py")
 GiB = 1 << 30
@@ -87,13 +88,31 @@ def test_the_compilers_out_of_memory_is_a_verdict_with_the_bytes_it_needs():
     assert out_of_memory(RuntimeError("INVALID_ARGUMENT: something else")) is None
 
 
+def test_f32_dots_are_read_from_the_operands_own_lines():
+    hlo = """
+  %p0 = f32[8,64]{1,0} parameter(0)
+  %p1 = bf16[64,64]{1,0} parameter(1)
+  %c = bf16[8,64]{1,0} convert(%p0)
+  %dot.1 = f32[8,64]{1,0} dot(%c, %p1), lhs_contracting_dims={1}, metadata={op_name="jit(f)/DiT/mlp/fc1/dot_general"}
+  %convolution.2 = f32[8,64]{1,0} convolution(%p0, %p1), dim_labels=bf_io->bf, metadata={op_name="jit(f)/loss/dot"}
+  ROOT %t = (f32[8,64]{1,0}) tuple(%dot.1)
+"""
+    found = f32_dots(hlo)
+    assert found == [{"op": "convolution", "result": "f32", "operands": ["f32", "bf16"], "path": "jit(f)/loss/dot"}]
+    assert unlisted_f32_dots(found, {"/loss/": "the loss in float32"}) == []
+    assert unlisted_f32_dots(found, {}) == found
+
+
 @pytest.mark.slow(seconds=60)
-def test_tiny_step_compiles_for_a_v5e_with_splash_in_shard_map_on_a_sharded_batch():
+def test_tiny_bf16_step_compiles_for_a_v5e_with_splash_in_shard_map_and_no_f32_matmul():
     # the batch over fsdp, the heads over tensor: each chip calls the Mosaic kernel on its own
-    # examples and heads (a kernel XLA cannot partition); "auto" picks splash from the mesh's TPUs
-    plan = plan_memory(load_config(TINY), "fsdp=2,tensor=2", topology="v5e-4")
+    # examples and heads (a kernel XLA cannot partition); "auto" picks splash from the mesh's TPUs.
+    # In the bf16 step no dot or convolution takes a float32 operand but those the allow-list
+    # names (before: 38, the XLA attention's scores and probabilities and their transposes)
+    plan = plan_memory(load_config(TINY, ["train.compute_dtype=bfloat16"]), "fsdp=2,tensor=2", topology="v5e-4")
     assert plan["target"].startswith("v5e-4 (4 TPU v5 lite chips")
     assert plan["program"]["mosaic_kernels"] > 0  # forward and backward splash kernels
+    assert unlisted_f32_dots(plan["program"]["f32_dots"]) == []
     pd = plan["per_device"]
     assert pd["temp"] > 0 and pd["total"] >= pd["temp"] + pd["params"]
     assert plan["device_memory"] == 16 * GiB and plan["fits"] is True

@@ -12,7 +12,9 @@ ring over the ``seq`` axis, the local kernel of all-to-all) is built from these 
   passes recompute scores block by block instead of storing the ``L x L`` matrix.
 
 Shapes: ``q [B, Lq, H, D]``, ``k, v [B, Lk, H, D]``, outputs ``[B, Lq, H, D]``, log-sum-exp
-``[B, H, Lq]``. All arithmetic is float32. Masking: ``kv_mask [B, Lk]`` (True = attend) and
+``[B, H, Lq]``. Scores, probabilities, the softmax statistics and every accumulator are float32;
+the matmuls take their operands in the inputs' dtype (bf16 operands, f32 accumulation in a bf16
+step: a float32 dot there runs at a fraction of the chip's bf16 rate). Masking: ``kv_mask [B, Lk]`` (True = attend) and
 ``causal_block = n``: query token i may attend to key token j iff ``j // n <= i // n`` with
 ``i, j`` global positions (``q_start``/``k_start`` give the block's offset). A query row with no
 allowed key gets output 0 and log-sum-exp -inf (never NaN), in every implementation.
@@ -20,6 +22,9 @@ allowed key gets output 0 and log-sum-exp -inf (never NaN), in every implementat
 
 from __future__ import annotations
 
+import functools
+
+import jax
 import jax.numpy as jnp
 
 NEG_INF = -jnp.inf
@@ -54,8 +59,36 @@ def allowed(batch: int, lq: int, lk: int, *, kv_mask=None, causal_block=None, q_
     return mask
 
 
+def _dot(spec: str, a, b):
+    """``einsum(spec, a, b)`` accumulated and returned in float32, its operands in the dtype of
+    ``b`` (the layer's q / k / v / dO: bfloat16 in a bf16 step): the scores and probabilities stay
+    float32 between the matmuls, the matmuls themselves run at the chip's bf16 rate, as a flash
+    kernel runs them. For float32 inputs this is the float32 einsum it replaced."""
+    return _operand_dtype_dot(spec, a.astype(b.dtype), b)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _operand_dtype_dot(spec: str, a, b):
+    return jnp.einsum(spec, a, b, preferred_element_type=jnp.float32)
+
+
+def _operand_dtype_dot_fwd(spec, a, b):
+    return _operand_dtype_dot(spec, a, b), (a, b)
+
+
+def _operand_dtype_dot_bwd(spec, res, g):
+    # the float32 cotangent enters the transposed dots in the operands' dtype: autodiff would
+    # multiply it as float32 against the bf16 operand, a float32 matmul in every backward
+    a, b = res
+    _, vjp = jax.vjp(lambda a, b: jnp.einsum(spec, a, b), a, b)
+    return vjp(g.astype(b.dtype))
+
+
+_operand_dtype_dot.defvjp(_operand_dtype_dot_fwd, _operand_dtype_dot_bwd)
+
+
 def _scores(q, k, scale, mask):
-    s = jnp.einsum("bqhd,bkhd->bhqk", q.astype(jnp.float32), k.astype(jnp.float32)) * scale
+    s = _dot("bqhd,bkhd->bhqk", q, k) * scale
     return s if mask is None else jnp.where(mask, s, NEG_INF)
 
 
@@ -69,7 +102,7 @@ def attend_block(q, k, v, *, scale, kv_mask=None, causal_block=None, q_start=0, 
     m = jnp.where(jnp.isfinite(m), m, 0.0)  # rows with no allowed key
     p = jnp.exp(s - m)
     total = jnp.sum(p, axis=-1, keepdims=True)
-    o = jnp.einsum("bhqk,bkhd->bqhd", p / jnp.where(total > 0, total, 1.0), v.astype(jnp.float32))
+    o = _dot("bhqk,bkhd->bqhd", p / jnp.where(total > 0, total, 1.0), v)
     lse = jnp.where(total[..., 0] > 0, m[..., 0] + jnp.log(jnp.where(total[..., 0] > 0, total[..., 0], 1.0)), NEG_INF)
     return o, lse
 
@@ -114,10 +147,9 @@ def attend_block_grads(q, k, v, lse, delta_rows, do, *, scale, kv_mask=None, cau
     s = _scores(q, k, scale, mask)
     finite = jnp.isfinite(lse)[..., None]
     p = jnp.where(finite, jnp.exp(s - jnp.where(finite, lse[..., None], 0.0)), 0.0)  # [B, H, Lq, Lk]
-    do = do.astype(jnp.float32)
-    dv = jnp.einsum("bhqk,bqhd->bkhd", p, do)
-    dp = jnp.einsum("bqhd,bkhd->bhqk", do, v.astype(jnp.float32))
+    dv = _dot("bhqk,bqhd->bkhd", p, do)
+    dp = _dot("bqhd,bkhd->bhqk", do, v)
     ds = p * (dp - delta_rows[..., None])
-    dq = jnp.einsum("bhqk,bkhd->bqhd", ds, k.astype(jnp.float32)) * scale
-    dk = jnp.einsum("bhqk,bqhd->bkhd", ds, q.astype(jnp.float32)) * scale
+    dq = _dot("bhqk,bkhd->bqhd", ds, k) * scale
+    dk = _dot("bhqk,bqhd->bkhd", ds, q) * scale
     return dq, dk, dv

@@ -104,6 +104,16 @@ def table(out: dict) -> str:
     elif out["fits"] is not None:
         verdict = "fits" if out["fits"] else "does NOT fit"
         lines.append(f"{verdict} in {gib(out['device_memory'])} GiB per device")
+    program = out.get("program")
+    if program:
+        from jaxdrive.train.program import unlisted_f32_dots
+
+        dots = program["f32_dots"]
+        lines.append(
+            f"program: {program['mosaic_kernels']} Mosaic kernels, {program['collective_permutes']} "
+            f"collective-permutes, {program['all_gathers']} all-gathers, {program['all_reduces']} all-reduces; "
+            f"{len(dots)} dots / convolutions with a float32 operand ({len(unlisted_f32_dots(dots))} not allowed)"
+        )
     if "fit" in out:
         lines.append(f"longest clip that fits {gib(out['device_memory'])} GiB at batch {out['fit']['bucket_batch']}:")
         for r in out["fit"]["resolutions"]:

@@ -45,6 +45,7 @@ from jax.sharding import PartitionSpec as P
 
 from jaxdrive.parallel.memory import parse_bytes  # noqa: F401  (the planner's sizes: jaxdrive plan, bench train)
 from jaxdrive.parallel.mesh import MESH_AXES, batch_axes, parse_mesh_spec
+from jaxdrive.train.program import f32_dots, program_ops
 
 logger = logging.getLogger(__name__)
 
@@ -250,22 +251,6 @@ def out_of_memory(error) -> dict | None:
     return {"message": line[:400], "needs": None if used is None else _bytes(used.group(1), used.group(2))}
 
 
-# HLO ops a plan counts in the optimised program (what tells a kernel or a collective is there)
-PROGRAM_OPS = {
-    "mosaic_kernels": 'custom_call_target="tpu_custom_call"',  # Pallas TPU kernels (splash)
-    "collective_permutes": " collective-permute(",  # ring attention's K/V rotation (and its -start form)
-    "all_gathers": " all-gather(",
-    "all_reduces": " all-reduce(",
-}
-
-
-def program_ops(hlo_text: str) -> dict:
-    """Counts of :data:`PROGRAM_OPS` in a compiled program's HLO text (async ``-start`` forms
-    included)."""
-    count = lambda needle: hlo_text.count(needle) + hlo_text.count(needle.replace("(", "-start("))
-    return {k: (hlo_text.count(v) if k == "mosaic_kernels" else count(v)) for k, v in PROGRAM_OPS.items()}
-
-
 def compile_target(mesh, devices=None, topology: str | None = None, slices: int = 1, device_memory=None):
     """``(mesh sizes, devices, device_memory, target)`` of a compile-only plan: the devices of
     ``topology`` (a Cloud TPU accelerator type, :mod:`jaxdrive.parallel.topology`; ``slices`` of
@@ -333,7 +318,9 @@ def plan_memory(
     key, counters), ``replicated`` (the bytes of the first three whose leaves the mesh does not
     split), ``frozen`` (a VAE's parameters), ``batch``, and from the compiled step ``arguments``,
     ``outputs``, ``aliased``, ``temp`` and ``total`` (None with ``compile_step=False``, which
-    compiles nothing). A compile that the TPU compiler stops for want of memory is no error:
+    compiles nothing); ``program`` counts what the compiled step holds
+    (:func:`jaxdrive.train.program.program_ops`, and ``f32_dots``: its matmuls with a float32
+    operand). A compile that the TPU compiler stops for want of memory is no error:
     ``fits`` is False, ``exhausted`` the compiler's line and ``total`` the bytes it says it needs."""
     from jaxdrive.train.run import Run
 
@@ -379,7 +366,8 @@ def plan_memory(
                 raise
         seconds = round(time.perf_counter() - t, 1)
         if exhausted is None:
-            program = program_ops(compiled.as_text())
+            text = compiled.as_text()
+            program = {**program_ops(text), "f32_dots": f32_dots(text)}
             a = compiled.memory_analysis()
             per_device.update(
                 arguments=int(a.argument_size_in_bytes),
