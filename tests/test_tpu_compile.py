@@ -26,6 +26,8 @@ def test_accelerator_types_map_to_chip_grids_and_memory():
 
 
 def test_topology_devices_are_the_slices_chips():
+    for name, top in TOPOLOGIES.items():  # every name the planner accepts gives its chips (v5e-1 once did not)
+        assert len(topology_devices(name)) == top.chips, name
     devices = topology_devices("v5p-8")
     assert len(devices) == 4 and {d.platform for d in devices} == {"tpu"}
     assert len(topology_devices("v4-8")) == 4  # megacore: one device a chip, as on a v4 VM

@@ -86,6 +86,8 @@ def _devices(jax_name: str, generation: str, slices: int) -> tuple:
     from jax.experimental import topologies
 
     kwargs = {"chip_config_name": "megacore"} if generation == "v4" else {}  # v4: one device a chip, as on a VM
+    if jax_name.endswith(":1x1"):  # one chip: less than a host's default 2x2x1, which must divide the grid
+        kwargs["chips_per_host_bounds"] = (1, 1, 1)
     if slices > 1:
         kwargs["num_slices"] = slices
     return tuple(topologies.get_topology_desc(topology_name=jax_name, platform="tpu", **kwargs).devices)
