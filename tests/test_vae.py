@@ -186,6 +186,22 @@ def test_clips_in_groups_equal_all_at_once_sharded_and_hold_less(tiny, mode, k):
 
 
 @pytest.mark.slow(seconds=5)
+def test_one_image_a_device_and_step_keeps_its_sharding(tiny):
+    """Images (one frame a clip) coded one clip a device and step: the reshapes that split the
+    folded clips into steps put size-1 axes beside the split one, whose sharding JAX could not
+    infer under an Explicit mesh (MagicDrive-V2 stage 1's image buckets failed to trace)."""
+    vae, params = tiny
+    grouped = CausalVAE(VAEConfig(**{**TINY.__dict__, "mode": "chunked", "clip_batch": 1}))
+    x = _video((4, 3, 1, 16, 16, 3), seed=5)  # 12 folded one-frame clips, 3 a device
+    z = vae.encode(params, x)
+    mesh = make_mesh(data=2, fsdp=2, devices=jax.devices()[:4])
+    with jax.set_mesh(mesh):
+        zs = jax.jit(grouped.encode)(params, jax.device_put(x, NamedSharding(mesh, P(("data", "fsdp")))))
+    np.testing.assert_allclose(zs, z, rtol=1e-5, atol=1e-6)
+    assert tuple(zs.sharding.spec)[0] == ("data", "fsdp")
+
+
+@pytest.mark.slow(seconds=5)
 def test_views_fold_into_the_batch_and_shard(tiny):
     """[B, V, F, H, W, 3] equals encoding each view alone; on a data=2 x fsdp=4 mesh, encode and
     decode give the single-device numbers with the folded batch sharded over both axes."""

@@ -53,7 +53,7 @@ from jaxdrive.models.layers import GroupNorm
 from jaxdrive.models.params import abstract_params, host_params_for_key
 from jaxdrive.models.tokens import merge, split
 from jaxdrive.models.vae import layers as L
-from jaxdrive.parallel.mesh import entry_axes
+from jaxdrive.parallel.mesh import entry_axes, spec_of
 from jaxdrive.parallel.rules import constrain, logical_to_spec
 
 MODES = ("chunked", "whole", "frame_wise")
@@ -458,11 +458,14 @@ class CausalVAE:
         n = x.shape[0]
         per = n // (shards * steps)
         each = lambda t: self._run(kind, params, t, mode, tiled)
-        batches = jnp.moveaxis(x.reshape(shards, steps, per, *x.shape[1:]), 1, 0)  # [steps, shards, per, ...]
-        batches = batches.reshape(steps, shards * per, *x.shape[1:])
+        entry = spec_of(x)[0]  # the clips' mesh axes, stated at each reshape (below)
+        batches = jnp.moveaxis(
+            _reshape(x, (shards, steps, per, *x.shape[1:]), 0, entry), 1, 0
+        )  # [steps, shards, per, ...]
+        batches = _reshape(batches, (steps, shards * per, *x.shape[1:]), 1, entry)
         out = jax.lax.map(each, batches)  # [steps, shards * per, ...]
-        out = jnp.moveaxis(out.reshape(steps, shards, per, *out.shape[2:]), 0, 1)
-        return out.reshape(n, *out.shape[3:])
+        out = jnp.moveaxis(_reshape(out, (steps, shards, per, *out.shape[2:]), 1, entry), 0, 1)
+        return _reshape(out, (n, *out.shape[3:]), 0, entry)
 
     def _tiles(self, x, tile_key: str, tiled: bool) -> tuple[dict, dict] | None:
         """``(geometry of height, of width)`` when ``x [N, T, H, W, C]`` is tiled, else None: with
@@ -471,6 +474,18 @@ class CausalVAE:
             return None
         geo_h, geo_w = self.config.tile_geometry("height"), self.config.tile_geometry("width")
         return (geo_h, geo_w) if x.shape[2] > geo_h[tile_key] or x.shape[3] > geo_w[tile_key] else None
+
+
+def _reshape(x, shape: tuple, axis: int, entry):
+    """``x.reshape(shape)`` with output axis ``axis`` sharded over ``entry`` (a spec entry; None:
+    unsharded, no mesh). JAX infers the output sharding of most splits and merges, but not where
+    size-1 axes sit beside the split axis (one clip a device and step, one frame a clip: the
+    image buckets of MagicDrive-V2's first stage), which it refuses under an Explicit mesh."""
+    if entry is None:
+        return x.reshape(shape)
+    spec = [None] * len(shape)
+    spec[axis] = entry
+    return jax.lax.reshape(x, shape, out_sharding=jax.sharding.PartitionSpec(*spec))
 
 
 def _clip_groups(n: int, clip_batch: int) -> tuple[int, int] | None:
