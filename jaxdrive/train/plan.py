@@ -238,9 +238,11 @@ def _bytes(number: str, unit: str | None) -> int:
 
 
 def out_of_memory(error) -> dict | None:
-    """``{"message", "needs"}`` when ``error`` is a compiler's RESOURCE_EXHAUSTED (XLA:TPU checks
-    that a program fits the chip's HBM when it compiles it): its first line, and the bytes it says
-    the program uses (None where it says no number); None for any other error."""
+    """``{"message", "needs", "temp"}`` when ``error`` is a compiler's RESOURCE_EXHAUSTED (XLA:TPU
+    checks that a program fits the chip's HBM when it compiles it): its first line, the bytes it
+    says the program uses ("Used X of Y hbm") and those it says its temporaries need ("the total
+    memory required for HLO temporaries (X) exceeds available HBM"), None where it says no such
+    number; None for any other error."""
     import re
 
     text = str(error)
@@ -248,7 +250,12 @@ def out_of_memory(error) -> dict | None:
         return None
     line = next((x.strip() for x in text.splitlines() if "memory" in x.lower() or "RESOURCE_EXHAUSTED" in x), text)
     used = re.search(r"Used\s+" + _SIZE + r"\s+of\s+" + _SIZE, text)
-    return {"message": line[:400], "needs": None if used is None else _bytes(used.group(1), used.group(2))}
+    temps = re.search(r"HLO temporaries\s*\(" + _SIZE + r"\)", text)
+    return {
+        "message": line[:400],
+        "needs": None if used is None else _bytes(used.group(1), used.group(2)),
+        "temp": None if temps is None else _bytes(temps.group(1), temps.group(2)),
+    }
 
 
 def compile_target(mesh, devices=None, topology: str | None = None, slices: int = 1, device_memory=None):
@@ -376,6 +383,9 @@ def plan_memory(
                 temp=int(a.temp_size_in_bytes),
             )
             per_device["total"] = resident_bytes(per_device) + transient_bytes(a)
+        elif exhausted["temp"] is not None:  # what stays resident is known without the program
+            per_device["temp"] = exhausted["temp"]
+            per_device["total"] = resident_bytes(per_device) + exhausted["temp"]
         else:
             per_device["total"] = exhausted["needs"]
     fits = None
