@@ -55,7 +55,7 @@ def test_a_multislice_mesh_puts_data_across_the_slices():
             dict(mesh="fsdp=8", topology="v5e-4", slices=2),
             "data axis the 2 slices.*data=1",
         ),
-        (dict(mesh="fsdp=4", topology="v5e-4", slices=0), "slices: expected a positive integer, got 0"),
+        (dict(mesh="fsdp=4", topology="v5e-4", slices=0), "slices: expected an integer >= 1, got 0"),
         (dict(mesh="fsdp=2", slices=2), "slices: expected 1 without a topology, got 2"),
     ],
 )

@@ -68,7 +68,14 @@ def _plan(args, rest) -> int:
             raise ValueError(
                 f"--devices: expected none with --topology (its chips are the devices), got {args.devices}"
             )
-        _start_cpu_devices(1)  # the host runs nothing: the TPU devices are the topology's, compile-only
+        # the host runs nothing: the TPU devices are the topology's, compile-only; JAX's own backend
+        # stays the CPU (with libtpu installed it would otherwise look for a TPU on this host)
+        try:
+            import jax
+
+            jax.config.update("jax_platforms", "cpu")
+        except RuntimeError:
+            pass
         mesh = args.mesh
     config = load_config(args.config, args.set or [])
     plan = plan_memory(config, mesh, device_memory=memory, compile_step=not args.no_compile, **target)

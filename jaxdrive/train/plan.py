@@ -43,9 +43,10 @@ import numpy as np
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from jaxdrive.parallel.memory import parse_bytes  # noqa: F401  (the planner's sizes: jaxdrive plan, bench train)
+from jaxdrive.parallel.memory import parse_bytes  # the planner's sizes (also jaxdrive plan's, bench train's)
 from jaxdrive.parallel.mesh import MESH_AXES, batch_axes, parse_mesh_spec
 from jaxdrive.train.program import f32_dots, program_ops
+from jaxdrive.validate import check_positive_int
 
 logger = logging.getLogger(__name__)
 
@@ -228,13 +229,11 @@ def _with_mesh(config, sizes: dict):
     return dataclasses.replace(config, mesh=MeshConfig(**sizes))
 
 
-_SIZE = r"([0-9.]+)\s*([KMGT]i?B?|B|bytes)?"
-_UNITS = {"": 1, "B": 1, "BYTES": 1, "K": 1 << 10, "M": 1 << 20, "G": 1 << 30, "T": 1 << 40}
+_SIZE = r"([0-9.]+)\s*([KMGT])?"  # the compiler's sizes: "20.51G" (binary units, GiB)
 
 
 def _bytes(number: str, unit: str | None) -> int:
-    unit = (unit or "").upper().replace("IB", "").rstrip("B") or ""
-    return int(float(number) * _UNITS.get(unit, 1))
+    return parse_bytes(f"{number}{unit}iB" if unit else number, name="the compiler's size")
 
 
 def out_of_memory(error) -> dict | None:
@@ -286,9 +285,8 @@ def compile_target(mesh, devices=None, topology: str | None = None, slices: int 
     if devices is not None:
         raise ValueError(f"devices: expected None with topology={topology!r} (its devices are the topology's)")
     top = find_topology(topology)  # an unknown name: the ValueError lists the known ones
-    chips = top.chips * slices if isinstance(slices, int) and not isinstance(slices, bool) and slices > 0 else None
-    if chips is None:
-        raise ValueError(f"slices: expected a positive integer, got {slices!r}")
+    check_positive_int("slices", slices)
+    chips = top.chips * slices
     try:
         sizes = parse_mesh(mesh, chips, name="mesh")
     except ValueError as e:
