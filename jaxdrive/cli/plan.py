@@ -79,7 +79,7 @@ def _plan(args, rest) -> int:
         mesh = args.mesh
     config = load_config(args.config, args.set or [])
     plan = plan_memory(config, mesh, device_memory=memory, compile_step=not args.no_compile, **target)
-    out = {"config": args.config, "sets": args.set or [], **plan}
+    out = {"config": args.config, "sets": args.set or [], "compute_dtype": config.train.compute_dtype, **plan}
     memory = plan["device_memory"]  # a topology's chip memory when none was given
     if memory is not None and not (args.no_fit or args.no_compile):
         out["fit"] = largest_fit(config, plan["mesh"], memory, scales=scales, **target)
@@ -119,7 +119,12 @@ def table(out: dict) -> str:
         lines.append(
             f"program: {program['mosaic_kernels']} Mosaic kernels, {program['collective_permutes']} "
             f"collective-permutes, {program['all_gathers']} all-gathers, {program['all_reduces']} all-reduces; "
-            f"{len(dots)} dots / convolutions with a float32 operand ({len(unlisted_f32_dots(dots))} not allowed)"
+            f"{len(dots)} dots / convolutions with a float32 operand "
+            + (
+                "(a float32 step)"  # the allow-list is for low-precision steps
+                if out.get("compute_dtype", "float32") == "float32"
+                else f"({len(unlisted_f32_dots(dots))} not on the allow-list)"
+            )
         )
     if "fit" in out:
         lines.append(f"longest clip that fits {gib(out['device_memory'])} GiB at batch {out['fit']['bucket_batch']}:")
