@@ -202,6 +202,21 @@ def test_one_image_a_device_and_step_keeps_its_sharding(tiny):
 
 
 @pytest.mark.slow(seconds=5)
+def test_chunks_after_the_first_on_a_sharded_batch(tiny):
+    """Clips longer than one encode chunk (17 frames: 9, then 8), one a device: the loop writes
+    its batch-sharded chunks into a buffer that must carry the same sharding (stdit3_xl's step
+    with the VAE in it failed to trace, dynamic_update_slice's shardings unequal)."""
+    vae, params = tiny
+    x = _video((4, 17, 8, 8, 3), seed=6)
+    z = vae.encode(params, x)
+    mesh = make_mesh(data=2, fsdp=2, devices=jax.devices()[:4])
+    with jax.set_mesh(mesh):
+        zs = jax.jit(vae.encode)(params, jax.device_put(x, NamedSharding(mesh, P(("data", "fsdp")))))
+    np.testing.assert_allclose(zs, z, rtol=1e-5, atol=1e-5)
+    assert tuple(zs.sharding.spec)[0] == ("data", "fsdp")
+
+
+@pytest.mark.slow(seconds=5)
 def test_views_fold_into_the_batch_and_shard(tiny):
     """[B, V, F, H, W, 3] equals encoding each view alone; on a data=2 x fsdp=4 mesh, encode and
     decode give the single-device numbers with the folded batch sharded over both axes."""

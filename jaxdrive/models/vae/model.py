@@ -260,8 +260,9 @@ def _run_chunks(apply, x, size: int):
     if rest == 0:
         return y0
     step = jax.eval_shape(apply, x[:, first : first + size], cache)[0].shape[1]
-    out = jnp.zeros((y0.shape[0], y0.shape[1] + rest * step, *y0.shape[2:]), y0.dtype)
-    out = jax.lax.dynamic_update_slice_in_dim(out, y0, 0, axis=1)
+    # padding y0 gives the buffer y0's sharding: a fresh jnp.zeros would be unsharded, and under
+    # an Explicit mesh the loop's batch-sharded chunks could not be written into it
+    out = jnp.pad(y0, [(0, 0), (0, rest * step)] + [(0, 0)] * (y0.ndim - 2))
 
     def body(i, carry):
         out, cache = carry
