@@ -210,3 +210,21 @@ def test_largest_fit_searches_frames_at_each_resolution(config, monkeypatch):
         plan.largest_fit(config, {"fsdp": 2}, 100, scales=(0.0,))
     with pytest.raises(ValueError, match="device_memory: expected a positive number of bytes, got 0"):
         plan.largest_fit(config, {"fsdp": 2}, 0)
+
+
+def test_later_stages_plan_without_their_earlier_runs():
+    """A plan reads no weights: STAGE stage 2 needs no stage-1 directory, and LongDWM's
+    distillation, with no fine run to read, plans its frozen teacher as its own model's
+    parameters (the fine and coarse models are one transformer)."""
+    root = Path(TINY).parent
+    stage2 = plan_memory(load_config(str(root / "stage.py") + ":size=tiny,stage=2"), {"data": 1}, compile_step=False)
+    assert stage2["per_device"]["params"] > 0
+    with pytest.raises(ValueError, match="train.init_from"):  # a training run still asks for it
+        from jaxdrive.train.run import Run
+
+        Run(load_config(str(root / "stage.py") + ":size=tiny,stage=2"), devices=jax.devices()[:1], check_data=True)
+    distill = load_config(str(root / "longdwm.py") + ":size=tiny,role=distill")
+    fine = load_config(str(root / "longdwm.py") + ":size=tiny,role=fine")
+    pd = plan_memory(distill, {"data": 1}, compile_step=False)["per_device"]
+    no_teacher = plan_memory(fine, {"data": 1}, compile_step=False)["per_device"]
+    assert pd["frozen"] - no_teacher["frozen"] == pd["params"]  # the teacher: one more copy of the weights

@@ -203,6 +203,18 @@ def abstract_batch(run, bucket):
     )
 
 
+def abstract_teacher(run):
+    """The frozen distillation teacher's parameters as shapes with their shardings (None when
+    the run does not distill): what :meth:`Run.frozen_params` restores, at no memory."""
+    if run.training.teacher is None:
+        return None
+    from jaxdrive.train.common import abstract_train_state
+
+    t = run._teacher_config
+    abstract, _ = abstract_train_state(t.model, t.optim, t.train.steps, run.mesh, seed=t.train.seed)
+    return abstract.ema if abstract.ema is not None else abstract.params
+
+
 def planned_bucket(run):
     """The bucket whose micro-batch has the most tokens (ties: the first)."""
     return max(
@@ -345,7 +357,7 @@ def plan_memory(
         "codec": jax.tree_util.tree_map(
             lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=replicated), codec.params
         ),
-        "teacher": None,
+        "teacher": abstract_teacher(run),
     }
     parts = {k: device_bytes(getattr(state, k)) for k in STATE_PARTS}
     whole = [

@@ -148,10 +148,13 @@ class Run:
         check_data: bool = True,
     ):
         """``codec``: the latents' codec in place of the one ``config.latents`` loads, and
-        ``check_data=False``: ``data.path`` is not read (the memory planner's run: its VAE
-        parameters are shapes only, and it needs no data)."""
+        ``check_data=False``: ``data.path`` is not read, nor is ``train.init_from`` asked for, and a
+        distillation teacher without a run directory is this run's own model (the memory
+        planner's run: its VAE parameters are shapes only, and it needs no data and no earlier
+        stage's weights)."""
         check_sections(config)
         self.config = config
+        self._planning = not check_data
         self.total_steps = int(total_steps or config.train.steps)
         self.mesh = mesh_from_config(config, devices)
         check_batch(config, self.mesh)
@@ -175,7 +178,7 @@ class Run:
         ]:
             if h % grid or w % (self.codec.spatial * model.patch[2]):
                 raise ValueError(f"{name}: expected multiples of latent compression x patch ({grid}), got {h} x {w}")
-        if config.train.init_from and not Path(config.train.init_from).is_dir():
+        if check_data and config.train.init_from and not Path(config.train.init_from).is_dir():
             raise ValueError(
                 f"train.init_from: expected a run directory or a diffusers transformer folder, got "
                 f"{config.train.init_from!r} (not a directory)"
@@ -190,7 +193,7 @@ class Run:
         self.latent_frames, self.frame_stride = model_frames(config, self.codec)
         from jaxdrive.train.stream_step import check_stream
 
-        check_stream(config, self.latent_frames)
+        check_stream(config, self.latent_frames, needs_init=check_data)
         if model.controls.warp:
             check_warp(config)
         self.tokens_per_step = self.tokens(d.batch_size, d.height, d.width, self.latent_frames)
@@ -233,9 +236,13 @@ class Run:
         try:
             tcfg = load_run_config(path)
         except ValueError as e:
-            raise ValueError(
-                f"flow.distill_teacher: expected the run directory of the fine model, got {path!r} ({e})"
-            ) from e
+            if self._planning:  # LongDWM's fine and coarse models are one transformer: plan with this one's
+                logger.warning("flow.distill_teacher: no run at %r; the plan's teacher is this run's own model", path)
+                tcfg = cfg
+            else:
+                raise ValueError(
+                    f"flow.distill_teacher: expected the run directory of the fine model, got {path!r} ({e})"
+                ) from e
         model = tcfg.model.replace(dtype=cfg.train.compute_dtype)
         try:
             self.codec.check_model(model)

@@ -35,8 +35,9 @@ from jaxdrive.parallel.rules import constrain
 from jaxdrive.validate import check_positive_int, check_range
 
 
-def check_stream(config, latent_frames: int) -> None:
-    """The ``stream`` section against the rest of the config: ``ValueError`` naming the option."""
+def check_stream(config, latent_frames: int, needs_init: bool = True) -> None:
+    """The ``stream`` section against the rest of the config: ``ValueError`` naming the option.
+    ``needs_init=False`` (a plan, which loads no weights): stage 2 may leave ``train.init_from`` unset."""
     s, m = config.stream, config.model
     if not s.enabled:
         return
@@ -63,7 +64,7 @@ def check_stream(config, latent_frames: int) -> None:
     ):
         if value != ok:
             raise ValueError(f"{name}: expected {ok!r} with stream.enabled (one new frame per window), got {value!r}")
-    if s.taps and config.optim.trainable and not config.train.init_from:
+    if needs_init and s.taps and config.optim.trainable and not config.train.init_from:
         raise ValueError(
             "train.init_from: HTFT learning (STAGE stage 2) trains HTFT over a frozen stage-1 model "
             "(optim.trainable), expected the stage-1 run directory, got none"
