@@ -15,6 +15,7 @@ Everything is pure ``jax.numpy`` and runs under jit / vmap / grad.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -92,6 +93,7 @@ def box_corners(boxes):
     return centre + jnp.stack([x, y, local[..., 2]], axis=-1)
 
 
+@jax.named_scope("geometry")  # float32 on purpose: train.program.F32_DOTS_ALLOWED
 def ego_to_camera(points, cam_to_ego):
     """Ego-frame points ``[..., P, 3]`` -> camera-frame points ``[..., P, 3]``.
 
@@ -110,6 +112,7 @@ def ego_to_camera(points, cam_to_ego):
     return jnp.matmul(points - trans, rot)
 
 
+@jax.named_scope("geometry")  # float32 on purpose: train.program.F32_DOTS_ALLOWED
 def project_to_image(points_cam, intrinsics):
     """Pinhole projection of camera-frame points ``[..., P, 3]`` with ``intrinsics [..., 3, 3]``.
 
@@ -132,6 +135,7 @@ def project_to_image(points_cam, intrinsics):
     return uvw / z[..., None], depth
 
 
+@jax.named_scope("geometry")  # float32 on purpose: train.program.F32_DOTS_ALLOWED
 def relative_to_first(poses):
     """Rigid poses ``[..., F, 4, 4]`` (e.g. ego-to-world) -> each frame's pose in the frame of the
     first: ``inv(P_0) @ P_f``, with the rigid inverse ``[R^T, -R^T t]``. Frame 0 becomes the

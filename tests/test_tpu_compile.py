@@ -109,8 +109,38 @@ def test_f32_dots_are_read_from_the_operands_own_lines():
 """
     found = f32_dots(hlo)
     assert found == [{"op": "convolution", "result": "f32", "operands": ["f32", "bf16"], "path": "jit(f)/loss/dot"}]
-    assert unlisted_f32_dots(found, {"/loss/": "the loss in float32"}) == []
+    assert unlisted_f32_dots(found, {"loss": "the loss in float32"}) == []
     assert unlisted_f32_dots(found, {}) == found
+    assert unlisted_f32_dots(found, {"los": "a prefix of a scope is not the scope"}) == found
+
+
+def test_allowed_scopes_match_under_jvp_and_transpose_but_not_a_longer_name():
+    def dot(path):
+        return {"op": "dot", "result": "f32", "operands": ["f32", "f32"], "path": path}
+
+    inside = [dot("jit(step)/jvp(dct_lowpass)/dot_general"), dot("jit(step)/transpose(jvp(geometry))/dot_general")]
+    inside.append(dot("jit(step)/Decoder/Encoder3D/conv_in/conv_general_dilated"))
+    outside = [dot("jit(step)/DiT/geometry_embed/dot_general"), dot("jit(step)/Encoder3D_old/conv")]
+    allowed = {"dct_lowpass": "", "geometry": "", "Encoder3D": ""}
+    assert unlisted_f32_dots(inside + outside, allowed) == outside
+
+
+def test_f32_dots_in_a_lowered_program_and_in_typed_operands():
+    import jax
+    import jax.numpy as jnp
+
+    def lowered(a_dtype):
+        f = jax.jit(lambda a, b: jnp.dot(a, b.astype(a_dtype), preferred_element_type=jnp.float32))
+        return f.lower(jnp.ones((4, 4), a_dtype), jnp.ones((4, 4), jnp.bfloat16)).as_text(dialect="hlo")
+
+    assert [d["operands"] for d in f32_dots(lowered(jnp.float32))] == [["f32", "f32"]]
+    assert f32_dots(lowered(jnp.bfloat16)) == []  # bf16 operands, f32 accumulation: not an f32 dot
+    typed = """
+  %a = f32[4,4]{1,0} parameter(0)
+  %b = bf16[4,4]{1,0} parameter(1)
+  %dot = f32[4,4]{1,0} dot(f32[4,4]{1,0} %a, bf16[4,4]{1,0} %b), lhs_contracting_dims={1}
+"""
+    assert [d["operands"] for d in f32_dots(typed)] == [["f32", "bf16"]]
 
 
 @pytest.mark.slow(seconds=60)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -34,6 +35,7 @@ def _lowpass_projector(n: int, keep):
     return jnp.einsum("ki,...k,kj->...ij", d, kept.astype(jnp.float32), d)
 
 
+@jax.named_scope("dct_lowpass")  # float32 on purpose: train.program.F32_DOTS_ALLOWED
 def dct_lowpass(x, keep_ratio):
     """Low-pass ``x [B, ..., h, w, C]`` over (h, w) keeping ``ceil(keep_ratio * n)`` DCT bins per axis.
 

@@ -15,6 +15,7 @@ depend on how many condition frames a clip has.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -94,6 +95,7 @@ def high_pass_mask(height: int, width: int, cutoff: float):
     return jnp.sqrt(fy**2 + fx**2) > cutoff
 
 
+@jax.named_scope("high_pass")  # complex64 on purpose: train.program.F32_DOTS_ALLOWED
 def high_pass(x, cutoff: float = 0.25):
     """LongDWM's ``H``: the 2D high-pass of ``x [..., h, w, C]`` over the latent height and width."""
     x = jnp.asarray(x, jnp.float32)

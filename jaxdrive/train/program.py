@@ -32,11 +32,31 @@ def program_ops(hlo_text: str) -> dict:
 # An instruction line: its name, its result's element type (None for a tuple) and its op; the
 # optimised text names operands without their types, so those come from the operands' own lines.
 _INSTRUCTION = re.compile(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=\s*(?:(\w+)\[|\()[^=]*?\s([\w\-]+)\((.*)$")
-_OPERAND = re.compile(r"%([\w.\-]+)")
+_SHAPES = re.compile(r"\[[^\]]*\]|\{[^}]*\}")  # shapes and layouts, whose commas are not separators
 _OP_NAME = re.compile(r'op_name="([^"]*)"')
 
-# Model paths (a substring of op_name) whose float32 matmuls are deliberate, and why.
-F32_DOTS_ALLOWED: dict[str, str] = {}
+# Scopes of op_name whose float32 matmuls are deliberate, and why. None has a weight of the trained
+# model in it; all but the VAE's contract over 3 to 90 elements.
+F32_DOTS_ALLOWED: dict[str, str] = {
+    "Encoder3D": "the frozen VAE encoder computes in the dtype its model.json names (CogVideoX's "
+    "float32): latents encoded in the step must equal `jaxdrive data encode`'s precomputed ones; "
+    "forward only, no gradient (a VAE saved with dtype bfloat16 encodes in bf16)",
+    "geometry": "poses, box corners and projections (jaxdrive.geometry) in metres and pixels, "
+    "where bf16's 8 bits of mantissa would move a corner 50 m away by 0.2 m; contraction 3 or 4",
+    "dct_lowpass": "STAGE's DCT low-pass of the float32 condition latents (data augmentation, "
+    "no parameters; contraction h or w of the latent grid)",
+    "high_pass": "LongDWM's structure loss: the dense 2D DFT in complex64, which has no bf16 "
+    "form (contraction h or w of the latent grid)",
+    "hsd,hsd->hs": "splash's backward (JAX's kernel wrapper): rowsum(dO * O) in float32, a "
+    "reduction over head_dim written as an einsum",
+}
+
+
+def _operands(rest: str) -> list[str]:
+    """The first two operand names of an instruction's argument text, in any of the printed forms:
+    ``%a, %b`` (optimised), ``a.1, b.1`` (as lowered) or ``f32[4,4]{1,0} %a, ...`` (typed)."""
+    names = [part.split()[-1].lstrip("%") for part in _SHAPES.sub("", rest.split(")", 1)[0]).split(",") if part.strip()]
+    return names[:2]
 
 
 def f32_dots(hlo_text: str) -> list[dict]:
@@ -50,7 +70,7 @@ def f32_dots(hlo_text: str) -> list[dict]:
         name, dtype, op, rest = m.groups()
         types[name] = dtype
         if op in ("dot", "convolution"):
-            found.append((op, dtype, _OPERAND.findall(rest.split(")", 1)[0])[:2], _OP_NAME.search(line)))
+            found.append((op, dtype, _operands(rest), _OP_NAME.search(line)))
     out = []
     for op, dtype, operands, name in found:
         kinds = [types.get(o) for o in operands]
@@ -59,6 +79,12 @@ def f32_dots(hlo_text: str) -> list[dict]:
     return out
 
 
+def _in_scope(key: str, path: str) -> bool:
+    """Whether ``key`` is a whole scope of the op_name ``path``: ``a/key/b``, also under a
+    transformation (``jvp(key)/...``, ``transpose(jvp(key))/...``), not ``a/key_0/b``."""
+    return re.search(rf"(?<![\w.]){re.escape(key)}(?![\w.])", path) is not None
+
+
 def unlisted_f32_dots(dots: list[dict], allowed: dict[str, str] = F32_DOTS_ALLOWED) -> list[dict]:
-    """The entries of ``dots`` whose path no key of ``allowed`` is a substring of."""
-    return [d for d in dots if not any(key in d["path"] for key in allowed)]
+    """The entries of ``dots`` in none of the scopes that ``allowed`` names."""
+    return [d for d in dots if not any(_in_scope(key, d["path"]) for key in allowed)]
