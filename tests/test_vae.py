@@ -185,6 +185,16 @@ def test_clips_in_groups_equal_all_at_once_sharded_and_hold_less(tiny, mode, k):
         VAEConfig(clip_batch=-1)
 
 
+def _assert_encodes_batch_sharded(vae, params, x, z, atol):
+    """``vae.encode`` jitted on a data=2 x fsdp=2 mesh, the batch split over both: ``z``, with the
+    latents' batch still split."""
+    mesh = make_mesh(data=2, fsdp=2, devices=jax.devices()[:4])
+    with jax.set_mesh(mesh):
+        zs = jax.jit(vae.encode)(params, jax.device_put(x, NamedSharding(mesh, P(("data", "fsdp")))))
+    np.testing.assert_allclose(zs, z, rtol=1e-5, atol=atol)
+    assert tuple(zs.sharding.spec)[0] == ("data", "fsdp")
+
+
 @pytest.mark.slow(seconds=5)
 def test_one_image_a_device_and_step_keeps_its_sharding(tiny):
     """Images (one frame a clip) coded one clip a device and step: the reshapes that split the
@@ -193,12 +203,7 @@ def test_one_image_a_device_and_step_keeps_its_sharding(tiny):
     vae, params = tiny
     grouped = CausalVAE(VAEConfig(**{**TINY.__dict__, "mode": "chunked", "clip_batch": 1}))
     x = _video((4, 3, 1, 16, 16, 3), seed=5)  # 12 folded one-frame clips, 3 a device
-    z = vae.encode(params, x)
-    mesh = make_mesh(data=2, fsdp=2, devices=jax.devices()[:4])
-    with jax.set_mesh(mesh):
-        zs = jax.jit(grouped.encode)(params, jax.device_put(x, NamedSharding(mesh, P(("data", "fsdp")))))
-    np.testing.assert_allclose(zs, z, rtol=1e-5, atol=1e-6)
-    assert tuple(zs.sharding.spec)[0] == ("data", "fsdp")
+    _assert_encodes_batch_sharded(grouped, params, x, vae.encode(params, x), atol=1e-6)
 
 
 @pytest.mark.slow(seconds=5)
@@ -208,12 +213,7 @@ def test_chunks_after_the_first_on_a_sharded_batch(tiny):
     with the VAE in it failed to trace, dynamic_update_slice's shardings unequal)."""
     vae, params = tiny
     x = _video((4, 17, 8, 8, 3), seed=6)
-    z = vae.encode(params, x)
-    mesh = make_mesh(data=2, fsdp=2, devices=jax.devices()[:4])
-    with jax.set_mesh(mesh):
-        zs = jax.jit(vae.encode)(params, jax.device_put(x, NamedSharding(mesh, P(("data", "fsdp")))))
-    np.testing.assert_allclose(zs, z, rtol=1e-5, atol=1e-5)
-    assert tuple(zs.sharding.spec)[0] == ("data", "fsdp")
+    _assert_encodes_batch_sharded(vae, params, x, vae.encode(params, x), atol=1e-5)
 
 
 @pytest.mark.slow(seconds=5)
