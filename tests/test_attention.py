@@ -253,6 +253,26 @@ def test_splash_runs_per_device_in_shard_map_on_a_sharded_mesh(causal_block):
         assert max_rel(got, want) <= 1e-5
 
 
+@pytest.mark.slow(seconds=5)
+def test_splash_on_a_one_device_mesh_with_explicit_axes():
+    # one chip (a v5e-1, or the bench's one-chip step): the batch is typed over data x fsdp of
+    # size 1, and the kernel's vmap refused the mask's unsharded segment ids beside it
+    from jax.sharding import AxisType, NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    from jaxdrive.attention.splash import splash_attention
+
+    names = ("data", "fsdp", "seq", "tensor")
+    mesh = jax.make_mesh((1, 1, 1, 1), names, axis_types=(AxisType.Explicit,) * 4, devices=jax.devices()[:1])
+    q, k, v, _ = _qkvd(b=2, lq=72, lk=72, h=2, d=64)
+    ref = attention(q, k, v, impl="xla")
+    with jax.set_mesh(mesh):
+        put = lambda x: jax.device_put(x, NamedSharding(mesh, P(("data", "fsdp"))))
+        run = jax.jit(lambda *a: splash_attention(*a, scale=64**-0.5, tile=128, interpret=True))
+        out = run(*map(put, (q, k, v)))
+    assert max_rel(out, ref) <= 1e-5
+
+
 def test_auto_asks_the_mesh_devices_not_the_backend():
     # a TPU step compiled ahead of time on a CPU host: "auto" must see the mesh's TPUs
     from jaxdrive.attention import dispatch

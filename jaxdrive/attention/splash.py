@@ -134,8 +134,10 @@ def splash_attention(
     mask = jnp.ones(k.shape[:2], bool) if kv_mask is None else jnp.asarray(kv_mask, bool)
     local = functools.partial(_local, scale=scale, causal_block=causal_block, tile=tile, interpret=interpret)
     mesh = context_mesh() if mesh is None else mesh
-    if mesh is None or math.prod(mesh.axis_sizes) == 1:
+    if mesh is None:
         return local(q, k, v, mask)
+    # a one-device mesh too goes through shard_map: under Explicit axes q is typed over the batch
+    # axes even at size 1, and the kernel's vmap refuses operands typed apart (the mask's ids)
     batch, head = _split(mesh, q.shape[0], q.shape[2])
     qkv_spec, mask_spec = P(batch or None, None, head, None), P(batch or None, None)
     like = spec_of(q)
