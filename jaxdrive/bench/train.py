@@ -5,7 +5,7 @@ diffusers PyTorch ``CogVideoXTransformer3DModel`` train step on the same CPU at 
                                    [--width 16] [--repeats 10] [--no-torch | --compare-only]
                                    [--torch-threads N] [--peak-tflops T] [--no-ops] [--json]
                                    [--measure-peak 8192] [--profile DIR] [--dtype bfloat16] [--remat dots]
-                                   [--attn-impl cudnn] [--scan-layers]
+                                   [--attn-impl cudnn] [--scan-layers] [--topology v5p-8]
 
 For each preset the benchmark jits the library's step (:func:`jaxdrive.train.flow_step.make_train_step`:
 noise levels and condition frames, the DiT forward, the flow loss, the backward, global-norm
@@ -35,7 +35,9 @@ lose far more than XLA's pool (seen: 10-30x slower steps on 2 busy cores). Every
 carries ``busy_cpus``, the CPUs other processes kept busy in the half second before it was
 measured (Linux), and a note is printed when that exceeds half a CPU.
 
-Model FLOPs and MFU: :mod:`jaxdrive.bench.flops`.
+Model FLOPs and MFU: :mod:`jaxdrive.bench.flops`. ``--topology NAME`` times nothing: it compiles
+each preset's step for one chip of that Cloud TPU slice on this host and prints XLA:TPU's
+roofline estimate, corrected for what its cost model leaves out (:mod:`jaxdrive.bench.roofline`).
 
 On an accelerator (``--no-torch``): ``--batch auto`` times the largest batch whose compiled step fits
 ``--memory-fraction`` of the device's memory (the allocator's limit, or ``--device-memory``):
@@ -405,6 +407,12 @@ def main(argv=None):
         help="time an N^3 bf16 matmul (default 8192) and give the MFU against it too",
     )
     parser.add_argument(
+        "--topology",
+        default=None,
+        help='compile only, for one chip of a Cloud TPU slice (e.g. v5p-8; pip install -e ".[tpu]"), and '
+        "print XLA:TPU's roofline estimate of each preset's step instead of timing it (jaxdrive.bench.roofline)",
+    )
+    parser.add_argument(
         "--no-ops", action="store_true", help="skip the single-operation comparison with PyTorch (jaxdrive.bench.ops)"
     )
     parser.add_argument(
@@ -441,10 +449,31 @@ def main(argv=None):
         )
         if v is not None
     }
-    if overrides.get("dtype", "float32") != "float32" and not args.no_torch:
+    if overrides.get("dtype", "float32") != "float32" and not args.no_torch and args.topology is None:
         parser.error(f"--dtype: the PyTorch comparison runs float32; expected float32 or --no-torch, got {args.dtype}")
     if args.measure_peak is not None and args.measure_peak < 1:
         parser.error(f"--measure-peak: expected an integer >= 1, got {args.measure_peak}")
+    if args.topology is not None:
+        for flag, given in (
+            ("--batch auto", args.batch is None),
+            ("--compare-only", args.compare_only),
+            ("--profile", args.profile is not None),
+            ("--measure-peak", args.measure_peak is not None),
+        ):
+            if given:
+                parser.error(f"--topology: compiles only; expected no {flag} with it, got {flag}")
+        from jaxdrive.bench import roofline
+
+        return roofline.run(
+            args.presets,
+            args.topology,
+            batch=args.batch,
+            frames=args.frames,
+            height=args.height,
+            width=args.width,
+            overrides=overrides,
+            as_json=args.json,
+        )
     fit = None
     if args.batch is None:
         import jax
