@@ -189,14 +189,14 @@ def test_roofline_counts_every_layer_and_the_attention_kernels():
     shapes = dict(batch=2, frames=5, height=16, width=16)
     r = roofline(cfg, "v5e-4", **shapes)
     mesh = make_mesh(devices=topology_devices("v5e-4")[:1])
-    unrolled = compiled_costs(_abstract_step(cfg.replace(scan_layers=False), mesh, **shapes)[0].compile())
-    scanned = compiled_costs(_abstract_step(cfg.replace(scan_layers=True), mesh, **shapes)[0].compile())
+    unrolled = compiled_costs(_abstract_step(cfg.replace(scan_layers=False), mesh, **shapes).compile())
+    scanned = compiled_costs(_abstract_step(cfg.replace(scan_layers=True), mesh, **shapes).compile())
     assert r["xla_flops"] == pytest.approx(unrolled["flops"], rel=0.01)
     assert scanned["flops"] < 0.8 * unrolled["flops"]  # what the correction is for
     # the same program with XLA's attention: XLA counts its matmuls, 3 x 2 of S_q S_k D a layer as
     # in the model count, where the splash program counted none (0.87x of it here: the splash
     # program's own scaling and padding, the dense one's softmax; counted, they would be below 0)
-    dense = compiled_costs(_abstract_step(cfg.replace(scan_layers=False, attn_impl="xla"), mesh, **shapes)[0].compile())
+    dense = compiled_costs(_abstract_step(cfg.replace(scan_layers=False, attn_impl="xla"), mesh, **shapes).compile())
     model_attention = r["attention_kernel_flops"] / FLASH_EXECUTED
     assert dense["flops"] - unrolled["flops"] == pytest.approx(model_attention, rel=0.2)
     assert r["step_s"] == max(r["compute_s"], r["memory_s"]) > 0

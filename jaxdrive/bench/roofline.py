@@ -55,17 +55,15 @@ def _abstract_step(cfg, mesh, *, batch: int, frames: int, height: int, width: in
     from jax.sharding import NamedSharding
     from jax.sharding import PartitionSpec as P
 
-    from jaxdrive.bench.train_steps import SEED, VIEWS, LatentBatches, bench_optim
+    from jaxdrive.bench.train_steps import SEED, VIEWS, LatentBatches, bench_inputs, bench_optim
     from jaxdrive.config import FlowConfig
     from jaxdrive.data.batches import stack_micro_batches
-    from jaxdrive.models.dit.inputs import example_inputs
     from jaxdrive.train import flow_step
     from jaxdrive.train.common import abstract_train_state
 
     optim = bench_optim()
     state, optimizer = abstract_train_state(cfg, optim, 1000, mesh, seed=SEED)
-    ex = example_inputs(cfg, batch=batch, views=VIEWS, frames=frames, height=height, width=width, text_len=cfg.text_len)
-    inputs = {"video": ex["latents"], "cond": ex["cond"].replace(cond_latents=None, cond_mask=None, drop={})}
+    inputs = bench_inputs(cfg, batch, views=VIEWS, frames=frames, height=height, width=width)
     whole = NamedSharding(mesh, P())
     data = jax.tree_util.tree_map(
         lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=whole), stack_micro_batches([inputs])
@@ -74,7 +72,7 @@ def _abstract_step(cfg, mesh, *, batch: int, frames: int, height: int, width: in
     shardings = jax.tree_util.tree_map(lambda x: x.sharding, state)
     with jax.set_mesh(mesh):
         step = flow_step.make_train_step(training, optimizer, optim.ema_decay, state_shardings=shardings)
-        return step.lower(state, None, data), state
+        return step.lower(state, None, data)
 
 
 def roofline(cfg, topology: str, *, batch: int, frames: int, height: int, width: int) -> dict:
@@ -99,7 +97,7 @@ def roofline(cfg, topology: str, *, batch: int, frames: int, height: int, width:
     depth = cfg.depth
     per_depth, compile_s = {}, 0.0
     for d in (1, 2):
-        lowered, _ = _abstract_step(
+        lowered = _abstract_step(
             cfg.replace(depth=d, scan_layers=False), mesh, batch=batch, frames=frames, height=height, width=width
         )
         t = time.perf_counter()

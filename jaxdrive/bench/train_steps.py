@@ -54,6 +54,17 @@ def bench_optim():
     return OptimConfig(ema_decay=0.0)
 
 
+def bench_inputs(cfg, batch: int, *, views: int, frames: int, height: int, width: int) -> dict:
+    """One micro-batch of the bench step's host inputs: latents and random text; the step draws
+    the levels and supplies the condition frames."""
+    from jaxdrive.models.dit.inputs import example_inputs
+
+    ex = example_inputs(
+        cfg, batch=batch, views=views, frames=frames, height=height, width=width, text_len=cfg.text_len, seed=SEED
+    )
+    return {"video": ex["latents"], "cond": ex["cond"].replace(cond_latents=None, cond_mask=None, drop={})}
+
+
 def jax_step(
     cfg,
     mesh,
@@ -78,7 +89,6 @@ def jax_step(
 
     from jaxdrive.bench.report import footprint_bytes, peak_device_bytes, trace_costs
     from jaxdrive.config import FlowConfig
-    from jaxdrive.models.dit.inputs import example_inputs
     from jaxdrive.models.dit.model import DiT
     from jaxdrive.models.params import count_params
     from jaxdrive.train import flow_step
@@ -95,10 +105,7 @@ def jax_step(
         return sharded_state(boxed, mesh, optim, 1000, SEED), shapes_only
 
     def data(b):
-        ex = example_inputs(cfg, batch=b, text_len=cfg.text_len, seed=SEED, **shapes)
-        # the step draws the levels and supplies the condition frames
-        inputs = {"video": ex["latents"], "cond": ex["cond"].replace(cond_latents=None, cond_mask=None, drop={})}
-        return global_micro_batches([inputs], mesh)
+        return global_micro_batches([bench_inputs(cfg, b, **shapes)], mesh)
 
     (state, optimizer), params_tree = fresh_state()
     shardings = jax.tree_util.tree_map(lambda x: x.sharding, state)
