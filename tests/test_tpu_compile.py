@@ -45,6 +45,27 @@ def test_a_multislice_mesh_puts_data_across_the_slices():
         make_mesh(fsdp=8, devices=topology_devices("v5e-4", slices=2))
 
 
+def test_meshes_that_split_a_physical_axis_are_laid_on_the_torus():
+    from jaxdrive.parallel.mesh import _physical_grid, make_mesh
+
+    # v6e's 8x8 has no layout with fsdp=32 on whole physical axes: mesh_utils raised
+    # NotImplementedError unless told it may split one (jax.make_mesh allows that on v5e only)
+    devices = topology_devices("v6e-64")
+    for fsdp, seq in [(32, 2), (16, 4), (64, 1)]:
+        mesh = make_mesh(fsdp=fsdp, seq=seq, devices=devices)
+        assert mesh.devices.shape == (1, fsdp, seq, 1)
+        assert sorted(d.id for d in mesh.devices.flat) == sorted(d.id for d in devices)
+    grid = make_mesh(fsdp=8, seq=8, devices=devices).devices[0, :, :, 0]
+    # whole physical axes where they exist: each seq group is one row of the torus
+    assert all(len({d.coords[1] for d in row}) == 1 for row in grid)
+
+    def never(split):
+        raise NotImplementedError("Failed to find assignment for logical_axis_index 1")
+
+    with pytest.raises(ValueError, match="mesh: expected axis sizes that can be laid on the devices' physical grid"):
+        _physical_grid(never, (1, 64, 1, 1), devices)
+
+
 @pytest.mark.parametrize(
     "kwargs,match",
     [

@@ -95,7 +95,33 @@ def make_mesh(
             )
         ici = dict(zip(MESH_AXES, shape), data=shape[0] // slices)
         return make_hybrid_mesh(ici, {"data": slices}, devices, axis_types=types)
-    return jax.make_mesh(shape, MESH_AXES, axis_types=types, devices=devices)
+    grid = _physical_grid(lambda split: mesh_utils.create_device_mesh(
+        shape, devices, allow_split_physical_axes=split), shape, devices)
+    return Mesh(grid, MESH_AXES, axis_types=types)
+
+
+def _physical_grid(build, shape: Sequence[int], devices: Sequence[jax.Device]) -> np.ndarray:
+    """The device grid of ``build(split)``: first with each mesh axis on whole physical axes
+    (the TPU's rings), else with physical axes split between mesh axes.
+
+    ``mesh_utils`` lays a mesh on a TPU torus only where every mesh axis is a product of whole
+    physical axes, unless told it may split them (``jax.make_mesh`` allows that on v5e only):
+    ``fsdp=32, seq=2`` on v6e's 8x8 has no such layout and raised NotImplementedError. A split
+    axis still has its neighbours on ICI, only its collectives lose the wrap-around link.
+    """
+    try:
+        return np.asarray(build(False))
+    except NotImplementedError:
+        pass
+    try:
+        return np.asarray(build(True))
+    except NotImplementedError as e:
+        physical = getattr(devices[0], "coords", None)
+        raise ValueError(
+            f"mesh: expected axis sizes that can be laid on the devices' physical grid, got "
+            f"{dict(zip(MESH_AXES, shape))} on {len(devices)} {devices[0].device_kind} devices "
+            f"(coords of the first: {physical}): {e}"
+        ) from None
 
 
 def tpu_slices(devices: Sequence[jax.Device]) -> int:
@@ -140,10 +166,10 @@ def make_hybrid_mesh(
         )
     dcn_shape = _resolve_sizes(dict(dcn or {}), n_granules, "dcn")
     ici_shape = _resolve_sizes(dict(ici or {}), len(devices) // n_granules, "ici")
-    grid = mesh_utils.create_hybrid_device_mesh(
-        ici_shape, dcn_shape, devices, process_is_granule=(attr == "process_index")
-    )
-    return Mesh(np.asarray(grid), MESH_AXES, axis_types=_axis_types(axis_types))
+    grid = _physical_grid(lambda split: mesh_utils.create_hybrid_device_mesh(
+        ici_shape, dcn_shape, devices, process_is_granule=(attr == "process_index"),
+        allow_split_physical_axes=split), ici_shape, devices)
+    return Mesh(grid, MESH_AXES, axis_types=_axis_types(axis_types))
 
 
 def parse_mesh_spec(spec: str) -> dict[str, int]:

@@ -206,12 +206,9 @@ def abstract_batch(run, bucket):
 def abstract_teacher(run):
     """The frozen distillation teacher's parameters as shapes with their shardings (None when
     the run does not distill): what :meth:`Run.frozen_params` restores, at no memory."""
-    if run.training.teacher is None:
+    abstract = run.teacher_abstract_state()
+    if abstract is None:
         return None
-    from jaxdrive.train.common import abstract_train_state
-
-    t = run._teacher_config
-    abstract, _ = abstract_train_state(t.model, t.optim, t.train.steps, run.mesh, seed=t.train.seed)
     return abstract.ema if abstract.ema is not None else abstract.params
 
 

@@ -258,13 +258,25 @@ class Run:
         the VAE's and, when distilling, the fine model's (EMA) parameters, restored from its run
         directory (call once per run; nothing is cached here)."""
         teacher = None
-        if self.training.teacher is not None:  # restored on this run's mesh; its own data plays no part
-            t = self._teacher_config
-            abstract, _ = abstract_train_state(t.model, t.optim, t.train.steps, self.mesh, seed=t.train.seed)
+        abstract = self.teacher_abstract_state()
+        if abstract is not None:  # restored on this run's mesh; its own data plays no part
             _, teacher = restore_latest_params(
-                abstract, self.config.flow.distill_teacher, keep=t.train.keep_checkpoints, option="flow.distill_teacher"
+                abstract,
+                self.config.flow.distill_teacher,
+                keep=self._teacher_config.train.keep_checkpoints,
+                option="flow.distill_teacher",
             )
         return {"codec": self.codec.params, "teacher": teacher}
+
+    def teacher_abstract_state(self):
+        """The distillation teacher's train state as shapes with their shardings on this run's
+        mesh (None when the run does not distill): what :meth:`frozen_params` restores into, and
+        what the planner counts, at no memory."""
+        if self.training.teacher is None:
+            return None
+        t = self._teacher_config
+        abstract, _ = abstract_train_state(t.model, t.optim, t.train.steps, self.mesh, seed=t.train.seed)
+        return abstract
 
     def sampling(self):
         """The :class:`jaxdrive.generate.samples.Sampling` of this run's model (its window and
