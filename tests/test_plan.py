@@ -212,6 +212,29 @@ def test_largest_fit_searches_frames_at_each_resolution(config, monkeypatch):
         plan.largest_fit(config, {"fsdp": 2}, 0)
 
 
+def test_largest_fit_of_a_distillation_searches_whole_segments(monkeypatch):
+    """A distillation clip is n (K - 1) + 1 frames: the search steps in whole segments (it once
+    probed the given frames' length, which the config refuses, and found nothing)."""
+    import jaxdrive.train.plan as plan
+
+    config = load_config(str(Path(TINY).parent / "longdwm.py") + ":size=tiny,role=distill")
+    step = config.flow.distill_segment_len - 1
+    probed = []
+
+    def total(probe, sizes, devices=None, codec=None):
+        d = probe.data
+        probed.append(d.frames)
+        assert (d.frames - 1) % step == 0, d.frames
+        return {"per_device": {"total": d.frames * d.height * d.width}, "exhausted": None}
+
+    monkeypatch.setattr(plan, "plan_memory", total)
+    h, w = config.data.height, config.data.width
+    fit = plan.largest_fit(config, {"fsdp": 1}, (3 * step + 1) * h * w, devices=jax.devices()[:1])
+    row = fit["resolutions"][0]
+    assert row["frames"] == 3 * step + 1 and row["total"] == (3 * step + 1) * h * w
+    assert all((f - 1) % step == 0 for f in probed) and config.data.frames in probed
+
+
 def test_later_stages_plan_without_their_earlier_runs():
     """A plan reads no weights: STAGE stage 2 needs no stage-1 directory, and LongDWM's
     distillation, with no fine run to read, plans its frozen teacher as its own model's

@@ -446,8 +446,11 @@ def largest_fit(
     bucket, temporal = planned_bucket(run), max(codec.temporal, 1)
     m = run.training.model
     gh, gw = codec.spatial * m.patch[1], codec.spatial * m.patch[2]
-    k0 = (bucket.frames - 1) // temporal
-    k_min = max(1, -(-run.config.flow.cond_frames // temporal))  # a clip longer than its given frames
+    # clip lengths searched in steps of q latent frames: a distillation clip is n dense segments
+    # (n (K - 1) + 1 frames, frame-wise latents), any other clip any latent length
+    q = run.config.flow.distill_segment_len - 1 if run.config.flow.distill_teacher else 1
+    k0 = (bucket.frames - 1) // temporal // q
+    k_min = max(1, -(-run.config.flow.cond_frames // (temporal * q)))  # a clip longer than its given frames
     rows = []
     for s in scales:
         h, w = max(gh, round(bucket.height * s / gh) * gh), max(gw, round(bucket.width * s / gw) * gw)
@@ -462,7 +465,7 @@ def largest_fit(
                         buckets=(),
                         height=h,
                         width=w,
-                        frames=1 + temporal * k,
+                        frames=1 + temporal * q * k,
                         batch_size=bucket.batch_size,
                     ),
                 )
@@ -471,7 +474,7 @@ def largest_fit(
                     totals[k] = None if plan["exhausted"] else plan["per_device"]["total"]  # out of HBM: no fit
                 except ValueError:  # a clip length the config rules out (e.g. its anchor spacing)
                     totals[k] = None
-                logger.debug("  %dx%dx%d: %s", h, w, 1 + temporal * k, totals[k])
+                logger.debug("  %dx%dx%d: %s", h, w, 1 + temporal * q * k, totals[k])
             return totals[k]
 
         fits = lambda k: total(k) is not None and total(k) <= device_memory
@@ -495,7 +498,7 @@ def largest_fit(
             {
                 "height": h,
                 "width": w,
-                "frames": None if lo is None else 1 + temporal * lo,
+                "frames": None if lo is None else 1 + temporal * q * lo,
                 "total": None if lo is None else totals[lo],
                 "probes": len(totals),
                 "capped": lo is not None and hi is None,
