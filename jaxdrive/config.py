@@ -56,6 +56,10 @@ class DataConfig:
     # LongDWM's warp-guided control (models with controls.warp): the one depth, in metres, at which
     # the first frame is warped along the clip's poses (jaxdrive.warp); beyond the clip's travel
     warp_depth: float = 20.0
+    # counterfactual futures (jaxdrive.data.route_mix): each training scene read along one of the
+    # routes it has, drawn per clip and epoch with these weights, "route" or "route:weight" each
+    # (recorded: the train split; the others: 'jaxdrive data synth --counterfactuals'); (): recorded only
+    routes: tuple[str, ...] = ()
     # an unreadable clip (corrupt or truncated ArrayRecord shard): False raises a ValueError naming the
     # shard file; True fills its slot with another clip of the shard's plan, logs the file once and
     # counts it (bad_records in metrics.jsonl; jaxdrive.data.pipeline says how)
@@ -483,6 +487,15 @@ def check_sections(config) -> None:
             f"data.rate_strides: expected () with flow.distill_teacher (distillation cuts a uniform "
             f"dense clip into segments), got {d.rate_strides!r}"
         )
+    if d.routes:
+        from jaxdrive.data.route_mix import parse_route_mix
+
+        parse_route_mix(d.routes)
+        if config.latents.precomputed:
+            raise ValueError(
+                f"data.routes: expected () with latents.precomputed (latent windows are cut from the "
+                f"recorded clips), got {d.routes!r}"
+            )
     if d.buckets:
         from jaxdrive.data.buckets import parse_bucket_specs
 

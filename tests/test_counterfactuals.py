@@ -133,18 +133,21 @@ def test_dataset_stores_counterfactual_splits(tmp_path, capsys):
         )
         == 0
     )
-    assert "stop: 2 of 2 validation clips" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "validation_route_stop (stop: 2 of 2 validation clips)" in printed
+    assert "train_route_stop (stop: 2 of 2 training clips)" in printed and "s a clip" in printed
     meta = read_counterfactuals(out)
-    assert meta["start"] == START and set(meta["routes"]) == {"stop", "lane-left"}
-    validation = open_source(out, "validation")
-    for route, row in meta["routes"].items():
-        split = open_source(out, counterfactual_split(route))
-        assert row["split"] == counterfactual_split(route) and len(split) == len(row["clips"])
-        for i, clip_index in enumerate(row["clips"]):
-            cf, rec = split[i], validation[clip_index]
-            assert set(cf) == set(rec)
-            assert np.array_equal(cf["video"][:, :START], rec["video"][:, :START])
-            assert not np.array_equal(cf["waypoints"], rec["waypoints"])
+    assert meta["start"] == START and set(meta["routes"]) == set(meta["train_routes"]) == {"stop", "lane-left"}
+    for key, recorded in [("routes", "validation"), ("train_routes", "train")]:  # the training scenes too
+        scenes = open_source(out, recorded)
+        for route, row in meta[key].items():
+            split = open_source(out, counterfactual_split(route, recorded))
+            assert row["split"] == counterfactual_split(route, recorded) and len(split) == len(row["clips"])
+            for i, clip_index in enumerate(row["clips"]):
+                cf, rec = split[i], scenes[clip_index]
+                assert set(cf) == set(rec)
+                assert np.array_equal(cf["video"][:, :START], rec["video"][:, :START])
+                assert not np.array_equal(cf["waypoints"], rec["waypoints"])
 
 
 def test_undrivable_routes_write_nothing(tmp_path, capsys):

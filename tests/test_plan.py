@@ -233,6 +233,16 @@ def test_largest_fit_of_a_distillation_searches_whole_segments(monkeypatch):
     row = fit["resolutions"][0]
     assert row["frames"] == 3 * step + 1 and row["total"] == (3 * step + 1) * h * w
     assert all((f - 1) % step == 0 for f in probed) and config.data.frames in probed
+    assert row["refused"] is None
+
+    def refuse_short(probe, sizes, devices=None, codec=None):  # as a seq axis that does not divide the tokens
+        if probe.data.frames < config.data.frames:
+            raise ValueError("Sharding spec ('seq',) does not evenly divide the dimension size 226")
+        return {"per_device": None, "exhausted": "RESOURCE_EXHAUSTED: out of HBM"}
+
+    monkeypatch.setattr(plan, "plan_memory", refuse_short)
+    row = plan.largest_fit(config, {"fsdp": 1}, 1 << 40, devices=jax.devices()[:1])["resolutions"][0]
+    assert row["frames"] is None and "does not evenly divide the dimension size 226" in row["refused"]
 
 
 def test_later_stages_plan_without_their_earlier_runs():

@@ -21,16 +21,22 @@ def _splits(train, validation, n_val):
 
 
 def _data_synth(args, rest) -> int:
-    from jaxdrive.data.synthetic import write_synthetic_dataset
+    from jaxdrive.data.synthetic import COUNTERFACTUAL_START, read_counterfactuals, write_synthetic_dataset
+    from jaxdrive.data.tfds_io import dataset_info
 
     n_train, n_val = _split_counts(args.scenes, args.val_fraction)
-    from jaxdrive.data.synthetic import COUNTERFACTUAL_START, read_counterfactuals
-
-    if args.counterfactuals is not None and not n_val:
+    cf_splits = [s.strip() for s in args.counterfactual_splits.split(",") if s.strip()]
+    if not cf_splits or any(s not in ("train", "validation") for s in cf_splits):
+        raise ValueError(
+            f"--counterfactual-splits: expected 'train', 'validation' or both, comma-separated, "
+            f"got {args.counterfactual_splits!r}"
+        )
+    if args.counterfactuals is not None and "validation" in cf_splits and not n_val:
         raise ValueError(
             f"--counterfactuals: expected a dataset with validation clips (--scenes >= 2 and "
-            f"--val-fraction > 0), got {n_val} validation clips"
+            f"--val-fraction > 0), got {n_val} validation clips (or --counterfactual-splits train)"
         )
+    routes = args.counterfactuals or ()
     path = write_synthetic_dataset(
         args.out,
         train=n_train,
@@ -41,13 +47,31 @@ def _data_synth(args, rest) -> int:
         frames=args.frames,
         height=args.height,
         width=args.width,
-        counterfactuals=args.counterfactuals or (),
+        counterfactuals=routes if "validation" in cf_splits else (),
+        train_counterfactuals=routes if "train" in cf_splits else (),
         counterfactual_start=(COUNTERFACTUAL_START if args.counterfactual_start is None else args.counterfactual_start),
         skip_undrivable=args.skip_undrivable,
     )
-    routes = read_counterfactuals(path).get("routes", {})
-    extra = "".join(f"; {name}: {len(r['clips'])} of {n_val} validation clips" for name, r in routes.items())
-    print(f"wrote {n_train} train and {n_val} validation clips to {path}{extra}")
+    info = dataset_info(path)
+    seconds = info["metadata"].get("synthesis_seconds", {})
+    cf = read_counterfactuals(path)
+    print(f"wrote {n_train} train and {n_val} validation clips to {path}")
+    for split, row in info["splits"].items():
+        of = {"routes": (n_val, "validation"), "train_routes": (n_train, "training")}
+        route = next(
+            (
+                f" ({name}: {len(r['clips'])} of {of[key][0]} {of[key][1]} clips)"
+                for key in of
+                for name, r in cf.get(key, {}).items()
+                if r["split"] == split
+            ),
+            "",
+        )
+        n, t = row["num_examples"], seconds.get(split, 0.0)
+        print(
+            f"  {split}{route}: {row['num_bytes'] / 2**20:.1f} MiB, rendered in {t:.1f} s"
+            + (f" ({t / n:.2f} s a clip)" if n else "")
+        )
     return 0
 
 
@@ -166,8 +190,15 @@ def add_commands(sub) -> None:
     synth.add_argument(
         "--counterfactuals",
         metavar="ROUTES",
-        help="store each validation clip's re-render along these routes (comma-separated: stop, "
-        "slower, faster, lane-left, lane-right, branch) in splits validation_route_<route>",
+        help="store each clip's re-render along these routes (comma-separated: stop, slower, faster, "
+        "lane-left, lane-right, branch) in splits train_route_<route> and validation_route_<route>; a "
+        "training scene that cannot drive a route is left out of it (data.routes trains on them)",
+    )
+    synth.add_argument(
+        "--counterfactual-splits",
+        default="train,validation",
+        help="which splits --counterfactuals re-renders (default train,validation; validation alone for "
+        "evaluation only)",
     )
     synth.add_argument(
         "--counterfactual-start",
@@ -179,7 +210,8 @@ def add_commands(sub) -> None:
         "--skip-undrivable",
         action="store_true",
         help="leave out a validation clip that cannot drive a route (off the road, into an agent, "
-        "no intersection to branch at) instead of stopping with an error naming it",
+        "no intersection to branch at) instead of stopping with an error naming it (training "
+        "clips are always left out)",
     )
     synth.set_defaults(run=_data_synth)
     nus = dsub.add_parser("nuscenes", help="convert a local nuScenes dataroot")

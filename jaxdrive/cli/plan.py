@@ -130,7 +130,8 @@ def table(out: dict) -> str:
         lines.append(f"longest clip that fits {gib(out['device_memory'])} GiB at batch {out['fit']['bucket_batch']}:")
         for r in out["fit"]["resolutions"]:
             frames = "none" if r["frames"] is None else f"{r['frames']}{'+' if r['capped'] else ''} frames"
-            lines.append(f"  {r['height']}x{r['width']}: {frames} ({gib(r['total'])} GiB; {r['probes']} compiles)")
+            why = f"; the shortest tried was refused: {r['refused']}" if r.get("refused") else ""
+            lines.append(f"  {r['height']}x{r['width']}: {frames} ({gib(r['total'])} GiB; {r['probes']} compiles{why})")
     lines.append("columns: " + "; ".join(f"{c} = {what}" for c, _, what in COLUMNS))
     return "\n".join(lines)
 

@@ -15,7 +15,7 @@ from jaxdrive.data.buckets import Bucket
 log = logging.getLogger(__name__)
 
 _INFINITE = 2**62
-TAG_PERM, TAG_BUCKET, TAG_ORDER, TAG_SAMPLE, TAG_START = 1, 2, 3, 4, 5
+TAG_PERM, TAG_BUCKET, TAG_ORDER, TAG_SAMPLE, TAG_START, TAG_ROUTE = 1, 2, 3, 4, 5, 6
 MAX_AUTO_REPEAT = 1000  # rounds an automatic repeat may take before it gives up (a bucket of tiny probability)
 
 

@@ -54,6 +54,11 @@ Choices:
   every unreadable file is named once in a warning (:class:`jaxdrive.data.faults.OncePerFile`), not
   once per record. Without it, an unreadable clip raises :class:`BadRecordError` naming the shard
   file.
+- Scenes under several routes (a :class:`jaxdrive.data.route_mix.RoutedScenes` source,
+  ``data.routes``): each sample reads its scene along a route drawn per (seed, epoch, index,
+  round) from a generator of its own, so the same past gets different futures within an epoch
+  and the other draws are those of the recorded scenes alone; the batch's ``route`` (list of str)
+  names each sample's route.
 - Clip frame counts come from ``source.frame_counts`` (the TFDS source stores them) or the
   ``frame_counts`` argument; otherwise every clip is read once at construction (logged).
 """
@@ -66,7 +71,7 @@ from collections.abc import Mapping, Sequence
 import grain
 import numpy as np
 
-from jaxdrive.data.batch_plan import TAG_SAMPLE, BatchPlan, seeded_rng
+from jaxdrive.data.batch_plan import TAG_ROUTE, TAG_SAMPLE, BatchPlan, seeded_rng
 from jaxdrive.data.buckets import parse_buckets
 from jaxdrive.data.faults import BadRecordError, OncePerFile
 from jaxdrive.data.transforms import clip_warp, collate, sample_clip, take_window
@@ -91,12 +96,22 @@ class _LoadBatch:
         self.source, self.plan, self.views, self.crop = source, plan, views, crop
         self.drop_probs, self.max_boxes, self.warp_depth = dict(drop_probs), max_boxes, warp_depth
         self.skip_bad_records = skip_bad_records
+        self.routed = callable(getattr(source, "read", None))
         self.bad_files = OncePerFile(log, "its records are skipped and counted in bad_records (data.skip_bad_records)")
 
-    def _read(self, epoch: int, b: int, idx: int) -> tuple[int, dict, bool]:
+    def _get(self, idx: int, route_rng) -> dict:
+        """Clip ``idx``; from a source of scenes under several routes
+        (:class:`jaxdrive.data.route_mix.RoutedScenes`), along the route ``route_rng`` draws, its
+        name in ``"route"``."""
+        if route_rng is None:
+            return self.source[idx]
+        clip, route = self.source.read(idx, route_rng)
+        return {**clip, "route": route}
+
+    def _read(self, epoch: int, b: int, idx: int, route_rng=None) -> tuple[int, dict, bool]:
         """``(index read, clip, whether it stands in for idx)``."""
         try:
-            return idx, self.source[idx], False
+            return idx, self._get(idx, route_rng), False
         except BadRecordError as e:
             if not self.skip_bad_records:
                 raise
@@ -104,7 +119,7 @@ class _LoadBatch:
             first = e
         for other in self.plan.substitutes(epoch, b, idx):
             try:
-                return int(other), self.source[int(other)], True
+                return int(other), self._get(int(other), route_rng), True
             except BadRecordError as e:
                 self.bad_files.note(e)
         raise ValueError(
@@ -119,8 +134,11 @@ class _LoadBatch:
         samples, replaced = [], 0
         for j, planned in enumerate(indices):
             # round 0 keeps the keys of a plan without repetition; a later round is a sample of its own
-            rng = seeded_rng(self.plan.seed, epoch, int(planned), TAG_SAMPLE, *((int(rounds[j]),) if rounds[j] else ()))
-            idx, clip, stand_in = self._read(epoch, b, int(planned))
+            again = (int(rounds[j]),) if rounds[j] else ()
+            rng = seeded_rng(self.plan.seed, epoch, int(planned), TAG_SAMPLE, *again)
+            # the route has a generator of its own: the other draws stay those of a plain source
+            route_rng = seeded_rng(self.plan.seed, epoch, int(planned), TAG_ROUTE, *again) if self.routed else None
+            idx, clip, stand_in = self._read(epoch, b, int(planned), route_rng)
             replaced += stand_in
             T = int(np.shape(clip["ego_to_world"])[0])
             strides = self.plan.rate_strides  # no draw without them: the same samples as before
@@ -149,6 +167,8 @@ class _LoadBatch:
                 s["warp_video"] = clip_warp(s, self.warp_depth)
             s["drop"] = {n: bool(rng.random() < p) for n, p in sorted(self.drop_probs.items())}
             s["index"] = np.int64(idx)
+            if self.routed:
+                s["route"] = clip["route"]
             samples.append(s)
         batch = collate(samples, max_boxes=self.max_boxes)
         if self.skip_bad_records:

@@ -371,9 +371,9 @@ def _drive(seed, route, start, kw):
     return d, rng, ego_xy, ego_yaw, a_xy, a_yaw
 
 
-def counterfactual_split(route: str) -> str:
-    """The dataset split that holds the validation clips' counterfactual renders along ``route``."""
-    return "validation_route_" + route.replace("-", "_")
+def counterfactual_split(route: str, split: str = "validation") -> str:
+    """The dataset split that holds the ``split`` clips' counterfactual renders along ``route``."""
+    return f"{split}_route_" + route.replace("-", "_")
 
 
 def drivable_clips(
@@ -412,6 +412,7 @@ def write_synthetic_dataset(
     seed: int = 0,
     overwrite: bool = False,
     counterfactuals=(),
+    train_counterfactuals=(),
     counterfactual_start: int = COUNTERFACTUAL_START,
     skip_undrivable: bool = False,
     drivable: dict | None = None,
@@ -431,61 +432,88 @@ def write_synthetic_dataset(
     left out of that route's split instead (a route no clip can drive is still an error).
     ``drivable``: what :func:`drivable_clips` returned for these routes and validation clips, when
     the caller has it (the demo chooses its routes by it): the routes are then not driven twice.
+
+    ``train_counterfactuals``: the same for the training scenes, in splits ``train_route_<route>``
+    (the metadata's ``train_routes``), read by :class:`jaxdrive.data.route_mix.RoutedScenes` so that
+    one history is trained with several futures. A training scene that cannot drive a route is
+    always left out of that route (it trains on the others); a route no training scene drives is a
+    ``ValueError``. The metadata's ``synthesis_seconds`` has each split's rendering time.
     """
+    import time
+
     from jaxdrive.data.tfds_io import write_dataset
 
     names = routes.parse_routes(counterfactuals, "counterfactuals", recorded=False)
+    train_names = routes.parse_routes(train_counterfactuals, "train_counterfactuals", recorded=False)
     if names and not validation:
         raise ValueError(f"counterfactuals: expected validation clips to re-render, got validation={validation}")
     frames = clip_kwargs.get("frames", 33)
-    if names and not (isinstance(counterfactual_start, (int, np.integer)) and 1 <= counterfactual_start < frames):
+    if (names or train_names) and not (
+        isinstance(counterfactual_start, (int, np.integer)) and 1 <= counterfactual_start < frames
+    ):
         raise ValueError(
             f"counterfactual_start: expected a frame in [1, {frames - 1}] for clips of {frames} "
             f"frames, got {counterfactual_start!r}"
         )
+    start = int(counterfactual_start)
     if drivable is None:
         drivable = drivable_clips(
-            names,
-            seed + train,
-            validation,
-            start=int(counterfactual_start),
-            skip_undrivable=skip_undrivable,
-            **clip_kwargs,
+            names, seed + train, validation, start=start, skip_undrivable=skip_undrivable, **clip_kwargs
         )
     elif sorted(drivable) != sorted(names):
         raise ValueError(f"drivable: expected the clips of the routes {names}, got routes {sorted(drivable)}")
-    for name, rows in drivable.items():
-        if not rows:
-            raise ValueError(
-                f"counterfactuals: expected route {name!r} to be drivable by at least one of the "
-                f"{validation} validation clips, got none"
-            )
+    train_drivable = (
+        drivable_clips(train_names, seed, train, start=start, skip_undrivable=True, **clip_kwargs) if train_names else {}
+    )
+    for option, count, found in [("counterfactuals", validation, drivable), ("train_counterfactuals", train, train_drivable)]:
+        for name, rows in found.items():
+            if not rows:
+                raise ValueError(
+                    f"{option}: expected route {name!r} to be drivable by at least one of the "
+                    f"{count} {'validation' if option == 'counterfactuals' else 'training'} clips, got none"
+                )
+    seconds: dict[str, float] = {}
 
-    def clips(first, count):
-        for i in range(first, first + count):
-            yield generate_clip(seed + i, **clip_kwargs)
+    def timed(split, clips):  # each split's rendering time, for the metadata
+        seconds[split] = 0.0
+        for clip_fn in clips:
+            t = time.perf_counter()
+            clip = clip_fn()
+            seconds[split] = round(seconds[split] + time.perf_counter() - t, 3)
+            yield clip
 
-    def counterfactual(name):
-        for row in drivable[name]:
-            yield counterfactual_clip(seed + train + row, name, start=int(counterfactual_start), **clip_kwargs)
+    def scenes(first, count):
+        return (lambda i=i: generate_clip(seed + i, **clip_kwargs) for i in range(first, first + count))
 
-    splits = {"train": clips(0, train)}
+    def along(first, rows, name):
+        return (lambda r=r: counterfactual_clip(seed + first + r, name, start=start, **clip_kwargs) for r in rows)
+
+    plan = {"train": scenes(0, train)}
     if validation:
-        splits["validation"] = clips(train, validation)
+        plan["validation"] = scenes(train, validation)
+    for name in train_names:
+        plan[counterfactual_split(name, "train")] = along(0, train_drivable[name], name)
     for name in names:
-        splits[counterfactual_split(name)] = counterfactual(name)
-    meta = {"source": "synthetic", "seed": seed, **clip_kwargs}
+        plan[counterfactual_split(name)] = along(train, drivable[name], name)
+    splits = {split: timed(split, clips) for split, clips in plan.items()}
+    meta = {"source": "synthetic", "seed": seed, **clip_kwargs, "synthesis_seconds": seconds}
+    if names or train_names:
+        meta["counterfactuals"] = {"start": start}
     if names:
-        meta["counterfactuals"] = {
-            "start": int(counterfactual_start),
-            "routes": {n: {"split": counterfactual_split(n), "clips": drivable[n]} for n in names},
+        meta["counterfactuals"]["routes"] = {
+            n: {"split": counterfactual_split(n), "clips": drivable[n]} for n in names
+        }
+    if train_names:
+        meta["counterfactuals"]["train_routes"] = {
+            n: {"split": counterfactual_split(n, "train"), "clips": train_drivable[n]} for n in train_names
         }
     return write_dataset(out, splits, name="jaxdrive_synthetic", overwrite=overwrite, metadata=meta)
 
 
 def read_counterfactuals(path) -> dict:
     """What a dataset holds of counterfactual routes: ``{"start": frame, "routes": {route: {"split":
-    name, "clips": [validation clip index of each row]}}}``; ``{}`` when it holds none."""
+    name, "clips": [validation clip index of each row]}}, "train_routes": {the same for the
+    training scenes}}`` (each key only where the dataset has such renders); ``{}`` when it holds none."""
     from jaxdrive.data.tfds_io import dataset_info
 
     return dict(dataset_info(path).get("metadata", {}).get("counterfactuals", {}))

@@ -455,6 +455,7 @@ def largest_fit(
     for s in scales:
         h, w = max(gh, round(bucket.height * s / gh) * gh), max(gw, round(bucket.width * s / gw) * gw)
         totals: dict[int, int | None] = {}
+        refused: dict[int, str] = {}  # a probe the config or the sharding rules out, and why
 
         def total(k):
             if k not in totals:
@@ -472,8 +473,9 @@ def largest_fit(
                 try:
                     plan = plan_memory(probe, sizes, devices=devices, codec=codec)
                     totals[k] = None if plan["exhausted"] else plan["per_device"]["total"]  # out of HBM: no fit
-                except ValueError:  # a clip length the config rules out (e.g. its anchor spacing)
+                except ValueError as e:  # a clip length the config or the mesh rules out
                     totals[k] = None
+                    refused[k] = str(e).splitlines()[0][:300]
                 logger.debug("  %dx%dx%d: %s", h, w, 1 + temporal * q * k, totals[k])
             return totals[k]
 
@@ -502,6 +504,8 @@ def largest_fit(
                 "total": None if lo is None else totals[lo],
                 "probes": len(totals),
                 "capped": lo is not None and hi is None,
+                # why the shortest clip tried has no total, when it was refused rather than too big
+                "refused": None if lo is not None else refused.get(min(totals)),
             }
         )
     found = [r for r in rows if r["frames"]]

@@ -164,6 +164,10 @@ class Run:
             check_batch(config, self.mesh, b.batch_size, name=f"data.buckets {'x'.join(map(str, b.key))}")
         if check_data:
             check_dataset(config, self.codec)  # latent windows or clips, as latents.precomputed says
+            if config.data.routes and Path(config.data.path).exists():  # else the pipeline names it
+                from jaxdrive.data.route_mix import check_route_mix, parse_route_mix
+
+                check_route_mix(config.data.path, parse_route_mix(config.data.routes))
         model = config.model
         if config.train.compute_dtype != model.dtype:
             model = model.replace(dtype=config.train.compute_dtype)
@@ -335,7 +339,13 @@ class Run:
         from jaxdrive.data.tfds_io import open_source
 
         d = self.config.data
-        source = open_source(d.path, split or d.split)
+        split = split or d.split
+        if d.routes and split == "train":  # each scene along a route of the mix (jaxdrive.data.route_mix)
+            from jaxdrive.data.route_mix import open_routed_scenes, parse_route_mix
+
+            source = open_routed_scenes(d.path, parse_route_mix(d.routes))
+        else:
+            source = open_source(d.path, split)
         stride = 1 if self.config.latents.precomputed else d.stride  # latent windows are strided already
         procs = jax.process_count()
         buckets = {

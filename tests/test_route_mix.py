@@ -1,0 +1,114 @@
+"""Counterfactual futures in training: scenes read along routes drawn per clip and epoch."""
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jaxdrive.config import load_config
+from jaxdrive.data.batch_plan import seeded_rng
+from jaxdrive.data.pipeline import make_pipeline
+from jaxdrive.data.route_mix import RoutedScenes, open_routed_scenes, parse_route_mix
+from jaxdrive.data.synthetic import write_synthetic_dataset
+
+TINY = Path(__file__).resolve().parents[1] / "configs" / "tiny.py"
+START = 4  # the first frame the routes change
+FRAMES, H, W = 9, 16, 28
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory):
+    """Two training scenes (seed 3: both drive stop and faster) of 9 frames, one view, with their
+    ``stop`` and ``faster`` renders from frame 4."""
+    out = tmp_path_factory.mktemp("routes") / "data"
+    write_synthetic_dataset(
+        out, train=2, seed=3, train_counterfactuals="stop,faster", counterfactual_start=START,
+        views=1, frames=FRAMES, height=H, width=W,
+    )
+    return out
+
+
+def test_the_mix_parses_names_and_weights_and_names_bad_items():
+    assert parse_route_mix(("recorded:2", "stop", "branch:0.5")) == {"recorded": 2.0, "stop": 1.0, "branch": 0.5}
+    assert parse_route_mix("recorded,stop") == {"recorded": 1.0, "stop": 1.0}
+    for bad, match in [
+        (("reverse",), "data.routes: expected distinct comma-separated routes"),
+        (("stop", "stop:2"), "data.routes: expected distinct"),
+        (("stop:0",), "data.routes: expected a weight > 0 after 'route:', got 'stop:0'"),
+        (("stop:many",), "data.routes: expected a weight > 0"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            parse_route_mix(bad)
+
+
+def test_draws_follow_the_weights_over_the_routes_a_scene_has():
+    class Rows(list):  # a stand-in source: row r of route k reads (k, r)
+        def __getitem__(self, i):
+            return {"which": list.__getitem__(self, i)}
+
+    sources = {"recorded": Rows([("recorded", 0), ("recorded", 1)]), "stop": Rows([("stop", 1)])}
+    mix = RoutedScenes(sources, {"stop": [1]}, {"recorded": 1.0, "stop": 3.0})
+    assert mix.routes_of(0) == ["recorded"] and mix.routes_of(1) == ["recorded", "stop"]
+    draws = [mix.read(1, seeded_rng(0, k))[1] for k in range(2000)]
+    assert abs(draws.count("stop") / 2000 - 0.75) < 0.04  # 3 : 1, renormalised over scene 1's routes
+    assert {mix.read(0, seeded_rng(0, k))[0]["which"] for k in range(50)} == {("recorded", 0)}  # no stop render
+    assert mix.read(1, seeded_rng(0, 7))[0]["which"] in {("recorded", 1), ("stop", 0)}  # row 0 of stop is scene 1
+
+
+def test_a_batch_holds_two_routes_of_one_scene_with_equal_given_frames(scenes):
+    source = open_routed_scenes(scenes, parse_route_mix("recorded,stop,faster"))
+    assert len(source) == 2 and list(source.frame_counts) == [FRAMES, FRAMES]
+    # a batch of 4 from 2 scenes: each scene twice (two rounds), every sample at frame 0 (clip = bucket)
+    for seed in range(20):
+        it = iter(make_pipeline(source, {(H, W, FRAMES): 4}, seed=seed, num_threads=0, prefetch=0,
+                                shard_index=0, shard_count=1, num_epochs=1))
+        batch = next(it)
+        pairs = [
+            (i, j) for i in range(4) for j in range(i + 1, 4)
+            if batch["index"][i] == batch["index"][j] and batch["route"][i] != batch["route"][j]
+        ]
+        if pairs:
+            break
+    assert pairs, "no seed in 20 gave one scene two routes in a batch"
+    i, j = pairs[0]
+    video = np.asarray(batch["video"])  # [B, V, F, H, W, 3]
+    np.testing.assert_array_equal(video[i, :, :START], video[j, :, :START])  # the same past
+    assert not np.array_equal(video[i, :, START:], video[j, :, START:])  # different futures
+    assert not np.array_equal(batch["waypoints"][i], batch["waypoints"][j])
+    assert set(batch["route"]) <= {"recorded", "stop", "faster"}
+
+
+def test_routes_change_across_epochs_and_the_other_draws_stay_those_of_the_scenes(scenes):
+    from jaxdrive.data.tfds_io import open_source
+
+    routed = open_routed_scenes(scenes, parse_route_mix("recorded,stop,faster"))
+    kw = dict(seed=1, num_threads=0, prefetch=0, shard_index=0, shard_count=1, num_epochs=6, crop="random")
+    bucket = {(H, W, FRAMES - 4): 2}  # 5 of 9 frames: a start frame and a crop drawn per sample
+    a = list(make_pipeline(routed, bucket, **kw))
+    b = list(make_pipeline(open_source(scenes, "train"), bucket, **kw))
+    assert len({tuple(x["route"]) for x in a}) > 1  # the route is drawn again each epoch
+    for x, y in zip(a, b):
+        assert list(x["index"]) == list(y["index"])
+        rec = [k for k, r in enumerate(x["route"]) if r == "recorded"]
+        np.testing.assert_array_equal(np.asarray(x["video"])[rec], np.asarray(y["video"])[rec])
+        assert "route" not in y
+
+
+def test_a_route_the_training_split_lacks_is_refused_before_anything_compiles(scenes):
+    import jax
+
+    from jaxdrive.train.run import Run
+
+    ONE = jax.devices()[:1]
+    config = load_config(TINY, [f"data.path={scenes}", "data.views=1", f"data.frames={FRAMES}",
+                                f"data.height={H * 2}", f"data.width={W * 2}"])
+    with pytest.raises(ValueError, match=r"data.routes: expected routes the training split of .* holds "
+                       r"\(recorded, stop, faster\), got \['branch'\]"):
+        Run(dataclasses.replace(config, data=dataclasses.replace(config.data, routes=("recorded", "branch"))), devices=ONE)
+    with pytest.raises(ValueError, match="data.routes: expected distinct comma-separated routes"):
+        Run(dataclasses.replace(config, data=dataclasses.replace(config.data, routes=("sideways",))), devices=ONE)
+    bare = dataclasses.replace(config, latents=dataclasses.replace(config.latents, precomputed=True),
+                               data=dataclasses.replace(config.data, routes=("stop",)))
+    with pytest.raises(ValueError, match="data.routes: expected \\(\\) with latents.precomputed"):
+        Run(bare, devices=ONE)
