@@ -15,7 +15,10 @@ Roles:
   and interpolation (``ends``: first and last frame given). It fills the segments between the
   coarse keyframes: ``jaxdrive sample --workdir COARSE --fine-workdir FINE --strategy coarse-fine``.
 - ``distill`` (sec. 3.3, eq. 7-8): the coarse model trained against a frozen fine run
-  (``flow.distill_teacher``: set it to the fine run's directory) on dense clips of 145 frames.
+  (``flow.distill_teacher``: set it to the fine run's directory) on dense clips of 145 frames,
+  encoded one frame at a time (``latents.vae_frame_batch=1``): the 145 frames encoded at once
+  need 105 GiB of temporaries a chip on a v5p-64 (fsdp=8, seq=4), one at a time 28 GiB (XLA:TPU,
+  docs/results/memory.md).
 
 Where it follows the paper: the two models, K = 13, the structure loss, the fine model's two
 tasks, the distillation. Where it differs, deliberately: rectified flow (velocity ``noise - x``,
@@ -93,4 +96,6 @@ def get_config(arg=None) -> Config:
     else:  # eq. 7-8: the coarse frames of a dense clip of n (K - 1) + 1 frames
         data = dataclasses.replace(d, frames=(seg - 1) * (4 if a.size == "tiny" else 12) + 1)
         flow = dataclasses.replace(f, distill_teacher="runs/longdwm_fine", distill_segment_len=seg)
+        if a.size == "paper":
+            config = dataclasses.replace(config, latents=dataclasses.replace(config.latents, vae_frame_batch=1))
     return dataclasses.replace(config, data=data, flow=flow)
