@@ -56,6 +56,9 @@ class DataConfig:
     # LongDWM's warp-guided control (models with controls.warp): the one depth, in metres, at which
     # the first frame is warped along the clip's poses (jaxdrive.warp); beyond the clip's travel
     warp_depth: float = 20.0
+    # ... warped from this frame of the sample / window: 0 (LongDWM: the first) or, with frame-wise
+    # latents, the last given one (flow.cond_frames - 1: the world recipe, the freshest view)
+    warp_frame: int = 0
     # counterfactual futures (jaxdrive.data.route_mix): each training scene read along one of the
     # routes it has, drawn per clip and epoch with these weights, "route" or "route:weight" each
     # (recorded: the train split; the others: 'jaxdrive data synth --counterfactuals'); (): recorded only

@@ -285,7 +285,9 @@ class WorldModel:
         if any(m is not None and m.dit.config.controls.warp for m in (models.main, models.fine)):
             from jaxdrive.generate.warps import WarpGuide  # LongDWM: each window's first frame warped
 
-            run_options["warp"] = WarpGuide.from_inputs(inputs, codec, depth=spec.data.warp_depth)
+            run_options["warp"] = WarpGuide.from_inputs(
+                inputs, codec, depth=spec.data.warp_depth, frame=spec.data.warp_frame
+            )
         # a driven route is not the recorded clip: its frames are no reference to score against
         recorded = np.asarray(inputs["video"]) if "video" in inputs and route is None else None
         fps = float(np.asarray(inputs["cond"].fps)[0]) if inputs["cond"].fps is not None else 12.0 / spec.frame_stride

@@ -138,8 +138,8 @@ def _warp_model():
 class _Spy:
     """A warp guide that records what each window asks for and answers a constant per call."""
 
-    def __init__(self, scale=1.0):
-        self.calls, self.scale = [], scale
+    def __init__(self, scale=1.0, frame=0):
+        self.calls, self.scale, self.frame = [], scale, frame
 
     def window(self, first, frames):
         self.calls.append((np.asarray(first).copy(), np.asarray(frames)))
@@ -170,6 +170,65 @@ def test_every_window_warps_its_own_first_frame_and_the_warp_steers_it():
     assert np.abs(other[:, :, 2:] - out[:, :, 2:]).max() > 1e-4
     with pytest.raises(ValueError, match="warp: a model trained with warped frames"):
         list(S.run_strategy("rollout", S.Models(m), controls, first, 10, key=jax.random.key(0)))
+    # data.warp_frame=1: each window warps from its second frame, its newest given one
+    spy = _Spy(frame=1)
+    out = np.concatenate(
+        list(S.run_strategy("rollout", S.Models(m), controls, first, 10, key=jax.random.key(0), warp=spy)), axis=2
+    )
+    for got_first, frames in spy.calls:
+        np.testing.assert_array_equal(got_first, out[:, :, frames[1:2]])
+
+
+def test_the_pipeline_warps_from_the_last_given_frame_when_told(data):
+    run = Run(config(data, "data.warp_depth=15", "data.warp_frame=1", "flow.cond_frames=2"))
+    batch = next(iter(run.dataset()))
+    video, warp = batch["video"], batch["warp_video"]
+    np.testing.assert_allclose(warp[:, :, 1], video[:, :, 1], atol=1e-5)  # the source frame itself
+    from jaxdrive.warp import warp_views
+
+    e2w = batch["ego_to_world"][0].astype(np.float64)
+    poses = (np.linalg.inv(e2w[1]) @ e2w).astype(np.float32)
+    want = warp_views(video[0, :, 1], batch["intrinsics"][0], batch["cam_to_ego"][0], poses, 15.0)
+    np.testing.assert_allclose(warp[0], want, atol=1e-5)
+    with pytest.raises(ValueError, match=r"data.warp_frame: expected a given frame to warp from, 0 to 1 .* got 2"):
+        Run(config(data, "data.warp_frame=2", "flow.cond_frames=2"))
+
+
+def test_a_warp_correction_at_zero_is_the_warp_bit_for_bit():
+    """``reference_frame="warp"``: the output is the warp plus a correction, which starts at zero,
+    so an untrained model gives the warp baseline exactly; where the warp is dropped (guidance)
+    the base is the newest given frame."""
+    import flax.linen as nn
+    import jax
+    import jax.numpy as jnp
+
+    from jaxdrive.models.dit import DiT
+    from jaxdrive.models.dit.conditions import Conditions
+    from jaxdrive.models.dit.presets import preset
+
+    cfg = preset(
+        "tiny",
+        in_channels=8,
+        vae_spatial=4,
+        vae_temporal=1,
+        patch=(1, 2, 2),
+        prediction="data",
+        controls=dict(warp=True, cond_frames="replace", reference_frame="warp"),
+    )
+    dit = DiT(cfg)
+    params = nn.unbox(dit.init_params(0, batch=2, views=2, frames=4, height=8, width=8))
+    k = iter(jax.random.split(jax.random.key(0), 3))
+    x = jax.random.normal(next(k), (2, 2, 4, 8, 8, 8))
+    warp = jax.random.normal(next(k), x.shape)
+    given = jax.random.normal(next(k), x.shape)
+    mask = jnp.asarray([[True, True, False, False]] * 2)
+    sigma = jnp.asarray([[0.0, 0.0, 0.7, 0.7]] * 2)
+    cond = Conditions(cond_latents=given, cond_mask=mask, warp=warp, drop={"warp": jnp.asarray([False, True])})
+    out = np.asarray(dit.apply({"params": params}, x, sigma, cond))
+    np.testing.assert_array_equal(out[0, :, 2:], np.asarray(warp)[0, :, 2:])  # the warp itself
+    np.testing.assert_array_equal(out[1, :, 2:], np.broadcast_to(np.asarray(given)[1, :, 1:2], out[1, :, 2:].shape))
+    with pytest.raises(ValueError, match="controls.reference_frame: 'warp' corrects the warped frames"):
+        preset("tiny", in_channels=8, prediction="data", controls=dict(cond_frames="replace", reference_frame="warp"))
 
 
 def test_the_guide_warps_the_decoded_first_frame_along_the_window_poses_and_encodes_it():

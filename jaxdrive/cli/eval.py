@@ -329,6 +329,7 @@ def _eval_routes(
             key=jax.random.key(args.seed),
             given=given_pixels,
             depth=spec.data.warp_depth,
+            warp_frame=spec.data.warp_frame,
             mesh=run.mesh,
             segment=segment,
             without_boxes=boxes,

@@ -91,10 +91,21 @@ class _LoadBatch:
     it fills; the batch carries ``bad_records``, the number of its slots so filled."""
 
     def __init__(
-        self, source, plan: BatchPlan, *, views, crop, drop_probs, max_boxes, warp_depth=0.0, skip_bad_records=False
+        self,
+        source,
+        plan: BatchPlan,
+        *,
+        views,
+        crop,
+        drop_probs,
+        max_boxes,
+        warp_depth=0.0,
+        warp_frame=0,
+        skip_bad_records=False,
     ):
         self.source, self.plan, self.views, self.crop = source, plan, views, crop
         self.drop_probs, self.max_boxes, self.warp_depth = dict(drop_probs), max_boxes, warp_depth
+        self.warp_frame = warp_frame
         self.skip_bad_records = skip_bad_records
         self.routed = callable(getattr(source, "read", None))
         self.bad_files = OncePerFile(log, "its records are skipped and counted in bad_records (data.skip_bad_records)")
@@ -164,7 +175,7 @@ class _LoadBatch:
                     tail_stride=tail,
                 )
             if self.warp_depth > 0:
-                s["warp_video"] = clip_warp(s, self.warp_depth)
+                s["warp_video"] = clip_warp(s, self.warp_depth, self.warp_frame)
             s["drop"] = {n: bool(rng.random() < p) for n, p in sorted(self.drop_probs.items())}
             s["index"] = np.int64(idx)
             if self.routed:
@@ -196,6 +207,7 @@ def make_pipeline(
     rate_head: int = 0,
     rate_strides: Sequence[int] = (),
     warp_depth: float = 0.0,
+    warp_frame: int = 0,
     skip_bad_records: bool = False,
 ) -> grain.IterDataset:
     """A grain ``IterDataset`` of training batches from a random-access clip ``source``.
@@ -210,7 +222,8 @@ def make_pipeline(
     ``rate_head`` / ``rate_strides``: mixed frame rates (module docstring; ``sample_clip``'s
     ``head`` and ``tail_stride``, one tail stride per clip drawn from ``rate_strides``; empty:
     ``stride`` throughout). ``warp_depth`` > 0: each sample also gets ``warp_video``
-    (:func:`clip_warp`, LongDWM's warp-guided control). ``skip_bad_records``: an unreadable clip
+    (:func:`clip_warp`, LongDWM's warp-guided control) from the sample's frame ``warp_frame``
+    (0: the first, LongDWM's). ``skip_bad_records``: an unreadable clip
     (a corrupt or truncated shard) is replaced, not raised, and each batch carries ``bad_records``
     (module docstring); False: it raises :class:`BadRecordError` naming the shard file.
     """
@@ -243,6 +256,10 @@ def make_pipeline(
         check_positive_int("max_boxes", max_boxes)
     if not (np.isfinite(warp_depth) and warp_depth >= 0):
         raise ValueError(f"warp_depth: expected a depth in metres >= 0 (0: no warped frames), got {warp_depth}")
+    if not 0 <= check_positive_int("warp_frame", warp_frame, minimum=0) < min(b.frames for b in parsed):
+        raise ValueError(
+            f"warp_frame: expected a frame of every bucket's clip (< {min(b.frames for b in parsed)}), got {warp_frame}"
+        )
     if warp_depth > 0 and getattr(source, "kind", "clips") == "windows":
         raise ValueError(f"warp_depth: expected 0 for a source of latent windows (no pixels to warp), got {warp_depth}")
     if len(source) == 0:
@@ -275,6 +292,7 @@ def make_pipeline(
         drop_probs=drop_probs,
         max_boxes=max_boxes,
         warp_depth=float(warp_depth),
+        warp_frame=int(warp_frame),
         skip_bad_records=skip_bad_records,
     )
     return (

@@ -164,17 +164,18 @@ def collate(samples: Sequence[dict], *, max_boxes: int | None = None) -> dict:
     return batch
 
 
-def clip_warp(sample: Mapping, depth: float) -> np.ndarray:
+def clip_warp(sample: Mapping, depth: float, frame: int = 0) -> np.ndarray:
     """LongDWM's warped frames of a training sample (sec. 3.4: from the clip's own future poses, so
-    the model learns to correct the warp's distortions): its first frame of every view warped
-    along the sample's ego poses at one ``depth``, holes inpainted on the host
+    the model learns to correct the warp's distortions): its frame ``frame`` (LongDWM: the first;
+    the world recipe: the last given one) of every view warped along the sample's ego poses
+    relative to that frame's, at one ``depth``, holes inpainted on the host
     (:func:`jaxdrive.warp.warp_views`): ``[V, F, H, W, 3]`` in [-1, 1] like ``video``."""
     from jaxdrive.warp import warp_views
 
     e2w = np.asarray(sample["ego_to_world"], np.float64)
-    poses = np.linalg.inv(e2w[0]) @ e2w
+    poses = np.linalg.inv(e2w[frame]) @ e2w
     return warp_views(
-        np.asarray(sample["video"])[:, 0],
+        np.asarray(sample["video"])[:, frame],
         np.asarray(sample["intrinsics"]),
         np.asarray(sample["cam_to_ego"]),
         poses.astype(np.float32),

@@ -129,6 +129,7 @@ def evaluate_routes(
     key,
     given: int,
     depth: float,
+    warp_frame: int = 0,
     mesh=None,
     segment=None,
     without_boxes: bool = False,
@@ -142,7 +143,8 @@ def evaluate_routes(
 
     ``load_inputs(split, indices)`` gives :func:`jaxdrive.generate.samples.dataset_inputs` of those
     clips (with ``poses``, and ``class_masks`` with a ``segment`` function);
-    ``first_latents(inputs)`` the given latents every strategy starts from. Every route's
+    ``first_latents(inputs)`` the given latents every strategy starts from; ``depth`` and
+    ``warp_frame``: a warp-guided model's ``data.warp_depth`` and ``data.warp_frame``. Every route's
     generation draws the same noise (``key``), so what differs between routes is the controls.
     ``without_boxes``: one more row, the first strategy under the recorded route with the boxes
     (and the layout drawn from them) dropped to their learned nulls, named ``"NAME (no boxes)"``:
@@ -161,7 +163,7 @@ def evaluate_routes(
         if warped:  # LongDWM: each window's first frame warped along this route's poses
             from jaxdrive.generate.warps import WarpGuide
 
-            opts["warp"] = WarpGuide.from_inputs(inp, codec, depth=depth)
+            opts["warp"] = WarpGuide.from_inputs(inp, codec, depth=depth, frame=warp_frame)
         return run_strategies(
             {n: opts for n in names},
             models,

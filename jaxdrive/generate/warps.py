@@ -1,9 +1,11 @@
 """LongDWM's warped frames in sampling (sec. 3.4): every window of a model trained with
-``controls.warp`` gets, as its ``warp`` condition, its first frame warped along the poses of the
-window's frames (relative to that first frame) at one depth, holes inpainted, encoded like the
-latents: what training gives it (:func:`jaxdrive.data.transforms.clip_warp`). The window's first
-frame is whatever the horizon holds there (a given frame, or one the strategy generated), decoded
-to pixels; the poses are the clip's recorded ones or a user's route.
+``controls.warp`` gets, as its ``warp`` condition, one of its frames (the first, LongDWM's, or the
+run's ``data.warp_frame``: the world recipe's last given frame) warped along the poses of the
+window's frames (relative to that frame's) at one depth, holes inpainted, encoded like the
+latents: what training gives it (:func:`jaxdrive.data.transforms.clip_warp`). That frame is
+whatever the horizon holds there (a given frame, or one the strategy generated: each window of a
+rollout warps from its own), decoded to pixels; the poses are the clip's recorded ones or a user's
+route.
 """
 
 from __future__ import annotations
@@ -22,7 +24,8 @@ class WarpGuide:
     """What warping a window needs: the ``codec`` (and ``codec_params``) to decode its first frame
     and encode the warped clip, every output pixel frame's ego pose ``poses [B, P, 4, 4]`` (in
     any one world frame), the cameras ``intrinsics [B, V, 3, 3]`` / ``cam_to_ego [B, V, 4, 4]`` and
-    the plane ``depth`` in metres (the run's ``data.warp_depth``)."""
+    the plane ``depth`` in metres (the run's ``data.warp_depth``); ``frame``: the window's latent
+    frame warped (the run's ``data.warp_frame``)."""
 
     codec: Any
     codec_params: Any
@@ -30,6 +33,7 @@ class WarpGuide:
     intrinsics: np.ndarray
     cam_to_ego: np.ndarray
     depth: float
+    frame: int = 0
 
     def __post_init__(self):
         check_trailing_shape("poses", self.poses, (None, 4, 4), "[B, P, 4, 4]")
@@ -39,7 +43,7 @@ class WarpGuide:
             raise ValueError(f"depth: expected a positive plane depth in metres, got {self.depth}")
 
     @classmethod
-    def from_inputs(cls, inputs: dict, codec, depth: float) -> WarpGuide:
+    def from_inputs(cls, inputs: dict, codec, depth: float, frame: int = 0) -> WarpGuide:
         """From :func:`jaxdrive.data.batches.model_inputs` of a model with ``controls.warp`` (its
         ``warp`` entry: the clips' poses and cameras)."""
         w = inputs["warp"]
@@ -50,12 +54,14 @@ class WarpGuide:
             np.asarray(w["intrinsics"], np.float32),
             np.asarray(w["cam_to_ego"], np.float32),
             float(depth),
+            int(frame),
         )
 
     def window(self, first, pixel_frames) -> np.ndarray:
-        """The ``warp`` latents ``[B, V, F', h, w, C]`` of a window whose first latent frame is
-        ``first [B, V, 1, h, w, C]`` and whose pixel frames are ``pixel_frames`` (output pixel
-        frames, the first one the window's first)."""
+        """The ``warp`` latents ``[B, V, F', h, w, C]`` of a window whose latent frame
+        :attr:`frame` is ``first [B, V, 1, h, w, C]`` and whose pixel frames are ``pixel_frames``
+        (output pixel frames; with ``frame > 0`` the latents are frame-wise, pixel frame
+        ``frame`` of the window is that latent frame)."""
         from jaxdrive.warp import warp_views
 
         frames = np.asarray(pixel_frames)
@@ -66,7 +72,7 @@ class WarpGuide:
             )
         pixels = np.asarray(_DECODE(self.codec, self.codec_params, first))[:, :, 0]  # [B, V, H, W, 3]
         p = self.poses[:, frames].astype(np.float64)
-        rel = (np.linalg.inv(p[:, :1]) @ p).astype(np.float32)  # [B, n, 4, 4]
+        rel = (np.linalg.inv(p[:, self.frame : self.frame + 1]) @ p).astype(np.float32)  # [B, n, 4, 4]
         video = np.stack(
             [
                 warp_views(pixels[b], self.intrinsics[b], self.cam_to_ego[b], rel[b], self.depth)

@@ -288,11 +288,12 @@ def window_controls(
     model: WindowModel, horizon: Horizon, idx, controls: Conditions, *, fps_scale: float = 1.0, warp=None
 ) -> Conditions:
     """The conditions of ``model``'s window at horizon positions ``idx``: the per-frame controls
-    there and, for a model trained with warps (LongDWM, ``controls.warp``), the window's first
-    frame warped along its frames' poses (``warp``: a :class:`jaxdrive.generate.warps.WarpGuide`)."""
+    there and, for a model trained with warps (LongDWM, ``controls.warp``), the window's frame
+    ``warp.frame`` warped along its frames' poses (``warp``: a :class:`jaxdrive.generate.warps.WarpGuide`)."""
     ctrl = controls_at(controls, idx, model.temporal, fps_scale=fps_scale)
     if model.dit.config.controls.warp:
-        ctrl = ctrl.replace(warp=warp.window(horizon.latents[:, :, idx[:1]], pixel_frames(idx, model.temporal)))
+        source = horizon.latents[:, :, idx[warp.frame : warp.frame + 1]]
+        ctrl = ctrl.replace(warp=warp.window(source, pixel_frames(idx, model.temporal)))
     return ctrl
 
 

@@ -109,13 +109,20 @@ def state_from_params(params, mesh, optim_config, total_steps: int, seed: int):
     return state, optimizer
 
 
-def check_warp(config: Config) -> None:
-    """LongDWM's warp-guided control needs pixel clips to warp, and one window per clip:
-    ``ValueError`` naming the option that rules it out."""
+def check_warp(config: Config, temporal: int = 1) -> None:
+    """LongDWM's warp-guided control needs pixel clips to warp, and one window per clip; its
+    source frame a given frame that is a latent frame of its own (``temporal``: the codec's
+    temporal compression): ``ValueError`` naming the option that rules it out."""
     d = config.data
     if not (np.isfinite(d.warp_depth) and d.warp_depth > 0):
         raise ValueError(
             f"data.warp_depth: expected a positive depth in metres for a model with controls.warp, got {d.warp_depth}"
+        )
+    last = max(config.flow.cond_frames - 1, 0) if temporal == 1 else 0
+    if isinstance(d.warp_frame, bool) or not isinstance(d.warp_frame, int) or not 0 <= d.warp_frame <= last:
+        raise ValueError(
+            f"data.warp_frame: expected a given frame to warp from, 0 to {last} (flow.cond_frames "
+            f"{config.flow.cond_frames}, temporal compression {temporal}), got {d.warp_frame!r}"
         )
     for name, value, ok in (
         ("latents.precomputed", config.latents.precomputed, False),
@@ -199,7 +206,7 @@ class Run:
 
         check_stream(config, self.latent_frames, needs_init=check_data)
         if model.controls.warp:
-            check_warp(config)
+            check_warp(config, max(self.codec.temporal, 1))
         self.tokens_per_step = self.tokens(d.batch_size, d.height, d.width, self.latent_frames)
         self.text = None
         if model.controls.text == "embeddings":
@@ -364,6 +371,7 @@ class Run:
             rate_head=d.rate_head,
             rate_strides=d.rate_strides,
             warp_depth=d.warp_depth if self.training.model.controls.warp else 0.0,
+            warp_frame=d.warp_frame,
             skip_bad_records=d.skip_bad_records,
         )
 

@@ -28,7 +28,7 @@ LOCAL_IMPLS = ("xla", "blockwise", "cudnn", "splash")
 DTYPES = ("float32", "bfloat16", "float16")
 TEXT_KINDS = ("embeddings", "caption", None)
 COND_FRAMES = ("replace", "concat", None)
-REFERENCE_FRAME = ("input", "residual", None)
+REFERENCE_FRAME = ("input", "residual", "warp", None)
 
 # Condition names accepted in ``drop`` (classifier-free guidance), as in the data pipeline where
 # they overlap ("text", "boxes", "map", "trajectory", "camera").
@@ -76,7 +76,13 @@ class Controls:
       and the output (``prediction="data"``) is the change from that frame, ``x = ref + out``, as
       GenCast (Price et al. 2024) predicts the residual to the current state: a freshly
       initialised model repeats the last given frame, with all of its detail, and training
-      learns the motion. A clip with no given frame gets ``ref = 0``.
+      learns the motion. A clip with no given frame gets ``ref = 0``. ``"warp"`` (with ``warp``):
+      the reference of every frame is that frame's warped latents (the given frame warped along
+      the route, LongDWM [2506.01546v1] sec. 3.4), input as ``[warp, 1]`` and the output its
+      correction, ``x = warp + out``: a freshly initialised model gives the warp itself, and
+      training learns what the one-depth warp gets wrong (parallax, holes, the traffic). Where
+      the warp is dropped (guidance, ``drop["warp"]``) the reference is the newest given frame's,
+      as ``"residual"``: the null route holds still.
     - ``warp``: LongDWM's warp-guided frames: warped latents through a trainable patch embedding,
       injected into every layer through zero-initialised projections.
     - ``frame_time``: each frame's time in seconds (``Conditions.frame_times``), so that one clip
@@ -378,12 +384,17 @@ def _check_conditioning(cfg: DiTConfig) -> None:
             "controls.reference_frame: expected condition frames (controls.cond_frames 'replace' or "
             "'concat') to take the reference from, got cond_frames=None"
         )
-    if cfg.controls.reference_frame == "residual" and cfg.prediction != "data":
+    mode = cfg.controls.reference_frame
+    if mode in ("residual", "warp") and cfg.prediction != "data":
         raise ValueError(
-            f"controls.reference_frame: 'residual' makes the output the change from the given frame's "
+            f"controls.reference_frame: {mode!r} makes the output the change from the reference "
             f"latents, which needs prediction='data', got prediction={cfg.prediction!r}"
         )
-    if cfg.controls.reference_frame == "residual" and cfg.out_dim != cfg.in_channels:
+    if mode == "warp" and not cfg.controls.warp:
+        raise ValueError(
+            "controls.reference_frame: 'warp' corrects the warped frames, which needs controls.warp=True, got False"
+        )
+    if mode in ("residual", "warp") and cfg.out_dim != cfg.in_channels:
         raise ValueError(
             f"out_channels: a residual to the given frame needs in_channels = {cfg.in_channels} outputs, "
             f"got {cfg.out_dim}"

@@ -57,12 +57,20 @@ def unpatchify(tokens, patch, grid_hw, channels):
     return reshape(x, (b, nv, ft * pt, gh * ph, gw * pw, channels))
 
 
-def reference_input(x, cond_latents, cond_mask):
+def reference_input(x, cond_latents, cond_mask, warp=None, warp_dropped=None):
     """``[ref * given, given]`` for every frame of ``x [B, V, F', h, w, C]``: ``ref`` the latents of
     the newest frame in ``cond_mask [B, F']`` (``controls.reference_frame``), ``given`` 1 where a
     clip has a condition frame (0 and zeros for a clip without, or with no ``cond_latents``).
+    With ``warp`` (``[B, V, F', h, w, C]``, ``reference_frame="warp"``) each frame's reference is
+    its own warped latents, ``[warp, 1]``, except in the clips of ``warp_dropped [B]``.
     The out-dimension of the DiT equals ``C``, so ``[..., :-1]`` is the residual's base."""
     b, nv, nf, h, w, c = x.shape
+    if warp is not None:
+        newest = reference_input(x, cond_latents, cond_mask)
+        warped = jnp.concatenate([jnp.asarray(warp, jnp.float32), jnp.ones_like(x[..., :1])], axis=-1)
+        if warp_dropped is None:
+            return warped
+        return jnp.where(jnp.asarray(warp_dropped, bool)[:, None, None, None, None, None], newest, warped)
     if cond_latents is None:
         return jnp.zeros((b, nv, nf, h, w, c + 1), jnp.float32)
     m = jnp.asarray(cond_mask, bool)

@@ -200,7 +200,10 @@ class DiT(nn.Module):
         x, sig = _with_given_frames(cfg, latents, sigma, c)
         _, nv, nf, h, w, _ = x.shape
         grid = (h // cfg.patch[1], w // cfg.patch[2])
-        ref = reference_input(x, c.cond_latents, c.cond_mask) if cfg.controls.reference_frame else None
+        ref = None
+        if cfg.controls.reference_frame:
+            warp = c.warp if cfg.controls.reference_frame == "warp" else None
+            ref = reference_input(x, c.cond_latents, c.cond_mask, warp, drop.get("warp"))
         hid = self._video_tokens(cfg, x, c, drop, grid, ref)
         t, ctx = self._noise_level_context(cfg, pool_frames(sig, cfg.patch[0]), c, drop, nf, grid)
         carry, ctx = self._token_context(cfg, hid, ctx, c, drop, nv, nf, (h, w))
@@ -309,9 +312,9 @@ class DiT(nn.Module):
         out = unpatchify(out, cfg.patch, grid, cfg.out_dim).astype(jnp.float32)
         if cfg.final_conv:
             out = out + self._final_conv(cfg, out, x, ref)
-        if cfg.controls.reference_frame == "residual":
+        if cfg.controls.reference_frame in ("residual", "warp"):
             assert ref is not None  # made above: reference_frame is set
-            out = out + ref[..., :-1]  # the change from the newest given frame
+            out = out + ref[..., :-1]  # the change from the newest given frame, or from the warp
         return out
 
     # ------------------------------------------------------------------ pieces
