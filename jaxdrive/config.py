@@ -104,6 +104,11 @@ class FlowConfig:
     shift: float = 1.0  # SD3 / Open-Sora shift; 0: the resolution/length rule
     cond_frames: int = 1  # clean latent condition frames at the start (max)
     cond_frames_random: bool = True  # draw 0..cond_frames per clip (unconditional too)
+    # GameNGen's noise on the given frames (jaxdrive.flow.noise_given_frames): in training a level
+    # drawn per clip uniformly in [0, given_noise_max], at sampling given_noise_sample; the model
+    # reads it as those frames' noise level (controls.cond_frames "replace")
+    given_noise_max: float = 0.0
+    given_noise_sample: float = 0.0
     tpd: bool = False  # MiLA's temporal progressive denoising levels
     tpd_omega: float = 1.5707963267948966
     patterns: tuple[str, ...] = ("prefix",)  # where given frames sit: prefix / ends / anchors (flow.patterns)
@@ -474,6 +479,19 @@ def check_sections(config) -> None:
             )
     if f.cond_frames < 0:
         raise ValueError(f"flow.cond_frames: expected >= 0, got {f.cond_frames}")
+    for name, level in (("flow.given_noise_max", f.given_noise_max), ("flow.given_noise_sample", f.given_noise_sample)):
+        if not (isinstance(level, (int, float)) and 0.0 <= level < 1.0):
+            raise ValueError(f"{name}: expected a noise level in [0, 1), got {level!r}")
+    if f.given_noise_sample > f.given_noise_max:
+        raise ValueError(
+            f"flow.given_noise_sample: expected a level the model trained with, at most flow.given_noise_max = "
+            f"{f.given_noise_max}, got {f.given_noise_sample}"
+        )
+    if f.given_noise_max > 0 and config.model.controls.cond_frames != "replace":
+        raise ValueError(
+            f"flow.given_noise_max: the given frames' noise level reaches the model with "
+            f"model.controls.cond_frames 'replace', got {config.model.controls.cond_frames!r}"
+        )
     validate.check_positive_int("data.rate_head", d.rate_head, minimum=0)
     if d.rate_head > d.frames:
         raise ValueError(f"data.rate_head: expected at most data.frames = {d.frames} frames, got {d.rate_head}")

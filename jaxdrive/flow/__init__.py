@@ -20,6 +20,7 @@ from jaxdrive.flow.losses import flow_loss, high_pass, high_pass_mask, per_frame
 from jaxdrive.flow.patterns import PATTERNS, check_patterns, draw_condition_masks, max_cond, pattern_masks
 from jaxdrive.flow.rectified import (
     add_noise,
+    noise_given_frames,
     data_from_velocity,
     euler_step,
     expand_per_frame,
@@ -37,6 +38,7 @@ from jaxdrive.flow.weights import foreground_weight_map
 
 __all__ = [
     "add_noise",
+    "noise_given_frames",
     "velocity_target",
     "data_from_velocity",
     "noise_from_velocity",

@@ -46,6 +46,23 @@ def expand_per_frame(values, x, name: str = "sigma"):
     raise ValueError(f"{name}: expected shape [B] or [B, F], got {list(values.shape)}")
 
 
+def noise_given_frames(x, noise, cond_mask, level):
+    """The given frames of ``x [B, ..., F, h, w, C]`` (``cond_mask [B, F]``) noised to ``level``
+    (``[B]``, one level a clip) on the flow's path, the other frames unchanged, and each frame's
+    level ``[B, F]`` (``level`` where given, 0 elsewhere): what the model is told of its context.
+
+    GameNGen (Valevski et al. 2024, arXiv 2408.14837, sec. 3.2.1, "noise augmentation"): a
+    model trained on clean context frames and rolled out on its own outputs sees their errors
+    compound ("quality degrades fast after 20-30 steps"); trained with context frames corrupted
+    by noise of a level drawn per example up to 0.7, and told the level, it learns to correct
+    what it is given, and at sampling a small level does the same.
+    """
+    check_same_shape("noise", noise, "x", x)
+    m = jnp.asarray(cond_mask, bool)
+    frame_level = jnp.where(m, jnp.asarray(level, jnp.float32)[:, None], 0.0)
+    return add_noise(x, noise, frame_level), frame_level
+
+
 def _levels(sigma, x):
     check_range("sigma", sigma, 0.0, 1.0)
     return expand_per_frame(sigma, x).astype(jnp.promote_types(x.dtype, jnp.float32))

@@ -49,7 +49,8 @@ class WindowModel:
     between its training frames (a coarse model's low rate). ``streaming``: trained frame by frame
     (STAGE, ``stream.enabled``), with an HTFT buffer of ``stream_buffer`` frames fusing
     ``stream_taps`` (empty: HTFT off). ``value_range``: the interval its codec's latents lie in
-    (``LatentCodec.value_range``), or None."""
+    (``LatentCodec.value_range``), or None. ``given_noise``: the level its given frames are
+    noised to before each call (``flow.given_noise_sample``, :func:`jaxdrive.flow.noise_given_frames`)."""
 
     dit: DiT
     params: Any = dataclasses.field(compare=False, hash=False, repr=False)
@@ -73,6 +74,7 @@ class WindowModel:
     stream_buffer: int = 10
     stream_taps: tuple[int, ...] = ()
     value_range: tuple[float, float] | None = None
+    given_noise: float = 0.0
 
     def __post_init__(self):
         check_scale("guidance", self.guidance)
@@ -131,6 +133,7 @@ class WindowModel:
             stream_buffer=spec.stream.buffer,
             stream_taps=tuple(spec.stream.taps) if spec.model.htft_layers else (),
             value_range=spec.codec.value_range,
+            given_noise=f.given_noise_sample,
         )
 
     def in_range(self, latents):
@@ -355,6 +358,13 @@ def sample_window(model: WindowModel, params, x_cond, cond_mask, controls: Condi
     cond = controls.replace(drop=None)
     if m.controls.cond_frames is not None:
         cond = cond.replace(cond_latents=x_cond, cond_mask=cond_mask)
+        if model.given_noise > 0:  # as trained (GameNGen); the returned given frames stay clean
+            k_given = jax.random.fold_in(key, 2)
+            level = jnp.full((x_cond.shape[0],), model.given_noise, jnp.float32)
+            noisy, cond_sigma = flow.noise_given_frames(
+                x_cond, jax.random.normal(k_given, x_cond.shape, jnp.float32), cond_mask, level
+            )
+            cond = cond.replace(cond_latents=noisy, cond_sigma=cond_sigma)
     guidance = sampler_guidance(cond, drop, x_cond.shape[0], model.guidance, model.control_guidance)
     schedule = flow.frame_schedule(
         flow.sampling_sigmas(model.steps, shift=model.shift),

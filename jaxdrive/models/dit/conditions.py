@@ -86,6 +86,7 @@ class Conditions:
     bev_map: Any = None
     cond_latents: Any = None
     cond_mask: Any = None
+    cond_sigma: Any = None
     warp: Any = None
     features: Any = None
     features_mask: Any = None
@@ -241,6 +242,14 @@ def _check(cfg: DiTConfig, latents, sigma, cond: Conditions) -> None:
         check_shape("cond_latents", kw["cond_latents"], list(np.shape(latents)))
         check_shape("cond_mask", kw["cond_mask"], [b, nf])
         _check_bool("cond_mask", kw["cond_mask"])
+    if kw.get("cond_sigma") is not None:
+        if kw.get("cond_latents") is None or c.cond_frames != "replace":
+            raise ValueError(
+                "cond_sigma: the given frames' noise level needs cond_latents and controls.cond_frames "
+                f"'replace', got cond_latents={'set' if kw.get('cond_latents') is not None else None}, "
+                f"cond_frames={c.cond_frames!r}"
+            )
+        check_shape("cond_sigma", kw["cond_sigma"], [b, nf])
     if kw.get("warp") is not None:
         check_shape("warp", kw["warp"], list(np.shape(latents)))
     _check_features(cfg, b, latents, kw.get("features"), kw.get("features_mask"))

@@ -131,14 +131,16 @@ def _with_video(cfg, carry, video):
 
 def _with_given_frames(cfg: DiTConfig, latents, sigma, cond: Conditions) -> tuple[jax.Array, jax.Array]:
     """``(x [B, V, F', h, w, C] float32, sigma [B, F'])``: with ``controls.cond_frames ==
-    "replace"`` the given frames (``cond.cond_mask``) take ``cond.cond_latents`` and level 0."""
+    "replace"`` the given frames (``cond.cond_mask``) take ``cond.cond_latents`` and level 0, or
+    ``cond.cond_sigma`` where the given frames were noised (:func:`jaxdrive.flow.noise_given_frames`)."""
     x = constrain(jnp.asarray(latents, jnp.float32), ("batch", "views", "frames", None, None, None))
     b, nf = x.shape[0], x.shape[2]
     sig = jnp.broadcast_to(jnp.asarray(sigma, jnp.float32).reshape(b, -1), (b, nf))
     if cond.cond_latents is not None and cfg.controls.cond_frames == "replace":
         m = jnp.asarray(cond.cond_mask, bool)
         x = jnp.where(m[:, None, :, None, None, None], jnp.asarray(cond.cond_latents, jnp.float32), x)
-        sig = jnp.where(m, 0.0, sig)
+        given = 0.0 if cond.cond_sigma is None else jnp.asarray(cond.cond_sigma, jnp.float32)
+        sig = jnp.where(m, given, sig)
     return x, sig
 
 
