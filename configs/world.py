@@ -36,16 +36,29 @@ the world recipe), 9-frame windows at random offsets, 2 given frames. Train and 
     jaxdrive eval --workdir runs/world --frames 33 --routes recorded,stop,slower,faster,lane-left
 
 ``steps`` (default 4000: about 55 minutes on 2 cores) sets the training length: ``configs/world.py:steps=2000``.
+
+``control=warp`` (issue 58; not yet trained to its goals) adds what a model needs to follow a route
+it is told rather than the motion its history shows:
+
+- counterfactual futures (``data.routes``, :mod:`jaxdrive.data.route_mix`): each training scene read
+  along the recorded drive (weight 2) or a stop, a slower, a faster drive, a lane change to the
+  left or the other branch at the next intersection (weight 1 each): half of the futures leave the
+  recorded motion, and the turns (``branch``) are the routes the recorded clips hold fewest of;
+  the dataset needs them: ``jaxdrive data synth ... --counterfactuals stop,slower,faster,lane-left,branch``;
+- LongDWM's warp as the route's pixels (``controls.warp``, sec. 3.4) from the last given frame
+  (``data.warp_frame=1``), the output a correction to it (``controls.reference_frame="warp"``):
+  an untrained model already gives the ``warp`` baseline;
+- GameNGen's noise on the given frames (``flow.given_noise_max=0.7`` in training, 0.1 at sampling).
 """
 
 import dataclasses
 from pathlib import Path
 
-from jaxdrive.config import load_config, parse_arg
+from jaxdrive.config import check_arg, load_config, parse_arg
 
 
 def get_config(arg: str | None = None):
-    a = parse_arg(arg, steps=4000)
+    a = parse_arg(arg, steps=4000, control="waypoints")
     base = load_config(Path(__file__).with_name("tiny.py"))
     m = base.model
     controls = dataclasses.replace(m.controls, layout=True, boxes=False, map=False, trajectory=False, waypoints=True)
@@ -53,4 +66,10 @@ def get_config(arg: str | None = None):
     optim = dataclasses.replace(base.optim, warmup_steps=100)
     data = dataclasses.replace(base.data, path="data/world")
     flow = dataclasses.replace(base.flow, shift=3.0)
+    check_arg("control", a.control, ("waypoints", "warp"))
+    if a.control == "warp":
+        controls = dataclasses.replace(controls, warp=True, reference_frame="warp")
+        routes = ("recorded:2", "stop", "slower", "faster", "lane-left", "branch")
+        data = dataclasses.replace(data, routes=routes, warp_frame=base.flow.cond_frames - 1)
+        flow = dataclasses.replace(flow, given_noise_max=0.7, given_noise_sample=0.1)
     return dataclasses.replace(base, model=m.replace(controls=controls), train=train, optim=optim, data=data, flow=flow)

@@ -112,3 +112,31 @@ def test_a_route_the_training_split_lacks_is_refused_before_anything_compiles(sc
                                data=dataclasses.replace(config.data, routes=("stop",)))
     with pytest.raises(ValueError, match="data.routes: expected \\(\\) with latents.precomputed"):
         Run(bare, devices=ONE)
+
+
+@pytest.mark.slow(seconds=60)
+def test_the_world_recipe_with_warp_control_trains_on_routed_scenes_and_samples(tmp_path):
+    """``configs/world.py:control=warp`` end to end at one layer: counterfactual futures, the warp
+    from the last given frame with the output its correction, noise on the given frames; then a
+    rollout through the CLI, each window warping from its own newest given frame."""
+    import json
+
+    from jaxdrive.cli import main as cli
+
+    data = tmp_path / "data"
+    write_synthetic_dataset(
+        data, train=2, validation=1, seed=3, train_counterfactuals="stop,faster", counterfactual_start=START,
+        views=6, frames=FRAMES, height=32, width=56,
+    )
+    sets = [f"data.path={data}", "data.routes=[recorded,stop,faster]", "model.depth=1", "model.final_conv=0",
+            "model.controls.text=none", "data.frames=5", "mesh.data=2", "mesh.seq=4", "train.checkpoint_every=2"]
+    args = ["train", "--config", str(Path(TINY).with_name("world.py")) + ":control=warp", "--workdir",
+            str(tmp_path / "run"), "--steps", "2", "--no-progress"]
+    for s in sets:
+        args += ["--set", s]
+    assert cli(args) == 0
+    out = tmp_path / "sample"
+    assert cli(["sample", "--workdir", str(tmp_path / "run"), "--strategy", "rollout", "--frames", "9",
+                "--steps", "2", "--out", str(out), "--no-progress"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["warp"] == {"depth": 20.0, "frame": 1} and report["frames"] == 9

@@ -299,7 +299,7 @@ def test_a_warp_run_trains_and_samples_through_the_cli(data, tmp_path, capsys, m
         == 0
     )
     report = json.loads((out / "report.json").read_text())
-    assert report["warp"] == {"depth": 18.0} and report["frames"] == 9
+    assert report["warp"] == {"depth": 18.0, "frame": 0} and report["frames"] == 9
     recorded = np.load(out / "latents.npy")
     assert np.isfinite(recorded).all()
     # --route: the same clip driven through a left turn; the windows warp along the route's poses

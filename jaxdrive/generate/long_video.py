@@ -152,7 +152,7 @@ def long_video(
         **tracker.notes,
     }
     if options.get("warp") is not None:  # LongDWM's warped frames: the plane depth they used
-        report["warp"] = {"depth": options["warp"].depth}
+        report["warp"] = {"depth": options["warp"].depth, "frame": options["warp"].frame}
     if route is not None:
         report["route"] = route
     if scene is not None and scene.get("route_drive") is not None:
