@@ -31,7 +31,7 @@ frames, the validation clips also along the counterfactual routes; docs/guides/d
 the world recipe), 9-frame windows at random offsets, 2 given frames. Train and score::
 
     jaxdrive data synth --out data/world --scenes 200 --val-fraction 0.04 --frames 33 \\
-        --counterfactuals stop,slower,faster,lane-left --skip-undrivable
+        --counterfactuals stop,slower,faster,lane-left --counterfactual-splits validation --skip-undrivable
     jaxdrive train --config configs/world.py --workdir runs/world --set data.path=data/world
     jaxdrive eval --workdir runs/world --frames 33 --routes recorded,stop,slower,faster,lane-left
 
