@@ -210,7 +210,7 @@ def test_eval_scores_every_route_against_its_render(tiny_dit, routes21, tmp_path
         "--set",
         f"data.path={routes21}",
     ]
-    assert main([*argv, "--routes", "recorded,stop,lane-left", "--out", str(out)]) == 0
+    assert main([*argv, "--routes", "recorded,stop,lane-left", "--ego-motion", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "| rollout @ stop | 2-5 |" in printed and "| warp @ lane-left | 2-5 |" in printed
     assert "| stop | rollout | 2-5 |" in printed  # the route-effect table
@@ -238,6 +238,15 @@ def test_eval_scores_every_route_against_its_render(tiny_dit, routes21, tmp_path
             # by definition: the route's score minus the recorded-route generation's on the same render
             assert np.isfinite(row["psnr"]) and abs(row["ssim"]) <= 2.0
     assert "Route effect" in (out / "eval.md").read_text()
+    # route following read from the pixels: every result and each route's render (the ceiling)
+    ceiling = report["route_following_ceiling"]
+    assert set(ceiling) == {"recorded", "stop", "lane-left"}
+    for f in [*ceiling.values(), *(rows[n]["following"] for n in ("rollout @ stop", "warp @ stop", "repeat frame 1 @ stop"))]:
+        assert f["clips"] == 2 and np.isfinite(f["ade"]) and 0 <= f["recognised"] <= 1 and len(f["commanded"]) == 2
+    # the commanded manoeuvre is the route's, whoever drives it
+    assert rows["rollout @ stop"]["following"]["commanded"] == ceiling["stop"]["commanded"]
+    assert ceiling["stop"]["ade"] < rows["repeat frame 1"]["following"]["ade"] + 5.0
+    assert "Route following" in (out / "eval.md").read_text() and "| stop | render |" in printed
     assert (out / "routes.png").stat().st_size > 0
     # the model has boxes: one more row with them dropped, against the recorded render
     assert list(rows["rollout (no boxes)"]["buckets"]) == ["2-5", "6-8", "9-12", "2-12"]
@@ -245,13 +254,17 @@ def test_eval_scores_every_route_against_its_render(tiny_dit, routes21, tmp_path
     merged = tmp_path / "merged"
     assert main(["eval", "--merge", f"{out},{out}", "--out", str(merged)]) == 0
     capsys.readouterr()
-    assert set(json.loads((merged / "eval.json").read_text())["route_effect"]["stop"]) == {"rollout (run)"}
+    merged_report = json.loads((merged / "eval.json").read_text())
+    assert set(merged_report["route_effect"]["stop"]) == {"rollout (run)"}
+    assert merged_report["route_following_ceiling"] == ceiling  # the data's, once
+    assert "following" in merged_report["strategies"]["rollout @ stop (run)"]
     # bad input, before anything compiles
     for extra, message in (
         (["--routes", "recorded,reverse"], "--routes: expected distinct comma-separated routes"),
         (["--routes", "stop,branch"], "--routes: expected routes stored in"),
         (["--routes", "stop", "--clips", "4"], "--clips: expected at most 2"),
         (["--routes", "stop", "--split", "train"], "--split: expected none with --routes"),
+        (["--ego-motion"], "--ego-motion: expected --routes"),
     ):
         assert main([*argv, *extra, "--out", str(tmp_path / "no")]) == 2, extra
         assert message in capsys.readouterr().err, message

@@ -51,7 +51,10 @@ def _merge(args) -> int:
             f"--videos, got {args.merge!r}"
         )
     results, meta, ceiling, effects = merge(dirs)
-    paths = write_outputs(results, Path(args.out), meta=meta, ceiling=ceiling, effects=effects or None)
+    following = meta.pop("route_following_ceiling", None)
+    paths = write_outputs(
+        results, Path(args.out), meta=meta, ceiling=ceiling, effects=effects or None, following=following
+    )
     print(paths["table"])
     print(f"wrote {paths['json']}, {paths['md']}, {paths['plot']}")
     return 0
@@ -84,6 +87,10 @@ def _eval_runs(args) -> int:
     args.cfg = None  # the models load with their runs' sample.cfg; the sweep sets each
     clips = check_positive_int("--clips", args.clips)
     _check_common(args, clips)
+    if args.ego_motion and not args.routes:
+        raise ValueError(
+            "--ego-motion: expected --routes (the estimated path is scored against each route's commanded one), got none"
+        )
     if args.routes:
         from jaxdrive.eval.routes import parse_routes
 
@@ -316,7 +323,7 @@ def _eval_routes(
         segment = lambda frames: segmenter.classes(frames, mesh=run.mesh)
     boxes = "boxes" in spec.model.controls.enabled()
     with jax.set_mesh(run.mesh):
-        results, effects, rows = evaluate_routes(
+        results, effects, rows, following = evaluate_routes(
             args.routes,
             plan,
             load_inputs=load_inputs,
@@ -333,6 +340,8 @@ def _eval_routes(
             mesh=run.mesh,
             segment=segment,
             without_boxes=boxes,
+            ego_motion=args.ego_motion,
+            fps=12.0 / spec.frame_stride,  # the synthetic world's 12 fps, as sampled
             **features,
         )
     from jaxdrive.media import write_route_grid
@@ -342,6 +351,7 @@ def _eval_routes(
         results,
         Path(args.out),
         effects=effects,
+        following=following,
         meta=_meta(
             args,
             clips,
@@ -588,6 +598,12 @@ def add_commands(sub) -> None:
         "--counterfactuals): comma-separated, e.g. recorded,stop,lane-left; every "
         "strategy under each route against that route's render, with repeat and warp "
         "rows and the route effect",
+    )
+    ev.add_argument(
+        "--ego-motion",
+        action="store_true",
+        help="with --routes: read the ego's path from every generated clip (and each route's render, "
+        "the estimator's own error) and score it against the route's: ADE, FDE, manoeuvre recognised",
     )
     add_sampling(ev, sweep=True)
     ev.add_argument("--out", required=True, help="output directory")

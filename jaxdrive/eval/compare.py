@@ -167,7 +167,7 @@ def run_strategies(
     "peak_device_bytes", "buckets": {...}}}``. ``targets`` (label -> ``(video, masks)``): each
     generation is also scored against these other videos (the counterfactual renders of
     ``jaxdrive eval --routes``), under the result's ``"against": {label: buckets}``. ``keep``:
-    the first clip's decoded video ``[V, F, H, W, 3]`` stays under ``"video"`` (pop it before
+    the clips' decoded videos ``[B, V, F, H, W, 3]`` stay under ``"video"`` (pop them before
     writing the results as JSON). Each strategy's time is logged at INFO."""
     from jaxdrive.generate.strategies import run_strategy
     from jaxdrive.generate.windows import Tracker
@@ -205,7 +205,7 @@ def run_strategies(
             ),
         }
         if keep:
-            results[name]["video"] = video[0]
+            results[name]["video"] = video
         if targets:
             results[name]["against"] = {
                 label: score(video, target, buckets, segment=segment, masks=target_masks)
@@ -244,12 +244,22 @@ def table(results: dict, ceiling: dict | None = None) -> str:
     return "\n".join(lines)
 
 
-def write_outputs(results: dict, out, *, meta: dict, ceiling: dict | None = None, effects: dict | None = None) -> dict:
+def write_outputs(
+    results: dict,
+    out,
+    *,
+    meta: dict,
+    ceiling: dict | None = None,
+    effects: dict | None = None,
+    following: dict | None = None,
+) -> dict:
     """``eval.json``, ``eval.md`` and ``quality_vs_horizon.png`` under ``out``; returns the paths.
     ``ceiling``: the segmenter's scores on the recorded frames (``eval.json``'s
     ``recorded_controllability`` and the table's ``recorded frames`` rows). ``effects``: the
     route effects of ``--routes`` (:func:`jaxdrive.eval.routes.route_effect`), ``eval.json``'s
-    ``route_effect``, a second table in ``eval.md`` and a panel of the plot."""
+    ``route_effect``, a second table in ``eval.md`` and a panel of the plot. ``following``: the
+    ego-motion estimator's scores on each route's render (``--ego-motion``, ``eval.json``'s
+    ``route_following_ceiling``), which with the results' own ``following`` make a third table."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -260,12 +270,20 @@ def write_outputs(results: dict, out, *, meta: dict, ceiling: dict | None = None
     extra = {} if ceiling is None else {"recorded_controllability": ceiling}
     if effects:
         extra["route_effect"] = effects
+    if following is not None:
+        extra["route_following_ceiling"] = following
     (out / "eval.json").write_text(json.dumps({**meta, **extra, "strategies": results}, indent=1))
     md = table(results, ceiling)
     if effects:
         md += (
             "\n\nRoute effect (the generation under the route minus the recorded-route generation, both "
             "against the route's render; 0: the route was ignored):\n\n" + effect_table(effects)
+        )
+    if following is not None or any("following" in r for r in results.values()):
+        md += (
+            "\n\nRoute following (the ego's path read from the frames, jaxdrive.eval.ego_motion, against "
+            "the route's; render: the estimator on the route's own render, its error):\n\n"
+            + following_table(results, following or {})
         )
     (out / "eval.md").write_text(md + "\n")
     panels = [("psnr", "PSNR dB against the recorded clip", "PSNR vs horizon")]
@@ -291,6 +309,21 @@ def write_outputs(results: dict, out, *, meta: dict, ceiling: dict | None = None
     fig.savefig(out / "quality_vs_horizon.png")
     plt.close(fig)
     return {"json": out / "eval.json", "md": out / "eval.md", "plot": out / "quality_vs_horizon.png", "table": md}
+
+
+def following_table(results: dict, ceiling: dict) -> str:
+    """A markdown table of route following: one row per route's render (``ceiling``) and per
+    result with ``following``: ADE, FDE, the share of clips whose manoeuvre is recognised."""
+    lines = ["| route | strategy | ADE m | FDE m | manoeuvre recognised | clips |", "|---|---|---|---|---|---|"]
+    row = lambda route, name, f: (
+        f"| {route} | {name} | {f['ade']:.2f} | {f['fde']:.2f} | {f['recognised']:.0%} | {f['clips']} |"
+    )
+    for route, f in ceiling.items():
+        lines.append(row(route, "render", f))
+    for name, r in results.items():
+        if "following" in r:
+            lines.append(row(r.get("route", "recorded"), name, r["following"]))
+    return "\n".join(lines)
 
 
 def effect_table(effects: dict) -> str:
@@ -326,7 +359,8 @@ def _effect_panel(ax, effects):
 
 
 def merge(dirs) -> tuple[dict, dict, dict | None, dict]:
-    """``(results, meta, ceiling, effects)`` of several ``eval.json`` (strategies of different
+    """``(results, meta, ceiling, effects)`` of several ``eval.json`` (the meta holds the first
+    one's ``route_following_ceiling``, the data's, when it has one) (strategies of different
     models on the same clips: MiLA's, LongDWM's, STAGE's): each strategy named ``"name (run)"``
     after the run it sampled, in the results and in the route effects of ``--routes``. They must
     agree on the clips, frames, buckets, segmenter, shuffling and routes, or the rows would not
@@ -365,4 +399,6 @@ def merge(dirs) -> tuple[dict, dict, dict | None, dict]:
                 effects.setdefault(route, {})[f"{name} ({run})"] = spans
     results.update(baselines)
     meta = {k: first.get(k) for k in ("clips", "frames", "views", "segmenter", "shuffle_boxes", "split", "routes")}
+    if first.get("route_following_ceiling") is not None:
+        meta["route_following_ceiling"] = first["route_following_ceiling"]
     return results, {**meta, "merged": [str(d) for d in dirs]}, ceiling, effects

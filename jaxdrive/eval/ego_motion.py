@@ -89,7 +89,6 @@ def _residual(p, earlier, later, points, mask, k, e):
     return jax.vmap(_residual_view, in_axes=(None, 0, 0, 0, 0, 0, 0))(p, earlier, later, points, mask, k, e).reshape(-1)
 
 
-@jax.jit
 def _gauss_newton(p, earlier, later, points, mask, k, e):
     """One reweighted Gauss-Newton step on the motion ``p`` (Geman-McClure weights)."""
     r = _residual(p, earlier, later, points, mask, k, e)
@@ -100,8 +99,19 @@ def _gauss_newton(p, earlier, later, points, mask, k, e):
 
 
 @jax.jit
-def _cost(p, earlier, later, points, mask, k, e):
-    return jnp.sum(jnp.abs(_residual(p, earlier, later, points, mask, k, e)))
+def _fit_pair(starts, earlier, later, points, mask, k, e):
+    """The motion between one pair of frames (``earlier`` / ``later``: ``{blur: [V, H, W, 3]}``)
+    from each of ``starts [S, 3]``, coarse to fine; the fit with the lowest L1 residual on the
+    sharp frames wins. One program a pair: every step of every start in it."""
+
+    def fit(p):
+        for s in BLURS:
+            step = lambda _, q, s=s: _gauss_newton(q, earlier[s], later[s], points, mask, k, e)
+            p = jax.lax.fori_loop(0, STEPS_PER_BLUR, step, p)
+        return p, jnp.sum(jnp.abs(_residual(p, earlier[0.0], later[0.0], points, mask, k, e)))
+
+    fits, costs = jax.vmap(fit)(starts)
+    return fits[jnp.argmin(costs)]
 
 
 def _blurred(video, sigma: float):
@@ -131,17 +141,11 @@ def estimate_ego_motion(video, intrinsics, cam_to_ego) -> np.ndarray:
     geometry = tuple(map(jnp.asarray, (points, mask, np.asarray(intrinsics, np.float32), np.asarray(cam_to_ego, np.float32))))
     pyramid = {s: jnp.asarray(_blurred(frames01, s)) for s in BLURS}
 
-    def fit(p, t):
-        for s in BLURS:
-            for _ in range(STEPS_PER_BLUR):
-                p = _gauss_newton(p, pyramid[s][:, t], pyramid[s][:, t + 1], *geometry)
-        return p
-
     out, p = [], None
     for t in range(frames - 1):
-        starts = [p] if p is not None else [jnp.asarray([v, 0.0, 0.0], jnp.float32) for v in FIRST_SPEEDS]
-        fits = [fit(q, t) for q in starts]
-        p = min(fits, key=lambda q: float(_cost(q, pyramid[0.0][:, t], pyramid[0.0][:, t + 1], *geometry)))
+        starts = p[None] if p is not None else jnp.asarray([[v, 0.0, 0.0] for v in FIRST_SPEEDS], jnp.float32)
+        pair = [{s: pyramid[s][:, t + i] for s in BLURS} for i in (0, 1)]
+        p = _fit_pair(starts, *pair, *geometry)
         out.append(np.asarray(p, np.float64))
     return np.stack(out)
 

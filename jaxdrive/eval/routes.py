@@ -73,13 +73,50 @@ def route_clips(dataset, routes, clips: int, given_frames: int, stride: int = 1)
         )
     rows = {r: list(range(clips)) if r == RECORDED else [stored[r]["clips"].index(i) for i in indices] for r in routes}
     splits = {r: None if r == RECORDED else stored[r]["split"] for r in routes}
-    return {"indices": indices, "rows": rows, "splits": splits}
+    start = -(-int(meta["start"]) // stride) if others else None  # the first generated frame a route changes
+    return {"indices": indices, "rows": rows, "splits": splits, "start": start}
+
+
+def following_scores(video, ego_to_world, intrinsics, cam_to_ego, start: int, fps) -> dict:
+    """Route following read from the pixels (:mod:`jaxdrive.eval.ego_motion`) of ``video [B, V, F,
+    H, W, 3]`` (in [-1, 1]) against the commanded poses ``ego_to_world [B, F, 4, 4]``: the mean
+    ``ade`` and ``fde`` (metres, from frame ``start`` on), the fraction of clips whose manoeuvre
+    is ``recognised``, and each clip's ``manoeuvres`` and ``commanded`` ones. ``fps``: the clips'
+    frame rate (``[B]`` or one number)."""
+    from jaxdrive.eval.ego_motion import estimate_ego_motion, motion_from_poses, route_following
+
+    video = np.asarray(video, np.float32)
+    rates = np.broadcast_to(np.asarray(fps, np.float64), (video.shape[0],))
+    per = [
+        route_following(
+            estimate_ego_motion(video[b], intrinsics[b], cam_to_ego[b]),
+            motion_from_poses(ego_to_world[b]),
+            start,
+            float(rates[b]),
+        )
+        for b in range(video.shape[0])
+    ]
+    return {
+        "ade": float(np.mean([p["ade"] for p in per])),
+        "fde": float(np.mean([p["fde"] for p in per])),
+        "recognised": float(np.mean([p["recognised"] for p in per])),
+        "clips": len(per),
+        "manoeuvres": [p["manoeuvre"] for p in per],
+        "commanded": [p["commanded"] for p in per],
+    }
 
 
 def warp_baseline(render, poses, given: int, depth: float, buckets, **features) -> dict:
     """The ``warp`` row: frame ``given - 1`` of every view warped along the route's ego poses
     (``poses``: ``ego_to_world``, ``intrinsics``, ``cam_to_ego`` of :func:`dataset_inputs`), holes
     inpainted, scored against the route's ``render [B, V, F, H, W, 3]``."""
+    video = warp_video(render, poses, given, depth)
+    return {"seconds": None, "peak_device_bytes": None, "buckets": score(video, render, buckets, **features)}
+
+
+def warp_video(render, poses, given: int, depth: float) -> np.ndarray:
+    """The ``warp`` baseline's frames: ``render [B, V, F, H, W, 3]`` up to frame ``given - 1``,
+    that frame warped along the route's ego poses after it."""
     from jaxdrive.warp import warp_views
 
     video = np.array(render, copy=True)
@@ -89,7 +126,7 @@ def warp_baseline(render, poses, given: int, depth: float, buckets, **features) 
         video[b, :, given:] = warp_views(
             video[b, :, given - 1], poses["intrinsics"][b], poses["cam_to_ego"][b], rel, depth
         )[:, 1:]
-    return {"seconds": None, "peak_device_bytes": None, "buckets": score(video, render, buckets, **features)}
+    return video
 
 
 def route_effect(results: dict, against: dict, routes) -> dict:
@@ -133,18 +170,24 @@ def evaluate_routes(
     mesh=None,
     segment=None,
     without_boxes: bool = False,
+    ego_motion: bool = False,
+    fps: float = 12.0,
     **features,
-) -> tuple[dict, dict, list]:
+) -> tuple[dict, dict, list, dict | None]:
     """Every strategy under every route of ``routes`` (:func:`route_clips`'s ``plan``), scored
     against each route's render, with the ``repeat`` and ``warp`` rows per route; returns
-    ``(results, effects, rows)``: the results and route effects for
+    ``(results, effects, rows, ceiling)``: the results and route effects for
     :func:`jaxdrive.eval.compare.write_outputs`, and for the first clip and strategy the
     ``(label, render, generated)`` videos of each route (:func:`jaxdrive.media.write_route_grid`).
 
     ``load_inputs(split, indices)`` gives :func:`jaxdrive.generate.samples.dataset_inputs` of those
     clips (with ``poses``, and ``class_masks`` with a ``segment`` function);
     ``first_latents(inputs)`` the given latents every strategy starts from; ``depth`` and
-    ``warp_frame``: a warp-guided model's ``data.warp_depth`` and ``data.warp_frame``. Every route's
+    ``warp_frame``: a warp-guided model's ``data.warp_depth`` and ``data.warp_frame``. With
+    ``ego_motion``, every result also has ``following`` (:func:`following_scores`: the ego's path
+    read from its frames against the route's, from the route's start on; the clips' frame rate
+    ``fps``) and ``ceiling`` is the same read from each route's render, ``{route: scores}`` (the
+    estimator's own error; None without ``ego_motion``). Every route's
     generation draws the same noise (``key``), so what differs between routes is the controls.
     ``without_boxes``: one more row, the first strategy under the recorded route with the boxes
     (and the layout drawn from them) dropped to their learned nulls, named ``"NAME (no boxes)"``:
@@ -182,6 +225,7 @@ def evaluate_routes(
             **kw,
         )
 
+    ceiling = {} if ego_motion else None
     recorded = run(base, targets=targets)
     against = {name: r.pop("against") for name, r in recorded.items()}
     results, rows = {}, []
@@ -189,25 +233,36 @@ def evaluate_routes(
         inp = inputs[route]
         video = np.asarray(inp["video"])
         runs = recorded if route == RECORDED else run(inp)
-        rows.append((f"{strategies[0]} @ {route}", video[0], runs[strategies[0]]["video"]))
+        rows.append((f"{strategies[0]} @ {route}", video[0], runs[strategies[0]]["video"][0]))
+        p = inp["poses"]
+        start = plan.get("start") or given
+        follow = lambda v: following_scores(v, p["ego_to_world"], p["intrinsics"], p["cam_to_ego"], start, fps)
+        if ego_motion:
+            ceiling[route] = follow(video)
         for name, r in runs.items():
+            extra = {"following": follow(r["video"])} if ego_motion else {}
             r = {k: v for k, v in r.items() if k != "video"}
-            results[name if route == RECORDED else f"{name}{SEP}{route}"] = {**r, "route": route}
+            results[name if route == RECORDED else f"{name}{SEP}{route}"] = {**r, **extra, "route": route}
         label = "" if route == RECORDED else f"{SEP}{route}"
         results[repeat_name(given) + label] = {
             **repeat_baseline(video, given, buckets, segment=segment, masks=masks(inp), **features),
             "route": route,
         }
         results[f"{WARP}{SEP}{route}"] = {
-            **warp_baseline(video, inp["poses"], given, depth, buckets, segment=segment, masks=masks(inp), **features),
+            **warp_baseline(video, p, given, depth, buckets, segment=segment, masks=masks(inp), **features),
             "route": route,
         }
+        if ego_motion:
+            held = np.array(video, copy=True)
+            held[:, :, given:] = video[:, :, given - 1 : given]
+            results[repeat_name(given) + label]["following"] = follow(held)
+            results[f"{WARP}{SEP}{route}"]["following"] = follow(warp_video(video, p, given, depth))
     if without_boxes:
         # the box inputs left out, which the DiT reads as dropped (the learned null of box
         # cross-attention, nothing from the layout); the same sample as a boxes drop of True
         cond = base["cond"].replace(boxes=None, box_classes=None, box_valid=None)
         name = strategies[0]
         r = run(base, names=[name], cond=cond)[name]
-        rows.append((f"{name} @ recorded, no boxes", np.asarray(base["video"])[0], r.pop("video")))
+        rows.append((f"{name} @ recorded, no boxes", np.asarray(base["video"])[0], r.pop("video")[0]))
         results[f"{name} (no boxes)"] = {**r, "route": RECORDED}
-    return results, route_effect(results, against, routes), rows
+    return results, route_effect(results, against, routes), rows, ceiling
