@@ -241,7 +241,10 @@ def test_eval_scores_every_route_against_its_render(tiny_dit, routes21, tmp_path
     # route following read from the pixels: every result and each route's render (the ceiling)
     ceiling = report["route_following_ceiling"]
     assert set(ceiling) == {"recorded", "stop", "lane-left"}
-    for f in [*ceiling.values(), *(rows[n]["following"] for n in ("rollout @ stop", "warp @ stop", "repeat frame 1 @ stop"))]:
+    for f in [
+        *ceiling.values(),
+        *(rows[n]["following"] for n in ("rollout @ stop", "warp @ stop", "repeat frame 1 @ stop")),
+    ]:
         assert f["clips"] == 2 and np.isfinite(f["ade"]) and 0 <= f["recognised"] <= 1 and len(f["commanded"]) == 2
     # the commanded manoeuvre is the route's, whoever drives it
     assert rows["rollout @ stop"]["following"]["commanded"] == ceiling["stop"]["commanded"]

@@ -508,7 +508,9 @@ def test_reference_frame_control_reaches_every_frame_through_a_zero_initialised_
     assert max_rel(fwd(trained, lat, sig, text, kw), out) > 1e-3
     with pytest.raises(ValueError, match=r"controls.reference_frame: expected condition frames"):
         preset("tiny", controls=dict(reference_frame="input"))
-    with pytest.raises(ValueError, match=r"controls.reference_frame: expected one of \['input', 'residual', 'warp', None\]"):
+    with pytest.raises(
+        ValueError, match=r"controls.reference_frame: expected one of \['input', 'residual', 'warp', None\]"
+    ):
         preset("tiny", controls=dict(cond_frames="replace", reference_frame="copy"))
     with pytest.raises(ValueError, match=r"'residual' .* needs prediction='data', got prediction='velocity'"):
         preset("tiny", controls=dict(cond_frames="replace", reference_frame="residual"))

@@ -60,8 +60,14 @@ def test_the_train_step_noises_the_given_frames_and_tells_the_model(data, monkey
     from jaxdrive.train import flow_step
     from jaxdrive.train.run import Run
 
-    sets = [f"data.path={data}", *MACHINERY, "model.depth=1", "flow.cond_frames=2", "flow.cond_frames_random=false",
-            "flow.given_noise_max=0.7"]
+    sets = [
+        f"data.path={data}",
+        *MACHINERY,
+        "model.depth=1",
+        "flow.cond_frames=2",
+        "flow.cond_frames_random=false",
+        "flow.given_noise_max=0.7",
+    ]
     run = Run(load_config(str(ROOT / "configs" / "tiny.py"), sets), devices=jax.devices()[:1])
     seen = {}
     forward = type(run.training.dit).forward
@@ -92,17 +98,29 @@ def test_the_sampler_noises_its_given_frames_to_the_sampling_level(monkeypatch):
     from jaxdrive.generate.windows import WindowModel, sample_window
     from jaxdrive.models.dit import DiT
     from jaxdrive.models.dit.presets import preset
+
     from strategy_fixtures import C, H, W, horizon_inputs
 
-    cfg = preset("tiny", in_channels=C, vae_spatial=4, vae_temporal=1, patch=(1, 2, 2), prediction="data",
-                 controls=dict(waypoints=True, fps=True, cond_frames="replace"))
+    cfg = preset(
+        "tiny",
+        in_channels=C,
+        vae_spatial=4,
+        vae_temporal=1,
+        patch=(1, 2, 2),
+        prediction="data",
+        controls=dict(waypoints=True, fps=True, cond_frames="replace"),
+    )
     dit = DiT(cfg)
-    params = jax.tree_util.tree_map(jnp.asarray, nn.unbox(dit.init_params(0, batch=1, views=2, frames=4, height=H, width=W)))
+    params = jax.tree_util.tree_map(
+        jnp.asarray, nn.unbox(dit.init_params(0, batch=1, views=2, frames=4, height=H, width=W))
+    )
     m = WindowModel(dit, params, window=4, cond_frames=2, steps=2, given_noise=0.1)
     first, controls = horizon_inputs(4, given=2)
     seen = []
     forward = DiT.forward
-    monkeypatch.setattr(DiT, "forward", lambda self, p, x, s, c, **kw: seen.append(c) or forward(self, p, x, s, c, **kw))
+    monkeypatch.setattr(
+        DiT, "forward", lambda self, p, x, s, c, **kw: seen.append(c) or forward(self, p, x, s, c, **kw)
+    )
     x_cond = np.zeros(first.shape[:2] + (4,) + first.shape[3:], np.float32)
     x_cond[:, :, :2] = first
     mask = jnp.asarray([[True, True, False, False]])
@@ -116,8 +134,14 @@ def test_the_sampler_noises_its_given_frames_to_the_sampling_level(monkeypatch):
     "sets, match",
     [
         (["flow.given_noise_max=1.0"], r"flow.given_noise_max: expected a noise level in \[0, 1\), got 1.0"),
-        (["flow.given_noise_max=0.2", "flow.given_noise_sample=0.3"], "flow.given_noise_sample: expected a level the model trained with"),
-        (["flow.given_noise_max=0.5", "model.controls.cond_frames=concat"], "flow.given_noise_max: the given frames' noise level reaches"),
+        (
+            ["flow.given_noise_max=0.2", "flow.given_noise_sample=0.3"],
+            "flow.given_noise_sample: expected a level the model trained with",
+        ),
+        (
+            ["flow.given_noise_max=0.5", "model.controls.cond_frames=concat"],
+            "flow.given_noise_max: the given frames' noise level reaches",
+        ),
     ],
 )
 def test_bad_levels_name_the_option(sets, match):

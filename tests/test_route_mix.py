@@ -23,8 +23,15 @@ def scenes(tmp_path_factory):
     ``stop`` and ``faster`` renders from frame 4."""
     out = tmp_path_factory.mktemp("routes") / "data"
     write_synthetic_dataset(
-        out, train=2, seed=3, train_counterfactuals="stop,faster", counterfactual_start=START,
-        views=1, frames=FRAMES, height=H, width=W,
+        out,
+        train=2,
+        seed=3,
+        train_counterfactuals="stop,faster",
+        counterfactual_start=START,
+        views=1,
+        frames=FRAMES,
+        height=H,
+        width=W,
     )
     return out
 
@@ -61,11 +68,23 @@ def test_a_batch_holds_two_routes_of_one_scene_with_equal_given_frames(scenes):
     assert len(source) == 2 and list(source.frame_counts) == [FRAMES, FRAMES]
     # a batch of 4 from 2 scenes: each scene twice (two rounds), every sample at frame 0 (clip = bucket)
     for seed in range(20):
-        it = iter(make_pipeline(source, {(H, W, FRAMES): 4}, seed=seed, num_threads=0, prefetch=0,
-                                shard_index=0, shard_count=1, num_epochs=1))
+        it = iter(
+            make_pipeline(
+                source,
+                {(H, W, FRAMES): 4},
+                seed=seed,
+                num_threads=0,
+                prefetch=0,
+                shard_index=0,
+                shard_count=1,
+                num_epochs=1,
+            )
+        )
         batch = next(it)
         pairs = [
-            (i, j) for i in range(4) for j in range(i + 1, 4)
+            (i, j)
+            for i in range(4)
+            for j in range(i + 1, 4)
             if batch["index"][i] == batch["index"][j] and batch["route"][i] != batch["route"][j]
         ]
         if pairs:
@@ -101,15 +120,26 @@ def test_a_route_the_training_split_lacks_is_refused_before_anything_compiles(sc
     from jaxdrive.train.run import Run
 
     ONE = jax.devices()[:1]
-    config = load_config(TINY, [f"data.path={scenes}", "data.views=1", f"data.frames={FRAMES}",
-                                f"data.height={H * 2}", f"data.width={W * 2}"])
-    with pytest.raises(ValueError, match=r"data.routes: expected routes the training split of .* holds "
-                       r"\(recorded, stop, faster\), got \['branch'\]"):
-        Run(dataclasses.replace(config, data=dataclasses.replace(config.data, routes=("recorded", "branch"))), devices=ONE)
+    config = load_config(
+        TINY,
+        [f"data.path={scenes}", "data.views=1", f"data.frames={FRAMES}", f"data.height={H * 2}", f"data.width={W * 2}"],
+    )
+    with pytest.raises(
+        ValueError,
+        match=r"data.routes: expected routes the training split of .* holds "
+        r"\(recorded, stop, faster\), got \['branch'\]",
+    ):
+        Run(
+            dataclasses.replace(config, data=dataclasses.replace(config.data, routes=("recorded", "branch"))),
+            devices=ONE,
+        )
     with pytest.raises(ValueError, match="data.routes: expected distinct comma-separated routes"):
         Run(dataclasses.replace(config, data=dataclasses.replace(config.data, routes=("sideways",))), devices=ONE)
-    bare = dataclasses.replace(config, latents=dataclasses.replace(config.latents, precomputed=True),
-                               data=dataclasses.replace(config.data, routes=("stop",)))
+    bare = dataclasses.replace(
+        config,
+        latents=dataclasses.replace(config.latents, precomputed=True),
+        data=dataclasses.replace(config.data, routes=("stop",)),
+    )
     with pytest.raises(ValueError, match="data.routes: expected \\(\\) with latents.precomputed"):
         Run(bare, devices=ONE)
 
@@ -125,18 +155,60 @@ def test_the_world_recipe_with_warp_control_trains_on_routed_scenes_and_samples(
 
     data = tmp_path / "data"
     write_synthetic_dataset(
-        data, train=2, validation=1, seed=3, train_counterfactuals="stop,faster", counterfactual_start=START,
-        views=6, frames=FRAMES, height=32, width=56,
+        data,
+        train=2,
+        validation=1,
+        seed=3,
+        train_counterfactuals="stop,faster",
+        counterfactual_start=START,
+        views=6,
+        frames=FRAMES,
+        height=32,
+        width=56,
     )
-    sets = [f"data.path={data}", "data.routes=[recorded,stop,faster]", "model.depth=1", "model.final_conv=0",
-            "model.controls.text=none", "data.frames=5", "mesh.data=2", "mesh.seq=4", "train.checkpoint_every=2"]
-    args = ["train", "--config", str(Path(TINY).with_name("world.py")) + ":control=warp", "--workdir",
-            str(tmp_path / "run"), "--steps", "2", "--no-progress"]
+    sets = [
+        f"data.path={data}",
+        "data.routes=[recorded,stop,faster]",
+        "model.depth=1",
+        "model.final_conv=0",
+        "model.controls.text=none",
+        "data.frames=5",
+        "mesh.data=2",
+        "mesh.seq=4",
+        "train.checkpoint_every=2",
+    ]
+    args = [
+        "train",
+        "--config",
+        str(Path(TINY).with_name("world.py")) + ":control=warp",
+        "--workdir",
+        str(tmp_path / "run"),
+        "--steps",
+        "2",
+        "--no-progress",
+    ]
     for s in sets:
         args += ["--set", s]
     assert cli(args) == 0
     out = tmp_path / "sample"
-    assert cli(["sample", "--workdir", str(tmp_path / "run"), "--strategy", "rollout", "--frames", "9",
-                "--steps", "2", "--out", str(out), "--no-progress"]) == 0
+    assert (
+        cli(
+            [
+                "sample",
+                "--workdir",
+                str(tmp_path / "run"),
+                "--strategy",
+                "rollout",
+                "--frames",
+                "9",
+                "--steps",
+                "2",
+                "--out",
+                str(out),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     report = json.loads((out / "report.json").read_text())
     assert report["warp"] == {"depth": 20.0, "frame": 1} and report["frames"] == 9

@@ -89,7 +89,8 @@ def _eval_runs(args) -> int:
     _check_common(args, clips)
     if args.ego_motion and not args.routes:
         raise ValueError(
-            "--ego-motion: expected --routes (the estimated path is scored against each route's commanded one), got none"
+            "--ego-motion: expected --routes (the estimated path is scored against each route's "
+            "commanded one), got none"
         )
     if args.routes:
         from jaxdrive.eval.routes import parse_routes

@@ -463,9 +463,14 @@ def write_synthetic_dataset(
     elif sorted(drivable) != sorted(names):
         raise ValueError(f"drivable: expected the clips of the routes {names}, got routes {sorted(drivable)}")
     train_drivable = (
-        drivable_clips(train_names, seed, train, start=start, skip_undrivable=True, **clip_kwargs) if train_names else {}
+        drivable_clips(train_names, seed, train, start=start, skip_undrivable=True, **clip_kwargs)
+        if train_names
+        else {}
     )
-    for option, count, found in [("counterfactuals", validation, drivable), ("train_counterfactuals", train, train_drivable)]:
+    for option, count, found in [
+        ("counterfactuals", validation, drivable),
+        ("train_counterfactuals", train, train_drivable),
+    ]:
         for name, rows in found.items():
             if not rows:
                 raise ValueError(
@@ -500,9 +505,7 @@ def write_synthetic_dataset(
     if names or train_names:
         meta["counterfactuals"] = {"start": start}
     if names:
-        meta["counterfactuals"]["routes"] = {
-            n: {"split": counterfactual_split(n), "clips": drivable[n]} for n in names
-        }
+        meta["counterfactuals"]["routes"] = {n: {"split": counterfactual_split(n), "clips": drivable[n]} for n in names}
     if train_names:
         meta["counterfactuals"]["train_routes"] = {
             n: {"split": counterfactual_split(n, "train"), "clips": train_drivable[n]} for n in train_names

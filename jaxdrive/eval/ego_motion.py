@@ -138,7 +138,9 @@ def estimate_ego_motion(video, intrinsics, cam_to_ego) -> np.ndarray:
     points, mask = ground_points(intrinsics, cam_to_ego, h, w)
     if not mask.any():
         raise ValueError("cam_to_ego: expected cameras that see the ground within 40 m, got none that do")
-    geometry = tuple(map(jnp.asarray, (points, mask, np.asarray(intrinsics, np.float32), np.asarray(cam_to_ego, np.float32))))
+    geometry = tuple(
+        map(jnp.asarray, (points, mask, np.asarray(intrinsics, np.float32), np.asarray(cam_to_ego, np.float32)))
+    )
     pyramid = {s: jnp.asarray(_blurred(frames01, s)) for s in BLURS}
 
     out, p = [], None
@@ -202,7 +204,9 @@ def route_following(estimated, commanded, start: int, fps: float) -> dict:
     and whether they agree (``recognised``)."""
     est, cmd = np.asarray(estimated, np.float64), np.asarray(commanded, np.float64)
     if est.shape != cmd.shape or est.ndim != 2 or est.shape[1] != 3:
-        raise ValueError(f"estimated: expected the commanded motions' shape {list(cmd.shape)} [F - 1, 3], got {list(est.shape)}")
+        raise ValueError(
+            f"estimated: expected the commanded motions' shape {list(cmd.shape)} [F - 1, 3], got {list(est.shape)}"
+        )
     (a, _), (b, _) = path(est), path(cmd)
     d = np.linalg.norm(a[start:] - b[start:], axis=-1)
     got, want = manoeuvre(est, start, fps), manoeuvre(cmd, start, fps)

@@ -20,11 +20,11 @@ from jaxdrive.flow.losses import flow_loss, high_pass, high_pass_mask, per_frame
 from jaxdrive.flow.patterns import PATTERNS, check_patterns, draw_condition_masks, max_cond, pattern_masks
 from jaxdrive.flow.rectified import (
     add_noise,
-    noise_given_frames,
     data_from_velocity,
     euler_step,
     expand_per_frame,
     noise_from_velocity,
+    noise_given_frames,
     velocity_from_data,
     velocity_from_noise,
     velocity_from_output,

@@ -95,8 +95,9 @@ def make_mesh(
             )
         ici = dict(zip(MESH_AXES, shape), data=shape[0] // slices)
         return make_hybrid_mesh(ici, {"data": slices}, devices, axis_types=types)
-    grid = _physical_grid(lambda split: mesh_utils.create_device_mesh(
-        shape, devices, allow_split_physical_axes=split), shape, devices)
+    grid = _physical_grid(
+        lambda split: mesh_utils.create_device_mesh(shape, devices, allow_split_physical_axes=split), shape, devices
+    )
     return Mesh(grid, MESH_AXES, axis_types=types)
 
 
@@ -166,9 +167,13 @@ def make_hybrid_mesh(
         )
     dcn_shape = _resolve_sizes(dict(dcn or {}), n_granules, "dcn")
     ici_shape = _resolve_sizes(dict(ici or {}), len(devices) // n_granules, "ici")
-    grid = _physical_grid(lambda split: mesh_utils.create_hybrid_device_mesh(
-        ici_shape, dcn_shape, devices, process_is_granule=(attr == "process_index"),
-        allow_split_physical_axes=split), ici_shape, devices)
+    grid = _physical_grid(
+        lambda split: mesh_utils.create_hybrid_device_mesh(
+            ici_shape, dcn_shape, devices, process_is_granule=(attr == "process_index"), allow_split_physical_axes=split
+        ),
+        ici_shape,
+        devices,
+    )
     return Mesh(grid, MESH_AXES, axis_types=_axis_types(axis_types))
 
 

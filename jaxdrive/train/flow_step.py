@@ -149,8 +149,12 @@ def flow_loss_fn(training: FlowTraining, params, codec_params, inputs: dict, key
         cond = cond.replace(cond_latents=x, cond_mask=given)
         if training.flow.given_noise_max > 0:  # GameNGen: the context noised, its level told
             k_given = jax.random.fold_in(k_noise, 2)
-            level = jax.random.uniform(jax.random.fold_in(k_given, 1), (x.shape[0],), maxval=training.flow.given_noise_max)
-            noisy, cond_sigma = flow.noise_given_frames(x, jax.random.normal(k_given, x.shape, jnp.float32), given, level)
+            level = jax.random.uniform(
+                jax.random.fold_in(k_given, 1), (x.shape[0],), maxval=training.flow.given_noise_max
+            )
+            noisy, cond_sigma = flow.noise_given_frames(
+                x, jax.random.normal(k_given, x.shape, jnp.float32), given, level
+            )
             cond = cond.replace(cond_latents=noisy, cond_sigma=cond_sigma)
     m = training.model
     v = flow.velocity_from_output(
