@@ -232,3 +232,19 @@ def test_bench_train_topology_rejects_what_it_cannot_do():
             bench_train(["--topology", "v5e-4", *flags])
     with pytest.raises(ValueError, match="topology: expected one of .*v5e-4.*, got 'v5x-4'"):
         bench_train(["--topology", "v5x-4", "--presets", "tiny"])
+
+
+def test_the_samplers_compile_for_one_chip(capsys):
+    """sample_window (splash in the denoising loop), the decode and STAGE's streaming frame with
+    its HTFT buffer, on one v5e chip, compile only."""
+    from jaxdrive.bench.sampler_compile import main
+
+    stage = str(Path(TINY).with_name("stage.py")) + ":size=tiny,stage=3"
+    out = main(["--config", stage, "--topology", "v5e-1", "--set", "model.depth=2", "--set", "data.views=2"])
+    assert out["device"].startswith("TPU v5") and out["window"]["latent_frames"] == 3
+    assert out["sample_window"]["mosaic_kernels"] > 0 and out["sample_window"]["temp_gib"] > 0
+    assert out["streaming"]["taps"] == [-1, -5, -10] and out["streaming"]["mosaic_kernels"] > 0
+    assert out["vae_decode"]["codec"] == "space_to_depth"
+    assert "sample_window:" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="topology: expected one of"):
+        main(["--config", TINY, "--topology", "v9z-4"])
