@@ -112,6 +112,7 @@ def main(argv=None) -> dict:
         if f is not None:
             print(
                 f"  {name}: {f['argument_gib']:.2f} GiB arguments, {f['temp_gib']:.2f} GiB temporaries, "
-                f"{f['output_gib']:.3f} GiB out; {f['mosaic_kernels']} Mosaic kernels; compiled in {f['compile_seconds']} s"
+                f"{f['output_gib']:.3f} GiB out; {f['mosaic_kernels']} Mosaic kernels; "
+                f"compiled in {f['compile_seconds']} s"
             )
     return out
