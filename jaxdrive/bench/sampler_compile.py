@@ -91,7 +91,7 @@ def compile_samplers(config, topology: str) -> dict:
 
 
 def main(argv=None) -> dict:
-    from jaxdrive.cli.options import load_config
+    from jaxdrive.config import load_config
     from jaxdrive.parallel.topology import topology
 
     p = argparse.ArgumentParser(prog="jaxdrive bench sampler_compile", description=__doc__.split("\n\n")[0])
@@ -100,7 +100,7 @@ def main(argv=None) -> dict:
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config field (repeatable)")
     args = p.parse_args(argv)
     topology(args.topology)  # an unknown name is a ValueError listing the known ones
-    config = load_config(args.config, None, args.set)
+    config = load_config(args.config, list(args.set or []))
     out = compile_samplers(config, args.topology)
     win = out["window"]
     print(
