@@ -256,7 +256,7 @@ def make_pipeline(
         check_positive_int("max_boxes", max_boxes)
     if not (np.isfinite(warp_depth) and warp_depth >= 0):
         raise ValueError(f"warp_depth: expected a depth in metres >= 0 (0: no warped frames), got {warp_depth}")
-    if not 0 <= check_positive_int("warp_frame", warp_frame, minimum=0) < min(b.frames for b in parsed):
+    if check_positive_int("warp_frame", warp_frame, minimum=0) >= min(b.frames for b in parsed):
         raise ValueError(
             f"warp_frame: expected a frame of every bucket's clip (< {min(b.frames for b in parsed)}), got {warp_frame}"
         )

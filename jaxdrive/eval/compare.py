@@ -135,12 +135,22 @@ def repeat_name(given: int) -> str:
     return f"{REPEAT}{given - 1}"
 
 
-def repeat_baseline(recorded, given: int, buckets, **features) -> dict:
-    """The baseline row :func:`repeat_name`: the recorded clip's last given frame held for every
-    later frame, scored as a strategy (:func:`score`); what a model that learned no motion gets."""
+def repeat_video(recorded, given: int) -> np.ndarray:
+    """``recorded [B, V, F, H, W, 3]`` with its last given frame (``given - 1``) held for every later frame."""
     video = np.array(recorded, copy=True)
     video[:, :, given:] = video[:, :, given - 1 : given]
+    return video
+
+
+def baseline_row(video, recorded, buckets, **features) -> dict:
+    """A baseline's ``video`` scored as a strategy (:func:`score`) against ``recorded``, with no time."""
     return {"seconds": None, "peak_device_bytes": None, "buckets": score(video, recorded, buckets, **features)}
+
+
+def repeat_baseline(recorded, given: int, buckets, **features) -> dict:
+    """The baseline row :func:`repeat_name`: the recorded clip's last given frame held for every
+    later frame (:func:`repeat_video`), scored as a strategy; what a model that learned no motion gets."""
+    return baseline_row(repeat_video(recorded, given), recorded, buckets, **features)
 
 
 def run_strategies(

@@ -106,14 +106,6 @@ def following_scores(video, ego_to_world, intrinsics, cam_to_ego, start: int, fp
     }
 
 
-def warp_baseline(render, poses, given: int, depth: float, buckets, **features) -> dict:
-    """The ``warp`` row: frame ``given - 1`` of every view warped along the route's ego poses
-    (``poses``: ``ego_to_world``, ``intrinsics``, ``cam_to_ego`` of :func:`dataset_inputs`), holes
-    inpainted, scored against the route's ``render [B, V, F, H, W, 3]``."""
-    video = warp_video(render, poses, given, depth)
-    return {"seconds": None, "peak_device_bytes": None, "buckets": score(video, render, buckets, **features)}
-
-
 def warp_video(render, poses, given: int, depth: float) -> np.ndarray:
     """The ``warp`` baseline's frames: ``render [B, V, F, H, W, 3]`` up to frame ``given - 1``,
     that frame warped along the route's ego poses after it."""
@@ -192,7 +184,7 @@ def evaluate_routes(
     ``without_boxes``: one more row, the first strategy under the recorded route with the boxes
     (and the layout drawn from them) dropped to their learned nulls, named ``"NAME (no boxes)"``:
     what the boxes change."""
-    from jaxdrive.eval.compare import repeat_baseline, repeat_name, run_strategies
+    from jaxdrive.eval.compare import baseline_row, repeat_name, repeat_video, run_strategies
 
     base = load_inputs(None, plan["indices"])
     inputs = {r: base if r == RECORDED else load_inputs(plan["splits"][r], plan["rows"][r]) for r in routes}
@@ -244,19 +236,13 @@ def evaluate_routes(
             r = {k: v for k, v in r.items() if k != "video"}
             results[name if route == RECORDED else f"{name}{SEP}{route}"] = {**r, **extra, "route": route}
         label = "" if route == RECORDED else f"{SEP}{route}"
-        results[repeat_name(given) + label] = {
-            **repeat_baseline(video, given, buckets, segment=segment, masks=masks(inp), **features),
-            "route": route,
-        }
-        results[f"{WARP}{SEP}{route}"] = {
-            **warp_baseline(video, p, given, depth, buckets, segment=segment, masks=masks(inp), **features),
-            "route": route,
-        }
-        if ego_motion:
-            held = np.array(video, copy=True)
-            held[:, :, given:] = video[:, :, given - 1 : given]
-            results[repeat_name(given) + label]["following"] = follow(held)
-            results[f"{WARP}{SEP}{route}"]["following"] = follow(warp_video(video, p, given, depth))
+        # the baselines: the last given frame held, and warped along the route (each made once)
+        for name, base_video in (
+            (repeat_name(given) + label, repeat_video(video, given)),
+            (f"{WARP}{SEP}{route}", warp_video(video, p, given, depth)),
+        ):
+            row = baseline_row(base_video, video, buckets, segment=segment, masks=masks(inp), **features)
+            results[name] = {**row, **({"following": follow(base_video)} if ego_motion else {}), "route": route}
     if without_boxes:
         # the box inputs left out, which the DiT reads as dropped (the learned null of box
         # cross-attention, nothing from the layout); the same sample as a boxes drop of True
