@@ -106,3 +106,22 @@ def test_full_layout_on_a_one_device_explicit_mesh():
     with jax.set_mesh(make_mesh(devices=jax.devices()[:1])):
         got = _loss_fn(cfg)(params, lat, sig, text, kw)[0][1]
     assert max_rel(got, want) < 1e-6
+
+
+@pytest.mark.slow(seconds=10)
+def test_full_layout_whose_frame_tokens_the_seq_axis_does_not_divide():
+    """LongDWM's distillation with one segment (2 keyframes of 30 x 45 tokens, 226 text tokens,
+    seq=4) stopped at tracing: the clip's 2700 video tokens divide seq, a frame's 1350 do not, so
+    the [text; video] join runs unsharded over seq, and it gave the 226 text tokens the video's
+    seq-sharded layout. Here: 12 tokens a frame, 24 a clip, 7 text tokens, seq=8."""
+    cfg = preset("tiny-full", text_len=7)
+    shapes = (("batch", 2), ("views", 1), ("frames", 2), ("height", 8), ("width", 6))
+    params = params_for(cfg, shapes, skip=())
+    lat, sig, text, kw = split_inputs(example_inputs(cfg, **dict(shapes)))
+    fn = _loss_fn(cfg)
+    (_, want), (_, gx_want) = fn(params, lat, sig, text, kw)
+    mesh = make_mesh(seq=8)
+    with jax.set_mesh(mesh):
+        (_, got), (_, gx) = fn(params, *batch_sharded((lat, sig, text, kw), mesh))
+    assert max_rel(got, want) < 1e-5
+    assert max_rel(gx, gx_want) < 1e-4

@@ -193,8 +193,12 @@ def joint_attention(proj: AttnProj, xv, xt, *, impl: str, rope=None, text_mask=N
 
     def join(t, v):
         if n == 1:
-            if explicit_mesh() is not None:  # one seq device: give the text the video's layout
-                t = jax.reshard(t, PartitionSpec(*spec_of(v)))
+            if explicit_mesh() is not None:
+                # unsharded over the sequence: one seq device, or a frame's tokens the seq axis does
+                # not divide (the clip's may still be sharded, the text's need not divide at all)
+                spec = list(spec_of(v))
+                spec[1] = None
+                t, v = (jax.reshard(a, PartitionSpec(*spec)) for a in (t, v))
             return jnp.concatenate([t, v], axis=1)
         return merge(jnp.concatenate([split(t, 1, n), split(v, 1, n)], axis=2), 1)
 
