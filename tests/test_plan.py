@@ -261,3 +261,26 @@ def test_later_stages_plan_without_their_earlier_runs():
     pd = plan_memory(distill, {"data": 1}, compile_step=False)["per_device"]
     no_teacher = plan_memory(fine, {"data": 1}, compile_step=False)["per_device"]
     assert pd["frozen"] - no_teacher["frozen"] == pd["params"]  # the teacher: one more copy of the weights
+
+
+def test_seq_split_names_a_seq_axis_that_leaves_the_tokens_whole(config):
+    """The plan says how ``seq`` splits a frame's tokens: 4 x 8 tokens a view's frame (8 frames, 2 views:
+    512 a clip) divide over seq=8; at 24 x 56 pixels (3 x 7 tokens) they do not, and the plan lists the
+    sizes that would (the divisors of 21); no seq axis, no entry."""
+    split = plan_memory(config, {"seq": 8}, compile_step=False)["seq_split"]
+    assert split == {
+        "seq": 8,
+        "frame_tokens": 32,
+        "clip_tokens": 512,
+        "divides": True,
+        "dividing": [2, 4, 8, 16, 32],
+    }
+    narrow = dataclasses.replace(config, data=dataclasses.replace(config.data, height=24, width=56))
+    plan = plan_memory(narrow, {"seq": 8}, compile_step=False)
+    split = plan["seq_split"]
+    assert (split["frame_tokens"], split["divides"], split["dividing"]) == (21, False, [3, 7, 21])
+    from jaxdrive.cli.plan import table
+
+    assert "seq=8 does not divide the 21 tokens of a frame (a clip: 336)" in table({**plan, "config": "tiny"})
+    assert "seq sizes that divide them: 3, 7, 21" in table({**plan, "config": "tiny"})
+    assert plan_memory(config, {"fsdp": 8}, compile_step=False)["seq_split"] is None

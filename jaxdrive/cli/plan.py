@@ -111,6 +111,13 @@ def table(out: dict) -> str:
     elif out["fits"] is not None:
         verdict = "fits" if out["fits"] else "does NOT fit"
         lines.append(f"{verdict} in {gib(out['device_memory'])} GiB per device")
+    split = out.get("seq_split")
+    if split and not split["divides"]:
+        lines.append(
+            f"seq={split['seq']} does not divide the {split['frame_tokens']} tokens of a frame (a clip: "
+            f"{split['clip_tokens']}): they stay unsharded over seq, so the axis saves no activation memory; "
+            f"seq sizes that divide them: {', '.join(map(str, split['dividing'])) or 'none up to 64'}"
+        )
     program = out.get("program")
     if program:
         from jaxdrive.train.program import unlisted_f32_dots

@@ -212,6 +212,29 @@ def abstract_teacher(run):
     return abstract.ema if abstract.ema is not None else abstract.params
 
 
+def seq_split(run, sizes: dict, bucket) -> dict | None:
+    """How the ``seq`` axis splits the planned bucket's video tokens: ``{"seq", "frame_tokens",
+    "clip_tokens", "divides", "dividing"}`` (None without a ``seq`` axis). The DiT shards tokens
+    over ``seq`` in a frame's layout (``frame_tokens``, one view's patches in a latent frame) and
+    in the clip's (``clip_tokens``); a size neither divides leaves them unsharded there
+    (:func:`jaxdrive.parallel.rules.spec`'s fallback): every chip of a ``seq`` group then holds
+    all of them and the axis saves no memory. ``dividing``: the ``seq`` sizes up to 64 that divide
+    ``frame_tokens``."""
+    n = sizes.get("seq", 1)
+    if n <= 1:
+        return None
+    m, sp = run.training.model, run.codec.spatial
+    frame = (bucket.height // (sp * m.patch[1])) * (bucket.width // (sp * m.patch[2]))
+    clip = run.tokens(1, bucket.height, bucket.width, run.codec.latent_frames(bucket.frames))
+    return {
+        "seq": n,
+        "frame_tokens": frame,
+        "clip_tokens": clip,
+        "divides": frame % n == 0,
+        "dividing": [k for k in range(2, 65) if frame % k == 0],
+    }
+
+
 def planned_bucket(run):
     """The bucket whose micro-batch has the most tokens (ties: the first)."""
     return max(
@@ -327,15 +350,15 @@ def plan_memory(
     accelerator type such as ``"v5p-64"``, ``slices`` of it: compiled by XLA:TPU on this host,
     libtpu needed; the chip's memory is the default ``device_memory``), else the first of
     ``devices`` (default ``jax.devices()``). Returns ``{"mesh", "devices", "target", "bucket",
-    "batch", "tokens", "codec", "per_device": {...}, "compile_seconds", "device_memory", "fits",
-    "exhausted"}``; ``per_device`` holds ``params``, ``opt_state``, ``ema``, ``state_other`` (step,
-    key, counters), ``replicated`` (the bytes of the first three whose leaves the mesh does not
-    split), ``frozen`` (a VAE's parameters), ``batch``, and from the compiled step ``arguments``,
-    ``outputs``, ``aliased``, ``temp`` and ``total`` (None with ``compile_step=False``, which
-    compiles nothing); ``program`` counts what the compiled step holds
-    (:func:`jaxdrive.train.program.program_ops`, and ``f32_dots``: its matmuls with a float32
-    operand). A compile that the TPU compiler stops for want of memory is no error:
-    ``fits`` is False, ``exhausted`` the compiler's line and ``total`` the bytes it says it needs."""
+    "batch", "tokens", "seq_split" (:func:`seq_split`), "codec", "per_device": {...},
+    "compile_seconds", "device_memory", "fits", "exhausted"}``; ``per_device`` holds ``params``,
+    ``opt_state``, ``ema``, ``state_other`` (step, key, counters), ``replicated`` (the bytes of the
+    first three whose leaves the mesh does not split), ``frozen`` (a VAE's parameters), ``batch``,
+    and from the compiled step ``arguments``, ``outputs``, ``aliased``, ``temp`` and ``total`` (None
+    with ``compile_step=False``, which compiles nothing); ``program`` counts what the compiled step
+    holds (:func:`jaxdrive.train.program.program_ops`, and ``f32_dots``: its matmuls with a float32
+    operand). A compile that the TPU compiler stops for want of memory is no error: ``fits`` is
+    False, ``exhausted`` the compiler's line and ``total`` the bytes it says it needs."""
     from jaxdrive.train.run import Run
 
     sizes, devices, device_memory, target = compile_target(mesh, devices, topology, slices, device_memory)
@@ -407,6 +430,7 @@ def plan_memory(
         "bucket": "x".join(map(str, bucket.key)),
         "batch": bucket.batch_size,
         "tokens": run.tokens(bucket.batch_size, bucket.height, bucket.width, run.codec.latent_frames(bucket.frames)),
+        "seq_split": seq_split(run, sizes, bucket),
         "codec": what or codec.source,
         "per_device": per_device,
         "compile_seconds": seconds,
