@@ -269,7 +269,7 @@ def test_every_config_loads_and_checks(name):
         assert config.flow.shift == 3.0 and load_config(ROOT / "configs" / "tiny.py").flow.shift == 1.0
 
 
-@pytest.mark.slow(seconds=86)
+@pytest.mark.slow(seconds=100)
 def test_demo_runs_end_to_end(tmp_path, capsys):
     # no mesh given: the demo fits its batch of 2 to the 8 test devices (data 2 x seq 4)
     sets = [*SMALLER, "train.sample_steps=2", "train.checkpoint_every=100"]
@@ -282,7 +282,7 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
         "--scenes",
         "4",
         "--frames",
-        "9",
+        "11",
         "--routes",
         "stop",
         "--no-progress",
@@ -302,8 +302,8 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
         assert name in out
     assert (tmp_path / "demo" / "samples" / "demo" / "sample.mp4").stat().st_size > 0
     q = json.loads((tmp_path / "demo" / "samples" / "demo" / "quality.json").read_text())
-    assert len(q["per_frame"]) == 9 and q["cond_frames"] == 2 and q["window"] == 5
-    assert q["first_window"]["frames"] == [2, 3, 4] and q["all_generated"]["frames"] == list(range(2, 9))
+    assert len(q["per_frame"]) == 11 and q["cond_frames"] == 2 and q["window"] == 5
+    assert q["first_window"]["frames"] == [2, 3, 4] and q["all_generated"]["frames"] == list(range(2, 11))
     assert (tmp_path / "demo" / "loss.png").stat().st_size > 0
     # control, shown: the recorded route and 'stop' from the same given frames, each against its render
     assert "| rollout @ stop |" in out and "| stop | rollout |" in out and "routes.png" in out
@@ -312,6 +312,19 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     # the demo's recipe (configs/world.py) draws the boxes as a layout: a row with them removed
     assert any(k.endswith("(no boxes)") for k in routes["strategies"]), list(routes["strategies"])
     assert (tmp_path / "demo" / "samples" / "routes" / "routes.png").stat().st_size > 0
+    # the default recipe follows routes (configs/world.py:control=warp): its training scenes are rendered
+    # along the counterfactual routes of data.routes, and the route following is read from the pixels
+    from jaxdrive.data.synthetic import read_counterfactuals
+
+    assert "the training scenes along" in out
+    assert set(read_counterfactuals(tmp_path / "demo" / "data")["train_routes"]) <= {
+        "stop",
+        "slower",
+        "faster",
+        "lane-left",
+        "branch",
+    }
+    assert routes.get("route_following_ceiling"), sorted(routes)
 
 
 @pytest.mark.optimized_xla

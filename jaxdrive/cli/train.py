@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from pathlib import Path
 
@@ -112,7 +113,7 @@ def _demo(args, rest) -> int:
     workdir = Path(args.workdir)
     from jaxdrive.config import split_config_path
 
-    config_path = args.config or str(REPO_CONFIGS / "world.py")
+    config_path = args.config or str(REPO_CONFIGS / "world.py") + ":control=warp"
     if not split_config_path(config_path)[0].is_file():
         raise ValueError(
             f"config: expected the world config at {config_path!r} (run from a checkout, or "
@@ -157,9 +158,12 @@ def _demo(args, rest) -> int:
         if skipped:
             print(f"routes the validation scenes cannot all drive, left out: {', '.join(skipped)}")
         routes = [r for r in routes if r not in skipped]
+        size = {"frames": frames, "height": 2 * d.height, "width": 2 * d.width}
+        trained = _demo_train_routes(config, args.scenes - validation, **size)
         print(
             f"[1/3] synthesising {args.scenes} driving scenes ({d.views} views x {frames} frames) in {data}"
             + (f", the validation scenes also along {', '.join(routes)}" if routes else "")
+            + (f", the training scenes along {', '.join(trained)}" if trained else "")
         )
         write_synthetic_dataset(
             data,
@@ -171,9 +175,11 @@ def _demo(args, rest) -> int:
             height=2 * d.height,
             width=2 * d.width,
             counterfactuals=routes,
+            train_counterfactuals=trained,
             skip_undrivable=True,
             drivable={r: rows[r] for r in routes},  # driven once, above
         )
+    config = _demo_route_mix(config, data)
     from jaxdrive.media import plot_losses
     from jaxdrive.train.metrics import read_metrics
     from jaxdrive.train.run import train
@@ -221,12 +227,41 @@ def _demo(args, rest) -> int:
     return 0
 
 
+def _demo_train_routes(config, scenes: int, **clip_kwargs) -> list[str]:
+    """The counterfactual routes of ``data.routes`` that at least one of the ``scenes`` training
+    scenes can drive (their renders are the futures the model learns to follow)."""
+    from jaxdrive.data.route_mix import parse_route_mix
+    from jaxdrive.data.synthetic import drivable_clips
+
+    wanted = [r for r in parse_route_mix(config.data.routes) if r != "recorded"] if config.data.routes else []
+    rows = drivable_clips(wanted, 0, scenes, views=6, **clip_kwargs) if wanted else {}
+    return [r for r in wanted if rows[r]]
+
+
+def _demo_route_mix(config, data: Path):
+    """``data.routes`` cut to the routes the demo's training split holds (a small town has scenes
+    none of which drives some route: ``branch`` needs an intersection ahead)."""
+    if not config.data.routes:
+        return config
+    from jaxdrive.data.route_mix import parse_route_mix
+    from jaxdrive.data.synthetic import read_counterfactuals
+
+    held = {"recorded", *read_counterfactuals(data).get("train_routes", {})}
+    mix = parse_route_mix(config.data.routes)
+    kept = {r: w for r, w in mix.items() if r in held}
+    if len(kept) < len(mix):
+        print(f"data.routes: the training scenes drive none of {', '.join(r for r in mix if r not in held)}")
+    routes = () if list(kept) in ([], ["recorded"]) else tuple(f"{r}:{w:g}" for r, w in kept.items())
+    return dataclasses.replace(config, data=dataclasses.replace(config.data, routes=routes))
+
+
 def _demo_routes(workdir: Path, data: Path, routes, clips: int, args, config):
     """Control, shown: ``jaxdrive eval --routes recorded,ROUTE`` on the validation scenes, ROUTE
     the first of ``routes`` that every one of them can drive; returns its ``routes.png``."""
     from jaxdrive.data.synthetic import read_counterfactuals
 
-    stored = read_counterfactuals(data).get("routes", {})
+    meta = read_counterfactuals(data)
+    stored = meta.get("routes", {})
     drivable = [r for r in routes if r in stored and len(stored[r]["clips"]) >= clips]
     if not drivable:
         print(
@@ -257,6 +292,11 @@ def _demo_routes(workdir: Path, data: Path, routes, clips: int, args, config):
         "--out",
         str(out),
     ]
+    start = meta["start"]
+    if args.frames > start + 1:  # the route following, read from the pixels: a motion after the route's start
+        argv.append("--ego-motion")
+    else:
+        print(f"no route following: a clip of {args.frames} frames ends within a frame of the route's start ({start})")
     if args.cfg is not None:
         argv += ["--cfg", str(args.cfg)]
     parser = argparse.ArgumentParser(prog="jaxdrive")  # the eval command's own options, as jaxdrive's
@@ -382,9 +422,10 @@ def add_commands(sub) -> None:
     )
     demo.add_argument(
         "--routes",
-        default="lane-left,stop,faster",
+        default="branch,lane-left,lane-right,stop",
         help="counterfactual routes to render for the validation scenes; the first one they can all "
-        "drive is generated beside the recorded route (none: skip)",
+        "drive is generated beside the recorded route (none: skip; a turn or a lane change first: "
+        "the front camera shows them apart)",
     )
     demo.add_argument("--set", action="append", metavar="KEY=VALUE")
     add_progress(demo, "the training steps and the sampled windows")
