@@ -317,14 +317,26 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     from jaxdrive.data.synthetic import read_counterfactuals
 
     assert "the training scenes along" in out
-    assert set(read_counterfactuals(tmp_path / "demo" / "data")["train_routes"]) <= {
-        "stop",
-        "slower",
-        "faster",
-        "lane-left",
-        "branch",
-    }
+    # by default a stop, a lane change and a turn (those the 3 training scenes can drive)
+    assert set(read_counterfactuals(tmp_path / "demo" / "data")["train_routes"]) <= {"stop", "lane-left", "branch"}
     assert routes.get("route_following_ceiling"), sorted(routes)
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--train-routes", "stop,zigzag"], "--train-routes: expected distinct comma-separated routes from"),
+        (["--train-routes", "lane-right"], "--train-routes: expected routes of the config's data.routes (stop, "),
+        (
+            ["--config", str(Path(__file__).parents[1] / "configs" / "world.py"), "--train-routes", "stop"],
+            "--train-routes: expected routes of the config's data.routes (none), got stop",
+        ),
+    ],
+)
+def test_demo_refuses_training_routes_its_config_does_not_mix(tmp_path, capsys, extra, message):
+    assert cli(["demo", "--workdir", str(tmp_path / "demo"), "--steps", "1", *extra]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "demo").exists()
 
 
 @pytest.mark.optimized_xla

@@ -136,6 +136,7 @@ def _demo(args, rest) -> int:
     from jaxdrive.data.synth_routes import parse_routes
 
     routes = [] if args.routes.strip().lower() == "none" else parse_routes(args.routes, "--routes", recorded=False)
+    train_routes = _demo_train_route_names(config, args.train_routes)
     validation = config.mesh.data  # eval samples a multiple of the batch shards
     if args.scenes < config.data.batch_size + validation:
         raise ValueError(
@@ -159,7 +160,7 @@ def _demo(args, rest) -> int:
             print(f"routes the validation scenes cannot all drive, left out: {', '.join(skipped)}")
         routes = [r for r in routes if r not in skipped]
         size = {"frames": frames, "height": 2 * d.height, "width": 2 * d.width}
-        trained = _demo_train_routes(config, args.scenes - validation, **size)
+        trained = _demo_train_routes(train_routes, args.scenes - validation, **size)
         print(
             f"[1/3] synthesising {args.scenes} driving scenes ({d.views} views x {frames} frames) in {data}"
             + (f", the validation scenes also along {', '.join(routes)}" if routes else "")
@@ -227,13 +228,35 @@ def _demo(args, rest) -> int:
     return 0
 
 
-def _demo_train_routes(config, scenes: int, **clip_kwargs) -> list[str]:
-    """The counterfactual routes of ``data.routes`` that at least one of the ``scenes`` training
-    scenes can drive (their renders are the futures the model learns to follow)."""
+# the demo's training futures: a stop, a lane change and a turn (slower and faster, the rest of
+# world.py:control=warp's mix, would add 45 s of rendering to a 10-minute budget)
+DEMO_TRAIN_ROUTES = ("stop", "lane-left", "branch")
+
+
+def _demo_train_route_names(config, text: str | None) -> list[str]:
+    """``--train-routes`` (``text``; None: :data:`DEMO_TRAIN_ROUTES` of the mix): counterfactual
+    routes of the config's ``data.routes``."""
     from jaxdrive.data.route_mix import parse_route_mix
+    from jaxdrive.data.synth_routes import parse_routes
+
+    mix = [r for r in parse_route_mix(config.data.routes) if r != "recorded"] if config.data.routes else []
+    if text is None:
+        return [r for r in DEMO_TRAIN_ROUTES if r in mix]
+    wanted = [] if text.strip().lower() == "none" else parse_routes(text, "--train-routes", recorded=False)
+    extra = [r for r in wanted if r not in mix]
+    if extra:
+        raise ValueError(
+            f"--train-routes: expected routes of the config's data.routes ({', '.join(mix) or 'none'}), "
+            f"got {', '.join(extra)}"
+        )
+    return wanted
+
+
+def _demo_train_routes(wanted: list[str], scenes: int, **clip_kwargs) -> list[str]:
+    """The routes of ``wanted`` that at least one of the ``scenes`` training scenes can drive
+    (their renders are the futures the model learns to follow)."""
     from jaxdrive.data.synthetic import drivable_clips
 
-    wanted = [r for r in parse_route_mix(config.data.routes) if r != "recorded"] if config.data.routes else []
     rows = drivable_clips(wanted, 0, scenes, views=6, **clip_kwargs) if wanted else {}
     return [r for r in wanted if rows[r]]
 
@@ -250,7 +273,7 @@ def _demo_route_mix(config, data: Path):
     mix = parse_route_mix(config.data.routes)
     kept = {r: w for r, w in mix.items() if r in held}
     if len(kept) < len(mix):
-        print(f"data.routes: the training scenes drive none of {', '.join(r for r in mix if r not in held)}")
+        print(f"data.routes: the training scenes are not rendered along {', '.join(r for r in mix if r not in held)}")
     routes = () if list(kept) in ([], ["recorded"]) else tuple(f"{r}:{w:g}" for r, w in kept.items())
     return dataclasses.replace(config, data=dataclasses.replace(config.data, routes=routes))
 
@@ -411,7 +434,7 @@ def add_commands(sub) -> None:
     )
     demo.add_argument("--workdir", default="jaxdrive-demo")
     add_config(demo, "default: configs/world.py of this checkout", required=False)
-    demo.add_argument("--steps", type=int, default=600)
+    demo.add_argument("--steps", type=int, default=450)
     demo.add_argument("--scenes", type=int, default=24, help="synthetic scenes (one kept for validation)")
     demo.add_argument("--frames", type=int, default=33, help="frames of the sampled clip")
     demo.add_argument(
@@ -426,6 +449,12 @@ def add_commands(sub) -> None:
         help="counterfactual routes to render for the validation scenes; the first one they can all "
         "drive is generated beside the recorded route (none: skip; a turn or a lane change first: "
         "the front camera shows them apart)",
+    )
+    demo.add_argument(
+        "--train-routes",
+        help="counterfactual routes of the config's data.routes to render the training scenes along "
+        f"(default: those of {','.join(DEMO_TRAIN_ROUTES)} it has; none: the recorded drives only); "
+        "each costs about a second a scene to render",
     )
     demo.add_argument("--set", action="append", metavar="KEY=VALUE")
     add_progress(demo, "the training steps and the sampled windows")
