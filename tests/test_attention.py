@@ -253,6 +253,38 @@ def test_splash_runs_per_device_in_shard_map_on_a_sharded_mesh(causal_block):
         assert max_rel(got, want) <= 1e-5
 
 
+def test_splash_keeps_a_seq_sharded_query_sharded_without_a_causal_mask():
+    # a text cross-attention: the video queries sharded over `seq`, a few keys whole on every
+    # device. Each device runs its own query rows against all keys (nothing of q is gathered);
+    # forward and gradients against dense attention, the shard_map's q typed over seq
+    from jax.sharding import AxisType, NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    from jaxdrive.attention.splash import splash_attention
+
+    mesh = jax.make_mesh((1, 2, 2, 2), ("data", "fsdp", "seq", "tensor"), axis_types=(AxisType.Explicit,) * 4)
+    q, _, _, do = _qkvd(b=2, lq=136, lk=136, h=2, d=64)
+    _, k, v, _ = _qkvd(b=2, lq=40, lk=40, h=2, d=64, seed=3)
+    mask = jnp.ones((2, 40), bool).at[1, 30:].set(False)
+    ref, ref_vjp = jax.vjp(jax.jit(lambda *a: attention(*a, impl="xla", kv_mask=mask)), q, k, v)
+    q_spec, kv_spec = P(("data", "fsdp"), "seq", "tensor", None), P(("data", "fsdp"), None, "tensor", None)
+    with jax.set_mesh(mesh):
+        put = lambda x, s: jax.device_put(x, NamedSharding(mesh, s))
+        sq, sdo, sk, sv = put(q, q_spec), put(do, q_spec), put(k, kv_spec), put(v, kv_spec)
+        smask = put(mask, P(("data", "fsdp"), None))
+        run = lambda *a: splash_attention(*a, scale=64**-0.5, kv_mask=smask, tile=128, interpret=True)
+        out, vjp = jax.vjp(jax.jit(run), sq, sk, sv)
+        grads = vjp(sdo)
+        eqns = [e for e in jax.make_jaxpr(run)(sq, sk, sv).eqns if e.primitive.name == "shard_map"]
+    assert len(eqns) == 1
+    in_q, in_k, in_v, _ = eqns[0].params["in_specs"][-4:]  # after the kernel's closed-over constants
+    assert (in_q, in_k, in_v) == (q_spec, kv_spec, kv_spec)
+    assert out.sharding.spec == q_spec
+    assert max_rel(out, ref) <= 1e-5
+    for got, want in zip(grads, ref_vjp(do)):
+        assert max_rel(got, want) <= 1e-5
+
+
 @pytest.mark.slow(seconds=5)
 def test_splash_on_a_one_device_mesh_with_explicit_axes():
     # one chip (a v5e-1, or the bench's one-chip step): the batch is typed over data x fsdp of

@@ -16,9 +16,11 @@ onto it:
 
 On a mesh the kernel runs inside ``shard_map``: a Mosaic kernel is one custom call that XLA
 cannot partition, so each device calls it on its own examples (the batch split over ``data`` x
-``fsdp``) and heads (split over ``tensor``), with the whole sequence (a ``seq``-sharded input is
-gathered first; on a ``seq`` mesh ``"auto"`` picks the ring kernel instead). An axis that does not
-divide the batch or the heads is left unsplit there. The output keeps q's sharding.
+``fsdp``) and heads (split over ``tensor``), with the whole key sequence. Without a causal mask a
+query sequence sharded over ``seq`` stays sharded (each device's rows against all keys: the video
+queries of a text cross-attention); with one, a ``seq``-sharded input is gathered first (on a
+``seq`` mesh ``"auto"`` picks the ring kernel instead). An axis that does not divide the batch or
+the heads is left unsplit there. The output keeps q's sharding.
 
 ``interpret=True`` runs the same kernel through the Pallas interpreter on any backend: that is
 how the CPU tests check it against dense attention, sharded on fake CPU devices too.
@@ -139,10 +141,22 @@ def splash_attention(
     # a one-device mesh too goes through shard_map: under Explicit axes q is typed over the batch
     # axes even at size 1, and the kernel's vmap refuses operands typed apart (the mask's ids)
     batch, head = _split(mesh, q.shape[0], q.shape[2])
-    qkv_spec, mask_spec = P(batch or None, None, head, None), P(batch or None, None)
     like = spec_of(q)
+    # without a causal mask every query row attends to the same whole keys, so a query sequence
+    # sharded over `seq` (the video tokens of a text cross-attention) stays so: each device runs
+    # its own rows, nothing of q is gathered
+    rows = like[1] if causal_block is None else None
+    if rows is not None and set((rows,) if isinstance(rows, str) else rows) & {*batch, head}:
+        rows = None  # an axis already splitting the batch or the heads cannot split the rows too
+    q_spec, kv_spec, mask_spec = (
+        P(batch or None, rows, head, None),
+        P(batch or None, None, head, None),
+        P(batch or None, None),
+    )
     named = lambda spec: jax.sharding.NamedSharding(mesh, spec)
-    q, k, v, mask = jax.reshard((q, k, v, mask), (named(qkv_spec),) * 3 + (named(mask_spec),))
-    fn = jax.shard_map(local, mesh=mesh, in_specs=(qkv_spec,) * 3 + (mask_spec,), out_specs=qkv_spec, check_vma=False)
+    q, k, v, mask = jax.reshard((q, k, v, mask), (named(q_spec), named(kv_spec), named(kv_spec), named(mask_spec)))
+    fn = jax.shard_map(
+        local, mesh=mesh, in_specs=(q_spec, kv_spec, kv_spec, mask_spec), out_specs=q_spec, check_vma=False
+    )
     out = fn(q, k, v, mask)
-    return out if tuple(like) == tuple(qkv_spec) else jax.reshard(out, named(P(*like)))
+    return out if tuple(like) == tuple(q_spec) else jax.reshard(out, named(P(*like)))
