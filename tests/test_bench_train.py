@@ -141,6 +141,12 @@ def test_factorized_flops_count_spatial_temporal_and_text_attention():
     # 2 D^2 on video tokens and k / v 2 D^2 on text tokens, MLP 8 D^2
     assert f["matmul_flops"] == 6 * depth * 2 * (14 * d * d * n + 2 * d * d * txt)
     assert f["attention_flops"] == 3 * depth * 4 * d * (nf * s**2 + s * nf**2 + 2 * n * txt)
+    # the split by the kernel each runs in (attn_impl: self; local_attn_impl: temporal, cross)
+    assert f["attention_flops_by_kind"] == {
+        "self": 3 * depth * 4 * d * nf * s**2,
+        "temporal": 3 * depth * 4 * d * s * nf**2,
+        "cross": 3 * depth * 4 * d * 2 * n * txt,
+    }
 
 
 def test_peak_is_known_for_accelerators_and_given_on_cpu():
@@ -169,6 +175,10 @@ def test_accelerator_settings_reach_the_model_and_the_measured_peak_gives_an_mfu
             "--scan-layers",
             "--attn-impl",
             "blockwise",
+            "--local-attn-impl",
+            "blockwise",
+            "--cross-attn-impl",
+            "xla",
             "--measure-peak",
             "64",
             "--json",
@@ -182,7 +192,9 @@ def test_accelerator_settings_reach_the_model_and_the_measured_peak_gives_an_mfu
             "4",
         ]
     )
-    assert [(c.dtype, c.remat, c.scan_layers, c.attn_impl) for c in seen] == [("bfloat16", "full", True, "blockwise")]
+    assert [(c.dtype, c.remat, c.scan_layers, c.attn_impl, c.local_attn_impl, c.cross_impl) for c in seen] == [
+        ("bfloat16", "full", True, "blockwise", "blockwise", "xla")
+    ]
     (row,) = rows
     assert row["model"] == "tiny" and row["measured_peak_tflops"] > 0
     assert row["mfu_measured"] == pytest.approx(row["tflops"] / row["measured_peak_tflops"], rel=2e-2)

@@ -370,7 +370,33 @@ def test_bad_input_names_the_argument(changes, pattern):
         _init_error(MV, **changes)
 
 
+def test_cross_attention_takes_its_own_kernel_when_set(monkeypatch):
+    # DiTConfig.cross_attn_impl moves the text / control cross-attention alone (a TPU lever:
+    # splash there, the 8-frame temporal attention left on XLA); unset it follows local_attn_impl
+    from jaxdrive.models.dit import blocks
+
+    seen = []
+    real = blocks.attention
+
+    def spy(q, k, v, *, impl, **kw):
+        seen.append((q.shape[1] == k.shape[1], impl))  # self-attention: as many keys as queries
+        return real(q, k, v, impl="xla", **kw)
+
+    monkeypatch.setattr(blocks, "attention", spy)
+    shapes = (("batch", 1), ("frames", 2), ("height", 8), ("width", 8))  # 32 video tokens, 8 text
+    for cross, want in ((None, "blockwise"), ("cudnn", "cudnn")):
+        cfg = preset("tiny", depth=1, local_attn_impl="blockwise", cross_attn_impl=cross)
+        ex = example_inputs(cfg, **dict(shapes))
+        seen.clear()
+        DiT(cfg).init(jax.random.PRNGKey(0), ex["latents"], jnp.full((1,), 0.5), ex["cond"])
+        assert {impl for is_self, impl in seen if not is_self} == {want}, (cross, seen)
+        # the spatial and temporal self-attentions keep theirs
+        assert {impl for is_self, impl in seen if is_self} == {"auto", "blockwise"}, (cross, seen)
+
+
 def test_bad_config_and_presets():
+    with pytest.raises(ValueError, match=r"cross_attn_impl: expected one of \[.*'splash'\], got 'ring'"):
+        preset("tiny", cross_attn_impl="ring")
     with pytest.raises(ValueError, match=r"name: expected one of \[.*'cogvideox-2b'.*\], got 'cogvideox-9b'"):
         preset("cogvideox-9b")
     with pytest.raises(ValueError, match="boxes: this DiT takes no boxes"):

@@ -197,6 +197,27 @@ def test_extrapolating_two_depths_to_the_model_depth():
     assert extrapolate(one, two, 28) == {"flops": 10.0 + 27 * 6.0, "bytes accessed": 4.0 + 27 * 1.0}
 
 
+def test_roofline_adds_only_the_attentions_that_run_in_splash():
+    # XLA counts its own attention's matmuls: adding them again from the model count would count
+    # the text cross-attention (by default XLA's, local_attn_impl="xla") twice
+    from jaxdrive.bench.roofline import kernel_attention_kinds
+    from jaxdrive.models.dit import DiT
+    from jaxdrive.models.dit.model import param_trace_shapes
+    from jaxdrive.models.dit.presets import preset
+
+    assert kernel_attention_kinds(preset("tiny")) == ("self",)
+    assert kernel_attention_kinds(preset("tiny", attn_impl="xla")) == ()
+    local = preset("tiny", local_attn_impl="splash", cross_attn_impl=None)
+    assert kernel_attention_kinds(local) == ("self", "temporal", "cross")
+    # the cross-attention alone (the lever of docs/guides/plan.md: temporal stays on XLA)
+    assert kernel_attention_kinds(preset("tiny", cross_attn_impl="splash")) == ("self", "cross")
+    assert kernel_attention_kinds(local.replace(cross_attn_impl="xla")) == ("self", "temporal")
+    # and a TPU-only local kernel still traces its parameters on this CPU host (it raised here)
+    assert DiT(local).abstract_params(**param_trace_shapes(local)) == DiT(preset("tiny")).abstract_params(
+        **param_trace_shapes(preset("tiny"))
+    )
+
+
 @pytest.mark.slow(seconds=100)
 def test_roofline_counts_every_layer_and_the_attention_kernels():
     # XLA:TPU counts a scanned body once and splash's kernels not at all: the estimate extrapolates
@@ -214,9 +235,10 @@ def test_roofline_counts_every_layer_and_the_attention_kernels():
     scanned = compiled_costs(_abstract_step(cfg.replace(scan_layers=True), mesh, **shapes).compile())
     assert r["xla_flops"] == pytest.approx(unrolled["flops"], rel=0.01)
     assert scanned["flops"] < 0.8 * unrolled["flops"]  # what the correction is for
-    # the same program with XLA's attention: XLA counts its matmuls, 3 x 2 of S_q S_k D a layer as
-    # in the model count, where the splash program counted none (0.87x of it here: the splash
-    # program's own scaling and padding, the dense one's softmax; counted, they would be below 0)
+    # the same program with XLA's self-attention: XLA counts its matmuls, 3 x 2 of S_q S_k D a
+    # layer as in the model count, where the splash program counted none; the kernels' FLOPs are
+    # the self-attention's alone (the temporal and text attention are XLA's in both programs).
+    # Within 20%: the splash program's own scaling and padding, the dense one's softmax
     dense = compiled_costs(_abstract_step(cfg.replace(scan_layers=False, attn_impl="xla"), mesh, **shapes).compile())
     model_attention = r["attention_kernel_flops"] / FLASH_EXECUTED
     assert dense["flops"] - unrolled["flops"] == pytest.approx(model_attention, rel=0.2)

@@ -65,8 +65,11 @@ def peak_tflops(device, given: float | None) -> tuple[float | None, str]:
 
 def step_flops(cfg, params, *, batch: int, views: int, frames: int, height: int, width: int) -> dict:
     """Analytic model FLOPs of one train step (module docstring): ``{"flops", "matmul_flops",
-    "attention_flops", "block_params", "video_tokens", "text_tokens"}``; ``flops`` is None for
-    layouts the formula does not model (cross-view attention)."""
+    "attention_flops", "attention_flops_by_kind", "block_params", "video_tokens", "text_tokens"}``;
+    ``attention_flops_by_kind`` splits the attention into ``"self"`` (the spatial or the full
+    layout's), ``"temporal"`` and ``"cross"`` (text), which run different kernels
+    (``attn_impl`` / ``local_attn_impl``); ``flops`` is None for layouts the formula does not model
+    (cross-view attention)."""
     import jax
 
     pt, ph, pw = cfg.patch
@@ -74,6 +77,7 @@ def step_flops(cfg, params, *, batch: int, views: int, frames: int, height: int,
     n, txt, d = views * ft * s, (cfg.text_len if cfg.controls.text else 0), cfg.width
     full = cfg.layout == "full"
     matmul = attn = block_params = 0
+    by_kind = {"self": 0, "temporal": 0, "cross": 0}
     modelled = full or cfg.multiview == "joint"
     for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
         name = jax.tree_util.keystr(path, simple=True, separator="/")
@@ -92,19 +96,21 @@ def step_flops(cfg, params, *, batch: int, views: int, frames: int, height: int,
         if name.endswith("/to_q/kernel"):
             layers = size // (d * d)  # > 1 for scanned layers
             if cross:
-                pairs = n * txt
+                kind, pairs = "cross", n * txt
             elif full:
-                pairs = (n + txt) ** 2
+                kind, pairs = "self", (n + txt) ** 2
             elif "temporal/" in name or "attn_temp/" in name:
-                pairs = views * s * ft**2
+                kind, pairs = "temporal", views * s * ft**2
             else:
-                pairs = ft * (views * s) ** 2
+                kind, pairs = "self", ft * (views * s) ** 2
             attn += 4 * pairs * d * layers * batch
+            by_kind[kind] += 3 * 4 * pairs * d * layers * batch
     flops = 3 * (matmul + attn) if modelled else None
     return dict(
         flops=flops,
         matmul_flops=3 * matmul,
         attention_flops=3 * attn,
+        attention_flops_by_kind=by_kind,
         block_params=block_params,
         video_tokens=batch * n,
         text_tokens=batch * txt,

@@ -8,10 +8,14 @@ What ``compiled.cost_analysis()`` counts, and what this module corrects for (jax
   layers unrolled at two depths, ``d = 1`` and ``d = 2``, and every figure extrapolated to the
   model's depth ``L``: ``c(L) = c(1) + (L - 1) (c(2) - c(1))`` (the layers are identical);
 - a Pallas kernel without a ``CostEstimate`` (JAX's splash kernels) adds no FLOPs, and at the top
-  level of a program it turns ``optimal_seconds`` into -1 plus the rest. The attention's FLOPs are
-  added from :func:`jaxdrive.bench.flops.step_flops`: the model's ``3 x 4 S_q S_k D`` a layer,
-  times 1.5 for what a flash kernel executes (9 matmuls of ``S_q S_k D`` forward and backward
-  against the model count's 6), at the chip's peak. ``optimal_seconds`` is reported per layer only,
+  level of a program it turns ``optimal_seconds`` into -1 plus the rest. The FLOPs of the
+  attentions that run in splash are added from :func:`jaxdrive.bench.flops.step_flops`: the
+  model's ``3 x 4 S_q S_k D`` a layer, times 1.5 for what a flash kernel executes (9 matmuls of
+  ``S_q S_k D`` forward and backward against the model count's 6), at the chip's peak. Which
+  attentions those are: the self-attention with ``attn_impl`` ``"auto"`` (splash on one chip) or
+  ``"splash"``, the temporal attention with ``local_attn_impl="splash"``, the text
+  cross-attention with ``cross_attn_impl`` (else ``local_attn_impl``) ``"splash"``; the others are
+  XLA's own matmuls, which its count already has. ``optimal_seconds`` is reported per layer only,
   ``c(2) - c(1)``, where that marker cancels;
 - collectives are costed as HBM traffic (this is a one-chip step: it has none).
 
@@ -75,6 +79,14 @@ def _abstract_step(cfg, mesh, *, batch: int, frames: int, height: int, width: in
         return step.lower(state, None, data)
 
 
+def kernel_attention_kinds(cfg) -> tuple[str, ...]:
+    """The attentions of ``cfg`` (:func:`jaxdrive.bench.flops.step_flops`'s kinds) that a one-chip TPU
+    step runs in the splash kernel, whose FLOPs XLA:TPU's cost model does not count."""
+    kernels = {"self": cfg.attn_impl in ("auto", "splash"), "temporal": cfg.local_attn_impl == "splash"}
+    kernels["cross"] = cfg.cross_impl == "splash"
+    return tuple(k for k, on in kernels.items() if on)
+
+
 def roofline(cfg, topology: str, *, batch: int, frames: int, height: int, width: int) -> dict:
     """The roofline estimate of ``cfg``'s bench train step on one chip of ``topology`` (module
     docstring). Returns the model FLOPs, the corrected XLA FLOPs and bytes, the compute and memory
@@ -106,7 +118,8 @@ def roofline(cfg, topology: str, *, batch: int, frames: int, height: int, width:
     xla = extrapolate(per_depth[1], per_depth[2], depth)
     params = nn.unbox(DiT(cfg).abstract_params(**param_trace_shapes(cfg)))
     model = step_flops(cfg, params, batch=batch, views=VIEWS, frames=frames, height=height, width=width)
-    attention = FLASH_EXECUTED * model["attention_flops"]
+    by_kind = model["attention_flops_by_kind"]
+    attention = FLASH_EXECUTED * sum(by_kind[k] for k in kernel_attention_kinds(cfg))
     flops = xla["flops"] + attention
     bandwidth = HBM_GBPS[top.generation] * 1e9
     compute_s, memory_s = flops / (peak * 1e12), xla["bytes accessed"] / bandwidth

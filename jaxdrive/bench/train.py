@@ -396,6 +396,12 @@ def main(argv=None):
     )
     parser.add_argument("--remat", default=None, help="remat policy of the jaxdrive models (DiTConfig.remat)")
     parser.add_argument("--attn-impl", default=None, help="attention implementation (DiTConfig.attn_impl)")
+    parser.add_argument(
+        "--local-attn-impl", default=None, help="temporal and cross-attention kernel (DiTConfig.local_attn_impl)"
+    )
+    parser.add_argument(
+        "--cross-attn-impl", default=None, help="text / control cross-attention kernel (DiTConfig.cross_attn_impl)"
+    )
     parser.add_argument("--scan-layers", action="store_true", help="lax.scan over the jaxdrive models' layers")
     parser.add_argument(
         "--measure-peak",
@@ -445,6 +451,8 @@ def main(argv=None):
             ("dtype", args.dtype),
             ("remat", args.remat),
             ("attn_impl", args.attn_impl),
+            ("local_attn_impl", args.local_attn_impl),
+            ("cross_attn_impl", args.cross_attn_impl),
             ("scan_layers", args.scan_layers or None),
         )
         if v is not None

@@ -13,7 +13,8 @@ attentions communicate:
 - STAGE's HTFT cross-attention to past features (sharded queries and keys): sequence-sharded;
 - temporal attention (per spatial position over frames) and cross-attention to text and control
   tokens: **no communication** (every device holds all frames of its patches and all context
-  tokens); they run a local kernel (``local_attn_impl``).
+  tokens); they run a local kernel (``local_attn_impl``; the cross-attention ``cross_attn_impl``
+  where set).
 
 Every attention goes through :func:`jaxdrive.attention.attention`. Sequences are built so
 that the sharded axis S is the major part of the merged sequence (see
@@ -261,7 +262,7 @@ class STBlock(nn.Module):
         x = x + gate * a
         if not self.temporal and cfg.multiview == "cross_view":
             x = x + CrossView(cfg, name="cross_view")(x)
-        x = x + context_attention(_proj(cfg, "cross_attn", qk_norm="none", zero_out=True), x, ctx, cfg.local_attn_impl)
+        x = x + context_attention(_proj(cfg, "cross_attn", qk_norm="none", zero_out=True), x, ctx, cfg.cross_impl)
         h = modulate(LayerNorm(cfg.norm_eps, affine=False, name="norm2")(x), shift_m, scale_m)
         mlp = MLP(int(cfg.width * cfg.mlp_ratio), cfg.width, dtype=cfg.compute_dtype, zero_out=grown, name="mlp")
         return x + gate_m * mlp(h)
@@ -297,7 +298,7 @@ class FactorizedLayer(nn.Module):
             x = x + CrossView(cfg, name="cross_view")(x)
         h = modulate(LayerNorm(cfg.norm_eps, affine=False, name="norm_temp")(x), shift_t, scale_t)
         x = x + gate_t * temporal_attention(_proj(cfg, "attn_temp"), h, cfg.local_attn_impl, cfg.rope_theta)
-        x = x + context_attention(_proj(cfg, "cross_attn", qk_norm="none", zero_out=True), x, ctx, cfg.local_attn_impl)
+        x = x + context_attention(_proj(cfg, "cross_attn", qk_norm="none", zero_out=True), x, ctx, cfg.cross_impl)
         h = modulate(LayerNorm(cfg.norm_eps, affine=False, name="norm2")(x), shift_m, scale_m)
         x = x + gate_m * MLP(int(cfg.width * cfg.mlp_ratio), cfg.width, dtype=cfg.compute_dtype, name="mlp")(h)
         return constrain(x, VIDEO)
@@ -348,7 +349,7 @@ class FullBlock(nn.Module):
                 _proj(cfg, "ctx_attn", qk_norm="none", zero_out=True),
                 h,
                 LayerContext(tokens=ctx.tokens, tokens_mask=ctx.tokens_mask),
-                cfg.local_attn_impl,
+                cfg.cross_impl,
             )
         return constrain(xv, VIDEO), constrain(xt, TEXT)
 

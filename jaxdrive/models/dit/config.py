@@ -193,7 +193,10 @@ class DiTConfig:
     that a layer keeps its own name, e.g. MiLA stage 1's trainable last layer ``layers_27``),
     ``attn_impl`` for the attentions that run sequence-sharded (spatial, cross-view, full, HTFT)
     and ``local_attn_impl`` for those that never need communication (temporal, cross-attention
-    to text and control tokens). ``htft_layers``: layers after which STAGE's HTFT fuses past
+    to text and control tokens, the condition encoders); ``cross_attn_impl``, when set, takes the
+    cross-attention to text and control tokens apart (:attr:`cross_impl`): on a TPU its long
+    video queries against a few hundred keys gain from splash where the 8-frame temporal
+    attention does not (docs/guides/plan.md's roofline). ``htft_layers``: layers after which STAGE's HTFT fuses past
     features (and whose outputs :meth:`DiT.__call__` returns with ``return_features``);
     ``htft_groups`` is its GroupNorm's group count, ``htft_dropout`` the rate of its
     ``Dropout(f)``.
@@ -241,6 +244,7 @@ class DiTConfig:
     scan_breaks: tuple[int, ...] = ()
     attn_impl: str = "auto"
     local_attn_impl: str = "xla"
+    cross_attn_impl: str | None = None
     htft_layers: tuple[int, ...] = ()
     htft_groups: int = 8
     htft_dropout: float = 0.0
@@ -256,6 +260,11 @@ class DiTConfig:
     @property
     def t_dim(self) -> int:
         return self.width if self.time_embed_dim is None else self.time_embed_dim
+
+    @property
+    def cross_impl(self) -> str:
+        """The kernel of the cross-attention to text and control tokens."""
+        return self.local_attn_impl if self.cross_attn_impl is None else self.cross_attn_impl
 
     @property
     def compute_dtype(self):
@@ -300,6 +309,8 @@ def _check_choices(cfg: DiTConfig) -> None:
     check_choice("dtype", cfg.dtype, DTYPES)
     check_choice("attn_impl", cfg.attn_impl, IMPLS)
     check_choice("local_attn_impl", cfg.local_attn_impl, LOCAL_IMPLS)
+    if cfg.cross_attn_impl is not None:
+        check_choice("cross_attn_impl", cfg.cross_attn_impl, LOCAL_IMPLS)
     check_choice("controls.text", cfg.controls.text, TEXT_KINDS)
     check_choice("controls.cond_frames", cfg.controls.cond_frames, COND_FRAMES)
     check_choice("prediction", cfg.prediction, PREDICTIONS)

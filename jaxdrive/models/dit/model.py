@@ -152,7 +152,7 @@ def _traced_params(config: DiTConfig, shapes: tuple) -> tuple:
     only shapes and dtypes, the same whatever mesh the caller is under. The trace attends with
     "xla": the parameters are the same for every kernel, and one traced without a mesh cannot run
     a TPU-only or sequence-sharded kernel (a step compiled for TPU devices asks for splash)."""
-    config = config.replace(attn_impl="xla")
+    config = config.replace(attn_impl="xla", local_attn_impl="xla", cross_attn_impl=None)
     tree, recorded = abstract_params(DiT(config, parent=None), **example_inputs(config, **dict(shapes)))
     plain = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype)  # no sharding from the caller's mesh
     return jax.tree_util.tree_map(plain, tree), MappingProxyType(recorded)
