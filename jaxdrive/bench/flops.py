@@ -76,8 +76,8 @@ def step_flops(cfg, params, *, batch: int, views: int, frames: int, height: int,
     ft, s = frames // pt, (height // ph) * (width // pw)
     n, txt, d = views * ft * s, (cfg.text_len if cfg.controls.text else 0), cfg.width
     full = cfg.layout == "full"
-    matmul = attn = block_params = 0
-    by_kind = {"self": 0, "temporal": 0, "cross": 0}
+    matmul = block_params = 0
+    by_kind = {"self": 0, "temporal": 0, "cross": 0}  # forward FLOPs; x3 for the step below
     modelled = full or cfg.multiview == "joint"
     for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
         name = jax.tree_util.keystr(path, simple=True, separator="/")
@@ -103,14 +103,14 @@ def step_flops(cfg, params, *, batch: int, views: int, frames: int, height: int,
                 kind, pairs = "temporal", views * s * ft**2
             else:
                 kind, pairs = "self", ft * (views * s) ** 2
-            attn += 4 * pairs * d * layers * batch
-            by_kind[kind] += 3 * 4 * pairs * d * layers * batch
+            by_kind[kind] += 4 * pairs * d * layers * batch
+    attn = sum(by_kind.values())
     flops = 3 * (matmul + attn) if modelled else None
     return dict(
         flops=flops,
         matmul_flops=3 * matmul,
         attention_flops=3 * attn,
-        attention_flops_by_kind=by_kind,
+        attention_flops_by_kind={k: 3 * v for k, v in by_kind.items()},
         block_params=block_params,
         video_tokens=batch * n,
         text_tokens=batch * txt,
