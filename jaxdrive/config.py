@@ -109,6 +109,10 @@ class FlowConfig:
     # reads it as those frames' noise level (controls.cond_frames "replace")
     given_noise_max: float = 0.0
     given_noise_sample: float = 0.0
+    # training windows whose given frames are the model's own output (jaxdrive.train.self_rollout):
+    # the share of steps that train a rollout's second window, and the Euler steps of its first
+    self_rollout_rate: float = 0.0
+    self_rollout_steps: int = 4
     tpd: bool = False  # MiLA's temporal progressive denoising levels
     tpd_omega: float = 1.5707963267948966
     patterns: tuple[str, ...] = ("prefix",)  # where given frames sit: prefix / ends / anchors (flow.patterns)
@@ -426,6 +430,31 @@ def from_dict(cls, data: dict):
     return cls(**kwargs)
 
 
+def check_self_rollout(config) -> None:
+    """What training a rollout's second window (``flow.self_rollout_rate``,
+    :mod:`jaxdrive.train.self_rollout`) needs: exactly ``flow.cond_frames`` given frames at the
+    start of every window, one clip length, pixels in the batch, and no other kind of step."""
+    f, d = config.flow, config.data
+    validate.check_range("flow.self_rollout_rate", f.self_rollout_rate, 0.0, 1.0)
+    validate.check_positive_int("flow.self_rollout_steps", f.self_rollout_steps)
+    needs = (
+        ("flow.cond_frames", f.cond_frames >= 1, "at least 1 given frame", f.cond_frames),
+        ("flow.cond_frames_random", not f.cond_frames_random, "false (every window has its given frames)", True),
+        ("flow.patterns", tuple(f.patterns) == ("prefix",), "('prefix',)", tuple(f.patterns)),
+        ("flow.jdc_anchor_rate", f.jdc_anchor_rate == 0, "0", f.jdc_anchor_rate),
+        ("data.buckets", not d.buckets, "() (one clip length)", d.buckets),
+        ("data.stride", d.stride == 1, "1", d.stride),
+        ("data.rate_strides", not d.rate_strides, "()", d.rate_strides),
+        ("latents.precomputed", not config.latents.precomputed, "false (clips of 2F - k frames)", True),
+        ("stream.enabled", not config.stream.enabled, "false (STAGE's has its own: stream.self_rollout)", True),
+        ("flow.distill_teacher", not f.distill_teacher, "''", f.distill_teacher),
+        ("data.frames", d.frames > f.cond_frames, f"more than flow.cond_frames = {f.cond_frames}", d.frames),
+    )
+    for name, ok, expected, got in needs:
+        if not ok:
+            raise ValueError(f"{name}: expected {expected} with flow.self_rollout_rate > 0, got {got!r}")
+
+
 def check_sections(config) -> None:
     """Range checks of the sections defined here (the model's config checks itself)."""
     d, o, t, f = config.data, config.optim, config.train, config.flow
@@ -487,6 +516,8 @@ def check_sections(config) -> None:
             f"flow.given_noise_sample: expected a level the model trained with, at most flow.given_noise_max = "
             f"{f.given_noise_max}, got {f.given_noise_sample}"
         )
+    if f.self_rollout_rate:
+        check_self_rollout(config)
     if f.given_noise_max > 0 and config.model.controls.cond_frames != "replace":
         raise ValueError(
             f"flow.given_noise_max: the given frames' noise level reaches the model with "

@@ -78,18 +78,21 @@ def model_inputs(
     *,
     foreground: bool = False,
     teacher: DiTConfig | None = None,
+    poses: bool = False,
 ) -> dict:
     """What a step or a sampler needs from a pipeline batch (:mod:`jaxdrive.data.pipeline`):
     ``video`` (or the precomputed ``latents`` of a batch of latent windows) and ``cond``, the
     model's conditions (the batch's drops renamed to the DiT's conditions). With ``foreground``
     (STAGE's W_aux), ``loss`` holds the boxes and cameras it reads; with a distillation
-    ``teacher``, ``teacher`` holds the fine model's ``cond`` and the ego poses (:data:`POSES`)."""
+    ``teacher``, ``teacher`` holds the fine model's ``cond`` and the ego poses (:data:`POSES`).
+    ``poses``: a warp-guided model's ``warp`` (the poses and cameras) also beside the pipeline's
+    ``warp_video``, for a step that warps frames of its own (:mod:`jaxdrive.train.self_rollout`)."""
     x = "latents" if "latents" in batch else "video"  # precomputed latent windows or pixels
     out = {x: np.asarray(batch[x], np.float32), "cond": conditions(batch, model, text_embeddings)}
     if model.controls.warp:  # LongDWM's warped frames: made by the pipeline (training) or the sampler
         if "warp_video" in batch:
             out["warp_video"] = np.asarray(batch["warp_video"], np.float32)  # encoded by the step, like video
-        else:
+        if "warp_video" not in batch or poses:
             out["warp"] = {
                 k: np.asarray(batch[b], np.float32)
                 for k, b in (("poses", "ego_to_world"), ("intrinsics", "intrinsics"), ("cam_to_ego", "cam_to_ego"))

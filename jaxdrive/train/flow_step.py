@@ -25,7 +25,9 @@ each micro-batch (in a ``lax.scan``):
    names one (:mod:`jaxdrive.train.distill_step`).
 
 With ``stream.enabled`` steps 2-4 are STAGE's frame-by-frame loss instead
-(:mod:`jaxdrive.train.stream_step`).
+(:mod:`jaxdrive.train.stream_step`). With ``flow.self_rollout_rate`` the batch holds two windows
+of a rollout and the step trains one of them, the second with the model's own frames given
+(:mod:`jaxdrive.train.self_rollout`).
 
 Gradients are averaged over the micro-batches, then :func:`jaxdrive.train.state.apply_gradients`
 updates (or skips a non-finite step). The step is jitted with the state's shardings as in/out
@@ -60,6 +62,10 @@ class FlowTraining:
     codec: LatentCodec
     teacher: DiTConfig | None = None  # the frozen fine model of LongDWM's distillation
     stream: StreamConfig = StreamConfig()  # STAGE's frame-by-frame training when enabled
+    # a warp-guided model's data.warp_frame and data.warp_depth, for the warps the step makes itself
+    # (flow.self_rollout_rate: jaxdrive.train.self_rollout)
+    warp_frame: int = 0
+    warp_depth: float = 0.0
 
     @property
     def dit(self) -> DiT:
@@ -124,6 +130,20 @@ def flow_loss_fn(training: FlowTraining, params, codec_params, inputs: dict, key
                 "inputs: expected 'warp_video' (the pipeline's warp_depth > 0) for a model with controls.warp, got none"
             )
         cond = cond.replace(warp=jax.lax.stop_gradient(training.codec.encode(codec_params, inputs["warp_video"])))
+    if training.flow.self_rollout_rate > 0:  # a rollout's first or (its given frames the model's) second window
+        from jaxdrive.train.self_rollout import training_window
+
+        x, cond, loss_fields = training_window(
+            training,
+            params,
+            codec_params,
+            x,
+            cond,
+            inputs,
+            jax.random.fold_in(key, 11),
+            warp_frame=training.warp_frame,
+            depth=training.warp_depth,
+        )
     if training.stream.enabled:  # STAGE: one [anchor, condition, new] window per clip
         from jaxdrive.train.stream_step import stream_loss_fn
 

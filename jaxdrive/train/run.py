@@ -84,7 +84,12 @@ def training_buckets(config: Config, compression: int):
     from jaxdrive.data.buckets import parse_bucket_specs, parse_buckets
 
     d = config.data
-    specs = parse_bucket_specs(d.buckets) if d.buckets else {(d.height, d.width, d.frames): (d.batch_size, 1.0)}
+    frames = d.frames
+    if config.flow.self_rollout_rate:  # a rollout's two windows (jaxdrive.train.self_rollout)
+        from jaxdrive.train.self_rollout import clip_frames
+
+        frames = clip_frames(d.frames, config.flow.cond_frames, compression)
+    specs = parse_bucket_specs(d.buckets) if d.buckets else {(d.height, d.width, frames): (d.batch_size, 1.0)}
     try:
         return parse_buckets(specs, compression=compression)
     except ValueError as e:  # parse_buckets names its argument "buckets"
@@ -199,7 +204,15 @@ class Run:
 
             parse_name_map(config.train.init_map)
         teacher = self._teacher_model() if config.flow.distill_teacher else None
-        self.training = flow_step.FlowTraining(model, config.flow, self.codec, teacher, config.stream)
+        self.training = flow_step.FlowTraining(
+            model,
+            config.flow,
+            self.codec,
+            teacher,
+            config.stream,
+            warp_frame=config.data.warp_frame,
+            warp_depth=config.data.warp_depth,
+        )
         # frames the trained model sees, and the source-frame stride between them
         self.latent_frames, self.frame_stride = model_frames(config, self.codec)
         from jaxdrive.train.stream_step import check_stream
@@ -380,7 +393,14 @@ class Run:
         t = self.training
         return global_micro_batches(
             [
-                model_inputs(b, t.model, self.text, foreground=t.flow.foreground_k > 0, teacher=t.teacher)
+                model_inputs(
+                    b,
+                    t.model,
+                    self.text,
+                    foreground=t.flow.foreground_k > 0,
+                    teacher=t.teacher,
+                    poses=t.flow.self_rollout_rate > 0,
+                )
                 for b in micro_batches
             ],
             self.mesh,
