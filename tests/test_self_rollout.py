@@ -100,12 +100,13 @@ def test_the_second_window_is_given_the_models_own_frames_and_warps_from_them(da
     assert set(inputs["warp"]) == {"poses", "intrinsics", "cam_to_ego"} and "warp_video" in inputs
     params = _perturbed(run)
     t, codec = run.training, run.training.codec
+    assert (t.warp_frame, t.warp_depth) == (1, 15.0)  # data.warp_frame / data.warp_depth reach the step
     key = jax.random.key(3)
 
     def window(training, params, inputs):
         x = codec.encode(None, inputs["video"])
         cond = inputs["cond"].replace(warp=codec.encode(None, inputs["warp_video"]))
-        return self_rollout.training_window(training, params, None, x, cond, inputs, key, warp_frame=1, depth=15.0)
+        return self_rollout.training_window(training, params, None, x, cond, inputs, key)
 
     with jax.set_mesh(run.mesh):
         xw, cw, _ = jax.jit(window, static_argnums=0)(t, params, inputs)

@@ -134,15 +134,7 @@ def flow_loss_fn(training: FlowTraining, params, codec_params, inputs: dict, key
         from jaxdrive.train.self_rollout import training_window
 
         x, cond, loss_fields = training_window(
-            training,
-            params,
-            codec_params,
-            x,
-            cond,
-            inputs,
-            jax.random.fold_in(key, 11),
-            warp_frame=training.warp_frame,
-            depth=training.warp_depth,
+            training, params, codec_params, x, cond, inputs, jax.random.fold_in(key, 11)
         )
     if training.stream.enabled:  # STAGE: one [anchor, condition, new] window per clip
         from jaxdrive.train.stream_step import stream_loss_fn

@@ -117,10 +117,10 @@ def _sampler_model(training, window: int, height: int, width: int):
     )
 
 
-def training_window(training, params, codec_params, x, cond, inputs: dict, key, *, warp_frame: int, depth: float):
+def training_window(training, params, codec_params, x, cond, inputs: dict, key):
     """``(x, cond, loss_fields)`` of the window a step trains (module docstring) from the latents
     ``x [B, V, 2F - k, h, w, C]`` of a self-rollout clip and its conditions ``cond`` (a warp-guided
-    model's ``warp`` encoded for the whole clip, from the clip's frame ``warp_frame``)."""
+    model's ``warp`` encoded for the whole clip, from the clip's frame ``training.warp_frame``)."""
     from jaxdrive.generate.windows import sample_window
 
     k = training.flow.cond_frames
@@ -129,7 +129,7 @@ def training_window(training, params, codec_params, x, cond, inputs: dict, key, 
     if 2 * f - k != nf:
         raise ValueError(f"x: expected a clip of 2F - k latent frames (k = {k}), got {nf}")
     loss_fields = inputs.get("loss")
-    warp = cond.warp
+    warp, warp_frame = cond.warp, training.warp_frame
 
     def fields(lo):
         if not loss_fields:
@@ -157,7 +157,7 @@ def training_window(training, params, codec_params, x, cond, inputs: dict, key, 
                 src, inputs["warp"]["poses"][:, lo : lo + f], inputs["warp"]["intrinsics"], inputs["warp"]["cam_to_ego"]
             )
             rel = jnp.linalg.inv(e2w[:, warp_frame : warp_frame + 1]) @ e2w
-            pixels = device_warp(src, rel, k_, c2e, depth)
+            pixels = device_warp(src, rel, k_, c2e, training.warp_depth)
             warp_b = jax.lax.stop_gradient(training.codec.encode(codec_params, pixels))
         return window, _window(cond, lo, lo + f, warp_b), fields(lo)
 
