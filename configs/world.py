@@ -49,12 +49,21 @@ it is told rather than the motion its history shows:
   (``data.warp_frame=1``), the output a correction to it (``controls.reference_frame="warp"``):
   an untrained model already gives the ``warp`` baseline;
 - GameNGen's noise on the given frames (``flow.given_noise_max=0.7`` in training, 0.1 at sampling).
+
+Part 2's comparison changes only the controls, on the same futures and noise: ``control=warp_only``
+drops the waypoint tokens (the warp and its correction alone), ``control=waypoints_cf`` drops the
+warp (the tokens alone, the output the residual to the newest given frame as in the recipe).
 """
 
 import dataclasses
 from pathlib import Path
 
 from jaxdrive.config import check_arg, load_config, parse_arg
+
+# the route controls (issue 58, part 2): the waypoint tokens alone, as first trained; then, on the
+# counterfactual futures with noise on the given frames, the warp with the tokens, the warp alone,
+# the tokens alone
+CONTROLS = ("waypoints", "warp", "warp_only", "waypoints_cf")
 
 
 def get_config(arg: str | None = None):
@@ -66,10 +75,12 @@ def get_config(arg: str | None = None):
     optim = dataclasses.replace(base.optim, warmup_steps=100)
     data = dataclasses.replace(base.data, path="data/world")
     flow = dataclasses.replace(base.flow, shift=3.0)
-    check_arg("control", a.control, ("waypoints", "warp"))
-    if a.control == "warp":
-        controls = dataclasses.replace(controls, warp=True, reference_frame="warp")
+    check_arg("control", a.control, CONTROLS)
+    if a.control != "waypoints":  # every route-following variant trains on the same counterfactual futures
         routes = ("recorded:2", "stop", "slower", "faster", "lane-left", "branch")
-        data = dataclasses.replace(data, routes=routes, warp_frame=base.flow.cond_frames - 1)
+        data = dataclasses.replace(data, routes=routes)
         flow = dataclasses.replace(flow, given_noise_max=0.7, given_noise_sample=0.1)
+    if a.control in ("warp", "warp_only"):
+        controls = dataclasses.replace(controls, warp=True, reference_frame="warp", waypoints=a.control == "warp")
+        data = dataclasses.replace(data, warp_frame=base.flow.cond_frames - 1)
     return dataclasses.replace(base, model=m.replace(controls=controls), train=train, optim=optim, data=data, flow=flow)

@@ -144,6 +144,31 @@ def test_a_route_the_training_split_lacks_is_refused_before_anything_compiles(sc
         Run(bare, devices=ONE)
 
 
+@pytest.mark.parametrize(
+    ("control", "waypoints", "warp", "reference"),
+    [("warp", True, True, "warp"), ("warp_only", False, True, "warp"), ("waypoints_cf", True, False, "residual")],
+)
+def test_the_world_recipes_route_controls_differ_only_in_their_controls(control, waypoints, warp, reference):
+    """Part 2's comparison: the warp with the waypoint tokens, the warp alone and the tokens alone
+    train on the same counterfactual futures with the same noise on their given frames."""
+    from jaxdrive.models.dit.config import check_config
+
+    world = str(Path(TINY).with_name("world.py"))
+    cfg = load_config(f"{world}:control={control}")
+    both = load_config(f"{world}:control=warp")
+    check_config(cfg.model)
+    c = cfg.model.controls
+    assert (c.waypoints, c.warp, c.reference_frame) == (waypoints, warp, reference)
+    assert cfg.data.routes == both.data.routes and "branch" in cfg.data.routes
+    assert (cfg.flow.given_noise_max, cfg.flow.given_noise_sample) == (0.7, 0.1)
+    assert cfg.data.warp_frame == (cfg.flow.cond_frames - 1 if warp else 0)
+    # the recipe as first trained: the tokens alone, recorded futures only, clean given frames
+    first = load_config(f"{world}:control=waypoints")
+    assert first.data.routes == () and first.flow.given_noise_max == 0.0
+    with pytest.raises(ValueError, match="config argument control: expected 'waypoints', 'warp', 'warp_only' or "):
+        load_config(f"{world}:control=tokens")
+
+
 @pytest.mark.slow(seconds=60)
 def test_the_world_recipe_with_warp_control_trains_on_routed_scenes_and_samples(tmp_path):
     """``configs/world.py:control=warp`` end to end at one layer: counterfactual futures, the warp
