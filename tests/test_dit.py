@@ -607,6 +607,69 @@ def test_final_convolutions_start_as_a_no_op_and_are_3x3_convolutions():
         preset("tiny", final_conv=-1)
 
 
+def _overlap_tokens(img, patch, junk):
+    """The tokens whose overlapping patches (``out_patches="overlap"``) all agree with ``img
+    [h, w, C]``: token ``(a, b)`` holds the ``2 ph x 2 pw`` window of ``img`` centred on its
+    footprint, with ``junk`` where the window leaves the frame."""
+    _, ph, pw = patch
+    h, w, c = img.shape
+    padded = np.pad(img, ((ph // 2, ph // 2), (pw // 2, pw // 2), (0, 0)))
+    frame = np.pad(np.ones((h, w)), ((ph // 2, ph // 2), (pw // 2, pw // 2)))
+    padded = np.where(frame[..., None] > 0, padded, junk)
+    windows = [
+        padded[a * ph : a * ph + 2 * ph, b * pw : b * pw + 2 * pw].reshape(-1)
+        for a in range(h // ph)
+        for b in range(w // pw)
+    ]
+    return np.stack(windows)[None, None, :, None]  # [B, F', S, V, 2 ph 2 pw C]
+
+
+def test_overlapping_output_patches_spread_a_seam_and_give_back_the_image_they_agree_on():
+    """``out_patches="overlap"``: a token paints a tent-weighted ``2 ph x 2 pw`` patch centred on
+    its footprint. Worked number: two tokens of constant 0 and 1 (``ph=2``) give ``[0, 1/4, 3/4,
+    1]`` down the frame, a seam of 1 spread into steps of 1/4, 1/2, 1/4 (``"disjoint"``: ``[0, 0,
+    1, 1]``). Tokens that agree on their overlaps give back their image exactly, the frame's edges
+    too (what lies outside the frame is never painted); a zero projection paints zeros."""
+    from jaxdrive.models.dit.embed import tent_window, unpatchify_overlap
+
+    np.testing.assert_array_equal(tent_window(2), [0.25, 0.75, 0.75, 0.25])
+    w4 = tent_window(4)
+    np.testing.assert_allclose(w4[:4] + w4[4:], 1.0)  # the two tokens over a position weigh it 1
+    two = np.zeros((1, 1, 2, 1, 16), np.float32)
+    two[0, 0, 1] = 1.0
+    out = np.asarray(unpatchify_overlap(jnp.asarray(two), (1, 2, 2), (2, 1), 1))
+    np.testing.assert_array_equal(out[0, 0, 0, :, 0, 0], [0.0, 0.25, 0.75, 1.0])
+    rng = np.random.default_rng(0)
+    for patch, grid in [((1, 2, 2), (3, 4)), ((1, 4, 2), (2, 3))]:
+        img = rng.normal(size=(grid[0] * patch[1], grid[1] * patch[2], 3)).astype(np.float32)
+        tokens = _overlap_tokens(img, patch, junk=1e3)
+        out = np.asarray(unpatchify_overlap(jnp.asarray(tokens), patch, grid, 3))
+        np.testing.assert_allclose(out[0, 0, 0], img, rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match=r"out_patches: .* expected an even patch height and width, got patch=\(1, 1, 1\)"):
+        preset("tiny", patch=(1, 1, 1), out_patches="overlap")
+    with pytest.raises(ValueError, match=r"out_patches: expected one of \['disjoint', 'overlap'\], got 'tent'"):
+        preset("tiny", out_patches="tent")
+
+
+@pytest.mark.slow(seconds=6)
+def test_an_overlapping_head_starts_at_zero_four_times_as_wide():
+    """The DiT with ``out_patches="overlap"``: its output projection is four times as wide (a
+    token's ``2 ph x 2 pw`` patch) and starts at zero, so the residual model gives the newest
+    given frame bit for bit; trained, it paints."""
+    cfg = preset(
+        "tiny", prediction="data", out_patches="overlap", controls=dict(cond_frames="replace", reference_frame="residual")
+    )
+    params = jax.tree_util.tree_map(jnp.asarray, nn.unbox(boxed_params(cfg, TINY_SHAPES)))
+    kernel = params["proj_out"]["kernel"]
+    assert kernel.shape == (cfg.width, 4 * cfg.patch_dim) and not np.any(kernel)
+    lat, sig, text, kw = split_inputs(example_inputs(cfg, **dict(TINY_SHAPES)))
+    kw["cond_mask"] = np.array([[True, True, False, False], [True, False, False, False]])
+    out = np.asarray(forward_fn(cfg)(params, lat, sig, text, kw))
+    for f in range(2, 4):
+        np.testing.assert_array_equal(out[0, :, f], np.asarray(kw["cond_latents"])[0, :, 1])
+    assert max_rel(forward_fn(cfg)(perturb(params), lat, sig, text, kw), out) > 1e-3
+
+
 # 3 latent frames = 9 pixel frames: four at 12 fps, then 1 fps (MiLA: 12-fps condition frames, coarse 1 fps)
 FT_SHAPES = (("batch", 2), ("views", 1), ("frames", 3), ("height", 4), ("width", 4))
 FT_ON, FT_OFF = preset("tiny", controls=dict(frame_time=True)), preset("tiny")

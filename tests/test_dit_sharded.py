@@ -31,14 +31,15 @@ CASES = {
     # (frame, view) with the batch over data and the tokens over seq
     "layout": (preset("tiny", depth=1, controls=dict(layout=True)), dict(data=2, seq=2, tensor=2), 2),
     "full-scan-remat": (preset("tiny-full", scan_layers=True, remat="full"), dict(seq=8), 2),
-    # the per-frame output head (U-ViT's final convolutions over output, input and given frame)
-    # with its frames over seq
+    # the per-frame output head (overlapping output patches, U-ViT's final convolutions over
+    # output, input and given frame) with its frames over seq
     "final-conv-frames-over-seq": (
         preset(
             "tiny",
             depth=1,
             prediction="data",
             final_conv=8,
+            out_patches="overlap",
             controls=dict(cond_frames="replace", reference_frame="residual"),
         ),
         dict(data=2, seq=2, tensor=2),

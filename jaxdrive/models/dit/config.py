@@ -26,6 +26,7 @@ REMAT = ("none", "full", "dots", "dots_no_batch")
 # Attentions that never communicate run one of these (never ring / ulysses).
 LOCAL_IMPLS = ("xla", "blockwise", "cudnn", "splash")
 DTYPES = ("float32", "bfloat16", "float16")
+OUT_PATCHES = ("disjoint", "overlap")
 TEXT_KINDS = ("embeddings", "caption", None)
 COND_FRAMES = ("replace", "concat", None)
 REFERENCE_FRAME = ("input", "residual", "warp", None)
@@ -173,6 +174,10 @@ class DiTConfig:
     adds U-ViT's two 3x3 convolutions after the unpatchify (Bao et al. 2023, sec. 3.1), over the
     output, the input and the given frame: without them each token's output is a linear map of its
     own hidden state, and a narrow model's frames show the token grid as blocks.
+    ``out_patches``: ``"disjoint"`` (each token paints its own ``ph x pw`` footprint, as every
+    imported model) or ``"overlap"`` (each paints ``2 ph x 2 pw`` centred on it, tent-weighted and
+    summed with its neighbours', :func:`jaxdrive.models.dit.embed.unpatchify_overlap`: no seam on
+    the token grid's lines; even ``ph`` and ``pw``, 4x the output projection).
 
     Boxes: ``box_range`` (metres) divides the box corners before their Fourier features
     (``controls.boxes``), so a corner at the edge of the range is 1: MagicDrive min-max normalises
@@ -236,6 +241,7 @@ class DiTConfig:
     prediction: str = "velocity"
     prediction_min_sigma: float = 0.05
     final_conv: int = 0
+    out_patches: str = "disjoint"
     vae_temporal: int = 4
     vae_spatial: int = 8
     dtype: str = "float32"
@@ -297,6 +303,7 @@ def _check_choices(cfg: DiTConfig) -> None:
     check_choice("layout", cfg.layout, LAYOUTS)
     check_choice("block", cfg.block, BLOCKS)
     check_choice("temporal", cfg.temporal, TEMPORAL)
+    check_choice("out_patches", cfg.out_patches, OUT_PATCHES)
     if cfg.temporal != "on" and (cfg.layout, cfg.block) != ("factorized", "stdit3"):
         raise ValueError(
             f"temporal: expected 'on' for layout {cfg.layout!r} with block {cfg.block!r} (only the "
@@ -366,6 +373,11 @@ def _check_sizes(cfg: DiTConfig) -> None:
         raise ValueError(f"patch: expected (pt, ph, pw), got {cfg.patch!r}")
     for p in cfg.patch:
         check_positive_int("patch", p)
+    if cfg.out_patches == "overlap" and (cfg.patch[1] % 2 or cfg.patch[2] % 2):
+        raise ValueError(
+            f"out_patches: 'overlap' centres a 2 ph x 2 pw patch on each token, a margin of ph / 2 and "
+            f"pw / 2 latents; expected an even patch height and width, got patch={tuple(cfg.patch)}"
+        )
 
 
 def _check_width(cfg: DiTConfig) -> None:

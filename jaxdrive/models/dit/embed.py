@@ -1,5 +1,5 @@
 """What enters the DiT's layers (:class:`jaxdrive.models.dit.model.DiT`): latents to patch tokens
-and back (:func:`patchify`, :func:`unpatchify`), the newest given frame as an input
+and back (:func:`patchify`, :func:`unpatchify`, :func:`unpatchify_overlap`), the newest given frame as an input
 (:func:`reference_input`), and each condition's embedding, as functions of the DiT module they
 build their parameters in (the DiT's module docstring says how each is dropped):
 
@@ -55,6 +55,63 @@ def unpatchify(tokens, patch, grid_hw, channels):
     x = reshape(tokens, (b, ft, gh, gw, nv, pt, ph, pw, channels))
     x = jnp.transpose(x, (0, 4, 1, 5, 2, 6, 3, 7, 8))
     return reshape(x, (b, nv, ft * pt, gh * ph, gw * pw, channels))
+
+
+def tent_window(n: int) -> np.ndarray:
+    """The weights of an overlapping token's ``2 n`` positions along one axis: a tent that is 1
+    at the token's centre and falls to ``1 / (4 n)`` at its margins, so the two tokens over any
+    position weigh it ``1`` in all (a partition of unity): ``n=2`` gives ``[1, 3, 3, 1] / 4``."""
+    i = np.arange(2 * n) + 0.5
+    return 1.0 - np.abs(i - n) / n
+
+
+def _shift(x, axis: int, d: int):
+    """``x`` moved by ``d`` along ``axis`` (``out[y] = x[y - d]``), zeros where it moved from
+    outside: a pad and a slice, no reshape that would move the axes' sharding."""
+    if d == 0:
+        return x
+    n = x.shape[axis]
+    pad = [(0, 0)] * x.ndim
+    pad[axis] = (max(d, 0), max(-d, 0))
+    idx = [slice(None)] * x.ndim
+    idx[axis] = slice(max(-d, 0), max(-d, 0) + n)
+    return jnp.pad(x, pad)[tuple(idx)]
+
+
+def unpatchify_overlap(tokens, patch, grid_hw, channels):
+    """Overlapping output patches (``DiTConfig.out_patches="overlap"``): each token of
+    ``tokens [B, F'/pt, S, V, pt (2 ph) (2 pw) C]`` paints a ``2 ph x 2 pw`` patch centred on its
+    own ``ph x pw`` footprint (a margin of ``ph / 2``, ``pw / 2`` into its neighbours), weighted by
+    :func:`tent_window` along each axis and summed with its neighbours' (overlap-add, the
+    learned transposed convolution of stride ``p`` and kernel ``2 p`` that resize-free decoders
+    use against block seams; Odena et al. 2016, "Deconvolution and checkerboard artifacts").
+    A seam between two tokens' predictions is spread over their overlap, not drawn on the token
+    grid's lines; at the frame's edges, where one token covers a position, it is divided by the
+    weight it got. Tokens that agree on their overlap give back the image they describe exactly.
+    Returns ``[B, V, F', h, w, C]``; ``ph`` and ``pw`` must be even (checked by the config)."""
+    b, ft, s, nv, _ = tokens.shape
+    pt, ph, pw = patch
+    gh, gw = grid_hw
+    wh, ww = tent_window(ph).reshape(2, ph), tent_window(pw).reshape(2, pw)
+    x = reshape(tokens, (b, ft, s, nv, pt, 2, ph, 2, pw, channels))
+    out = 0.0
+    for qi in range(2):
+        for qj in range(2):
+            w = jnp.asarray(wh[qi][:, None, None] * ww[qj][None, :, None], x.dtype)  # [ph, pw, 1]
+            quarter = reshape(x[:, :, :, :, :, qi, :, qj] * w, (b, ft, s, nv, pt * ph * pw * channels))
+            img = unpatchify(quarter, patch, grid_hw, channels)  # [B, V, F', h, w, C]
+            out = out + _shift(_shift(img, 3, (2 * qi - 1) * (ph // 2)), 4, (2 * qj - 1) * (pw // 2))
+    # the weight each position got: 1 inside, less on the frame's outer half-token
+    norm = _overlap_weight(ph, gh)[:, None] * _overlap_weight(pw, gw)[None, :]
+    return out / jnp.asarray(norm[..., None], out.dtype)
+
+
+def _overlap_weight(p: int, g: int) -> np.ndarray:
+    """The summed :func:`tent_window` weight of each of ``g * p`` positions along one axis."""
+    total = np.zeros(g * p + 2 * p)
+    for k in range(g):  # token k's window starts p / 2 before its footprint (offset by the pad p)
+        total[p + k * p - p // 2 : p + k * p - p // 2 + 2 * p] += tent_window(p)
+    return total[p : p + g * p]
 
 
 def reference_input(x, cond_latents, cond_mask, warp=None, warp_dropped=None):

@@ -73,6 +73,7 @@ from jaxdrive.models.dit.embed import (
     reference_input,
     text_context,
     unpatchify,
+    unpatchify_overlap,
 )
 from jaxdrive.models.dit.inputs import example_inputs
 from jaxdrive.models.embeddings import rope_3d, sincos_2d, sincos_3d
@@ -311,7 +312,8 @@ class DiT(nn.Module):
         out = self._final(cfg, video, t)
         # the head is per frame: frames over seq keep a long window's output split across the mesh
         out = constrain(out, ("batch", "out_frames", None, "views", None))
-        out = unpatchify(out, cfg.patch, grid, cfg.out_dim).astype(jnp.float32)
+        heal = unpatchify_overlap if cfg.out_patches == "overlap" else unpatchify
+        out = heal(out, cfg.patch, grid, cfg.out_dim).astype(jnp.float32)
         if cfg.final_conv:
             out = out + self._final_conv(cfg, out, x, ref)
         if cfg.controls.reference_frame in ("residual", "warp"):
@@ -406,7 +408,7 @@ class DiT(nn.Module):
             mod = Dense(2 * cfg.width, ("embed", None), dtype=dt, name="norm_out_linear")(jax.nn.silu(t))
             shift, scale = mod[:, :, None, None, : cfg.width], mod[:, :, None, None, cfg.width :]
             h = modulate(LayerNorm(cfg.norm_eps, name="norm_out")(h), shift, scale)
-        p = cfg.patch[0] * cfg.patch[1] * cfg.patch[2] * cfg.out_dim
+        p = cfg.patch[0] * cfg.patch[1] * cfg.patch[2] * cfg.out_dim * (4 if cfg.out_patches == "overlap" else 1)
         return Dense(p, ("embed", "channels"), dtype=dt, kernel_init=ZEROS, name="proj_out")(h)
 
     def _final_conv(self, cfg, out, x, ref):
