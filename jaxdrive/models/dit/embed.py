@@ -58,24 +58,11 @@ def unpatchify(tokens, patch, grid_hw, channels):
 
 
 def tent_window(n: int) -> np.ndarray:
-    """The weights of an overlapping token's ``2 n`` positions along one axis: a tent that is 1
-    at the token's centre and falls to ``1 / (4 n)`` at its margins, so the two tokens over any
-    position weigh it ``1`` in all (a partition of unity): ``n=2`` gives ``[1, 3, 3, 1] / 4``."""
+    """The weights of an overlapping token's ``2 n`` positions along one axis: a tent rising from
+    ``1 / (2 n)`` at the window's edges to ``1 - 1 / (2 n)`` beside its centre, so the two tokens
+    over any position weigh it ``1`` in all (a partition of unity): ``n=2`` gives ``[1, 3, 3, 1] / 4``."""
     i = np.arange(2 * n) + 0.5
     return 1.0 - np.abs(i - n) / n
-
-
-def _shift(x, axis: int, d: int):
-    """``x`` moved by ``d`` along ``axis`` (``out[y] = x[y - d]``), zeros where it moved from
-    outside: a pad and a slice, no reshape that would move the axes' sharding."""
-    if d == 0:
-        return x
-    n = x.shape[axis]
-    pad = [(0, 0)] * x.ndim
-    pad[axis] = (max(d, 0), max(-d, 0))
-    idx = [slice(None)] * x.ndim
-    idx[axis] = slice(max(-d, 0), max(-d, 0) + n)
-    return jnp.pad(x, pad)[tuple(idx)]
 
 
 def unpatchify_overlap(tokens, patch, grid_hw, channels):
@@ -94,13 +81,18 @@ def unpatchify_overlap(tokens, patch, grid_hw, channels):
     gh, gw = grid_hw
     wh, ww = tent_window(ph).reshape(2, ph), tent_window(pw).reshape(2, pw)
     x = reshape(tokens, (b, ft, s, nv, pt, 2, ph, 2, pw, channels))
-    out = 0.0
+    # each quarter of the patches is a token-aligned image; on a canvas with a half-token margin
+    # all round, quarter (qi, qj) sits qi ph rows and qj pw columns in (pads and a slice: no
+    # reshape that would move the h, w axes' sharding)
+    canvas = 0.0
     for qi in range(2):
         for qj in range(2):
             w = jnp.asarray(wh[qi][:, None, None] * ww[qj][None, :, None], x.dtype)  # [ph, pw, 1]
             quarter = reshape(x[:, :, :, :, :, qi, :, qj] * w, (b, ft, s, nv, pt * ph * pw * channels))
             img = unpatchify(quarter, patch, grid_hw, channels)  # [B, V, F', h, w, C]
-            out = out + _shift(_shift(img, 3, (2 * qi - 1) * (ph // 2)), 4, (2 * qj - 1) * (pw // 2))
+            pad = [(0, 0)] * 3 + [(qi * ph, (1 - qi) * ph), (qj * pw, (1 - qj) * pw), (0, 0)]
+            canvas = canvas + jnp.pad(img, pad)
+    out = canvas[:, :, :, ph // 2 : ph // 2 + gh * ph, pw // 2 : pw // 2 + gw * pw]
     # the weight each position got: 1 inside, less on the frame's outer half-token
     norm = _overlap_weight(ph, gh)[:, None] * _overlap_weight(pw, gw)[None, :]
     return out / jnp.asarray(norm[..., None], out.dtype)
@@ -108,10 +100,10 @@ def unpatchify_overlap(tokens, patch, grid_hw, channels):
 
 def _overlap_weight(p: int, g: int) -> np.ndarray:
     """The summed :func:`tent_window` weight of each of ``g * p`` positions along one axis."""
-    total = np.zeros(g * p + 2 * p)
-    for k in range(g):  # token k's window starts p / 2 before its footprint (offset by the pad p)
-        total[p + k * p - p // 2 : p + k * p - p // 2 + 2 * p] += tent_window(p)
-    return total[p : p + g * p]
+    total = np.zeros(g * p + p)  # the canvas of unpatchify_overlap: a margin of p / 2 each side
+    for k in range(g):
+        total[k * p : k * p + 2 * p] += tent_window(p)
+    return total[p // 2 : p // 2 + g * p]
 
 
 def reference_input(x, cond_latents, cond_mask, warp=None, warp_dropped=None):

@@ -312,8 +312,8 @@ class DiT(nn.Module):
         out = self._final(cfg, video, t)
         # the head is per frame: frames over seq keep a long window's output split across the mesh
         out = constrain(out, ("batch", "out_frames", None, "views", None))
-        heal = unpatchify_overlap if cfg.out_patches == "overlap" else unpatchify
-        out = heal(out, cfg.patch, grid, cfg.out_dim).astype(jnp.float32)
+        to_latents = unpatchify_overlap if cfg.out_patches == "overlap" else unpatchify
+        out = to_latents(out, cfg.patch, grid, cfg.out_dim).astype(jnp.float32)
         if cfg.final_conv:
             out = out + self._final_conv(cfg, out, x, ref)
         if cfg.controls.reference_frame in ("residual", "warp"):
