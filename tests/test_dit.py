@@ -645,7 +645,8 @@ def test_overlapping_output_patches_spread_a_seam_and_give_back_the_image_they_a
         tokens = _overlap_tokens(img, patch, junk=1e3)
         out = np.asarray(unpatchify_overlap(jnp.asarray(tokens), patch, grid, 3))
         np.testing.assert_allclose(out[0, 0, 0], img, rtol=1e-5, atol=1e-5)
-    with pytest.raises(ValueError, match=r"out_patches: .* expected an even patch height and width, got patch=\(1, 1, 1\)"):
+    odd_patch = r"out_patches: .* expected an even patch height and width, got patch=\(1, 1, 1\)"
+    with pytest.raises(ValueError, match=odd_patch):
         preset("tiny", patch=(1, 1, 1), out_patches="overlap")
     with pytest.raises(ValueError, match=r"out_patches: expected one of \['disjoint', 'overlap'\], got 'tent'"):
         preset("tiny", out_patches="tent")
@@ -656,9 +657,8 @@ def test_an_overlapping_head_starts_at_zero_four_times_as_wide():
     """The DiT with ``out_patches="overlap"``: its output projection is four times as wide (a
     token's ``2 ph x 2 pw`` patch) and starts at zero, so the residual model gives the newest
     given frame bit for bit; trained, it paints."""
-    cfg = preset(
-        "tiny", prediction="data", out_patches="overlap", controls=dict(cond_frames="replace", reference_frame="residual")
-    )
+    controls = dict(cond_frames="replace", reference_frame="residual")
+    cfg = preset("tiny", prediction="data", out_patches="overlap", controls=controls)
     params = jax.tree_util.tree_map(jnp.asarray, nn.unbox(boxed_params(cfg, TINY_SHAPES)))
     kernel = params["proj_out"]["kernel"]
     assert kernel.shape == (cfg.width, 4 * cfg.patch_dim) and not np.any(kernel)
