@@ -63,6 +63,10 @@ class DataConfig:
     # routes it has, drawn per clip and epoch with these weights, "route" or "route:weight" each
     # (recorded: the train split; the others: 'jaxdrive data synth --counterfactuals'); (): recorded only
     routes: tuple[str, ...] = ()
+    # the share of counterfactual samples whose window starts with all its given frames before the
+    # routes part (the same past, different futures inside one window); 0: uniform starts, where most
+    # windows of a 33-frame clip parting at frame 8 show a route already taken (jaxdrive.data.pipeline)
+    route_parting: float = 0.0
     # an unreadable clip (corrupt or truncated ArrayRecord shard): False raises a ValueError naming the
     # shard file; True fills its slot with another clip of the shard's plan, logs the file once and
     # counts it (bad_records in metrics.jsonl; jaxdrive.data.pipeline says how)
@@ -538,6 +542,14 @@ def check_sections(config) -> None:
         raise ValueError(
             f"data.rate_strides: expected () with flow.distill_teacher (distillation cuts a uniform "
             f"dense clip into segments), got {d.rate_strides!r}"
+        )
+    rp = d.route_parting
+    if isinstance(rp, bool) or not (isinstance(rp, (int, float)) and 0 <= rp <= 1):
+        raise ValueError(f"data.route_parting: expected a share in [0, 1], got {rp!r}")
+    if rp and not any(r.partition(":")[0].strip() != "recorded" for r in d.routes):
+        raise ValueError(
+            f"data.route_parting: expected 0 without a counterfactual route in data.routes (nothing parts), "
+            f"got {rp} with data.routes={d.routes!r}"
         )
     if d.routes:
         from jaxdrive.data.route_mix import parse_route_mix

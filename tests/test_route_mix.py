@@ -114,6 +114,48 @@ def test_routes_change_across_epochs_and_the_other_draws_stay_those_of_the_scene
         assert "route" not in y
 
 
+def _starts(batches, source):
+    """Each sample's (route, start frame): where its first ego pose sits in its scene's render."""
+    out = []
+    for x in batches:
+        for k, route in enumerate(x["route"]):
+            clip = source.along(int(x["index"][k]), route)
+            e2w = np.asarray(clip["ego_to_world"], np.float32)
+            hit = np.flatnonzero(np.all(np.isclose(e2w, np.asarray(x["ego_to_world"])[k, 0], atol=1e-5), (1, 2)))
+            out.append((route, int(hit[0])))
+    return out
+
+
+def test_route_parting_starts_counterfactual_windows_with_their_given_frames_before_the_part(scenes):
+    """5-frame windows of 9-frame clips parting at frame 4, 2 given frames: a parted window starts
+    at frame 0, 1 or 2 (its given frames 2-3 at the latest, before frame 4); a recorded one, or any
+    without parting, anywhere in 0-4."""
+    source = open_routed_scenes(scenes, parse_route_mix("recorded,stop,faster"))
+    assert source.part_frame == START
+    with pytest.raises(ValueError, match="route: expected one of scene 0's routes"):
+        source.along(0, "branch")
+    kw = dict(seed=2, num_threads=0, prefetch=0, shard_index=0, shard_count=1, num_epochs=30)
+    bucket = {(H, W, FRAMES - 4): 2}
+
+    def starts(share):
+        return _starts(make_pipeline(source, bucket, route_parting=share, given_frames=2, **kw), source)
+
+    always, never, half = starts(1.0), starts(0.0), starts(0.5)
+    routed = [t for r, t in always if r != "recorded"]
+    assert routed and max(routed) == 2 and set(routed) == {0, 1, 2}
+    assert max(t for r, t in always if r == "recorded") > 2  # recorded windows keep their uniform starts
+    assert max(t for r, t in never if r != "recorded") > 2
+    share = np.mean([t <= 2 for r, t in half if r != "recorded"])
+    assert 0.6 < share < 0.95  # 0.5 parted + 0.5 x 3/5 of the uniform starts = 0.8
+    for bad in (1.5, -0.1, True):
+        with pytest.raises(ValueError, match=f"route_parting: expected a share in \\[0, 1\\], got {bad!r}"):
+            make_pipeline(source, bucket, route_parting=bad, **kw)
+    from jaxdrive.data.tfds_io import open_source
+
+    with pytest.raises(ValueError, match="route_parting: expected 0 for a source without counterfactual routes"):
+        make_pipeline(open_source(scenes, "train"), bucket, route_parting=0.5, **kw)
+
+
 def test_a_route_the_training_split_lacks_is_refused_before_anything_compiles(scenes):
     import jax
 
@@ -142,6 +184,15 @@ def test_a_route_the_training_split_lacks_is_refused_before_anything_compiles(sc
     )
     with pytest.raises(ValueError, match="data.routes: expected \\(\\) with latents.precomputed"):
         Run(bare, devices=ONE)
+    for routes, share, match in [
+        (("recorded", "stop"), 2.0, r"data.route_parting: expected a share in \[0, 1\], got 2.0"),
+        (("recorded",), 0.5, r"data.route_parting: expected 0 without a counterfactual route in data.routes"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            Run(
+                dataclasses.replace(config, data=dataclasses.replace(config.data, routes=routes, route_parting=share)),
+                devices=ONE,
+            )
 
 
 @pytest.mark.parametrize(

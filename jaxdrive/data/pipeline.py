@@ -58,7 +58,12 @@ Choices:
   ``data.routes``): each sample reads its scene along a route drawn per (seed, epoch, index,
   round) from a generator of its own, so the same past gets different futures within an epoch
   and the other draws are those of the recorded scenes alone; the batch's ``route`` (list of str)
-  names each sample's route.
+  names each sample's route. ``route_parting`` (``data.route_parting``): with that probability
+  (drawn from the route's generator) a counterfactual sample's window starts where all its
+  ``given_frames`` precede the routes' part (the source's ``part_frame``), so the same given
+  frames are followed by different futures inside the window; otherwise, and for ``recorded``,
+  the window starts at the uniform draw. A clip whose part comes too early for its given frames
+  keeps the uniform start.
 - Clip frame counts come from ``source.frame_counts`` (the TFDS source stores them) or the
   ``frame_counts`` argument; otherwise every clip is read once at construction (logged).
 """
@@ -72,7 +77,7 @@ import grain
 import numpy as np
 
 from jaxdrive.data.batch_plan import TAG_ROUTE, TAG_SAMPLE, BatchPlan, seeded_rng
-from jaxdrive.data.buckets import parse_buckets
+from jaxdrive.data.buckets import frame_offsets, parse_buckets
 from jaxdrive.data.faults import BadRecordError, OncePerFile
 from jaxdrive.data.transforms import clip_warp, collate, sample_clip, take_window
 from jaxdrive.validate import check_positive_int
@@ -102,10 +107,12 @@ class _LoadBatch:
         warp_depth=0.0,
         warp_frame=0,
         skip_bad_records=False,
+        route_parting=0.0,
+        given_frames=1,
     ):
         self.source, self.plan, self.views, self.crop = source, plan, views, crop
         self.drop_probs, self.max_boxes, self.warp_depth = dict(drop_probs), max_boxes, warp_depth
-        self.warp_frame = warp_frame
+        self.warp_frame, self.route_parting, self.given_frames = warp_frame, route_parting, given_frames
         self.skip_bad_records = skip_bad_records
         self.routed = callable(getattr(source, "read", None))
         self.bad_files = OncePerFile(log, "its records are skipped and counted in bad_records (data.skip_bad_records)")
@@ -139,6 +146,15 @@ class _LoadBatch:
             f"in epoch {epoch}: every one is unreadable (the first: {first})"
         )
 
+    def _parted_start(self, start: int, starts: int, tail, route_rng) -> int:
+        """``start`` or, with probability ``route_parting`` (one draw of ``route_rng`` always), a
+        start drawn uniformly among those whose given frames all precede the routes' part."""
+        offsets = frame_offsets(self.given_frames, self.plan.stride, self.plan.rate_head, tail)
+        latest = min(int(self.source.part_frame) - 1 - int(offsets[-1]), starts - 1)
+        if route_rng.random() < self.route_parting and latest >= 0:
+            return int(route_rng.integers(0, latest + 1))
+        return start
+
     def __call__(self, spec) -> dict:
         epoch, b, indices, rounds, occurrences = spec
         bucket = self.plan.buckets[b]
@@ -158,6 +174,8 @@ class _LoadBatch:
             start = int(rng.integers(0, starts))  # drawn always: the crop and drops draw after it
             if occurrences is not None:
                 start = self.plan.start_frame(epoch, b, int(planned), int(occurrences[j]), starts)
+            if self.route_parting and clip["route"] != "recorded":
+                start = self._parted_start(start, starts, tail, route_rng)
             if "latents" in clip:
                 s = take_window(clip, frames=bucket.frames, views=self.views, where=f"source window {idx}")
             else:
@@ -209,6 +227,8 @@ def make_pipeline(
     warp_depth: float = 0.0,
     warp_frame: int = 0,
     skip_bad_records: bool = False,
+    route_parting: float = 0.0,
+    given_frames: int = 1,
 ) -> grain.IterDataset:
     """A grain ``IterDataset`` of training batches from a random-access clip ``source``.
 
@@ -226,6 +246,9 @@ def make_pipeline(
     (0: the first, LongDWM's). ``skip_bad_records``: an unreadable clip
     (a corrupt or truncated shard) is replaced, not raised, and each batch carries ``bad_records``
     (module docstring); False: it raises :class:`BadRecordError` naming the shard file.
+    ``route_parting`` in [0, 1] (a source of scenes under several routes with a ``part_frame``):
+    the share of counterfactual samples whose first ``given_frames`` source frames all come before
+    the routes part (module docstring).
     """
     parsed = parse_buckets(buckets, compression=compression)
     stride = check_positive_int("stride", stride)
@@ -282,6 +305,14 @@ def make_pipeline(
         rate_head=rate_head,
         rate_strides=rate_strides,
     )
+    if isinstance(route_parting, bool) or not (isinstance(route_parting, (int, float)) and 0 <= route_parting <= 1):
+        raise ValueError(f"route_parting: expected a share in [0, 1], got {route_parting!r}")
+    if route_parting and getattr(source, "part_frame", None) is None:
+        raise ValueError(
+            f"route_parting: expected 0 for a source without counterfactual routes that part at a known "
+            f"frame (a RoutedScenes of 'jaxdrive data synth --counterfactuals'), got {route_parting} for {source!r}"
+        )
+    given_frames = check_positive_int("given_frames", given_frames)
     if not isinstance(skip_bad_records, bool):
         raise ValueError(f"skip_bad_records: expected True or False, got {skip_bad_records!r}")
     load = _LoadBatch(
@@ -294,6 +325,8 @@ def make_pipeline(
         warp_depth=float(warp_depth),
         warp_frame=int(warp_frame),
         skip_bad_records=skip_bad_records,
+        route_parting=float(route_parting),
+        given_frames=given_frames,
     )
     return (
         grain.MapDataset.source(plan)

@@ -54,11 +54,19 @@ class RoutedScenes:
     source holds the rows of ``rows[route]``, the scene index of each row, in order); ``weights``:
     the mix (:func:`parse_route_mix`). ``len`` and ``frame_counts`` are the scenes'; ``src[i]`` is
     scene ``i`` as recorded (what a substitute for an unreadable record reads when no draw is
-    given), :meth:`read` draws a route. Picklable when its sources are."""
+    given), :meth:`read` draws a route. ``part_frame``: the first frame where the counterfactual
+    routes leave the recorded drive (the dataset's ``counterfactuals.start``; None: unknown), what
+    ``data.route_parting`` places windows before. Picklable when its sources are."""
 
     kind = "clips"
 
-    def __init__(self, sources: Mapping[str, object], rows: Mapping[str, Sequence[int]], weights: Mapping[str, float]):
+    def __init__(
+        self,
+        sources: Mapping[str, object],
+        rows: Mapping[str, Sequence[int]],
+        weights: Mapping[str, float],
+        part_frame: int | None = None,
+    ):
         if "recorded" not in sources:
             raise ValueError(f"sources: expected the recorded scenes ('recorded'), got {sorted(sources)}")
         self.recorded = sources["recorded"]
@@ -78,6 +86,7 @@ class RoutedScenes:
                 )
             self._row[route] = {int(s): j for j, s in enumerate(scenes)}
         self._weights = np.asarray([weights[r] for r in self.routes], np.float64)
+        self.part_frame = part_frame
 
     def __len__(self) -> int:
         return len(self.recorded)
@@ -100,7 +109,15 @@ class RoutedScenes:
         w = np.where(have, self._weights, 0.0)
         k = int(np.searchsorted(np.cumsum(w) / w.sum(), u, side="right"))
         route = self.routes[min(k, len(self.routes) - 1)]
-        return self._sources[route][self._row[route][int(index)]], route
+        return self.along(index, route), route
+
+    def along(self, index: int, route: str) -> dict:
+        """Scene ``index`` rendered along ``route`` (one of :meth:`routes_of`)."""
+        if route == "recorded":
+            return self.recorded[index]
+        if route not in self._row or int(index) not in self._row[route]:
+            raise ValueError(f"route: expected one of scene {index}'s routes {self.routes_of(index)}, got {route!r}")
+        return self._sources[route][self._row[route][int(index)]]
 
     def __repr__(self):
         return f"RoutedScenes({len(self)} scenes, routes={self.routes})"
@@ -127,13 +144,15 @@ def check_route_mix(path, weights: Mapping[str, float], option: str = "data.rout
 def open_routed_scenes(path, weights: Mapping[str, float], option: str = "data.routes") -> RoutedScenes:
     """The ``train`` scenes of the dataset at ``path`` along the routes of ``weights``
     (:func:`check_route_mix` first)."""
+    from jaxdrive.data.synthetic import read_counterfactuals
     from jaxdrive.data.tfds_io import open_source
 
     held = check_route_mix(path, weights, option)
+    start = read_counterfactuals(path).get("start")
     sources = {"recorded": open_source(path, "train")}
     rows = {}
     for route in weights:
         if route != "recorded":
             sources[route] = open_source(path, held[route]["split"])
             rows[route] = held[route]["clips"]
-    return RoutedScenes(sources, rows, weights)
+    return RoutedScenes(sources, rows, weights, part_frame=None if start is None else int(start))

@@ -386,6 +386,8 @@ class Run:
             warp_depth=d.warp_depth if self.training.model.controls.warp else 0.0,
             warp_frame=d.warp_frame,
             skip_bad_records=d.skip_bad_records,
+            route_parting=d.route_parting if d.routes and split == "train" else 0.0,
+            given_frames=self.codec.pixel_frames(max(self.config.flow.cond_frames, 1)),
         )
 
     def global_batch(self, micro_batches: list[dict]):
