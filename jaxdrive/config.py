@@ -543,23 +543,22 @@ def check_sections(config) -> None:
             f"data.rate_strides: expected () with flow.distill_teacher (distillation cuts a uniform "
             f"dense clip into segments), got {d.rate_strides!r}"
         )
-    rp = d.route_parting
-    if isinstance(rp, bool) or not (isinstance(rp, (int, float)) and 0 <= rp <= 1):
-        raise ValueError(f"data.route_parting: expected a share in [0, 1], got {rp!r}")
-    if rp and not any(r.partition(":")[0].strip() != "recorded" for r in d.routes):
-        raise ValueError(
-            f"data.route_parting: expected 0 without a counterfactual route in data.routes (nothing parts), "
-            f"got {rp} with data.routes={d.routes!r}"
-        )
+    parting = validate.check_probability("data.route_parting", d.route_parting)
+    mix = {}
     if d.routes:
         from jaxdrive.data.route_mix import parse_route_mix
 
-        parse_route_mix(d.routes)
+        mix = parse_route_mix(d.routes)
         if config.latents.precomputed:
             raise ValueError(
                 f"data.routes: expected () with latents.precomputed (latent windows are cut from the "
                 f"recorded clips), got {d.routes!r}"
             )
+    if parting and set(mix) <= {"recorded"}:
+        raise ValueError(
+            f"data.route_parting: expected 0 without a counterfactual route in data.routes (nothing parts), "
+            f"got {parting} with data.routes={d.routes!r}"
+        )
     if d.buckets:
         from jaxdrive.data.buckets import parse_bucket_specs
 

@@ -41,6 +41,14 @@ def check_range(name: str, x, lo: float, hi: float, *, lo_open: bool = False, hi
         raise ValueError(f"{name}: expected values in {_interval(lo, hi, lo_open, hi_open)}, got {got}")
 
 
+def check_probability(name: str, p) -> float:
+    """``p`` as a float when it is a real number in [0, 1]; a bool, a string or anything else is a
+    ``ValueError`` naming ``name`` (``True`` is not a probability, though Python compares it as 1)."""
+    if isinstance(p, bool) or not isinstance(p, (int, float, np.integer, np.floating)) or not 0 <= p <= 1:
+        raise ValueError(f"{name}: expected a probability in [0, 1], got {p!r}")
+    return float(p)
+
+
 def check_ndim(name: str, x, ndims: int | Sequence[int]) -> None:
     allowed = (ndims,) if isinstance(ndims, int) else tuple(ndims)
     nd = np.ndim(x)

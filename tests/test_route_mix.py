@@ -147,8 +147,8 @@ def test_route_parting_starts_counterfactual_windows_with_their_given_frames_bef
     assert max(t for r, t in never if r != "recorded") > 2
     share = np.mean([t <= 2 for r, t in half if r != "recorded"])
     assert 0.6 < share < 0.95  # 0.5 parted + 0.5 x 3/5 of the uniform starts = 0.8
-    for bad in (1.5, -0.1, True):
-        with pytest.raises(ValueError, match=f"route_parting: expected a share in \\[0, 1\\], got {bad!r}"):
+    for bad in (1.5, -0.1, True, "0.5"):
+        with pytest.raises(ValueError, match=f"route_parting: expected a probability in \\[0, 1\\], got {bad!r}"):
             make_pipeline(source, bucket, route_parting=bad, **kw)
     from jaxdrive.data.tfds_io import open_source
 
@@ -185,7 +185,7 @@ def test_a_route_the_training_split_lacks_is_refused_before_anything_compiles(sc
     with pytest.raises(ValueError, match="data.routes: expected \\(\\) with latents.precomputed"):
         Run(bare, devices=ONE)
     for routes, share, match in [
-        (("recorded", "stop"), 2.0, r"data.route_parting: expected a share in \[0, 1\], got 2.0"),
+        (("recorded", "stop"), 2.0, r"data.route_parting: expected a probability in \[0, 1\], got 2.0"),
         (("recorded",), 0.5, r"data.route_parting: expected 0 without a counterfactual route in data.routes"),
     ]:
         with pytest.raises(ValueError, match=match):

@@ -80,7 +80,7 @@ from jaxdrive.data.batch_plan import TAG_ROUTE, TAG_SAMPLE, BatchPlan, seeded_rn
 from jaxdrive.data.buckets import frame_offsets, parse_buckets
 from jaxdrive.data.faults import BadRecordError, OncePerFile
 from jaxdrive.data.transforms import clip_warp, collate, sample_clip, take_window
-from jaxdrive.validate import check_positive_int
+from jaxdrive.validate import check_positive_int, check_probability
 
 log = logging.getLogger(__name__)
 
@@ -273,8 +273,7 @@ def make_pipeline(
         check_positive_int("num_epochs", num_epochs)
     drop_probs = DEFAULT_DROP_PROBS if drop_probs is None else dict(drop_probs)
     for name, p in drop_probs.items():
-        if not (isinstance(p, (int, float)) and 0 <= p <= 1):
-            raise ValueError(f"drop_probs[{name!r}]: expected a probability in [0, 1], got {p!r}")
+        check_probability(f"drop_probs[{name!r}]", p)
     if max_boxes is not None:
         check_positive_int("max_boxes", max_boxes)
     if not (np.isfinite(warp_depth) and warp_depth >= 0):
@@ -305,8 +304,7 @@ def make_pipeline(
         rate_head=rate_head,
         rate_strides=rate_strides,
     )
-    if isinstance(route_parting, bool) or not (isinstance(route_parting, (int, float)) and 0 <= route_parting <= 1):
-        raise ValueError(f"route_parting: expected a share in [0, 1], got {route_parting!r}")
+    route_parting = check_probability("route_parting", route_parting)
     if route_parting and getattr(source, "part_frame", None) is None:
         raise ValueError(
             f"route_parting: expected 0 for a source without counterfactual routes that part at a known "
@@ -325,7 +323,7 @@ def make_pipeline(
         warp_depth=float(warp_depth),
         warp_frame=int(warp_frame),
         skip_bad_records=skip_bad_records,
-        route_parting=float(route_parting),
+        route_parting=route_parting,
         given_frames=given_frames,
     )
     return (
