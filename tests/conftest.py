@@ -71,7 +71,7 @@ jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 import pytest  # noqa: E402
 
 # Session fixtures that train a model: a test that asks for one is slow (-m "not slow" skips it).
-TRAINED_FIXTURES = {"tiny_dit", "segmenter_run", "never_killed"}
+TRAINED_FIXTURES = {"tiny_dit", "tiny_warp_dit", "segmenter_run", "never_killed"}
 
 
 def pytest_collection_modifyitems(config, items):
@@ -171,6 +171,16 @@ def tiny_dit(clips21, tmp_path_factory):
     from train_fixtures import tiny_run
 
     return shared(tmp_path_factory, "tiny_dit", lambda folder: tiny_run(folder / "run", clips21)) / "run"
+
+
+@pytest.fixture(scope="session")
+def tiny_warp_dit(clips21, tmp_path_factory):
+    """``tiny_dit`` made warp-guided, its output a correction to the warp from the last given frame
+    (configs/world.py:control=warp's controls), trained 1 step on ``clips21``."""
+    from train_fixtures import tiny_run
+
+    sets = ("model.controls.warp=true", "model.controls.reference_frame=warp", "data.warp_frame=1")
+    return shared(tmp_path_factory, "tiny_warp_dit", lambda folder: tiny_run(folder / "run", clips21, *sets)) / "run"
 
 
 @pytest.fixture(scope="session")

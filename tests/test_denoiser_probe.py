@@ -58,20 +58,11 @@ def test_probe_refuses_unknown_splits(tiny_dit):
         probe_run(tiny_dit, splits=("test",))
 
 
-def test_probe_of_an_untrained_warp_correction_is_the_warp_baseline(clips21, tmp_path):
+def test_probe_of_an_untrained_warp_correction_is_the_warp_baseline(tiny_warp_dit):
     """A warp-guided model whose output corrects the warp (configs/world.py:control=warp's
     controls): one step in, its estimate is the warp at every level, and the warp baseline the
     probe reports is that same number, apart from repeating the last given frame."""
-    from train_fixtures import tiny_run
-
-    run = tiny_run(
-        tmp_path / "run",
-        clips21,
-        "model.controls.warp=true",
-        "model.controls.reference_frame=warp",
-        "data.warp_frame=1",
-    )
-    res = probe_run(run, levels=(1.0,), batches=1, splits=("validation",))
+    res = probe_run(tiny_warp_dit, levels=(1.0,), batches=1, splits=("validation",))
     r = res["validation"]
     assert r["warp"] is not None and r["levels"][1.0] == pytest.approx(r["warp"], abs=0.01), r
     assert abs(r["warp"] - r["repeat"]) > 0.05, r

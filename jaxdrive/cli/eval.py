@@ -218,6 +218,13 @@ def _eval_recorded(
         features["segment"] = lambda frames: segmenter.classes(frames, mesh=run.mesh)
         features["masks"] = inputs.get("box_class_masks", inputs["class_masks"])
         ceiling = controllability(features["segment"], recorded, inputs["class_masks"], buckets)
+    opts: dict = {}
+    if models.main.dit.config.controls.warp:  # LongDWM: each window's first frame warped along the recorded poses
+        from jaxdrive.generate.warps import WarpGuide
+
+        opts["warp"] = WarpGuide.from_inputs(
+            inputs, codec, depth=horizon_spec.data.warp_depth, frame=horizon_spec.data.warp_frame
+        )
     out = Path(args.out)
     results = {}
     for scale in scales:
@@ -231,7 +238,7 @@ def _eval_recorded(
         suffix = "" if len(scales) == 1 else f"@cfg{scale:g}"
         with jax.set_mesh(run.mesh):
             rows = run_strategies(
-                {n: {} for n in names},
+                {n: dict(opts) for n in names},
                 guided,
                 codec,
                 inputs["cond"],
