@@ -282,12 +282,9 @@ class WorldModel:
         inputs, scene, routes = self._inputs(source, spec, frames, clips, padded, views, plan, key)
         codec = spec.codec
         first = first_latents(inputs, codec, models.main.window, plan["given"])
-        if any(m is not None and m.dit.config.controls.warp for m in (models.main, models.fine)):
-            from jaxdrive.generate.warps import WarpGuide  # LongDWM: each window's first frame warped
+        from jaxdrive.generate.warps import warp_options  # LongDWM: each window's own frame warped
 
-            run_options["warp"] = WarpGuide.from_inputs(
-                inputs, codec, depth=spec.data.warp_depth, frame=spec.data.warp_frame
-            )
+        run_options.update(warp_options(models, inputs, codec, depth=spec.data.warp_depth, frame=spec.data.warp_frame))
         # a driven route is not the recorded clip: its frames are no reference to score against
         recorded = np.asarray(inputs["video"]) if "video" in inputs and route is None else None
         fps = float(np.asarray(inputs["cond"].fps)[0]) if inputs["cond"].fps is not None else 12.0 / spec.frame_stride

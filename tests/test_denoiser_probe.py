@@ -53,9 +53,11 @@ def test_probe_of_an_untrained_residual_model_is_the_repeat_baseline(tiny_dit):
     assert abs(res["train"]["repeat"] - res["validation"]["repeat"]) > 0.1
 
 
-def test_probe_refuses_unknown_splits(tiny_dit):
+def test_probe_refuses_unknown_splits_and_batches_before_reading_the_run(tmp_path):
     with pytest.raises(ValueError, match="splits: expected names from"):
-        probe_run(tiny_dit, splits=("test",))
+        probe_run(tmp_path / "no-run", splits=("test",))
+    with pytest.raises(ValueError, match="batches"):
+        probe_run(tmp_path / "no-run", batches=0)
 
 
 def test_probe_of_an_untrained_warp_correction_is_the_warp_baseline(tiny_warp_dit):

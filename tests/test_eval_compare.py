@@ -202,8 +202,6 @@ def test_eval_merges_strategies_of_different_runs_into_one_table(tmp_path, capsy
         assert message in capsys.readouterr().err, message
 
 
-@pytest.mark.optimized_xla  # its time is running the sampler and the scores, not compiling
-@pytest.mark.slow(seconds=33)
 def test_eval_of_a_warp_guided_model_warps_along_the_recorded_poses(tiny_warp_dit, tmp_path, capsys):
     """Without --routes a warp-guided run is sampled along each clip's recorded poses (it was refused:
     "needs the poses to warp along"); its untrained correction gives the warp, not the held frame."""
@@ -217,6 +215,8 @@ def test_eval_of_a_warp_guided_model_warps_along_the_recorded_poses(tiny_warp_di
     assert np.isfinite(rollout) and abs(rollout - repeat) > 0.05, (rollout, repeat)
 
 
+@pytest.mark.optimized_xla  # its time is running the sampler and the scores, not compiling
+@pytest.mark.slow(seconds=33)
 def test_eval_sweeps_guidance_scales_into_one_table_that_merges(tiny_dit, tmp_path, capsys, monkeypatch):
     """``--cfg 1,2`` scores the strategy at each scale (rows ``rollout@cfgS``), with the route
     guided on its own (``--cfg-route``); every row records its guidance, and ``--merge`` takes it.

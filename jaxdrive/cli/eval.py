@@ -189,6 +189,7 @@ def _eval_recorded(
     from jaxdrive.generate.guidance import describe
     from jaxdrive.generate.samples import dataset_inputs
     from jaxdrive.generate.strategies import Models
+    from jaxdrive.generate.warps import warp_options
     from jaxdrive.world_model import first_latents
 
     given_pixels = codec.pixel_frames(given)
@@ -218,13 +219,8 @@ def _eval_recorded(
         features["segment"] = lambda frames: segmenter.classes(frames, mesh=run.mesh)
         features["masks"] = inputs.get("box_class_masks", inputs["class_masks"])
         ceiling = controllability(features["segment"], recorded, inputs["class_masks"], buckets)
-    opts: dict = {}
-    if models.main.dit.config.controls.warp:  # LongDWM: each window's first frame warped along the recorded poses
-        from jaxdrive.generate.warps import WarpGuide
-
-        opts["warp"] = WarpGuide.from_inputs(
-            inputs, codec, depth=horizon_spec.data.warp_depth, frame=horizon_spec.data.warp_frame
-        )
+    # a warp-guided model warps along the clips' recorded poses
+    opts = warp_options(models, inputs, codec, depth=horizon_spec.data.warp_depth, frame=horizon_spec.data.warp_frame)
     out = Path(args.out)
     results = {}
     for scale in scales:

@@ -47,7 +47,7 @@ def check_levels(levels) -> tuple[float, ...]:
     """``levels`` as a tuple of noise levels in (0, 1]; a ``ValueError`` naming ``levels`` else."""
     out = tuple(float(v) for v in levels)
     if not out or any(not 0 < v <= 1 for v in out):
-        raise ValueError(f"levels: expected noise levels in (0, 1], got {list(levels)}")
+        raise ValueError(f"levels: expected noise levels in (0, 1], got {list(out)}")
     return out
 
 
@@ -167,16 +167,16 @@ def main(argv=None) -> int:
     ap.add_argument("--splits", default=",".join(SPLITS), help="train and/or validation")
     args = ap.parse_args(argv)
     try:
-        levels = [float(v) for v in args.levels.split(",")]
+        levels = check_levels(float(v) for v in args.levels.split(","))
     except ValueError:
-        raise ValueError(f"--levels: expected comma-separated numbers, got {args.levels!r}") from None
+        raise ValueError(f"--levels: expected comma-separated noise levels in (0, 1], got {args.levels!r}") from None
     res = probe_run(args.workdir, levels=levels, batches=args.batches, splits=tuple(args.splits.split(",")))
     print("clean-data estimate, PSNR dB in the latents (non-given frames of each window):")
     print("| split | windows | " + " | ".join(f"level {lv:g}" for lv in levels) + " | repeat | warp |")
     print("|---|---|" + "---|" * (len(levels) + 2))
     for split, r in res.items():
         warp = "-" if r["warp"] is None else f"{r['warp']:.2f}"
-        row = " | ".join(f"{r['levels'][lv]:.2f}" for lv in check_levels(levels))
+        row = " | ".join(f"{r['levels'][lv]:.2f}" for lv in levels)
         print(f"| {split} | {r['windows']} | {row} | {r['repeat']:.2f} | {warp} |")
     return 0
 

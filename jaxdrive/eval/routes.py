@@ -185,20 +185,16 @@ def evaluate_routes(
     (and the layout drawn from them) dropped to their learned nulls, named ``"NAME (no boxes)"``:
     what the boxes change."""
     from jaxdrive.eval.compare import baseline_row, repeat_name, repeat_video, run_strategies
+    from jaxdrive.generate.warps import warp_options
 
     base = load_inputs(None, plan["indices"])
     inputs = {r: base if r == RECORDED else load_inputs(plan["splits"][r], plan["rows"][r]) for r in routes}
     first = first_latents(base)
     masks = lambda inp: inp.get("class_masks") if segment is not None else None
     targets = {r: (np.asarray(inp["video"]), masks(inp)) for r, inp in inputs.items() if r != RECORDED}
-    warped = models.main.dit.config.controls.warp
 
     def run(inp, names=strategies, cond=None, **kw):
-        opts = {}
-        if warped:  # LongDWM: each window's first frame warped along this route's poses
-            from jaxdrive.generate.warps import WarpGuide
-
-            opts["warp"] = WarpGuide.from_inputs(inp, codec, depth=depth, frame=warp_frame)
+        opts = warp_options(models, inp, codec, depth=depth, frame=warp_frame)  # along this route's poses
         return run_strategies(
             {n: opts for n in names},
             models,

@@ -85,3 +85,12 @@ class WarpGuide:
 # compiled once per codec and shape (the codec is static: its parameters are an argument)
 _DECODE = jax.jit(lambda codec, params, x: codec.decode(params, x), static_argnums=0)
 _ENCODE = jax.jit(lambda codec, params, x: codec.encode(params, x), static_argnums=0)
+
+
+def warp_options(models, inputs: dict, codec, *, depth: float, frame: int = 0) -> dict:
+    """The strategy options of ``models`` (:class:`jaxdrive.generate.strategies.Models`) for
+    ``inputs``: ``{"warp": WarpGuide}`` along their poses when the main or the fine model was
+    trained with ``controls.warp`` (every window warps its own frame), else ``{}``."""
+    if any(m is not None and m.dit.config.controls.warp for m in (models.main, models.fine)):
+        return {"warp": WarpGuide.from_inputs(inputs, codec, depth=depth, frame=frame)}
+    return {}
