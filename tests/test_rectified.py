@@ -136,3 +136,39 @@ def test_velocity_from_output_rejects_bad_arguments(kw, match):
     x = jnp.ones((1, 1, 1, 1, 1))
     with pytest.raises(ValueError, match=match):
         flow.velocity_from_output(x, x, jnp.ones(1) * 0.5, **kw)
+
+
+def test_skip_coefficients_worked_number_and_ends():
+    """EDM's c_skip, c_out (Karras et al. 2022, eq. 7) in this flow's convention: at level 0.5 and
+    sigma_data 0.5, var = 0.25^2 + 0.5^2 = 0.3125, c_skip = 0.5 * 0.25 / 0.3125 = 0.4, c_out =
+    0.25 / sqrt(0.3125) = 0.44721; level 0 passes the input through, level 1 only the network."""
+    c_skip, c_out = flow.skip_coefficients(jnp.asarray([0.0, 0.5, 1.0]), 0.5)
+    np.testing.assert_allclose(c_skip, [1.0, 0.4, 0.0], atol=1e-6)
+    np.testing.assert_allclose(c_out, [0.0, 0.4472136, 0.5], atol=1e-6)
+
+
+@given(st.floats(0.05, 0.95), st.floats(0.1, 2.0))
+def test_skip_coefficients_leave_a_unit_variance_target_at_its_least_squares_optimum(s, sd):
+    """For data of standard deviation ``sd``, ``c_skip x_t`` is the least-squares linear estimate
+    of ``x`` and the network's target ``(x - c_skip x_t) / c_out`` has unit variance (analytic
+    moments of ``x_t = (1 - s) x + s n``)."""
+    c_skip, c_out = (float(a) for a in flow.skip_coefficients(s, sd))
+
+    def residual_var(c):  # Var(x - c x_t)
+        return (1 - c * (1 - s)) ** 2 * sd**2 + (c * s) ** 2
+
+    assert residual_var(c_skip) / c_out**2 == pytest.approx(1.0, rel=1e-5)
+    for dc in (-1e-3, 1e-3):
+        assert residual_var(c_skip + dc) > residual_var(c_skip)
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(sigma=0.5, sigma_data=0.0), r"sigma_data: expected values in \(0"),
+        (dict(sigma=1.5, sigma_data=0.5), r"sigma: expected values in \[0"),
+    ],
+)
+def test_skip_coefficients_reject_bad_arguments(kw, match):
+    with pytest.raises(ValueError, match=match):
+        flow.skip_coefficients(**kw)

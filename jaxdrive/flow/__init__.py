@@ -25,6 +25,7 @@ from jaxdrive.flow.rectified import (
     expand_per_frame,
     noise_from_velocity,
     noise_given_frames,
+    skip_coefficients,
     velocity_from_data,
     velocity_from_noise,
     velocity_from_output,
@@ -39,6 +40,7 @@ from jaxdrive.flow.weights import foreground_weight_map
 __all__ = [
     "add_noise",
     "noise_given_frames",
+    "skip_coefficients",
     "velocity_target",
     "data_from_velocity",
     "noise_from_velocity",

@@ -109,6 +109,27 @@ def velocity_from_noise(x_t, noise, sigma):
     return ((noise - x_t) / (1.0 - _levels(sigma, x_t))).astype(x_t.dtype)
 
 
+def skip_coefficients(sigma, sigma_data: float):
+    """EDM's preconditioning of a data-predicting network (Karras et al. 2022, "Elucidating the
+    Design Space of Diffusion-Based Generative Models", eq. 7 and Table 1), for this flow's
+    ``x_sigma = (1 - sigma) x + sigma noise``: ``(c_skip, c_out)`` such that the estimate
+    ``c_skip x_sigma + c_out F`` leaves the network ``F`` a target of unit variance,
+    ``(x - c_skip x_sigma) / c_out``, for data of standard deviation ``sigma_data``:
+
+        c_skip = (1 - sigma) sigma_data^2 / ((1 - sigma)^2 sigma_data^2 + sigma^2)
+        c_out  = sigma sigma_data / sqrt((1 - sigma)^2 sigma_data^2 + sigma^2)
+
+    (EDM's ``c_skip = sigma_data^2 / (sigma^2 + sigma_data^2)`` with its ``x + sigma n`` written
+    as ``(x_sigma / (1 - sigma))`` at level ``sigma / (1 - sigma)``). ``c_skip x_sigma`` is the
+    linear least-squares estimate of ``x``; at level 0 it is ``x_sigma`` itself and ``c_out`` is 0,
+    at level 1 it is 0 and ``c_out = sigma_data``. ``sigma`` any shape; returns two arrays of it."""
+    check_range("sigma_data", sigma_data, 0.0, float("inf"), lo_open=True, hi_open=True)
+    check_range("sigma", sigma, 0.0, 1.0)
+    s = jnp.asarray(sigma, jnp.float32)
+    var = jnp.square((1.0 - s) * sigma_data) + jnp.square(s)
+    return (1.0 - s) * sigma_data**2 / var, s * sigma_data / jnp.sqrt(var)
+
+
 def euler_step(x_t, v, sigma, sigma_next):
     """One Euler step of the flow ODE from level ``sigma`` to ``sigma_next``: ``x + (s' - s) v``."""
     check_same_shape("v", v, "x_t", x_t)

@@ -170,7 +170,16 @@ class DiTConfig:
     :func:`jaxdrive.flow.velocity_from_output` with ``max(sigma, prediction_min_sigma)``; Li & He
     2025, JiT). A token of more numbers than the width (``patch_dim > width``) can only learn with
     data prediction: the velocity at high noise is mostly the token's own noise, which a narrower
-    network cannot pass through, so that pairing is refused. ``final_conv`` (channels; 0: off)
+    network cannot pass through, so that pairing is refused. ``sigma_data`` (0: off; data
+    prediction only) preconditions that estimate as EDM does (Karras et al. 2022, eq. 7,
+    :func:`jaxdrive.flow.skip_coefficients`): ``x = ref + g c_skip (x_t - (1 - sigma) ref) + c_out
+    out`` with ``ref`` the reference frame (``controls.reference_frame`` ``"residual"`` or
+    ``"warp"``; else 0), ``sigma_data`` the standard deviation of ``x - ref`` and ``g`` a learned
+    scalar that starts at 0 (so a fresh model still gives ``ref``). Without it the network must
+    redraw a nearly clean input through its per-token head, whose rank is the width (64 or 128)
+    against a token's 192 numbers: its estimate at level 0.03 draws the token grid onto a
+    gridless input (docs/results/demo.md); with it, the input passes through at low levels and
+    the head adds a correction scaled by ``c_out``. ``final_conv`` (channels; 0: off)
     adds U-ViT's two 3x3 convolutions after the unpatchify (Bao et al. 2023, sec. 3.1), over the
     output, the input and the given frame: without them each token's output is a linear map of its
     own hidden state, and a narrow model's frames show the token grid as blocks.
@@ -240,6 +249,7 @@ class DiTConfig:
     box_freqs: int = 8
     prediction: str = "velocity"
     prediction_min_sigma: float = 0.05
+    sigma_data: float = 0.0
     final_conv: int = 0
     out_patches: str = "disjoint"
     vae_temporal: int = 4
@@ -323,6 +333,13 @@ def _check_choices(cfg: DiTConfig) -> None:
     check_choice("prediction", cfg.prediction, PREDICTIONS)
     if not 0.0 < cfg.prediction_min_sigma <= 1.0:
         raise ValueError(f"prediction_min_sigma: expected a level in (0, 1], got {cfg.prediction_min_sigma}")
+    if not cfg.sigma_data >= 0.0:
+        raise ValueError(f"sigma_data: expected a standard deviation >= 0 (0: off), got {cfg.sigma_data}")
+    if cfg.sigma_data and cfg.prediction != "data":
+        raise ValueError(
+            f"sigma_data: expected 0 with prediction {cfg.prediction!r} (the skip preconditions a "
+            f"data estimate), got {cfg.sigma_data}"
+        )
 
 
 def _check_sizes(cfg: DiTConfig) -> None:

@@ -56,6 +56,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdrive.flow.rectified import skip_coefficients
 from jaxdrive.models.dit.blocks import LayerContext, layer_class
 from jaxdrive.models.dit.conditions import Conditions
 from jaxdrive.models.dit.config import DiTConfig, check_config, layer_runs
@@ -214,7 +215,7 @@ class DiT(nn.Module):
         if cfg.controls.map and c.bev_map is not None:
             residuals = self._map_branch(cfg, carry, ctx, c.bev_map, drop, nf, grid)
         carry, feats = self._stack(cfg, carry, ctx, residuals, c.features, c.features_mask, deterministic)
-        out = self._output(cfg, _video(cfg, carry), t, x, ref, grid)
+        out = self._output(cfg, _video(cfg, carry), t, x, ref, grid, sig)
         return (out, feats) if return_features else out
 
     # ------------------------------------------------------------------ steps of the network
@@ -306,9 +307,10 @@ class DiT(nn.Module):
             )
         return carry, ctx
 
-    def _output(self, cfg: DiTConfig, video, t, x, ref, grid: tuple[int, int]) -> jax.Array:
+    def _output(self, cfg: DiTConfig, video, t, x, ref, grid: tuple[int, int], sig) -> jax.Array:
         """The network output ``[B, V, F', h, w, C_out]`` of the last layer's ``video`` tokens:
-        the final layer, unpatchified, U-ViT's convolutions and the given frame's residual."""
+        the final layer, unpatchified, U-ViT's convolutions and the given frame's residual (with
+        ``sigma_data``, EDM's skip from the input ``x`` at the frames' levels ``sig [B, F']``)."""
         out = self._final(cfg, video, t)
         # the head is per frame: frames over seq keep a long window's output split across the mesh
         out = constrain(out, ("batch", "out_frames", None, "views", None))
@@ -316,10 +318,24 @@ class DiT(nn.Module):
         out = to_latents(out, cfg.patch, grid, cfg.out_dim).astype(jnp.float32)
         if cfg.final_conv:
             out = out + self._final_conv(cfg, out, x, ref)
+        base = None
         if cfg.controls.reference_frame in ("residual", "warp"):
             assert ref is not None  # made above: reference_frame is set
-            out = out + ref[..., :-1]  # the change from the newest given frame, or from the warp
-        return out
+            base = ref[..., :-1]  # the change from the newest given frame, or from the warp
+        if cfg.sigma_data:
+            return self._skip(cfg, out, x, base, sig)
+        return out if base is None else out + base
+
+    def _skip(self, cfg, out, x, base, sig):
+        """EDM's preconditioning of the data estimate (Karras et al. 2022, eq. 7;
+        :func:`jaxdrive.flow.skip_coefficients`) around the reference ``base`` (or 0):
+        ``base + g c_skip (x - (1 - sigma) base) + c_out out``, ``g`` a learned scalar from 0."""
+        c_skip, c_out = skip_coefficients(sig[:, None, :, None, None, None], cfg.sigma_data)
+        gate = param(self, "skip_gate", ZEROS, (), ())
+        if base is None:
+            return gate * c_skip * x + c_out * out
+        s = sig[:, None, :, None, None, None]
+        return base + gate * c_skip * (x - (1.0 - s) * base) + c_out * out
 
     # ------------------------------------------------------------------ pieces
 
