@@ -49,6 +49,10 @@ def test_probe_of_an_untrained_residual_model_is_the_repeat_baseline(tiny_dit):
         assert np.isfinite(r["repeat"])
         for level in (1.0, 0.1):
             assert r["levels"][level] == pytest.approx(r["repeat"], abs=0.01), (split, level, r)
+        # the renders draw no token grid (about 1); the estimates (the given frame) the same
+        assert 0.8 < r["grid_clean"] < 1.2, r
+        assert r["grid"][1.0] == pytest.approx(r["grid"][0.1], abs=1e-3), r
+        assert r["grid_warp"] is None
     # the splits are different clips: their baselines differ
     assert abs(res["train"]["repeat"] - res["validation"]["repeat"]) > 0.1
 
@@ -67,4 +71,17 @@ def test_probe_of_an_untrained_warp_correction_is_the_warp_baseline(tiny_warp_di
     res = probe_run(tiny_warp_dit, levels=(1.0,), batches=1, splits=("validation",))
     r = res["validation"]
     assert r["warp"] is not None and r["levels"][1.0] == pytest.approx(r["warp"], abs=0.01), r
+    assert r["grid"][1.0] == pytest.approx(r["grid_warp"], abs=1e-3), r  # the warp's own grid
     assert abs(r["warp"] - r["repeat"]) > 0.05, r
+
+
+def test_the_command_line_prints_the_psnr_and_the_token_grid_tables(tiny_warp_dit, capsys):
+    from jaxdrive.eval.denoiser_probe import main
+
+    assert main(["--workdir", str(tiny_warp_dit), "--levels", "1", "--batches", "1", "--splits", "validation"]) == 0
+    out = capsys.readouterr().out
+    psnr, grid = out.split("token grid of the decoded estimate")
+    assert "| split | windows | level 1 | repeat | warp |" in psnr
+    assert "| split | windows | level 1 | clean | warp |" in grid
+    row = [line for line in grid.splitlines() if line.startswith("| validation |")]
+    assert len(row) == 1 and len(row[0].split("|")) == 7, row  # split, windows, level 1, clean, warp

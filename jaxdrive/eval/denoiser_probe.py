@@ -17,6 +17,13 @@ second generalises poorly; one below them on both lacks capacity or steps. No co
 PSNR is ``10 log10(4 / MSE)`` in the latents' units (a peak-to-peak range of 2: for the
 space-to-depth codec it is the pixels' PSNR). :func:`latent_psnr` is the score;
 :func:`probe_run` the measurement; the command line prints a table.
+
+Beside each PSNR, the token grid each estimate draws: the decoded estimate's
+:func:`jaxdrive.eval.token_grid.grid_contrast` at the token's footprint (1: none; the clean
+windows' and the warp's own figures beside), so the level at which a model draws its token grid
+into a sample shows: a grid in the estimate at a low level, whose input is nearly the clean
+gridless frame, is the head redrawing its input (``DiTConfig.sigma_data`` lets it pass through); a
+grid from pure noise is committed before the detail.
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdrive.eval.token_grid import grid_contrast
 from jaxdrive.validate import check_positive_int
 
 SPLITS = ("train", "validation")
@@ -85,8 +93,10 @@ def _estimates(training, params, codec_params, inputs, level: float, given_level
 
 def probe_run(workdir, *, levels=(1.0, 0.7, 0.4, 0.1), batches: int = 4, splits=SPLITS, seed: int = 0) -> dict:
     """Per split and level, the PSNR of the model's clean-data estimate, of repeating the last
-    given frame and (warp-guided) of the warp, over ``batches`` batches of the run's pipeline:
-    ``{split: {"levels": {level: psnr}, "repeat": psnr, "warp": psnr or None, "windows": n}}``."""
+    given frame and (warp-guided) of the warp, over ``batches`` batches of the run's pipeline,
+    with the token-grid contrast of each (decoded) estimate, of the clean windows and of the warp:
+    ``{split: {"levels": {level: psnr}, "repeat": psnr, "warp": psnr or None, "windows": n,
+    "grid": {level: contrast}, "grid_clean": contrast, "grid_warp": contrast or None}}``."""
     from jaxdrive.config import override
     from jaxdrive.train.common import load_run_config
     from jaxdrive.train.run import Run, restore_params
@@ -109,6 +119,15 @@ def probe_run(workdir, *, levels=(1.0, 0.7, 0.4, 0.1), batches: int = 4, splits=
         raise ValueError(f"workdir: expected frame-wise latents (temporal compression 1), got {t.codec.temporal}")
     # the pipeline's batch as a train step's one micro-batch, sharded over the run's mesh
     given_level = config.flow.given_noise_sample
+    token = t.model.patch[-1] * t.model.vae_spatial  # the token's footprint in pixels
+    decode = jax.jit(lambda c, z: t.codec.decode(c, z))
+
+    def grid(z, mask) -> np.ndarray:  # per scored frame, the decoded latents' token grid
+        with jax.set_mesh(run.mesh):
+            video = np.asarray(jax.device_get(decode(run.codec.params, z)))  # [B, V, F, H, W, 3]
+        per_frame = np.stack([grid_contrast(video[i], token) for i in range(video.shape[0])])  # [B, F]
+        return per_frame[np.asarray(mask)]
+
     fn = jax.jit(
         lambda p, c, inp, level, key: _estimates(
             t, p, c, jax.tree_util.tree_map(lambda a: a[0], inp), level, given_level, key
@@ -118,7 +137,8 @@ def probe_run(workdir, *, levels=(1.0, 0.7, 0.4, 0.1), batches: int = 4, splits=
     for split in splits:
         it = iter(run.dataset(split))
         sq: dict = {lv: [] for lv in levels}
-        base: dict = {"repeat": [], "warp": []}
+        grids: dict = {lv: [] for lv in levels}
+        base: dict = {"repeat": [], "warp": [], "grid_clean": [], "grid_warp": []}
         n = 0
         for i in range(batches):
             try:
@@ -132,9 +152,12 @@ def probe_run(workdir, *, levels=(1.0, 0.7, 0.4, 0.1), batches: int = 4, splits=
                     res = fn(params, run.codec.params, inputs, lv, jax.random.key(seed * 1000 + i * 17 + j))
                 x, mask, est, rep, warp = jax.device_get(res)
                 sq[lv].append(_squared(est, x, mask))
+                grids[lv].append(grid(est, mask))
             base["repeat"].append(_squared(rep, x, mask))
+            base["grid_clean"].append(grid(x, mask))
             if warp is not None:
                 base["warp"].append(_squared(warp, x, mask))
+                base["grid_warp"].append(grid(warp, mask))
             n += x.shape[0]
         if n == 0:
             raise ValueError(f"splits: the {split} split of {config.data.path} gave no window")
@@ -143,6 +166,9 @@ def probe_run(workdir, *, levels=(1.0, 0.7, 0.4, 0.1), batches: int = 4, splits=
             "repeat": _psnr(base["repeat"]),
             "warp": _psnr(base["warp"]) if base["warp"] else None,
             "windows": n,
+            "grid": {lv: _mean(grids[lv]) for lv in levels},
+            "grid_clean": _mean(base["grid_clean"]),
+            "grid_warp": _mean(base["grid_warp"]) if base["grid_warp"] else None,
         }
     return out
 
@@ -152,9 +178,24 @@ def _squared(e, t, mask) -> np.ndarray:
     return np.square(np.asarray(e, np.float64) - np.asarray(t, np.float64)).mean(axis=(1, 3, 4, 5))[np.asarray(mask)]
 
 
+def _mean(chunks) -> float:
+    return float(np.concatenate(chunks).mean())
+
+
 def _psnr(chunks) -> float:
     mse = float(np.concatenate(chunks).mean())
     return float("inf") if mse == 0 else float(10 * np.log10(4.0 / mse))
+
+
+def _print_table(res, levels, keys, fmt, labels) -> None:
+    """One markdown row per split: the figure per level, then the two baselines ("-": none)."""
+    per_level, first, second = keys
+    print("| split | windows | " + " | ".join(f"level {lv:g}" for lv in levels) + f" | {' | '.join(labels)} |")
+    print("|---|---|" + "---|" * (len(levels) + 2))
+    for split, r in res.items():
+        cells = [fmt.format(r[per_level][lv]) for lv in levels]
+        cells += ["-" if r[k] is None else fmt.format(r[k]) for k in (first, second)]
+        print(f"| {split} | {r['windows']} | " + " | ".join(cells) + " |")
 
 
 def main(argv=None) -> int:
@@ -172,12 +213,9 @@ def main(argv=None) -> int:
         raise ValueError(f"--levels: expected comma-separated noise levels in (0, 1], got {args.levels!r}") from None
     res = probe_run(args.workdir, levels=levels, batches=args.batches, splits=tuple(args.splits.split(",")))
     print("clean-data estimate, PSNR dB in the latents (non-given frames of each window):")
-    print("| split | windows | " + " | ".join(f"level {lv:g}" for lv in levels) + " | repeat | warp |")
-    print("|---|---|" + "---|" * (len(levels) + 2))
-    for split, r in res.items():
-        warp = "-" if r["warp"] is None else f"{r['warp']:.2f}"
-        row = " | ".join(f"{r['levels'][lv]:.2f}" for lv in levels)
-        print(f"| {split} | {r['windows']} | {row} | {r['repeat']:.2f} | {warp} |")
+    _print_table(res, levels, ("levels", "repeat", "warp"), "{:.2f}", ("repeat", "warp"))
+    print("\ntoken grid of the decoded estimate (grid contrast, 1: none; the clean windows' beside):")
+    _print_table(res, levels, ("grid", "grid_clean", "grid_warp"), "{:.3f}", ("clean", "warp"))
     return 0
 
 
