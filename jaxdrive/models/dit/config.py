@@ -172,10 +172,11 @@ class DiTConfig:
     data prediction: the velocity at high noise is mostly the token's own noise, which a narrower
     network cannot pass through, so that pairing is refused. ``sigma_data`` (0: off; data
     prediction only) preconditions that estimate as EDM does (Karras et al. 2022, eq. 7,
-    :func:`jaxdrive.flow.skip_coefficients`): ``x = ref + g c_skip (x_t - (1 - sigma) ref) + c_out
+    :func:`jaxdrive.flow.skip_coefficients`): ``x = ref + c_skip (x_t - (1 - sigma) ref) + c_out
     out`` with ``ref`` the reference frame (``controls.reference_frame`` ``"residual"`` or
-    ``"warp"``; else 0), ``sigma_data`` the standard deviation of ``x - ref`` and ``g`` a learned
-    scalar that starts at 0 (so a fresh model still gives ``ref``). Without it the network must
+    ``"warp"``; else 0) and ``sigma_data`` the standard deviation of ``x - ref``. A fresh model is
+    then EDM's linear estimate around ``ref`` (``ref`` itself only from pure noise: it samples
+    ``ref`` plus noise of that deviation), no longer ``ref``. Without it the network must
     redraw a nearly clean input through its per-token head, whose rank is the width (64 or 128)
     against a token's 192 numbers: its estimate at level 0.03 draws the token grid onto a
     gridless input (docs/results/demo.md); with it, the input passes through at low levels and

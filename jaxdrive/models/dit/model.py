@@ -326,16 +326,16 @@ class DiT(nn.Module):
             return self._skip(cfg, out, x, base, sig)
         return out if base is None else out + base
 
-    def _skip(self, cfg, out, x, base, sig):
+    @staticmethod
+    def _skip(cfg, out, x, base, sig):
         """EDM's preconditioning of the data estimate (Karras et al. 2022, eq. 7;
         :func:`jaxdrive.flow.skip_coefficients`) around the reference ``base`` (or 0):
-        ``base + g c_skip (x - (1 - sigma) base) + c_out out``, ``g`` a learned scalar from 0."""
-        c_skip, c_out = skip_coefficients(sig[:, None, :, None, None, None], cfg.sigma_data)
-        gate = param(self, "skip_gate", ZEROS, (), ())
-        if base is None:
-            return gate * c_skip * x + c_out * out
+        ``base + c_skip (x - (1 - sigma) base) + c_out out``."""
         s = sig[:, None, :, None, None, None]
-        return base + gate * c_skip * (x - (1.0 - s) * base) + c_out * out
+        c_skip, c_out = skip_coefficients(s, cfg.sigma_data)
+        if base is None:
+            return c_skip * x + c_out * out
+        return base + c_skip * (x - (1.0 - s) * base) + c_out * out
 
     # ------------------------------------------------------------------ pieces
 
