@@ -333,8 +333,7 @@ class DiT(nn.Module):
         ``base + c_skip (x - (1 - sigma) base) + c_out out``."""
         s = sig[:, None, :, None, None, None]
         c_skip, c_out = skip_coefficients(s, cfg.sigma_data)
-        if base is None:
-            return c_skip * x + c_out * out
+        base = 0.0 if base is None else base
         return base + c_skip * (x - (1.0 - s) * base) + c_out * out
 
     # ------------------------------------------------------------------ pieces
