@@ -205,9 +205,14 @@ class SampleConfig:
 
     ``cfg``: the classifier-free guidance scale, ``v = v_null + cfg (v_c - v_null)``
     (:mod:`jaxdrive.flow.sampler`): 1 is none (one forward per step), 0 the unconditional model,
-    above 1 the controls amplified; each recipe in ``configs/`` sets its paper's value."""
+    above 1 the controls amplified; each recipe in ``configs/`` sets its paper's value.
+
+    ``warp_start``: the noise level a warp-guided model's generated frames start from, noised from
+    their warp (SDEdit, Meng et al. 2022, sec. 3: ``x_s = (1 - s) warp + s noise``, then the flow
+    from ``s`` to 0 in the run's sampler steps); 1 is pure noise, the warp only a condition."""
 
     cfg: float = 1.0
+    warp_start: float = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -459,6 +464,20 @@ def check_self_rollout(config) -> None:
             raise ValueError(f"{name}: expected {expected} with flow.self_rollout_rate > 0, got {got!r}")
 
 
+def check_warp_start(level, model=None) -> float:
+    """``sample.warp_start`` as a float: a noise level in (0, 1]; below 1 only for a model that
+    reads the warp (``model.controls.warp``, a :class:`jaxdrive.models.dit.config.DiTConfig`),
+    whose windows have a warp to start from."""
+    if isinstance(level, bool) or not isinstance(level, (int, float)) or not 0.0 < level <= 1.0:
+        raise ValueError(f"sample.warp_start: expected a noise level in (0, 1], got {level!r}")
+    if level < 1.0 and model is not None and not model.controls.warp:
+        raise ValueError(
+            f"sample.warp_start: expected 1 (pure noise) for a model without the warp "
+            f"(model.controls.warp false), got {level!r}"
+        )
+    return float(level)
+
+
 def check_sections(config) -> None:
     """Range checks of the sections defined here (the model's config checks itself)."""
     d, o, t, f = config.data, config.optim, config.train, config.flow
@@ -572,5 +591,6 @@ def check_sections(config) -> None:
                 raise ValueError(f"{name}: expected {ok!r} with data.buckets, got {value!r}")
     if hasattr(config, "sample"):
         validate.check_range("sample.cfg", config.sample.cfg, 0.0, float("inf"), hi_open=True)
+        check_warp_start(config.sample.warp_start, getattr(config, "model", None))
     if hasattr(config, "model"):
         check_config(config.model)

@@ -179,6 +179,57 @@ def test_every_window_warps_its_own_first_frame_and_the_warp_steers_it():
         np.testing.assert_array_equal(got_first, out[:, :, frames[1:2]])
 
 
+@pytest.mark.parametrize("start", [1.0, 0.4])
+def test_warp_start_samples_from_the_warp_noised_to_its_level(start):
+    """``sample.warp_start`` (SDEdit from the warp): one Euler step from level ``s`` lands on the
+    model's data estimate there, so the window equals the DiT's output for the input
+    ``(1 - s) warp + s noise`` at level ``s``; the shift (3) does not move the start."""
+    import flax.linen as nn
+    import jax
+    import jax.numpy as jnp
+
+    from jaxdrive.generate.windows import WindowModel, jitted_sample_window
+    from jaxdrive.models.dit import DiT
+    from jaxdrive.models.dit.conditions import Conditions
+    from jaxdrive.models.dit.presets import preset
+
+    controls = dict(warp=True, cond_frames="replace", reference_frame="warp")
+    cfg = preset("tiny", in_channels=8, vae_spatial=4, vae_temporal=1, prediction="data", controls=controls)
+    dit = DiT(cfg)
+    params = nn.unbox(dit.init_params(0, batch=1, views=2, frames=4, height=8, width=8))
+    keys = iter(jax.random.split(jax.random.key(3), len(jax.tree_util.tree_leaves(params)) + 2))
+    params = jax.tree_util.tree_map(lambda p: p + 0.05 * jax.random.normal(next(keys), p.shape), params)
+    given, warp = (jax.random.normal(next(keys), (1, 2, 4, 8, 8, 8)) for _ in range(2))
+    mask = jnp.asarray([[True, False, False, False]])
+    model = WindowModel(dit, params, window=4, steps=1, shift=3.0, warp_start=start)
+    key = jax.random.key(7)
+    out = np.asarray(jitted_sample_window(model, params, given, mask, Conditions(warp=warp), key))
+    noise = jax.random.normal(key, given.shape)  # the window's noise: from the key itself
+    x_s = jnp.where(mask[:, None, :, None, None, None], given, (1 - start) * warp + start * noise)
+    cond = Conditions(cond_latents=given, cond_mask=mask, warp=warp)
+    want = dit.apply({"params": params}, x_s, jnp.where(mask, 0.0, start), cond)
+    np.testing.assert_allclose(out[:, :, 1:], np.asarray(want)[:, :, 1:], rtol=1e-4, atol=1e-4)
+    np.testing.assert_array_equal(out[:, :, 0], np.asarray(given)[:, :, 0])
+
+
+def test_warp_start_is_refused_out_of_range_and_for_a_model_without_the_warp(data):
+    from jaxdrive.generate.windows import WindowModel
+    from jaxdrive.models.dit import DiT
+    from jaxdrive.models.dit.presets import preset
+
+    for bad in ("0", "1.5", "-0.2"):
+        with pytest.raises(ValueError, match=rf"sample.warp_start: expected a noise level in \(0, 1\], got {bad}"):
+            Run(config(data, f"sample.warp_start={bad}"))
+    without = [f"data.path={data}", *(s for s in WARP if s != "model.controls.warp=true"), "sample.warp_start=0.5"]
+    with pytest.raises(ValueError, match=r"sample.warp_start: expected 1 \(pure noise\) for a model without the warp"):
+        Run(load_config(str(ROOT / "configs" / "tiny.py"), without))
+    plain = DiT(preset("tiny", in_channels=8, prediction="data", controls=dict(cond_frames="replace")))
+    with pytest.raises(ValueError, match=r"sample.warp_start: expected 1 \(pure noise\) for a model without the warp"):
+        WindowModel(plain, None, warp_start=0.5)
+    with pytest.raises(ValueError, match="sample.warp_start: expected a noise level in"):
+        WindowModel(plain, None, warp_start=True)
+
+
 def test_the_pipeline_warps_from_the_last_given_frame_when_told(data):
     run = Run(config(data, "data.warp_depth=15", "data.warp_frame=1", "flow.cond_frames=2"))
     batch = next(iter(run.dataset()))

@@ -41,7 +41,8 @@ class Sampling:
     source-frame stride between its frames (default ``data.stride``); ``precomputed``: ``data.path``
     holds latent windows (``jaxdrive data encode``); ``stream``: STAGE's streaming settings of a
     model trained frame by frame; ``guidance``: the classifier-free guidance scale it samples with
-    unless told otherwise (the run's ``sample.cfg``)."""
+    unless told otherwise (the run's ``sample.cfg``); ``warp_start``: the level a warp-guided
+    model's generated frames start from, noised from their warp (the run's ``sample.warp_start``)."""
 
     model: DiTConfig
     codec: LatentCodec
@@ -55,6 +56,7 @@ class Sampling:
     steps: int = 20
     stream: StreamConfig = StreamConfig()
     guidance: float = 1.0
+    warp_start: float = 1.0
 
     @property
     def latent_window(self) -> int:

@@ -26,6 +26,7 @@ from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from jaxdrive import flow
+from jaxdrive.config import check_warp_start
 from jaxdrive.flow.jdc import DEFAULT_ALPHA1, DEFAULT_ANCHOR_SLOPE
 from jaxdrive.generate.guidance import check_controls, check_scale, sampler_guidance
 from jaxdrive.models.dit.conditions import Conditions
@@ -50,7 +51,9 @@ class WindowModel:
     (STAGE, ``stream.enabled``), with an HTFT buffer of ``stream_buffer`` frames fusing
     ``stream_taps`` (empty: HTFT off). ``value_range``: the interval its codec's latents lie in
     (``LatentCodec.value_range``), or None. ``given_noise``: the level its given frames are
-    noised to before each call (``flow.given_noise_sample``, :func:`jaxdrive.flow.noise_given_frames`)."""
+    noised to before each call (``flow.given_noise_sample``, :func:`jaxdrive.flow.noise_given_frames`).
+    ``warp_start``: the level a warp-guided model's generated frames start from, their warp noised
+    to it (``sample.warp_start``, SDEdit; 1: pure noise)."""
 
     dit: DiT
     params: Any = dataclasses.field(compare=False, hash=False, repr=False)
@@ -75,9 +78,11 @@ class WindowModel:
     stream_taps: tuple[int, ...] = ()
     value_range: tuple[float, float] | None = None
     given_noise: float = 0.0
+    warp_start: float = 1.0
 
     def __post_init__(self):
         check_scale("guidance", self.guidance)
+        check_warp_start(self.warp_start, self.dit.config)
         for control, scale in self.control_guidance:
             check_scale(f"control_guidance[{control!r}]", scale)
 
@@ -134,6 +139,7 @@ class WindowModel:
             stream_taps=tuple(spec.stream.taps) if spec.model.htft_layers else (),
             value_range=spec.codec.value_range,
             given_noise=f.given_noise_sample,
+            warp_start=spec.warp_start,
         )
 
     def in_range(self, latents):
@@ -352,7 +358,10 @@ def sample_window(model: WindowModel, params, x_cond, cond_mask, controls: Condi
     True is sampled without that condition in every branch, so guidance leaves that clip's
     condition out rather than pushing along it (:func:`jaxdrive.generate.guidance.sampler_guidance`;
     all False: every clip guided). The sampled frames come out clipped to the latents'
-    range (:meth:`WindowModel.in_range`); the given frames bit for bit as ``x_cond``."""
+    range (:meth:`WindowModel.in_range`); the given frames bit for bit as ``x_cond``. With
+    ``model.warp_start`` below 1 and a warp in ``controls``, the generated frames start from
+    their warp noised to that level and the schedule runs from it to 0 (its sampling shift's
+    levels, from the unshifted ``shift_sigmas(warp_start, 1 / shift)``)."""
     m = model.dit.config
     drop = controls.drop or {}
     cond = controls.replace(drop=None)
@@ -366,8 +375,13 @@ def sample_window(model: WindowModel, params, x_cond, cond_mask, controls: Condi
             )
             cond = cond.replace(cond_latents=noisy, cond_sigma=cond_sigma)
     guidance = sampler_guidance(cond, drop, x_cond.shape[0], model.guidance, model.control_guidance)
+    start = model.warp_start if controls.warp is not None else 1.0
+    # the unshifted level the shift maps to ``start``: flow.shift_sigmas with the inverse ratio,
+    # in Python (``model`` is static under jit, so the level stays a concrete number)
+    r = 1.0 / model.shift
+    top = 1.0 if start == 1.0 else r * start / (1.0 + (r - 1.0) * start)
     schedule = flow.frame_schedule(
-        flow.sampling_sigmas(model.steps, shift=model.shift),
+        flow.sampling_sigmas(model.steps, shift=model.shift, sigma_max=top),
         cond_mask,
         anchor_mask=anchor_mask,
         tpd=model.tpd,
@@ -379,6 +393,8 @@ def sample_window(model: WindowModel, params, x_cond, cond_mask, controls: Condi
     noise = jax.random.normal(key, x_cond.shape, jnp.float32)
     k_anchor = jax.random.fold_in(key, 1)
     keep = cond_mask[:, None, :, None, None, None]
+    if start < 1.0:  # SDEdit (Meng et al. 2022, sec. 3) from the warp: x_s = (1 - s) warp + s noise
+        noise = flow.add_noise(jnp.asarray(controls.warp, jnp.float32), noise, jnp.full(x_cond.shape[:1], start))
     x0 = jnp.where(keep, x_cond, noise)
     if anchor_mask is not None:
         anchors = anchor_mask[:, None, :, None, None, None]

@@ -149,4 +149,5 @@ def sampling_spec(config: Config, mesh, codec):
         steps=c.train.sample_steps,
         stream=c.stream,
         guidance=c.sample.cfg,
+        warp_start=c.sample.warp_start,
     )
