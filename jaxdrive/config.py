@@ -464,8 +464,8 @@ def check_self_rollout(config) -> None:
             raise ValueError(f"{name}: expected {expected} with flow.self_rollout_rate > 0, got {got!r}")
 
 
-def check_warp_start(level, model=None) -> float:
-    """``sample.warp_start`` as a float: a noise level in (0, 1]; below 1 only for a model that
+def check_warp_start(level, model=None) -> None:
+    """``sample.warp_start``: a noise level in (0, 1]; below 1 only for a model that
     reads the warp (``model.controls.warp``, a :class:`jaxdrive.models.dit.config.DiTConfig`),
     whose windows have a warp to start from."""
     if isinstance(level, bool) or not isinstance(level, (int, float)) or not 0.0 < level <= 1.0:
@@ -475,7 +475,6 @@ def check_warp_start(level, model=None) -> float:
             f"sample.warp_start: expected 1 (pure noise) for a model without the warp "
             f"(model.controls.warp false), got {level!r}"
         )
-    return float(level)
 
 
 def check_sections(config) -> None:

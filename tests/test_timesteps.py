@@ -65,6 +65,16 @@ def test_sampling_schedule():
     assert bool(jnp.all(jnp.diff(s) < 0))
 
 
+def test_a_sampling_schedule_below_1_starts_at_its_level_on_the_shifted_path():
+    """``sigma_max`` < 1 (SDEdit's start): the first level is ``sigma_max`` itself, whatever the
+    shift, and the others are the shift of evenly spaced levels below its unshifted one."""
+    s = flow.sampling_sigmas(4, shift=3.0, sigma_max=0.6)
+    # the shift 3 maps 1/3 to 0.6: the even levels 1/3, 1/4, 1/6, 1/12, 0, shifted (3 t / (1 + 2 t))
+    np.testing.assert_allclose(s, [0.6, 0.5, 0.375, 0.25 / (7 / 6), 0.0], atol=1e-6)
+    np.testing.assert_allclose(s, flow.shift_sigmas(np.linspace(1 / 3, 0, 5), 3.0), atol=1e-6)
+    np.testing.assert_allclose(flow.sampling_sigmas(4, sigma_max=0.6), [0.6, 0.45, 0.3, 0.15, 0.0], atol=1e-6)
+
+
 @pytest.mark.parametrize(
     "call, match",
     [

@@ -83,12 +83,16 @@ def resolution_shift(
 
 
 def sampling_sigmas(num_steps: int, *, shift: float = 1.0, sigma_max: float = 1.0):
-    """The inference schedule ``[num_steps + 1]``: evenly spaced from ``sigma_max`` to 0, shifted.
+    """The inference schedule ``[num_steps + 1]``: evenly spaced levels, shifted, from ``sigma_max``
+    to 0.
 
     The last entry is exactly 0 and the schedule is strictly decreasing. Open-Sora v1.2 samples
-    with this schedule (``1 - i / N``) and the same shift as in training.
+    with this schedule (``1 - i / N``) and the same shift as in training. Below 1, ``sigma_max`` is
+    the schedule's first level itself (SDEdit's start, ``sample.warp_start``): the even spacing
+    runs from the unshifted level the shift maps to it, the shift with the inverse ratio.
     """
     check_positive_int("num_steps", num_steps)
     check_range("sigma_max", sigma_max, 0.0, 1.0, lo_open=True)
-    base = jnp.linspace(sigma_max, 0.0, num_steps + 1, dtype=jnp.float32)
+    top = sigma_max if sigma_max == 1.0 else shift_sigmas(sigma_max, 1.0 / shift)
+    base = jnp.linspace(top, 0.0, num_steps + 1, dtype=jnp.float32)
     return shift_sigmas(base, shift).at[-1].set(0.0)

@@ -360,8 +360,8 @@ def sample_window(model: WindowModel, params, x_cond, cond_mask, controls: Condi
     all False: every clip guided). The sampled frames come out clipped to the latents'
     range (:meth:`WindowModel.in_range`); the given frames bit for bit as ``x_cond``. With
     ``model.warp_start`` below 1 and a warp in ``controls``, the generated frames start from
-    their warp noised to that level and the schedule runs from it to 0 (its sampling shift's
-    levels, from the unshifted ``shift_sigmas(warp_start, 1 / shift)``)."""
+    their warp noised to that level and the schedule runs from it to 0
+    (:func:`jaxdrive.flow.sampling_sigmas` with ``sigma_max=warp_start``)."""
     m = model.dit.config
     drop = controls.drop or {}
     cond = controls.replace(drop=None)
@@ -376,12 +376,8 @@ def sample_window(model: WindowModel, params, x_cond, cond_mask, controls: Condi
             cond = cond.replace(cond_latents=noisy, cond_sigma=cond_sigma)
     guidance = sampler_guidance(cond, drop, x_cond.shape[0], model.guidance, model.control_guidance)
     start = model.warp_start if controls.warp is not None else 1.0
-    # the unshifted level the shift maps to ``start``: flow.shift_sigmas with the inverse ratio,
-    # in Python (``model`` is static under jit, so the level stays a concrete number)
-    r = 1.0 / model.shift
-    top = 1.0 if start == 1.0 else r * start / (1.0 + (r - 1.0) * start)
     schedule = flow.frame_schedule(
-        flow.sampling_sigmas(model.steps, shift=model.shift, sigma_max=top),
+        flow.sampling_sigmas(model.steps, shift=model.shift, sigma_max=start),
         cond_mask,
         anchor_mask=anchor_mask,
         tpd=model.tpd,
