@@ -117,6 +117,9 @@ class FlowConfig:
     # the share of steps that train a rollout's second window, and the Euler steps of its first
     self_rollout_rate: float = 0.0
     self_rollout_steps: int = 4
+    # the share of clips whose generated frames are noised from their warp instead of their future
+    # (jaxdrive.flow.warp_path): the path sample.warp_start samples on; needs model.controls.warp
+    warp_path_rate: float = 0.0
     tpd: bool = False  # MiLA's temporal progressive denoising levels
     tpd_omega: float = 1.5707963267948966
     patterns: tuple[str, ...] = ("prefix",)  # where given frames sit: prefix / ends / anchors (flow.patterns)
@@ -464,6 +467,24 @@ def check_self_rollout(config) -> None:
             raise ValueError(f"{name}: expected {expected} with flow.self_rollout_rate > 0, got {got!r}")
 
 
+def check_warp_path(config) -> None:
+    """``flow.warp_path_rate``: a share in [0, 1]; above 0 only for a model that reads the warp
+    (there is no warp to noise otherwise) and on steps whose noisy inputs are the plain path's
+    (JDC's anchors and the distillation's coarse frames make their own)."""
+    f = config.flow
+    validate.check_range("flow.warp_path_rate", f.warp_path_rate, 0.0, 1.0)
+    if not f.warp_path_rate:
+        return
+    needs = (
+        ("model.controls.warp", config.model.controls.warp, "true (the warp the inputs are noised from)", False),
+        ("flow.jdc_anchor_rate", f.jdc_anchor_rate == 0, "0", f.jdc_anchor_rate),
+        ("flow.distill_teacher", not f.distill_teacher, "''", f.distill_teacher),
+    )
+    for name, ok, expected, got in needs:
+        if not ok:
+            raise ValueError(f"{name}: expected {expected} with flow.warp_path_rate > 0, got {got!r}")
+
+
 def check_warp_start(level, model=None) -> None:
     """``sample.warp_start``: a noise level in (0, 1]; below 1 only for a model that
     reads the warp (``model.controls.warp``, a :class:`jaxdrive.models.dit.config.DiTConfig`),
@@ -540,6 +561,7 @@ def check_sections(config) -> None:
         )
     if f.self_rollout_rate:
         check_self_rollout(config)
+    check_warp_path(config)
     if f.given_noise_max > 0 and config.model.controls.cond_frames != "replace":
         raise ValueError(
             f"flow.given_noise_max: the given frames' noise level reaches the model with "

@@ -230,6 +230,102 @@ def test_warp_start_is_refused_out_of_range_and_for_a_model_without_the_warp(dat
         WindowModel(plain, None, warp_start=True)
 
 
+def test_warp_path_noises_the_chosen_frames_from_the_warp_and_keeps_the_loss_that_of_x():
+    import jax
+    import jax.numpy as jnp
+
+    from jaxdrive import flow
+
+    # worked number: x = 0, warp = 1, noise = 0 at level 0.25: the input 0.75, the implied noise
+    # 0 + 0.75 / 0.25 * (1 - 0) = 3, and (1 - 0.25) * 0 + 0.25 * 3 = 0.75 again
+    one = jnp.ones((1, 1, 2, 1, 1, 1))
+    x_t, implied = flow.warp_path(0 * one, 0 * one, one, jnp.asarray([[0.25, 0.25]]), jnp.asarray([[False, True]]))
+    np.testing.assert_allclose(np.asarray(x_t).ravel(), [0.0, 0.75])
+    np.testing.assert_allclose(np.asarray(implied).ravel(), [0.0, 3.0])
+    k = jax.random.split(jax.random.key(0), 4)
+    x, noise, warp = (jax.random.normal(kk, (2, 3, 4, 2, 2, 5)) for kk in k[:3])
+    levels = jax.random.uniform(k[3], (2, 4), minval=0.05, maxval=1.0)
+    on = jnp.asarray([[False, True, True, False], [False, False, False, False]])
+    x_t, implied = flow.warp_path(x, noise, warp, levels, on)
+    m = on[:, None, :, None, None, None]
+    np.testing.assert_allclose(x_t, jnp.where(m, flow.add_noise(warp, noise, levels), flow.add_noise(x, noise, levels)))
+    np.testing.assert_allclose(flow.add_noise(x, implied, levels), x_t, rtol=1e-5, atol=1e-5)  # on x's path
+    np.testing.assert_array_equal(np.where(m, 0.0, implied), np.where(m, 0.0, noise))  # the others untouched
+    # the velocity loss against (x, implied) is the data estimate's error over the level
+    out = jax.random.normal(jax.random.key(9), x.shape)
+    v = flow.velocity_from_output(out, x_t, levels, "data")
+    s = flow.expand_per_frame(levels, x)
+    np.testing.assert_allclose(v - flow.velocity_target(x, implied), (x - out) / s, rtol=1e-4, atol=1e-4)
+    with pytest.raises(ValueError, match=r"warp: expected the shape of x"):
+        flow.warp_path(x, noise, warp[:, :, :2], levels, on)
+    with pytest.raises(ValueError, match="on: expected shape"):
+        flow.warp_path(x, noise, warp, levels, on[:, :2])
+
+
+@pytest.mark.slow(seconds=12)
+def test_the_step_feeds_the_warp_path_to_the_dit_and_scores_it_against_the_future(data, monkeypatch):
+    """``flow.warp_path_rate=1``: the DiT's input at the generated frames is the encoded warp
+    noised with the same noise as the plain step's input from the future, the given frames
+    untouched, and the loss is the velocity loss of the future from that input."""
+    import jax
+
+    from jaxdrive import flow
+    from jaxdrive.train import flow_step
+
+    seen = []
+    inputs = None
+    for rate in ("0", "1"):
+        run = Run(config(data, f"flow.warp_path_rate={rate}", "data.warp_depth=15"))
+        forward = type(run.training.dit).forward
+
+        def spy(self, params, x, sigma, cond, **kw):
+            out = forward(self, params, x, sigma, cond, **kw)
+            seen.append(dict(x=np.asarray(x), sigma=np.asarray(sigma), cond=cond, out=out))
+            return out
+
+        monkeypatch.setattr(type(run.training.dit), "forward", spy)
+        state, _, _ = run.init_state()
+        if inputs is None:
+            inputs = jax.tree_util.tree_map(lambda a: a[0], run.global_batch([next(iter(run.dataset()))]))
+        with jax.set_mesh(run.mesh):
+            _, metrics = flow_step.flow_loss_fn(run.training, state.params, None, inputs, jax.random.key(3))
+        seen[-1]["loss"] = float(metrics["flow_loss"])
+        monkeypatch.undo()
+    plain, warped = seen
+    codec = run.training.codec
+    x, warp = (np.asarray(codec.encode(None, np.asarray(inputs[k]))) for k in ("video", "warp_video"))
+    mask = np.asarray(warped["cond"].cond_mask)
+    assert mask[:, :2].all() and not mask[:, 2:].any()
+    s = np.asarray(flow.expand_per_frame(warped["sigma"], x))[:, :, 2:]
+    np.testing.assert_array_equal(warped["sigma"], plain["sigma"])
+    noise_plain = (plain["x"][:, :, 2:] - (1 - s) * x[:, :, 2:]) / s
+    noise_warped = (warped["x"][:, :, 2:] - (1 - s) * warp[:, :, 2:]) / s
+    np.testing.assert_allclose(noise_warped, noise_plain, rtol=1e-3, atol=1e-3)  # one noise, two paths
+    assert np.abs(warped["x"][:, :, 2:] - plain["x"][:, :, 2:]).max() > 0.05  # the warp differs from the future
+    # the loss: the future's velocity from the warp's input, (x_t - x) / s, as the noise that gives it
+    x_t = warped["x"]
+    v = flow.velocity_from_output(warped["out"], x_t, warped["sigma"], "data")
+    s_all = np.maximum(np.asarray(flow.expand_per_frame(warped["sigma"], x)), 1e-6)
+    want = flow.flow_loss(v, x, (x_t - (1 - s_all) * x) / s_all, cond_mask=mask)
+    np.testing.assert_allclose(warped["loss"], float(want), rtol=1e-4)
+
+
+@pytest.mark.parametrize(
+    "sets, match",
+    [
+        (["flow.warp_path_rate=1.5"], r"flow.warp_path_rate: expected values in \[0.0, 1.0\], got 1.5"),
+        (
+            ["flow.warp_path_rate=0.5", "flow.jdc_anchor_rate=0.5"],
+            "flow.jdc_anchor_rate: expected 0 with flow.warp_path_rate",
+        ),
+        (["flow.warp_path_rate=0.5", "model.controls.warp=false"], r"model.controls.warp: expected true \(the warp"),
+    ],
+)
+def test_bad_warp_path_rates_are_refused(data, sets, match):
+    with pytest.raises(ValueError, match=match):
+        Run(config(data, *sets))
+
+
 def test_the_pipeline_warps_from_the_last_given_frame_when_told(data):
     run = Run(config(data, "data.warp_depth=15", "data.warp_frame=1", "flow.cond_frames=2"))
     batch = next(iter(run.dataset()))

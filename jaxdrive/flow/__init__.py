@@ -30,6 +30,7 @@ from jaxdrive.flow.rectified import (
     velocity_from_noise,
     velocity_from_output,
     velocity_target,
+    warp_path,
 )
 from jaxdrive.flow.sampler import sample
 from jaxdrive.flow.schedule import frame_schedule, frame_sigmas
@@ -41,6 +42,7 @@ __all__ = [
     "add_noise",
     "noise_given_frames",
     "skip_coefficients",
+    "warp_path",
     "velocity_target",
     "data_from_velocity",
     "noise_from_velocity",

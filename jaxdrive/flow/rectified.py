@@ -63,6 +63,29 @@ def noise_given_frames(x, noise, cond_mask, level):
     return add_noise(x, noise, frame_level), frame_level
 
 
+def warp_path(x, noise, warp, levels, on):
+    """The noisy input of the frames ``on [B, F]`` taken from the warp: ``(1 - s) warp + s noise``
+    at their levels ``levels [B, F]`` (> 0 where on), the others ``(1 - s) x + s noise`` as
+    usual; returns ``(x_t, noise')`` with ``noise'`` the noise that puts ``x_t`` on the path of
+    ``x``, ``noise + (1 - s) / s (warp - x)`` where on, so that the velocity loss against
+    ``(x, noise')`` is the usual one of a data estimate of ``x`` from that input.
+
+    The path SDEdit samples on (Meng et al. 2022, arXiv 2108.01073, sec. 3: the guide, here
+    LongDWM's warp, sec. 3.4, perturbed to level ``t0`` and denoised from there;
+    ``sample.warp_start``): trained only on ``(1 - s) x + s noise``, a model reads a noised warp,
+    whose signal already holds the warp, off its path and its correction overshoots; trained on
+    this one too, it learns the correction from exactly the input the sampler starts from.
+    """
+    check_same_shape("noise", noise, "x", x)
+    check_same_shape("warp", warp, "x", x)
+    s = _levels(levels, x)
+    m = expand_per_frame(jnp.asarray(on, bool), x, "on")
+    s_on = jnp.where(m, s, 1.0)  # the frames off the warp's path divide by nothing
+    x_t = jnp.where(m, add_noise(warp, noise, levels), add_noise(x, noise, levels))
+    implied = jnp.where(m, noise + (1.0 - s_on) / s_on * (warp - x), noise)
+    return x_t.astype(x.dtype), implied.astype(noise.dtype)
+
+
 def _levels(sigma, x):
     check_range("sigma", sigma, 0.0, 1.0)
     return expand_per_frame(sigma, x).astype(jnp.promote_types(x.dtype, jnp.float32))

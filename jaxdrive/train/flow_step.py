@@ -13,7 +13,9 @@ each micro-batch (in a ``lax.scan``):
    start (``0..cond_frames`` per clip, or exactly ``cond_frames``), the pattern's JDC anchors (at
    ``g = slope * sigma``, MiLA [2503.15875v1] sec. 3.3) for a fraction ``jdc_anchor_rate`` of clips, and
    per-frame levels by :func:`jaxdrive.flow.frame_sigmas` (TPD when on, MiLA [2503.15875v1] eq. 13-14);
-3. noises ``x_sigma = (1 - sigma) x + sigma noise`` per frame, anchors as the sampler makes them
+3. noises ``x_sigma = (1 - sigma) x + sigma noise`` per frame (for a share ``flow.warp_path_rate``
+   of the clips of a warp-guided model, the generated frames from the warp instead,
+   :func:`jaxdrive.flow.warp_path`: the path ``sample.warp_start`` samples on), anchors as the sampler makes them
    (:func:`jaxdrive.flow.jdc_training_anchors`, MiLA [2503.15875v1] eq. 8-12: the truth plus alpha1 noise,
    re-noised to ``g``); the condition frames sit at level 0, i.e. clean, and the DiT sees level 0
    for them (and ``cond_latents`` when it has a condition-frame control);
@@ -157,6 +159,9 @@ def flow_loss_fn(training: FlowTraining, params, codec_params, inputs: dict, key
         )
     else:
         x_t = flow.add_noise(x, noise, levels)
+    if training.flow.warp_path_rate > 0:  # SDEdit's path: these clips' generated frames noised from the warp
+        coin = jax.random.bernoulli(jax.random.fold_in(k_noise, 3), training.flow.warp_path_rate, (x.shape[0],))
+        x_t, noise = flow.warp_path(x, noise, cond.warp, levels, coin[:, None] & ~given)
     if training.model.controls.cond_frames is not None:
         cond = cond.replace(cond_latents=x, cond_mask=given)
         if training.flow.given_noise_max > 0:  # GameNGen: the context noised, its level told
