@@ -80,7 +80,7 @@ def warp_path(x, noise, warp, levels, on):
     check_same_shape("warp", warp, "x", x)
     s = _levels(levels, x)
     m = expand_per_frame(jnp.asarray(on, bool), x, "on")
-    s_on = jnp.where(m, s, 1.0)  # the frames off the warp's path divide by nothing
+    s_on = jnp.where(m, s, 1.0)  # the given frames (level 0) are off the path: no division by their 0
     x_t = jnp.where(m, add_noise(warp, noise, levels), add_noise(x, noise, levels))
     implied = jnp.where(m, noise + (1.0 - s_on) / s_on * (warp - x), noise)
     return x_t.astype(x.dtype), implied.astype(noise.dtype)
