@@ -30,7 +30,8 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxdrive.config import Config, check_sections, override
+from jaxdrive.config import Config, override
+from jaxdrive.config_checks import check_sections
 from jaxdrive.generate.samples import Sampling
 from jaxdrive.generate.strategies import NEEDS_FINE, STRATEGIES, Models, check_strategy, check_taps
 from jaxdrive.generate.windows import WindowModel

@@ -92,7 +92,7 @@ def test_the_cli_reports_a_bad_config_argument(config_file, tmp_path, capsys):
 
 
 def test_mixed_frame_rate_keys_parse_and_are_checked():
-    from jaxdrive.config import check_sections
+    from jaxdrive.config_checks import check_sections
 
     c = load_config(TINY, ["data.rate_head=4", "data.rate_strides=1,6,12", "model.controls.frame_time=true"])
     assert (c.data.rate_head, c.data.rate_strides, c.model.controls.frame_time) == (4, (1, 6, 12), True)

@@ -145,7 +145,7 @@ def test_the_sampler_noises_its_given_frames_to_the_sampling_level(monkeypatch):
     ],
 )
 def test_bad_levels_name_the_option(sets, match):
-    from jaxdrive.config import check_sections
+    from jaxdrive.config_checks import check_sections
 
     with pytest.raises(ValueError, match=match):
         check_sections(load_config(str(ROOT / "configs" / "tiny.py"), sets))

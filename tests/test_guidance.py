@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from jaxdrive.cli import main as cli
-from jaxdrive.config import check_sections, load_config, to_dict
+from jaxdrive.config import load_config, to_dict
+from jaxdrive.config_checks import check_sections
 from jaxdrive.generate.guidance import CONTROLS, check_controls, sampler_guidance
 from jaxdrive.models.dit.conditions import Conditions
 

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from jaxdrive.cli import main as cli
-from jaxdrive.config import check_sections, load_config
+from jaxdrive.config import load_config
+from jaxdrive.config_checks import check_sections
 
 from train_fixtures import write_synthetic
 

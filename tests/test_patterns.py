@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from jaxdrive import flow
-from jaxdrive.config import Config, FlowConfig, check_sections, override
+from jaxdrive.config import Config, FlowConfig, override
+from jaxdrive.config_checks import check_sections
 from jaxdrive.train import flow_step
 
 T, F_ = True, False

@@ -255,7 +255,7 @@ def test_cli_train_then_sample_writes_video_and_grid(dataset, tmp_path):
 
 @pytest.mark.parametrize("name", ["tiny", "world", "small", "mila", "magicdrive_v2", "longdwm", "stdit3_xl"])
 def test_every_config_loads_and_checks(name):
-    from jaxdrive.config import check_sections
+    from jaxdrive.config_checks import check_sections
 
     config = load_config(ROOT / "configs" / f"{name}.py")
     check_sections(config)

@@ -26,7 +26,7 @@ from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from jaxdrive import flow
-from jaxdrive.config import check_warp_start
+from jaxdrive.config_checks import check_warp_start
 from jaxdrive.flow.jdc import DEFAULT_ALPHA1, DEFAULT_ANCHOR_SLOPE
 from jaxdrive.generate.guidance import check_controls, check_scale, sampler_guidance
 from jaxdrive.models.dit.conditions import Conditions

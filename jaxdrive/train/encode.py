@@ -36,7 +36,7 @@ import numpy as np
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from jaxdrive.config import check_sections
+from jaxdrive.config_checks import check_sections
 from jaxdrive.models.latents import LatentCodec
 from jaxdrive.parallel import Processes, global_to_host_local, host_local_to_global
 from jaxdrive.progress import Progress

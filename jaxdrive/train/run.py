@@ -33,7 +33,8 @@ import jax
 import numpy as np
 from jax.sharding import PartitionSpec as P
 
-from jaxdrive.config import Config, check_sections, to_dict
+from jaxdrive.config import Config, to_dict
+from jaxdrive.config_checks import check_sections
 from jaxdrive.data.batches import TextEmbeddings, model_inputs, stack_micro_batches
 from jaxdrive.logs import deprecated_log
 from jaxdrive.models.dit.model import param_trace_shapes
